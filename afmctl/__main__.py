@@ -1,0 +1,5 @@
+import sys
+
+from afmctl.cli import main
+
+sys.exit(main())

@@ -1,0 +1,96 @@
+"""The ``afmctl`` command line.
+
+Each verb lives in its own module ``afmctl.commands.<verb>`` that defines
+``register(subparsers) -> None``; the parser it adds sets ``func=run(args) -> int``.
+Command modules import their heavy dependencies inside ``run`` so that ``--help`` is fast.
+
+Errors a user can act on (bad files, bad configuration, device errors) are printed as one
+line ``afmctl: error: ...`` with exit status 2, never a traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Sequence
+
+#: verbs in the order ``afmctl --help`` lists them
+VERBS = ("demo", "run", "sim", "identify", "compensate", "model", "drift", "amp", "log", "report", "schema")
+
+DESCRIPTION = """\
+afmctl — feedforward compensation for AFM piezo scanners.
+
+Piezo scanners do not go where they are told: hysteresis bends scan lines, creep keeps
+the tip moving after it stops, thermal drift walks the image away. afmctl identifies
+models of these effects from measured data, inverts them, and streams the voltages that
+put the tip where you want it.
+
+Start here:
+  afmctl demo --out demo-out        simulated scanner, grating images with/without compensation
+  afmctl identify --model pi --data DATA.csv --out MODEL.json
+  afmctl compensate --model MODEL.json --target TARGET.csv --out VOLTS.csv
+
+Units everywhere: V, nm, s, °C. Each command has its own --help.
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="afmctl", description=DESCRIPTION,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    from afmctl import __version__
+    parser.add_argument("--version", action="version", version=f"afmctl {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="more log output (-v info, -vv debug)")
+    sub = parser.add_subparsers(dest="verb", metavar="COMMAND")
+    for verb in VERBS:
+        try:
+            module = importlib.import_module(f"afmctl.commands.{verb}")
+        except ModuleNotFoundError as err:
+            if err.name == f"afmctl.commands.{verb}":
+                continue  # verb not built yet
+            raise
+        module.register(sub)
+    return parser
+
+
+def _user_errors() -> tuple[type[BaseException], ...]:
+    from pydantic import ValidationError
+
+    from afmctl.errors import AfmctlError
+    from compensators.base import ModelError
+    from drivers.errors import AmplifierError
+    return (AfmctlError, ModelError, AmplifierError, ValidationError)
+
+
+def _one_line(err: BaseException) -> str:
+    from pydantic import ValidationError
+    if isinstance(err, ValidationError):
+        first = err.errors()[0]
+        loc = ".".join(str(p) for p in first["loc"]) or "(root)"
+        return f"field {loc}: {first['msg']}"
+    return " ".join(str(err).split("\n"))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.verb is None:
+        parser.print_help()
+        return 0
+    level = logging.WARNING if args.verbose == 0 else (logging.INFO if args.verbose == 1 else logging.DEBUG)
+    logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
+    try:
+        return int(args.func(args) or 0)
+    except _user_errors() as err:
+        print(f"afmctl: error: {_one_line(err)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("afmctl: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""One module per ``afmctl`` verb; see :mod:`afmctl.cli`."""

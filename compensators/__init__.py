@@ -1,0 +1,6 @@
+"""Pure numerics of afmctl: hysteresis, creep and drift operators, their inverses,
+identification, and model files.
+
+No I/O happens here besides reading and writing model JSON files
+(:mod:`compensators.models`). Nothing is imported eagerly: import the submodule you need.
+"""

@@ -1,0 +1,44 @@
+"""The short exception hierarchy of :mod:`drivers`.
+
+Every error may carry the device's own error ``code`` and ``text`` and the raw bytes that
+caused it (``data``), so that a person at the bench sees what the amplifier said.
+"""
+from __future__ import annotations
+
+
+class AmplifierError(Exception):
+    """Base of every driver error."""
+
+    def __init__(self, message: str, *, code: int | str | None = None, text: str | None = None,
+                 data: bytes | None = None) -> None:
+        parts = [message]
+        if code is not None:
+            parts.append(f"device code {code}")
+        if text:
+            parts.append(f"device text {text!r}")
+        if data is not None:
+            parts.append(f"bytes {data!r}")
+        super().__init__("; ".join(parts))
+        self.code = code
+        self.text = text
+        self.data = data
+
+
+class ConnectionError_(AmplifierError):
+    """The link could not be opened or was lost (port vanished, bus down)."""
+
+
+# Public alias without the trailing underscore (the builtin name stays usable).
+AmplifierConnectionError = ConnectionError_
+
+
+class AmplifierTimeout(AmplifierError):
+    """A read or write did not complete within its timeout (device silent)."""
+
+
+class ProtocolError(AmplifierError):
+    """The device replied with bytes that do not parse, or with an error code."""
+
+
+class LimitError(AmplifierError):
+    """A requested value is outside the configured or device limits; nothing was sent."""
