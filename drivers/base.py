@@ -7,6 +7,15 @@ speaks typed commands. A driver takes an open transport; it never builds one —
 
 Voltages are in volts. Axes are named ``"x"``, ``"y"``, ``"z"`` (a single-channel unit has
 only ``"x"``).
+
+Streaming semantics: :meth:`Amplifier.set_voltages` checks the limits, writes the setpoint
+and returns without waiting for the device where the protocol allows it (pipelining); an
+error the device reports for an earlier setpoint is raised by a later call, and
+:meth:`Amplifier.flush` waits until everything written has been applied and checked.
+After a lost link (``DISCONNECTED``) or a silent device (``FAULT``) every command raises
+:class:`~drivers.errors.AmplifierConnectionError` until :meth:`Amplifier.reconnect`.
+Implementations: :mod:`drivers.mdt`, :mod:`drivers.gcs`, :mod:`drivers.nv200`,
+:mod:`drivers.can_amp`; see docs/DRIVERS.md.
 """
 from __future__ import annotations
 
@@ -19,6 +28,9 @@ from drivers.errors import LimitError
 
 
 class ConnectionState(enum.Enum):
+    """Visible link state: CONNECTED (commands accepted), DISCONNECTED (port lost),
+    FAULT (device silent or bus error), RECONNECTING (inside reconnect()), CLOSED."""
+
     DISCONNECTED = "disconnected"
     CONNECTED = "connected"
     RECONNECTING = "reconnecting"
@@ -64,8 +76,9 @@ class Amplifier(ABC):
 
     @abstractmethod
     def set_voltages(self, volts: Mapping[str, float]) -> None:
-        """Command output voltages [V] on some axes. Values outside :attr:`limits` raise
-        :class:`~drivers.errors.LimitError` before any byte is sent."""
+        """Command output voltages [V] on some axes (the others keep their value). Values
+        outside :attr:`limits` (or NaN/inf) raise :class:`~drivers.errors.LimitError` before
+        any byte is sent. May return before the device applied it (see module notes)."""
 
     @abstractmethod
     def get_voltages(self) -> dict[str, float]:

@@ -1,0 +1,187 @@
+"""Transports: move bytes (pyserial) or frames (python-can), nothing else.
+
+Every read and write has a timeout; pyserial's ``write_timeout`` is always set (its
+default ``None`` blocks forever when a device stops reading). pyserial and OS errors are
+mapped onto :mod:`drivers.errors`: a lost port raises
+:class:`~drivers.errors.AmplifierConnectionError`, a stalled one
+:class:`~drivers.errors.AmplifierTimeout` carrying the bytes received so far.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+
+from drivers.errors import AmplifierConnectionError, AmplifierTimeout
+
+log = logging.getLogger(__name__)
+
+#: granularity of blocking reads [s]; deadlines are enforced by the read loop
+_POLL_S = 0.01
+
+
+class SerialTransport:
+    """A byte link over any pyserial ``serial_for_url`` URL or device path
+    (``/dev/ttyUSB0``, a pty path, ``loop://``, ``socket://host:port`` ...).
+
+    ``timeout_s`` bounds every blocking read, ``write_timeout_s`` every write [s].
+    The port is opened by :meth:`open` (drivers call it at connect and reconnect).
+
+    Pacing without round trips: the transport knows when the bytes it has written will
+    have left the wire at ``baudrate`` (8N1, 10 bits per byte) and keeps at most
+    ``max_backlog_s`` of them queued in OS buffers (a write waits first), so streaming
+    runs at the link rate with bounded latency. A read's timeout starts when the
+    backlog has drained.
+    """
+
+    def __init__(self, url: str, *, baudrate: int = 115200, timeout_s: float = 0.5,
+                 write_timeout_s: float | None = None, max_backlog_s: float = 0.02,
+                 **serial_options: object) -> None:
+        if timeout_s <= 0:
+            raise ValueError(f"timeout_s must be > 0, got {timeout_s!r}")
+        self.url = url
+        self.baudrate = int(baudrate)
+        self.timeout_s = float(timeout_s)
+        self.write_timeout_s = float(write_timeout_s if write_timeout_s is not None else timeout_s)
+        self.max_backlog_s = float(max_backlog_s)
+        self._s_per_byte = 10.0 / self.baudrate if self.baudrate > 0 else 0.0
+        self._wire_free_at = 0.0
+        if "://" not in url:
+            # two programs writing to one amplifier is never intended: lock the device
+            serial_options.setdefault("exclusive", True)
+        self._options = serial_options
+        self._port = None
+        self._buf = bytearray()
+
+    # -- life --
+    @property
+    def is_open(self) -> bool:
+        return self._port is not None and self._port.is_open
+
+    def open(self) -> None:
+        import serial
+        self.close()
+        try:
+            self._port = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=_POLL_S,
+                                               write_timeout=self.write_timeout_s, **self._options)
+            self._port.reset_input_buffer()
+        except (serial.SerialException, OSError, ValueError) as err:
+            self._port = None
+            raise AmplifierConnectionError(f"cannot open {self.url}: {err}") from None
+        self._buf.clear()
+        self._wire_free_at = 0.0
+        log.debug("opened %s at %d baud", self.url, self.baudrate)
+
+    def close(self) -> None:
+        port, self._port = self._port, None
+        if port is not None:
+            try:
+                port.close()
+            except Exception:  # noqa: BLE001 - a vanished port may fail to close; it is gone anyway
+                log.debug("close of %s failed", self.url, exc_info=True)
+
+    def _require(self):
+        if self._port is None:
+            raise AmplifierConnectionError(f"{self.url} is not open")
+        return self._port
+
+    # -- bytes --
+    def write(self, data: bytes) -> None:
+        import serial
+        port = self._require()
+        now = time.monotonic()
+        wait = self._wire_free_at - now - self.max_backlog_s
+        if wait > 0:
+            time.sleep(wait)
+            now += wait
+        self._wire_free_at = max(self._wire_free_at, now) + len(data) * self._s_per_byte
+        try:
+            n = port.write(data)
+        except serial.SerialTimeoutException:
+            raise AmplifierTimeout(f"write to {self.url} timed out after {self.write_timeout_s:g} s",
+                                   data=data) from None
+        except (serial.SerialException, OSError) as err:
+            raise AmplifierConnectionError(f"write to {self.url} failed: {err}") from None
+        if n is not None and n != len(data):
+            raise AmplifierTimeout(f"write to {self.url}: {n} of {len(data)} bytes", data=data)
+
+    def _read_some(self, block: bool) -> bytes:
+        import serial
+        port = self._require()
+        try:
+            n = port.in_waiting
+            if n:
+                return port.read(n)
+            if block:
+                first = port.read(1)
+                if first:
+                    more = port.in_waiting
+                    return first + (port.read(more) if more else b"")
+            return b""
+        except (serial.SerialException, OSError) as err:
+            raise AmplifierConnectionError(f"read from {self.url} failed: {err}") from None
+
+    def backlog_s(self) -> float:
+        """Estimated wire time of the bytes written but not yet sent [s]."""
+        return max(0.0, self._wire_free_at - time.monotonic())
+
+    def discard_input(self) -> None:
+        """Drop everything received so far (buffered and pending in the OS)."""
+        port = self._require()
+        import serial
+        try:
+            port.reset_input_buffer()
+        except (serial.SerialException, OSError) as err:
+            raise AmplifierConnectionError(f"{self.url}: {err}") from None
+        self._buf.clear()
+
+    def settle(self, terminator: bytes, quiet_s: float = 0.02) -> None:
+        """Start from a clean line: send ``terminator`` (ends any partial command the
+        device still holds from a lost link), then discard input until the link has been
+        quiet for ``quiet_s`` [s] (at most ``timeout_s``)."""
+        self.write(terminator)
+        deadline = max(time.monotonic(), self._wire_free_at) + self.timeout_s
+        last = time.monotonic()
+        while True:
+            now = time.monotonic()
+            if now - last >= quiet_s and now >= self._wire_free_at or now >= deadline:
+                break
+            if self._read_some(block=True):
+                last = time.monotonic()
+        self._buf.clear()
+
+    def take_frames(self, split: Callable[[bytearray], int]) -> list[bytes]:
+        """Without blocking: read what has arrived and return every complete frame.
+        ``split(buffer)`` returns the length of the first complete frame or -1."""
+        self._buf += self._read_some(block=False)
+        frames = []
+        while True:
+            n = split(self._buf)
+            if n < 0:
+                return frames
+            frames.append(bytes(self._buf[:n]))
+            del self._buf[:n]
+
+    def read_frame(self, split: Callable[[bytearray], int], timeout_s: float | None = None) -> bytes:
+        """Block until one complete frame has arrived, at most ``timeout_s`` [s]."""
+        timeout = self.timeout_s if timeout_s is None else timeout_s
+        deadline = max(time.monotonic(), self._wire_free_at) + timeout
+        while True:
+            n = split(self._buf)
+            if n >= 0:
+                frame = bytes(self._buf[:n])
+                del self._buf[:n]
+                return frame
+            if time.monotonic() >= deadline:
+                raise AmplifierTimeout(f"no complete reply from {self.url} within {timeout:g} s",
+                                       data=bytes(self._buf[-200:]))
+            self._buf += self._read_some(block=True)
+
+
+def parse_can_url(port: str) -> tuple[str, str]:
+    """``"virtual:afm0"`` → ``("virtual", "afm0")``; ``"socketcan:can0"`` likewise."""
+    interface, sep, channel = port.partition(":")
+    if not sep or not interface or not channel:
+        raise AmplifierConnectionError(
+            f"CAN port {port!r} must look like INTERFACE:CHANNEL, e.g. virtual:afm0 or socketcan:can0")
+    return interface, channel

@@ -1,0 +1,91 @@
+"""What every simulated amplifier shares: the sink it drives, its clock, and fault
+injection hooks used by tests."""
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Mapping
+from typing import Protocol
+
+
+class Sink(Protocol):
+    """Anything that takes the amplifier's output: ``apply(volts, t_s)`` with
+    ``volts`` a mapping axis -> V, ``t_s`` the clock time [s]. A
+    :class:`sim_backend.scanner.Scanner` is one."""
+
+    def apply(self, volts: Mapping[str, float], t_s: float | None = None) -> None: ...
+
+
+class RecordingSink:
+    """A sink that remembers every output change (thread-safe).
+
+    ``history`` is a list of ``(t_s, {axis: V})``; keep ``max_history`` small for long
+    runs (older entries are dropped); ``count`` counts every call.
+    """
+
+    def __init__(self, max_history: int = 100_000) -> None:
+        self.max_history = max_history
+        self.history: list[tuple[float, dict[str, float]]] = []
+        self.count = 0
+        self.last: dict[str, float] = {}
+        self._lock = threading.Lock()
+
+    def apply(self, volts: Mapping[str, float], t_s: float | None = None) -> None:
+        with self._lock:
+            self.count += 1
+            self.last.update(volts)
+            self.history.append((float(t_s) if t_s is not None else float("nan"), dict(volts)))
+            if len(self.history) > self.max_history:
+                del self.history[: len(self.history) - self.max_history]
+
+
+def elapsed_clock() -> Callable[[], float]:
+    """A clock that reads 0 s now and counts wall-clock seconds from here (the default
+    ``now`` of every simulated amplifier, so a Scanner sink starts at its t = 0)."""
+    t0 = time.monotonic()
+    return lambda: time.monotonic() - t0
+
+
+class SimDevice:
+    """Base of the sans-I/O simulated serial amplifiers: ``feed(bytes) -> reply bytes``."""
+
+    protocol = ""
+    #: axis names driven by the device
+    axes: tuple[str, ...] = ("x", "y", "z")
+
+    def __init__(self, sink: Sink | None = None, *, now: Callable[[], float] | None = None) -> None:
+        self.sink = sink
+        self.now = now or elapsed_clock()
+        self.outputs: dict[str, float] = {a: 0.0 for a in self.axes}
+        #: smallest and largest voltage ever *requested* by a host (before clamping) [V]
+        self.requested_min_V = float("inf")
+        self.requested_max_V = float("-inf")
+        self.commands = 0
+        self._inject: object | None = None
+        self._rx = bytearray()
+
+    def inject_error(self, code: object = None) -> None:
+        """Make the next command fail with a device error (protocol-specific ``code``)."""
+        self._inject = code if code is not None else True
+
+    def _take_injected(self) -> object | None:
+        code, self._inject = self._inject, None
+        return code
+
+    def _requested(self, v: float) -> None:
+        self.requested_min_V = min(self.requested_min_V, v)
+        self.requested_max_V = max(self.requested_max_V, v)
+
+    def _apply(self, changes: Mapping[str, float]) -> None:
+        changed = {a: v for a, v in changes.items() if self.outputs.get(a) != v}
+        self.outputs.update(changes)
+        if changed and self.sink is not None:
+            self.sink.apply(dict(self.outputs), self.now())
+
+    def line_break(self) -> None:
+        """The link dropped: a partial command line in the input buffer is discarded."""
+        self._rx.clear()
+
+    def feed(self, data: bytes) -> bytes:
+        """Bytes from the host in, reply bytes out (may be empty)."""
+        raise NotImplementedError

@@ -1,0 +1,210 @@
+"""Simulated CAN amplifier answering the frames of ``drivers/afm_amplifier.dbc``.
+
+sim_backend must not import :mod:`drivers`, so the DBC file is located with
+``importlib.util.find_spec("drivers")`` (which does not import it) and loaded with
+cantools; ``dbc_path`` overrides it.
+
+Behaviour: outputs are enabled at power-up. A SETPOINT_XYZ inside the range is applied;
+outside it answers ERROR code 1 (nothing applied); while disabled ERROR code 3. SEQ must
+count up by one (mod 256) from the last frame: otherwise ERROR code 2 with DETAIL = the
+expected SEQ (the setpoint is still applied — the newest one is the best). FLAGS bit0 or
+a HEARTBEAT with REQ_STATUS asks for a STATUS frame; REQ_INFO for LIMITS. LAST_SEQ
+starts at 255, so a host continues at 0.
+"""
+from __future__ import annotations
+
+import importlib.util
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from sim_backend.amplifiers.base import Sink, elapsed_clock
+
+log = logging.getLogger(__name__)
+
+SETPOINT_ID, HEARTBEAT_ID, STATUS_ID, ERROR_ID, LIMITS_ID = 0x110, 0x111, 0x190, 0x191, 0x192
+V_PER_BIT = 0.0025
+
+
+def find_dbc() -> Path:
+    """Path of ``afm_amplifier.dbc`` shipped in the drivers package (not imported)."""
+    spec = importlib.util.find_spec("drivers")
+    if spec is not None and spec.submodule_search_locations:
+        for loc in spec.submodule_search_locations:
+            p = Path(loc) / "afm_amplifier.dbc"
+            if p.exists():
+                return p
+    p = Path(__file__).resolve().parents[2] / "drivers" / "afm_amplifier.dbc"
+    if p.exists():
+        return p
+    raise FileNotFoundError("afm_amplifier.dbc not found (is the drivers package installed?)")
+
+
+class SimCANAmplifier:
+    """``SimCANAmplifier(channel="afm0", sink=None, interface="virtual", now=None,
+    min_V=0.0, max_V=150.0, dbc_path=None, record_seq=False)``.
+
+    Use as a context manager or :meth:`start`/:meth:`stop`. Counters: ``received``
+    (setpoint frames), ``gaps`` (SEQ discontinuities), ``rejected``; ``seq_log`` holds
+    every SEQ when ``record_seq``. Fault hooks: :meth:`silence`/:meth:`resume`,
+    :meth:`disappear`/:meth:`reappear`, :meth:`inject_error`.
+    """
+
+    protocol = "can"
+    axes = ("x", "y", "z")
+
+    def __init__(self, channel: str = "afm0", sink: Sink | None = None, *, interface: str = "virtual",
+                 now: Callable[[], float] | None = None, min_V: float = 0.0, max_V: float = 150.0,
+                 dbc_path: str | Path | None = None, record_seq: bool = False, **bus_options: object) -> None:
+        import cantools
+        self.channel = channel
+        self.interface = interface
+        self.sink = sink
+        self.now = now or elapsed_clock()
+        self.min_V = float(min_V)
+        self.max_V = {a: float(max_V) for a in self.axes}
+        self.db = cantools.database.load_file(str(dbc_path or find_dbc()))
+        self._msg = {fid: self.db.get_message_by_frame_id(fid)
+                     for fid in (SETPOINT_ID, HEARTBEAT_ID, STATUS_ID, ERROR_ID, LIMITS_ID)}
+        self._bus_options = bus_options
+        self.outputs = {a: 0.0 for a in self.axes}
+        self.enabled = True
+        self.last_seq = 255
+        self.last_error = 0
+        self.received = 0
+        self.gaps = 0
+        self.rejected = 0
+        self.record_seq = record_seq
+        self.seq_log: list[int] = []
+        self.requested_min_V = math.inf
+        self.requested_max_V = -math.inf
+        self._silent = False
+        self._inject: int | None = None
+        self._bus = None
+        self._notifier = None
+        self._lock = threading.Lock()
+
+    # -- life --
+    def start(self) -> "SimCANAmplifier":
+        import can
+
+        sim = self
+
+        class _Listener(can.Listener):
+            def on_message_received(self, msg: can.Message) -> None:
+                sim.handle(msg.arbitration_id, bytes(msg.data))
+
+            def on_error(self, exc: Exception) -> None:
+                log.warning("simulated CAN amplifier: bus error %s", exc)
+                time.sleep(0.05)
+
+        with self._lock:
+            if self._bus is None:
+                self._bus = can.Bus(interface=self.interface, channel=self.channel, **self._bus_options)
+                self._notifier = can.Notifier(self._bus, [_Listener()], timeout=0.05)
+        return self
+
+    def stop(self) -> None:
+        with self._lock:
+            notifier, self._notifier = self._notifier, None
+            bus, self._bus = self._bus, None
+        if notifier is not None:
+            notifier.stop(timeout=1.0)
+        if bus is not None:
+            bus.shutdown()
+
+    def __enter__(self) -> "SimCANAmplifier":
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    disappear = stop
+
+    def reappear(self) -> None:
+        self.start()
+
+    def silence(self) -> None:
+        self._silent = True
+
+    def resume(self) -> None:
+        self._silent = False
+
+    def inject_error(self, code: int | None = None) -> None:
+        """The next setpoint is refused with an ERROR frame of ``code`` (default 4, hardware fault)."""
+        self._inject = 4 if code is None else int(code)
+
+    # -- protocol --
+    def _send(self, fid: int, signals: dict) -> None:
+        import can
+        bus = self._bus
+        if bus is None:
+            return
+        data = self._msg[fid].encode(signals)
+        bus.send(can.Message(arbitration_id=fid, data=data, is_extended_id=False))
+
+    def _error(self, code: int, detail: int, seq: int) -> None:
+        self.last_error = code
+        self._send(ERROR_ID, {"CODE": code, "DETAIL": detail & 0xFFFF, "SEQ": seq & 0xFF})
+
+    def send_status(self) -> None:
+        self._send(STATUS_ID, {"X_V": self.outputs["x"], "Y_V": self.outputs["y"], "Z_V": self.outputs["z"],
+                               "LAST_SEQ": self.last_seq, "STATE": 1 if self.enabled else 0,
+                               "ERROR_CODE": min(self.last_error, 15)})
+
+    def send_limits(self) -> None:
+        self._send(LIMITS_ID, {"MIN_V": self.min_V, "X_MAX_V": self.max_V["x"], "Y_MAX_V": self.max_V["y"],
+                               "Z_MAX_V": self.max_V["z"]})
+
+    def handle(self, fid: int, data: bytes) -> None:
+        """One received frame (called from the notifier thread)."""
+        if self._silent:
+            return
+        if fid == SETPOINT_ID and len(data) == 8:
+            sig = self._msg[fid].decode(data, decode_choices=False)
+            self._setpoint(sig)
+        elif fid == HEARTBEAT_ID and len(data) == 2:
+            sig = self._msg[fid].decode(data, decode_choices=False)
+            if sig["REQ_STATE"] == 1:
+                self.enabled = True
+            elif sig["REQ_STATE"] == 2:
+                self.enabled = False
+            if sig["REQ_INFO"]:
+                self.send_limits()
+            if sig["REQ_STATUS"]:
+                self.send_status()
+
+    def _setpoint(self, sig: dict) -> None:
+        seq = int(sig["SEQ"])
+        self.received += 1
+        if self.record_seq:
+            self.seq_log.append(seq)
+        expected = (self.last_seq + 1) & 0xFF
+        if seq != expected:
+            self.gaps += 1
+            self._error(2, expected, seq)
+        self.last_seq = seq
+        values = {"x": float(sig["X_V"]), "y": float(sig["Y_V"]), "z": float(sig["Z_V"])}
+        for v in values.values():
+            self.requested_min_V = min(self.requested_min_V, v)
+            self.requested_max_V = max(self.requested_max_V, v)
+        if self._inject is not None:
+            code, self._inject = self._inject, None
+            self.rejected += 1
+            self._error(code, 0, seq)
+        elif not self.enabled:
+            self.rejected += 1
+            self._error(3, 0, seq)
+        elif any(not self.min_V <= v <= self.max_V[a] for a, v in values.items()):
+            self.rejected += 1
+            self._error(1, 0, seq)
+        else:
+            changed = values != self.outputs
+            self.outputs = values
+            if changed and self.sink is not None:
+                self.sink.apply(dict(values), self.now())
+        if int(sig["FLAGS"]) & 1:
+            self.send_status()

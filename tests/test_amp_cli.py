@@ -1,0 +1,100 @@
+"""``afmctl amp`` against simulated amplifiers (real ptys, real CAN virtual bus)."""
+from __future__ import annotations
+
+import uuid
+
+import numpy as np
+import pytest
+
+from afmctl.cli import main
+from sim_backend.testing import serve_can, serve_pty
+
+
+@pytest.fixture
+def mdt():
+    with serve_pty("mdt693b") as server:
+        yield server
+
+
+def write_csv(path, header, rows):
+    path.write_text(header + "\n" + "\n".join(",".join(repr(float(v)) for v in r) for r in rows) + "\n")
+    return str(path)
+
+
+def test_info_get_set(mdt, capsys):
+    base = ["amp", "--driver", "mdt693b", "--port", mdt.port, "--timeout", "0.3"]
+    assert main(base + ["info"]) == 0
+    out = capsys.readouterr().out
+    assert "driver: mdt693b" in out and "limits_V" in out and "Model MDT693B" in out
+    assert main(base + ["set", "x=10", "z=20.5"]) == 0
+    assert "x=10.0000 V" in capsys.readouterr().out
+    assert mdt.device.outputs == {"x": 10.0, "y": 0.0, "z": 20.5}
+    assert main(base + ["get"]) == 0
+    assert "z=20.5000 V" in capsys.readouterr().out
+
+
+def test_set_outside_limits_is_refused_with_exit_2(mdt, capsys):
+    base = ["amp", "--driver", "mdt693b", "--port", mdt.port, "--timeout", "0.3"]
+    assert main(base + ["--limit", "0:100", "--limit", "y=0:50", "set", "y=60"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("afmctl: error:") and "[0, 50]" in err
+    assert main(base + ["set", "x=151"]) == 2
+    assert mdt.sink.count == 0  # nothing was sent
+
+
+def test_stream_three_axes_in_order_and_reports_the_rate(mdt, tmp_path, capsys):
+    n = 300
+    u = np.column_stack([np.linspace(0, 30, n), np.linspace(5, 6, n), np.full(n, 7.0)])
+    path = write_csv(tmp_path / "v.csv", "t,ux,uy,uz", np.column_stack([np.arange(n) * 1e-3, u]))
+    assert main(["amp", "--driver", "mdt693b", "--port", mdt.port, "stream", "--file", path]) == 0
+    out = capsys.readouterr().out
+    assert f"sent {n} setpoints" in out and "setpoints/s" in out
+    xs = [v["x"] for _, v in mdt.sink.history]
+    assert xs == sorted(xs) and xs[-1] == 30.0  # every row, in order
+    assert len(mdt.sink.history) == n
+
+
+def test_stream_single_axis_at_a_rate(mdt, tmp_path, capsys):
+    n = 40
+    path = write_csv(tmp_path / "v.csv", "t,u", np.column_stack([np.arange(n) * 1e-2, np.linspace(1, 2, n)]))
+    assert main(["amp", "--driver", "mdt693b", "--port", mdt.port, "stream", "--file", path,
+                 "--axis", "y", "--rate", "200"]) == 0
+    out = capsys.readouterr().out
+    rate = float(out.split("s: ")[1].split(" setpoints/s")[0])
+    assert 100 < rate <= 205
+    assert mdt.device.outputs["y"] == 2.0
+
+
+def test_stream_with_a_value_outside_the_limits_sends_nothing(mdt, tmp_path, capsys):
+    vals = np.array([1.0, 2.0, 151.0, 3.0])
+    path = write_csv(tmp_path / "v.csv", "t,u", np.column_stack([np.arange(4.0), vals]))
+    assert main(["amp", "--driver", "mdt693b", "--port", mdt.port, "stream", "--file", path]) == 2
+    err = capsys.readouterr().err
+    assert "row 4" in err and "column u" in err and "nothing was sent" in err
+    assert mdt.sink.count == 0
+
+
+def test_bad_files_and_arguments_are_one_line_errors(mdt, tmp_path, capsys):
+    path = write_csv(tmp_path / "v.csv", "t,volts", [[0, 1]])
+    assert main(["amp", "--driver", "mdt693b", "--port", mdt.port, "stream", "--file", path]) == 2
+    assert "t,u" in capsys.readouterr().err
+    assert main(["amp", "--driver", "mdt693b", "--port", "/nonexistent/tty", "info"]) == 2
+    assert "cannot open" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["amp", "--driver", "mdt693b", "--port", mdt.port, "set", "x=abc"])
+
+
+def test_can_driver_from_the_cli(capsys):
+    channel = f"cli-{uuid.uuid4().hex[:8]}"
+    with serve_can(channel) as sim:
+        assert main(["amp", "--driver", "can", "--port", f"virtual:{channel}", "set", "x=1.25", "y=2.5"]) == 0
+        assert "y=2.5000 V" in capsys.readouterr().out
+        assert sim.outputs == {"x": 1.25, "y": 2.5, "z": 0.0}
+
+
+def test_stream_refuses_steps_above_max_step_before_sending(mdt, tmp_path, capsys):
+    path = write_csv(tmp_path / "v.csv", "t,u", [[0, 1.0], [1, 2.0], [2, 9.0]])
+    assert main(["amp", "--driver", "mdt693b", "--port", mdt.port, "--max-step", "5", "stream", "--file", path]) == 2
+    err = capsys.readouterr().err
+    assert "row 4" in err and "max-step" in err
+    assert mdt.sink.count == 0

@@ -1,0 +1,108 @@
+"""``afmctl sim`` as a subprocess: first line is the pty path, the pty speaks MDT693B,
+SIGTERM stops it with exit status 0."""
+from __future__ import annotations
+
+import os
+import select
+import signal
+import subprocess
+import sys
+import time
+
+import serial
+
+
+def _start(*extra):
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    return subprocess.Popen([sys.executable, "-m", "afmctl", "sim", *extra], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env)
+
+
+def _first_line(proc, timeout_s=60.0) -> str:
+    ready, _, _ = select.select([proc.stdout], [], [], timeout_s)
+    assert ready, "afmctl sim printed nothing"
+    return proc.stdout.readline().strip()
+
+
+def _ask(port, cmd: bytes, end: bytes = b">") -> bytes:
+    port.write(cmd)
+    buf, deadline = b"", time.monotonic() + 2.0
+    while not buf.endswith(end) and time.monotonic() < deadline:
+        buf += port.read(max(1, port.in_waiting))
+    return buf
+
+
+def test_sim_prints_the_pty_serves_mdt693b_and_stops_on_sigterm():
+    proc = _start()
+    try:
+        path = _first_line(proc)
+        assert path.startswith("/dev/pts/") and os.path.exists(path)
+        with serial.serial_for_url(path, timeout=0.05, write_timeout=1.0) as port:
+            assert _ask(port, b"ECHO=0\r") == b"ECHO=0\r>"
+            assert _ask(port, b"XVOLTAGE=12.5\r") == b">"
+            assert _ask(port, b"XVOLTAGE?\r") == b"[ 12.50]\r>"
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_sim_with_a_config_file_chooses_the_protocol(tmp_path):
+    cfg = tmp_path / "sim.toml"
+    cfg.write_text('[amplifier]\nprotocol = "nv200"\nbaud = 57600\n[sim]\ntick_s = 0.02\n')
+    proc = _start("--config", str(cfg))
+    try:
+        path = _first_line(proc)
+        with serial.serial_for_url(path, timeout=0.05, write_timeout=1.0) as port:
+            assert _ask(port, b"avmax\r\n", b"\x11") == b"avmax,130.000\r\n\x11"
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_sim_bad_config_is_a_one_line_error(tmp_path):
+    cfg = tmp_path / "sim.toml"
+    cfg.write_text('[amplifier]\nprotocol = "foo"\n')
+    r = subprocess.run([sys.executable, "-m", "afmctl", "sim", "--config", str(cfg)], capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 2
+    assert r.stderr.startswith("afmctl: error: field amplifier.protocol")
+    assert "Traceback" not in r.stderr
+
+
+def test_sim_bad_scanner_override_names_the_field(tmp_path):
+    cfg = tmp_path / "sim.toml"
+    cfg.write_text("[scanner]\ndt_s = -1.0\n")
+    r = subprocess.run([sys.executable, "-m", "afmctl", "sim", "--config", str(cfg)], capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 2
+    assert r.stderr.startswith("afmctl: error: field scanner.dt_s")
+
+
+def test_sim_service_advances_the_plant_on_the_wall_clock_and_calls_on_tick():
+    from afmctl.commands.sim import SimService, load_settings
+    ticks = []
+    settings = load_settings(None)
+    settings.sim.tick_s = 0.02
+    service = SimService(settings, on_tick=lambda t, pos: ticks.append((t, pos)))
+    with service:
+        assert os.path.islink(service.port) and service.pty_path.startswith("/dev/pts/")
+        with serial.serial_for_url(service.port, timeout=0.05, write_timeout=1.0) as port:
+            _ask(port, b"ECHO=0\r")
+            assert _ask(port, b"XVOLTAGE=30\r") == b">"
+        deadline = time.monotonic() + 20.0
+        while len(ticks) < 10 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        wall = service.clock()
+    assert len(ticks) >= 10
+    times = [t for t, _ in ticks]
+    assert times == sorted(times)
+    assert ticks[-1][1].shape == (3,)
+    assert abs(service.scanner.time_s - wall) < 0.5      # the plant kept up with the wall clock
+    assert service.scanner.held_voltage_V()[0] == 30.0
+    assert not os.path.exists(service.port)             # cleaned up
