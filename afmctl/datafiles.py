@@ -81,7 +81,7 @@ def read_csv(path: str | Path, columns: Sequence[str], *, min_rows: int = 1,
         if bad.size:
             i = int(bad[0])
             raise AfmctlError(f"{p}: column {time_column}: time must be strictly increasing; "
-                              f"row {i + 3} ({out[time_column][i + 1]!r}) follows {out[time_column][i]!r}")
+                              f"row {i + 3} ({float(out[time_column][i + 1])!r}) follows {float(out[time_column][i])!r}")
     return out
 
 
