@@ -108,4 +108,8 @@ def load_model(path: str | Path, expect: tuple[str, ...] | None = None) -> Hyste
 
 def save_model(model: HysteresisModel, path: str | Path) -> None:
     """Write a model as pretty JSON (floats at full precision)."""
-    Path(path).write_text(json.dumps(model.model_dump(mode="json"), indent=2) + "\n", encoding="utf-8")
+    p = Path(path)
+    try:
+        p.write_text(json.dumps(model.model_dump(mode="json"), indent=2) + "\n", encoding="utf-8")
+    except OSError as err:
+        raise ModelError(f"{p}: cannot write model file ({err.strerror})") from None

@@ -1,0 +1,102 @@
+"""``afmctl compensate``: offline feedforward — desired positions to amplifier voltages
+through the inverse of any model kind."""
+from __future__ import annotations
+
+import argparse
+import logging
+
+log = logging.getLogger(__name__)
+
+HELP = "offline feedforward: target positions (nm) -> voltages (V) through a model's inverse"
+
+DESCRIPTION = """\
+Compute the voltages that make the scanner follow a target path, using the inverse of a
+fitted model (hysteresis and, for epi/creep models, creep).
+
+Input:
+  --model MODEL.json   a model file written by 'afmctl identify' (any kind; a PI file
+                       written by 'afmctl model invert' works too)
+  --target TARGET.csv  header row and columns t,y: time (s, strictly increasing) and the
+                       desired displacement (nm). Time-dependent kinds (epi, creep) need
+                       uniformly spaced rows.
+Output:
+  --out VOLTS.csv      columns t,u (s, V), one row per target row.
+  --limits LO HI       optional voltage range (V): any voltage outside it is an error
+                       unless --clip is given, which clips and reports how many samples.
+
+The model's operator starts from the state stored in the model file (a scanner at rest)
+and runs through the whole file.
+
+Example:
+  afmctl compensate --model pi.json --target raster_x.csv --out volts_x.csv --limits 0 150
+"""
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("compensate", help=HELP, description=DESCRIPTION,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--model", required=True, metavar="MODEL.json", help="model JSON file (any kind)")
+    p.add_argument("--target", required=True, metavar="TARGET.csv", help="CSV with columns t,y (s, nm)")
+    p.add_argument("--out", required=True, metavar="VOLTS.csv", help="output CSV with columns t,u (s, V)")
+    p.add_argument("--limits", nargs=2, type=float, metavar=("LO", "HI"), help="allowed voltage range [V]")
+    p.add_argument("--clip", action="store_true", help="clip to --limits instead of failing")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from afmctl.datafiles import read_csv, uniform_period, write_csv
+    from afmctl.errors import AfmctlError
+    from compensators.base import ModelError
+    from compensators.models import load_model
+
+    if args.clip and not args.limits:
+        raise AfmctlError("--clip: needs --limits LO HI")
+    if args.limits and not (np.isfinite(args.limits).all() and args.limits[0] < args.limits[1]):
+        raise AfmctlError(f"--limits: {args.limits[0]} {args.limits[1]}; need finite LO < HI (V)")
+    model = load_model(args.model)
+    data = read_csv(args.target, ("t", "y"), min_rows=1)
+    t, y = data["t"], data["y"]
+    dt = uniform_period(t, str(args.target)) if getattr(model, "time_dependent", False) else None
+    try:
+        u = _run_chunked(model.inverse(dt), y)
+    except ModelError as err:
+        raise ModelError(f"{args.target}: {err}") from None
+    if not np.all(np.isfinite(u)):
+        raise AfmctlError(f"{args.model}: the inverse produced non-finite voltages for {args.target}; "
+                          "is the target inside the model's range?")
+    if args.limits:
+        lo, hi = args.limits
+        bad = (u < lo) | (u > hi)
+        if np.any(bad):
+            if not args.clip:
+                i = int(np.flatnonzero(bad)[0])
+                raise AfmctlError(f"{args.target}: row {i + 2} needs {u[i]:.6g} V, outside --limits {lo:g} {hi:g} V "
+                                  f"({int(bad.sum())} samples); add --clip to clip them")
+            print(f"clipped          : {int(bad.sum())} of {u.size} samples to [{lo:g}, {hi:g}] V")
+            u = np.clip(u, lo, hi)
+    write_csv(args.out, {"t": t, "u": u})
+    print(f"written          : {args.out} ({u.size} rows, u from {u.min():.6g} to {u.max():.6g} V)")
+    return 0
+
+
+CHUNK = 200_000
+
+
+def _run_chunked(op, y):
+    """``op.block(y)`` in chunks (state carries over, so the result is identical) with a
+    progress bar on long files when stderr is a terminal."""
+    import numpy as np
+
+    if y.size <= CHUNK:
+        return op.block(y)
+    from tqdm import tqdm
+
+    out = np.empty_like(y)
+    with tqdm(total=y.size, unit="sample", unit_scale=True, desc="compensate", disable=None) as bar:
+        for start in range(0, y.size, CHUNK):
+            seg = y[start:start + CHUNK]
+            out[start:start + seg.size] = op.block(seg)
+            bar.update(seg.size)
+    return out
