@@ -1,0 +1,386 @@
+"""Bouc–Wen hysteresis: forward operator, exact inverse and identification.
+
+Source: Sadeghzadeh & Korayem, *Role of mechanical and thermal nonlinearities in imaging
+by AFM* (seeds/000), eq. 20::
+
+    ḣ = A·u̇ − β·|u̇|·h·|h|^(n−1) − γ·u̇·|h|^n,      y = d·u − h  (+ offset_nm)
+
+u [V] input, h [nm] hysteretic part, y [nm] displacement; ``d`` and ``A`` in nm/V,
+``β`` and ``γ`` in nm^(1−n)/V, ``n ≥ 1`` dimensionless.
+
+Rate independence. Dividing by u̇ gives ``dh/du = A − (β·sgn(Δu)·sgn(h) + γ)·|h|^n``:
+the model only depends on the path of u, not on time. The operator integrates this ODE
+over the input increment of each sample with classical RK4 on ``m = ceil(|Δu|/du_sub)``
+equal sub-steps, where ``du_sub = 0.1 / k_max`` and ``k_max = n·(β+|γ|)·h_max^(n−1)`` is
+the largest stiffness (``h_max = (A/(β+γ))^(1/n)`` the saturation of h). Every sub-step
+is therefore inside RK4's stability region whatever the sample step: the update is
+stable for any step size and the result does not depend on the sampling rate beyond
+the integration error (RK4; near h = 0 the term h·|h|^(n−1) is not smooth, so in
+practice ~1e-6 of the output range between a 1-sample and a 2000-sample path).
+
+Initial state (``reset``): input ``u0_V`` with ``h = h0_nm`` (defaults 0 V, 0 nm).
+
+Stability conditions checked on load: ``A > 0``, ``β + γ > 0``, ``β − γ ≥ 0``, ``n ≥ 1``.
+
+Inverse (multiplicative structure): ``u = (y_d − offset + ĥ)/d`` where ``ĥ`` is the model's
+h driven by that same u. The implicit equation is solved per sample by safeguarded
+Newton iterations (to rounding), and the state then advances with the forward update, so
+``forward(inverse(y)) == y`` to ~1e-12 relative. It is unique when ``d`` exceeds the largest
+slope of h, ``d > 2·A·β/(β+γ)``; :meth:`BoucWenModel.inverse` refuses models violating that.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+from numba import njit
+from pydantic import Field, model_validator
+
+from compensators.base import ModelError, StreamingOperator, check_finite
+from compensators.models import HysteresisModel
+
+log = logging.getLogger(__name__)
+
+#: sub-step as a fraction of the inverse largest stiffness (RK4 is stable below 2.78)
+_SUB = 0.1
+
+
+class BoucWenModel(HysteresisModel):
+    """Bouc–Wen model (eq. 20), input u [V] → displacement y [nm]."""
+
+    kind: Literal["bouc-wen"] = "bouc-wen"
+    d_nm_per_V: float = Field(description="linear gain d [nm/V]")
+    A_nm_per_V: float = Field(description="hysteresis amplitude A [nm/V], > 0")
+    beta: float = Field(description="shape parameter β [nm^(1−n)/V]")
+    gamma: float = Field(description="shape parameter γ [nm^(1−n)/V]")
+    n: float = Field(1.0, ge=1.0, le=10.0, description="exponent n (≥ 1)")
+    offset_nm: float = Field(0.0, description="output offset [nm]")
+    u0_V: float = Field(0.0, description="input at reset [V]")
+    h0_nm: float = Field(0.0, description="hysteretic state h at reset [nm]")
+    fit_residual_nm: float | None = Field(None, description="RMS fit residual on the data [nm]")
+
+    time_dependent: ClassVar[bool] = False
+
+    @model_validator(mode="after")
+    def _check(self) -> "BoucWenModel":
+        for name in ("d_nm_per_V", "A_nm_per_V", "beta", "gamma", "n", "offset_nm", "u0_V", "h0_nm"):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f"{name} must be finite")
+        if self.A_nm_per_V <= 0:
+            raise ValueError(f"A_nm_per_V must be > 0 (got {self.A_nm_per_V})")
+        if self.beta + self.gamma <= 0:
+            raise ValueError(f"beta + gamma must be > 0 (got beta={self.beta}, gamma={self.gamma})")
+        if self.beta - self.gamma < 0:
+            raise ValueError(f"beta − gamma must be >= 0 (got beta={self.beta}, gamma={self.gamma})")
+        if self.d_nm_per_V <= 0:
+            raise ValueError(f"d_nm_per_V must be > 0 (got {self.d_nm_per_V})")
+        return self
+
+    def h_max_nm(self) -> float:
+        """Saturation of |h|: (A/(β+γ))^(1/n) [nm]."""
+        return (self.A_nm_per_V / (self.beta + self.gamma)) ** (1.0 / self.n)
+
+    def du_sub_V(self) -> float:
+        """Integration sub-step [V] (see module docstring)."""
+        hm = max(self.h_max_nm(), abs(self.h0_nm))
+        k = self.n * (self.beta + abs(self.gamma)) * hm ** (self.n - 1.0)
+        k = max(k, 1e-300)
+        return _SUB / k
+
+    def params(self) -> np.ndarray:
+        return np.array([self.d_nm_per_V, self.A_nm_per_V, self.beta, self.gamma, self.n, self.offset_nm])
+
+    def forward(self, dt_s: float | None = None) -> "BoucWenOperator":
+        """Streaming operator u [V] → y [nm]. ``dt_s`` is ignored (rate-independent)."""
+        return BoucWenOperator(self)
+
+    def inverse(self, dt_s: float | None = None) -> "BoucWenInverse":
+        """Exact inverse y [nm] → u [V] (see module docstring)."""
+        lim = 2.0 * self.A_nm_per_V * self.beta / (self.beta + self.gamma)
+        if self.d_nm_per_V <= lim:
+            raise ModelError(f"d_nm_per_V: {self.d_nm_per_V:g} is too small for an invertible model; "
+                             f"allowed: > 2·A·β/(β+γ) = {lim:g} nm/V")
+        return BoucWenInverse(self)
+
+    @classmethod
+    def identify(cls, t_s: Any, u_V: Any, y_nm: Any, n_operators: int | None = None, **options: Any) -> "BoucWenModel":
+        """Fit (d, A, β, γ, n, offset) by nonlinear least squares (scipy.optimize.least_squares).
+
+        ``n_operators`` is ignored (Bouc–Wen has no operators). Options: ``n`` (fix the
+        exponent instead of fitting it), ``max_rows`` (subsample the data for speed,
+        default 20000 — the model is always simulated on every sample), ``u0_V`` (input at
+        which h = 0, default the first sample).
+        """
+        return _identify(cls, t_s, u_V, y_nm, **options)
+
+    def summary(self) -> str:
+        lines = [
+            "Bouc–Wen model (eq. 20): ḣ = A·u̇ − β|u̇|h|h|^(n−1) − γ·u̇|h|^n,  y = d·u − h + offset",
+            f"  d = {self.d_nm_per_V:.6g} nm/V, A = {self.A_nm_per_V:.6g} nm/V, beta = {self.beta:.6g}, "
+            f"gamma = {self.gamma:.6g} (nm^(1−n)/V), n = {self.n:.4g}, offset = {self.offset_nm:.6g} nm",
+            f"  saturation of h: {self.h_max_nm():.6g} nm; integration sub-step {self.du_sub_V():.4g} V",
+        ]
+        if self.fit_residual_nm is not None:
+            lines.append(f"  identified by nonlinear least squares: residual {self.fit_residual_nm:.4g} nm RMS")
+        return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------ kernels
+@njit(cache=True)
+def _rhs(h, sgn, A, beta, gamma, n):
+    ah = abs(h)
+    p = ah ** n
+    s = 1.0 if h > 0.0 else (-1.0 if h < 0.0 else 0.0)
+    return A - (beta * sgn * s + gamma) * p
+
+
+@njit(cache=True)
+def _advance(h, u_from, u_to, A, beta, gamma, n, du_sub):
+    """h after moving the input from u_from to u_to (RK4 on dh/du, equal sub-steps)."""
+    du = u_to - u_from
+    if du == 0.0:
+        return h
+    m = int(math.ceil(abs(du) / du_sub))
+    if m < 1:
+        m = 1
+    if m > 1000000:
+        m = 1000000
+    dx = du / m
+    sgn = 1.0 if du > 0.0 else -1.0
+    for _ in range(m):
+        k1 = _rhs(h, sgn, A, beta, gamma, n)
+        k2 = _rhs(h + 0.5 * dx * k1, sgn, A, beta, gamma, n)
+        k3 = _rhs(h + 0.5 * dx * k2, sgn, A, beta, gamma, n)
+        k4 = _rhs(h + dx * k3, sgn, A, beta, gamma, n)
+        h = h + dx / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+    return h
+
+
+@njit(cache=True)
+def bw_forward_block(u, state, d, A, beta, gamma, n, off, du_sub):
+    """state = [h, u_prev]; returns y [nm]."""
+    y = np.empty(u.shape[0])
+    h = state[0]
+    up = state[1]
+    for k in range(u.shape[0]):
+        h = _advance(h, up, u[k], A, beta, gamma, n, du_sub)
+        up = u[k]
+        y[k] = d * up - h + off
+    state[0] = h
+    state[1] = up
+    return y
+
+
+@njit(cache=True)
+def _solve_u(yd, h, up, d, A, beta, gamma, n, off, du_sub):
+    """u with d·u − h(u) + off = yd from state (h, up); safeguarded Newton."""
+    y_prev = d * up - h + off
+    if yd == y_prev:
+        return up
+    sgn = 1.0 if yd > y_prev else -1.0
+    slope = d - _rhs(h, sgn, A, beta, gamma, n)
+    u = up + (yd - y_prev) / slope
+    # bracket: g(up) has the sign of (y_prev − yd)
+    if sgn > 0:
+        a = up
+        b = math.inf
+    else:
+        a = -math.inf
+        b = up
+    scale = abs(yd) + abs(d) * (abs(up) + 1.0)
+    for _ in range(100):
+        hu = _advance(h, up, u, A, beta, gamma, n, du_sub)
+        g = d * u - hu + off - yd
+        if abs(g) <= 1e-15 * scale:
+            return u
+        if g > 0.0:
+            b = u
+        else:
+            a = u
+        s2 = 1.0 if u >= up else -1.0
+        gp = d - _rhs(hu, s2, A, beta, gamma, n)
+        un = u - g / gp
+        if not (un > a and un < b):
+            if math.isinf(a) or math.isinf(b):
+                un = u - 2.0 * g / gp
+            else:
+                un = 0.5 * (a + b)
+        if un == u:
+            return u
+        u = un
+    return u
+
+
+@njit(cache=True)
+def bw_inverse_block(yd, state, d, A, beta, gamma, n, off, du_sub):
+    """state = [h, u_prev]; returns u [V] with forward(u) == yd."""
+    out = np.empty(yd.shape[0])
+    h = state[0]
+    up = state[1]
+    for k in range(yd.shape[0]):
+        u = _solve_u(yd[k], h, up, d, A, beta, gamma, n, off, du_sub)
+        h = _advance(h, up, u, A, beta, gamma, n, du_sub)
+        up = u
+        out[k] = u
+    state[0] = h
+    state[1] = up
+    return out
+
+
+def reference_forward(model: BoucWenModel, u: np.ndarray) -> np.ndarray:
+    """Plain-Python reference of the forward operator (same arithmetic as the kernel)."""
+    A, beta, gamma, n = model.A_nm_per_V, model.beta, model.gamma, model.n
+    du_sub = model.du_sub_V()
+
+    def rhs(h: float, sgn: float) -> float:
+        s = 1.0 if h > 0.0 else (-1.0 if h < 0.0 else 0.0)
+        return A - (beta * sgn * s + gamma) * abs(h) ** n
+
+    h, up = model.h0_nm, model.u0_V
+    out = np.empty(len(u))
+    for k, x in enumerate(np.asarray(u, dtype=float)):
+        x = float(x)
+        du = x - up
+        if du != 0.0:
+            m = min(max(int(math.ceil(abs(du) / du_sub)), 1), 1000000)
+            dx = du / m
+            sgn = 1.0 if du > 0 else -1.0
+            for _ in range(m):
+                k1 = rhs(h, sgn)
+                k2 = rhs(h + 0.5 * dx * k1, sgn)
+                k3 = rhs(h + 0.5 * dx * k2, sgn)
+                k4 = rhs(h + dx * k3, sgn)
+                h = h + dx / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        up = x
+        out[k] = model.d_nm_per_V * up - h + model.offset_nm
+    return out
+
+
+class _BWBase(StreamingOperator):
+    def __init__(self, model: BoucWenModel) -> None:
+        self.model = model
+        self.p = (float(model.d_nm_per_V), float(model.A_nm_per_V), float(model.beta), float(model.gamma),
+                  float(model.n), float(model.offset_nm), float(model.du_sub_V()))
+        self.state = np.zeros(2)
+        self.reset()
+
+    def reset(self) -> None:
+        self.state[0] = self.model.h0_nm
+        self.state[1] = self.model.u0_V
+
+    @property
+    def h_nm(self) -> float:
+        return float(self.state[0])
+
+
+class BoucWenOperator(_BWBase):
+    """Forward streaming operator u [V] → y [nm]."""
+
+    def step(self, x: float) -> float:
+        return float(self.block(np.array([x], dtype=np.float64))[0])
+
+    def block(self, x: np.ndarray) -> np.ndarray:
+        x = np.ascontiguousarray(check_finite("u_V", x)).reshape(-1)
+        return bw_forward_block(x, self.state, *self.p)
+
+
+class BoucWenInverse(_BWBase):
+    """Exact inverse y [nm] → u [V]."""
+
+    def step(self, x: float) -> float:
+        return float(self.block(np.array([x], dtype=np.float64))[0])
+
+    def block(self, x: np.ndarray) -> np.ndarray:
+        x = np.ascontiguousarray(check_finite("y_nm", x)).reshape(-1)
+        return bw_inverse_block(x, self.state, *self.p)
+
+
+# ------------------------------------------------------------------------ identification
+def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n: float | None = None, max_rows: int = 20000,
+              u0_V: float | None = None) -> BoucWenModel:
+    """Nonlinear least squares over p = [log d, log(A/d), log h_sat, c, (n), offset/ŷ] with
+    β + γ = A/h_sat^n and γ = c·β; bounds keep the fit inside the admissible, reasonably
+    non-stiff region (h_sat ≥ 0.5 % of the output range, −0.8 ≤ c ≤ 1, 1 ≤ n ≤ 4)."""
+    from scipy.optimize import least_squares
+    u = check_finite("u_V", u_V).reshape(-1)
+    y = check_finite("y_nm", y_nm).reshape(-1)
+    if u.shape != y.shape:
+        raise ModelError(f"y_nm: length {y.shape[0]} differs from u_V length {u.shape[0]}; they must be equal")
+    if t_s is not None and np.asarray(t_s).reshape(-1).shape != u.shape:
+        raise ModelError("t_s: length differs from u_V; they must be equal")
+    if u.shape[0] < 20:
+        raise ModelError(f"u_V: {u.shape[0]} samples; at least 20 are needed to identify a Bouc–Wen model")
+    if not np.ptp(u) > 0:
+        raise ModelError("u_V: the input never changes; identification needs an input that sweeps the range")
+    if n is not None and (isinstance(n, bool) or not isinstance(n, (int, float)) or not 1.0 <= float(n) <= 10.0):
+        raise ModelError(f"n: must be a number in 1..10, got {n!r}")
+    if isinstance(max_rows, bool) or not isinstance(max_rows, (int, np.integer)) or max_rows < 20:
+        raise ModelError(f"max_rows: must be an integer >= 20, got {max_rows!r}")
+    u0 = float(u[0]) if u0_V is None else float(u0_V)
+    u = np.ascontiguousarray(u)
+    sel = np.unique(np.linspace(0, u.shape[0] - 1, min(max_rows, u.shape[0])).round().astype(np.int64))
+    travel = float(np.sum(np.abs(np.diff(np.r_[u0, u]))))
+    slope, icpt = np.polyfit(u, y, 1)
+    d0 = max(abs(float(slope)), 1e-12)
+    yscale = max(float(np.ptp(y)), 1e-12)
+    nfix = None if n is None else float(n)
+
+    def unpack(p: np.ndarray) -> tuple[float, float, float, float, float, float]:
+        d = math.exp(p[0])
+        A = d * math.exp(p[1])
+        hs = math.exp(p[2])
+        c = p[3]
+        nn = nfix if nfix is not None else p[4]
+        bg = A / hs ** nn
+        beta = bg / (1.0 + c)
+        return d, A, beta, beta * c, nn, p[-1] * yscale
+
+    def resid(p: np.ndarray) -> np.ndarray:
+        d, A, beta, gamma, nn, off = unpack(p)
+        hm = (A / (beta + gamma)) ** (1.0 / nn)
+        k = nn * (beta + abs(gamma)) * hm ** (nn - 1.0)
+        du_sub = _SUB / max(k, 1e-300)
+        if not math.isfinite(du_sub) or travel / du_sub > 2e7:
+            return np.full(sel.shape[0], 10.0)  # far too stiff to be a piezo loop: reject
+        y_m = bw_forward_block(u, np.array([0.0, u0]), d, A, beta, gamma, nn, off, du_sub)
+        return (y_m[sel] - y[sel]) / yscale
+
+    best = None
+    n_starts = [nfix] if nfix is not None else [1.0, 2.0]
+    starts = [(n_init, ratio, hs_frac) for ratio, hs_frac in ((0.2, 0.1), (0.1, 0.03), (0.4, 0.3))
+              for n_init in n_starts]
+    hs_min = math.log(0.005 * yscale)
+    for n_init, ratio, hs_frac in starts:
+        if best is not None and math.sqrt(2.0 * best.cost / sel.shape[0]) < 1e-6:
+            break  # already fits to 1 ppm of the output range
+        hs0 = max(hs_frac * yscale, 0.01 * yscale)
+        p0 = [math.log(d0 * (1 + ratio)), math.log(ratio / (1 + ratio)), math.log(hs0), 0.3]
+        lb = [-np.inf, math.log(1e-4), hs_min, -0.8]
+        ub = [np.inf, math.log(2.0), math.log(10.0 * yscale), 1.0]
+        if nfix is None:
+            p0.append(n_init)
+            lb.append(1.0)
+            ub.append(4.0)
+        p0.append(float(icpt) / yscale)
+        lb.append(-np.inf)
+        ub.append(np.inf)
+        p0 = np.clip(np.array(p0), np.array(lb) + 1e-9, np.array(ub) - 1e-9)
+        try:
+            r = least_squares(resid, p0, bounds=(lb, ub), x_scale="jac", max_nfev=300)
+        except (ValueError, FloatingPointError, OverflowError):
+            continue
+        if best is None or r.cost < best.cost:
+            best = r
+    if best is None:
+        raise ModelError("data: Bouc–Wen least squares failed for every start; check that u_V and y_nm form hysteresis loops")
+    d, A, beta, gamma, nn, off = unpack(best.x)
+    try:
+        model = cls(d_nm_per_V=d, A_nm_per_V=A, beta=beta, gamma=gamma, n=nn, offset_nm=off, u0_V=u0)
+    except ValueError as err:
+        raise ModelError(f"data: the fitted Bouc–Wen parameters are not admissible ({err})") from None
+    res = model.forward().block(u) - y
+    model.fit_residual_nm = float(np.sqrt(np.mean(res * res)))
+    log.info("identify bouc-wen: %s", model.summary().replace("\n", "; "))
+    return model

@@ -1,0 +1,329 @@
+"""Identification of the discrete classical Preisach model from (u [V], y [nm]) data.
+
+Two methods (``method=``):
+
+``"for"`` — first-order reversal curves (image-based paper, Sec. 3.1 / eq. 7): the data
+    ascend from ``u_min`` to a reversal value α and descend again (one curve per α, any
+    number of curves). The Everett values ``E(α, β) = f_α − f_αβ`` at the grid nodes are
+    read off the curves (linear interpolation along each curve; between curves in α when
+    the reversal points are not on nodes), then projected onto the nearest model with
+    nonnegative cell masses (NNLS), so that the inverse exists.
+
+``"nnls"`` — regularised nonnegative least squares from any rich excitation: the output is
+    linear in the cell masses ``w ≥ 0`` (eq. 3 discretised; with eq. 7 interpolation), so
+    ``y ≈ y0 + Φ(u)·w``. The normal equations are accumulated over chunks of samples (the
+    memory of every sample is traced by the compiled kernel), a smoothness penalty on the
+    cell densities (weight ``smoothing``) regularises cells the data barely excite, and the
+    nonnegative solution is found by ``scipy.optimize.nnls``.
+
+``"auto"`` (default) uses ``"for"`` when every ascending run of the data starts at the
+bottom of the range and the curves cover the grid, otherwise ``"nnls"``.
+
+Grid size: up to 512 levels with ``"for"``; up to 64 with ``"nnls"`` (the dense normal
+equations grow as (L²/2)²).
+
+The fit residual (RMS and max, nm) of the final model on the data is stored in the model
+(``fit_residual_nm``, ``fit_max_residual_nm``) and shown by ``summary()``.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any
+
+import numpy as np
+
+from compensators.base import ModelError, check_finite
+
+log = logging.getLogger(__name__)
+
+#: largest grid for the NNLS fit and the exact nonnegative projection (memory ~ (L²/2)² doubles)
+_NNLS_MAX_LEVELS = 64
+
+
+def _check_data(t_s: Any, u_V: Any, y_nm: Any) -> tuple[np.ndarray, np.ndarray]:
+    u = check_finite("u_V", u_V).reshape(-1)
+    y = check_finite("y_nm", y_nm).reshape(-1)
+    if u.shape != y.shape:
+        raise ModelError(f"y_nm: length {y.shape[0]} differs from u_V length {u.shape[0]}; they must be equal")
+    if t_s is not None:
+        t = check_finite("t_s", t_s).reshape(-1)
+        if t.shape != u.shape:
+            raise ModelError(f"t_s: length {t.shape[0]} differs from u_V length {u.shape[0]}; they must be equal")
+    if u.shape[0] < 10:
+        raise ModelError(f"u_V: {u.shape[0]} samples; at least 10 are needed to identify a Preisach model")
+    if not np.ptp(u) > 0:
+        raise ModelError("u_V: the input never changes; identification needs an input that sweeps the range")
+    return u, y
+
+
+def identify_preisach(cls: type, t_s: Any, u_V: Any, y_nm: Any, n_operators: int | None = None, *,
+                      u_min_V: float | None = None, u_max_V: float | None = None, method: str = "auto",
+                      smoothing: float = 1e-4, max_rows: int = 200000, memory_depth: int | None = None,
+                      levels: int | None = None) -> Any:
+    """Fit ``cls`` (a :class:`~compensators.preisach.PreisachModel`) to the data; see the
+    module docstring. ``n_operators`` (or ``levels``) is the number of grid levels."""
+    u, y = _check_data(t_s, u_V, y_nm)
+    L = n_operators if n_operators is not None else (levels if levels is not None else 32)
+    if isinstance(L, bool) or not isinstance(L, (int, np.integer)) or not 1 <= int(L) <= 512:
+        raise ModelError(f"n_operators: number of Preisach levels must be an integer in 1..512, got {L!r}")
+    L = int(L)
+    lo = float(np.min(u)) if u_min_V is None else float(u_min_V)
+    hi = float(np.max(u)) if u_max_V is None else float(u_max_V)
+    if not (math.isfinite(lo) and math.isfinite(hi)) or hi <= lo:
+        raise ModelError(f"u_max_V: must be > u_min_V (got u_min_V={lo}, u_max_V={hi})")
+    if method not in ("auto", "for", "nnls"):
+        raise ModelError(f"method: {method!r} is not known; allowed: auto, for, nnls")
+    if not (isinstance(smoothing, (int, float)) and smoothing >= 0 and math.isfinite(smoothing)):
+        raise ModelError(f"smoothing: must be a finite number >= 0, got {smoothing!r}")
+    if not isinstance(max_rows, (int, np.integer)) or max_rows < 10:
+        raise ModelError(f"max_rows: must be an integer >= 10, got {max_rows!r}")
+    if memory_depth is not None and (not isinstance(memory_depth, (int, np.integer)) or memory_depth < 2):
+        raise ModelError(f"memory_depth: must be an integer >= 2, got {memory_depth!r}")
+    n_out = int(np.count_nonzero((u < lo) | (u > hi)))
+    if n_out:
+        log.warning("identify: %d sample(s) of u_V outside %g…%g V are clamped to the grid", n_out, lo, hi)
+        u = np.clip(u, lo, hi)
+    cap = int(memory_depth) if memory_depth is not None else 2 * L + 2
+    fields = {"memory_depth": memory_depth} if memory_depth is not None else {}
+
+    chosen = method
+    G = None
+    y0 = None
+    if method in ("auto", "for"):
+        try:
+            G, y0 = _for_nodes(u, y, lo, hi, L)
+            chosen = "for"
+        except ModelError:
+            if method == "for":
+                raise
+            chosen = "nnls"
+    if chosen == "nnls" and L > _NNLS_MAX_LEVELS:
+        raise ModelError(f"n_operators: {L} levels is too many for method=nnls (dense normal equations); "
+                         f"allowed: 1..{_NNLS_MAX_LEVELS}, or first-order reversal data with method=for")
+    if chosen == "for":
+        w = _project_nonneg(G)
+        model = cls.from_cell_masses(w, lo, hi, y0, fit_method="first-order reversal curves", **fields)
+    else:
+        w, y0 = _nnls_fit(u, y, lo, hi, L, cap, smoothing, max_rows)
+        model = cls.from_cell_masses(w, lo, hi, y0, fit_method=f"nnls (smoothing {smoothing:g})", **fields)
+    r = model.forward().block(u) - y
+    model.fit_residual_nm = float(np.sqrt(np.mean(r * r)))
+    model.fit_max_residual_nm = float(np.max(np.abs(r)))
+    log.info("identify preisach: %s, %d levels, residual %.4g nm RMS", model.fit_method, L, model.fit_residual_nm)
+    return model
+
+
+# ------------------------------------------------------------------ first-order reversal curves
+def _runs(u: np.ndarray) -> list[tuple[int, int]]:
+    """Monotone runs [start, end] (inclusive) of u, ignoring flat steps."""
+    d = np.diff(u)
+    sgn = np.sign(d)
+    runs: list[tuple[int, int]] = []
+    start = 0
+    cur = 0
+    for k, sk in enumerate(sgn):
+        if sk == 0:
+            continue
+        if cur == 0:
+            cur = sk
+        elif sk != cur:
+            runs.append((start, k))
+            start = k
+            cur = sk
+    runs.append((start, len(u) - 1))
+    return runs
+
+
+def _for_nodes(u: np.ndarray, y: np.ndarray, lo: float, hi: float, L: int) -> tuple[np.ndarray, float]:
+    """Everett node values from first-order reversal curves; ModelError if the data are not FORCs."""
+    span = hi - lo
+    tol = 1e-6 * span + 1e-12
+    v = lo + span * np.arange(L + 1) / L
+    v[-1] = hi
+    runs = _runs(u)
+    curves = []  # (alpha, f_alpha, desc_u ascending order, desc_y)
+    y0s = []
+    asc_u: list[np.ndarray] = []
+    asc_y: list[np.ndarray] = []
+    for n, (a, b) in enumerate(runs):
+        if u[b] <= u[a]:
+            continue
+        if u[a] > lo + tol:
+            raise ModelError("data: an ascending run does not start at the bottom of the range; not first-order reversal curves")
+        y0s.append(y[a])
+        asc_u.append(u[a:b + 1])
+        asc_y.append(y[a:b + 1])
+        if n + 1 < len(runs):
+            c, d = runs[n + 1]
+            du_ = u[c:d + 1][::-1]
+            dy_ = y[c:d + 1][::-1]
+            curves.append((u[b], y[b], du_, dy_))
+    if not curves or not y0s:
+        raise ModelError("data: no first-order reversal curves found (ascend from u_min to α, descend to β)")
+    y0 = float(np.mean(y0s))
+    alphas = np.array([c[0] for c in curves])
+    if alphas.max() < hi - tol:
+        raise ModelError("data: the highest reversal point is below u_max_V; the curves do not cover the grid")
+    # E(v_i, v_0) from the ascending branches (longest first)
+    G = np.full((L + 1, L + 1), np.nan)
+    order = np.argsort([-len(a) for a in asc_u])
+    for i in range(L + 1):
+        G[i, i] = 0.0
+    for i in range(1, L + 1):
+        for k in order:
+            au = asc_u[k]
+            if au[-1] >= v[i] - tol:
+                G[i, 0] = float(np.interp(v[i], au, asc_y[k])) - y0
+                break
+    # E(alpha_r, v_j) along each descending curve, then interpolate across alpha
+    Ec = np.full((len(curves), L + 1), np.nan)
+    for r, (alpha, fa, du_, dy_) in enumerate(curves):
+        ok = (v >= du_[0] - tol) & (v <= alpha + tol)
+        if np.any(ok):
+            Ec[r, ok] = fa - np.interp(np.minimum(v[ok], alpha), du_, dy_)
+    srt = np.argsort(alphas)
+    alphas, Ec = alphas[srt], Ec[srt]
+    for i in range(1, L + 1):
+        for j in range(1, i):
+            col = Ec[:, j]
+            good = np.isfinite(col) & (alphas >= v[j] - tol)
+            if not np.any(good):
+                raise ModelError(f"data: no reversal curve covers alpha={v[i]:g} V, beta={v[j]:g} V; use method=nnls")
+            # anchor E(β, β) = 0 on the diagonal, so α below the lowest reversal interpolates too
+            aa, ee = np.r_[v[j], alphas[good]], np.r_[0.0, col[good]]
+            if v[i] > aa[-1] + tol:
+                raise ModelError(f"data: no reversal point at or above alpha={v[i]:g} V; use method=nnls")
+            # near-duplicate alphas: average
+            ua, inv = np.unique(np.round(aa / tol), return_inverse=True)
+            am = np.bincount(inv, aa) / np.bincount(inv)
+            em = np.bincount(inv, ee) / np.bincount(inv)
+            G[i, j] = float(np.interp(v[i], am, em))
+    if not np.all(np.isfinite(np.tril(G))):
+        raise ModelError("data: first-order reversal curves do not cover the grid; use method=nnls")
+    return np.tril(G, -1), y0
+
+
+def _node_cell_matrix(L: int) -> np.ndarray:
+    """M[node(a,b), cell(i,j)] = 1 if b ≤ j ≤ i < a (nodes a > b, cells i ≥ j, row-major)."""
+    na = np.tril_indices(L + 1, -1)
+    ci = np.tril_indices(L)
+    a = na[0][:, None]
+    b = na[1][:, None]
+    i = ci[0][None, :]
+    j = ci[1][None, :]
+    return ((b <= j) & (j <= i) & (i < a)).astype(np.float64)
+
+
+def _project_nonneg(G: np.ndarray) -> np.ndarray:
+    """Nearest nonnegative cell masses (least squares on the node values)."""
+    from scipy.optimize import nnls
+    from compensators.preisach import cell_masses_from_nodes
+    L = G.shape[0] - 1
+    w = cell_masses_from_nodes(G)
+    ci = np.tril_indices(L)
+    if np.all(w[ci] >= 0):
+        return np.where(np.isnan(w), 0.0, w)
+    if L > _NNLS_MAX_LEVELS:
+        log.warning("identify: %d levels; negative cell masses clipped to 0 instead of an exact NNLS projection", L)
+        return np.where(np.isnan(w), 0.0, np.maximum(w, 0.0))
+    M = _node_cell_matrix(L)
+    e = G[np.tril_indices(L + 1, -1)]
+    x, _ = nnls(M, e, maxiter=50 * M.shape[1])
+    out = np.zeros((L, L))
+    out[ci] = x
+    return out
+
+
+# ------------------------------------------------------------------ regularised NNLS
+def _features(u: np.ndarray, rows: np.ndarray, lo: float, hi: float, L: int, cap: int) -> np.ndarray:
+    """Φ[r, cell]: d y(rows[r]) / d w[cell] (cells in np.tril_indices(L) order)."""
+    from compensators import _preisach_kernels as k
+    R = rows.shape[0]
+    plo = np.zeros((R, cap))
+    phi = np.zeros((R, cap))
+    psg = np.zeros((R, cap))
+    pn = np.zeros(R, dtype=np.int64)
+    k.memory_trace(np.ascontiguousarray(u), rows, lo, hi, cap, plo, phi, psg, pn)
+    inv_du = L / (hi - lo)
+    mask = np.arange(cap)[None, :] < pn[:, None]
+    rr = np.broadcast_to(np.arange(R)[:, None], (R, cap))[mask]
+    a, b, sg = phi[mask], plo[mask], psg[mask]
+    x = (a - lo) * inv_du
+    i = np.minimum(x.astype(np.int64), L - 1)
+    fa = x - i
+    z = (b - lo) * inv_du
+    j = np.minimum(z.astype(np.int64), L - 1)
+    fb = z - j
+    N = np.zeros((R, L + 1, L + 1))
+    for di, dj, wt in ((0, 0, (1 - fa) * (1 - fb)), (1, 0, fa * (1 - fb)), (0, 1, (1 - fa) * fb), (1, 1, fa * fb)):
+        ia, jb = i + di, j + dj
+        upper = jb > ia  # antisymmetric extension: E(v_a, v_b) = −E(v_b, v_a)
+        na = np.where(upper, jb, ia)
+        nb = np.where(upper, ia, jb)
+        np.add.at(N, (rr, na, nb), np.where(upper, -1.0, 1.0) * sg * wt)
+    # Φ[r, i, j] = Σ_{a ≥ i+1} Σ_{b ≤ j} N[r, a, b]
+    S = np.cumsum(N[:, ::-1, :], axis=1)[:, ::-1, :]
+    S = np.cumsum(S, axis=2)
+    ci = np.tril_indices(L)
+    return S[:, ci[0] + 1, ci[1]]
+
+
+def _smoothness(L: int) -> np.ndarray:
+    """Differences of densities (mass / cell area) between neighbouring cells."""
+    ci = np.tril_indices(L)
+    index = {(int(i), int(j)): n for n, (i, j) in enumerate(zip(*ci))}
+    area = np.where(ci[0] == ci[1], 0.5, 1.0)
+    rows = []
+    for (i, j), n in index.items():
+        for nb in ((i + 1, j), (i, j + 1)):
+            m = index.get(nb)
+            if m is not None:
+                r = np.zeros(len(index))
+                r[n] = 1.0 / area[n]
+                r[m] = -1.0 / area[m]
+                rows.append(r)
+    return np.array(rows) if rows else np.zeros((0, len(index)))
+
+
+def _nnls_fit(u: np.ndarray, y: np.ndarray, lo: float, hi: float, L: int, cap: int, smoothing: float,
+              max_rows: int) -> tuple[np.ndarray, float]:
+    from scipy.linalg import cholesky, solve_triangular
+    from scipy.optimize import nnls
+    n = u.shape[0]
+    if n > max_rows:
+        rows = np.unique(np.linspace(0, n - 1, max_rows).round().astype(np.int64))
+    else:
+        rows = np.arange(n, dtype=np.int64)
+    nc = L * (L + 1) // 2
+    AtA = np.zeros((nc, nc))
+    Atb = np.zeros(nc)
+    Asum = np.zeros(nc)
+    ysel = y[rows]
+    ymean = float(np.mean(ysel))
+    chunk = max(200, int(4e6 // ((L + 1) ** 2)))
+    for s0 in range(0, rows.shape[0], chunk):
+        r = rows[s0:s0 + chunk]
+        F = _features(u, r, lo, hi, L, cap)
+        AtA += F.T @ F
+        Atb += F.T @ (ysel[s0:s0 + chunk] - ymean)
+        Asum += F.sum(axis=0)
+    m = rows.shape[0]
+    mean_f = Asum / m
+    # centre (y0 is free): A_c = A − 1·mean_f; Σ(y − ȳ) = 0 so A_cᵀ(y − ȳ) = Aᵀ(y − ȳ)
+    AtA -= m * np.outer(mean_f, mean_f)
+    scale = float(np.trace(AtA)) / nc if np.trace(AtA) > 0 else 1.0
+    D = _smoothness(L)
+    H = AtA + smoothing * scale * (D.T @ D) + 1e-9 * scale * np.eye(nc)
+    try:
+        R = cholesky(H, lower=False)
+    except np.linalg.LinAlgError:
+        H += 1e-6 * scale * np.eye(nc)
+        R = cholesky(H, lower=False)
+    # min ||R w − z||², R^T z = Atb
+    z = solve_triangular(R, Atb, trans="T", lower=False)
+    x, _ = nnls(R, z, maxiter=50 * nc)
+    y0 = ymean - float(mean_f @ x)
+    w = np.zeros((L, L))
+    w[np.tril_indices(L)] = x
+    return w, y0
