@@ -61,6 +61,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from compensators.base import ModelError, check_finite
 from compensators.heat import AxisHeat, HeatParams, TubeGeometry
+from compensators.temperature import T_MAX_C, T_MIN_C
 
 log = logging.getLogger(__name__)
 
@@ -680,6 +681,27 @@ _drift_kernel = numba.njit(cache=True)(_drift_loop)
 
 
 # --------------------------------------------------------------------------- predictor
+def _temperature_C(name: str, value: object) -> float:
+    """One temperature [°C] as a float, or ModelError naming ``name`` and the range."""
+    try:
+        T = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError, OverflowError):
+        T = math.nan
+    if isinstance(value, (str, bytes, bool)) or not (T_MIN_C <= T <= T_MAX_C):  # also NaN
+        raise ModelError(f"{name}: {value!r}; temperature must be a finite number in "
+                         f"{T_MIN_C:g}..{T_MAX_C:g} °C")
+    return T
+
+
+def _float_array(name: str, value: object) -> np.ndarray:
+    """``value`` as a float64 array; ModelError unless it holds real numbers (no text,
+    no booleans, no objects)."""
+    arr = np.asarray(value)
+    if arr.dtype.kind not in "iuf":
+        raise ModelError(f"{name}: {value!r:.60} is not an array of numbers (dtype {arr.dtype})")
+    return arr.astype(np.float64, copy=False)
+
+
 class DriftPredictor:
     """Streaming drift prediction at a fixed loop period ``dt_s`` [s].
 
@@ -716,9 +738,7 @@ class DriftPredictor:
         st.cnt[...] = 0
         st.ints[...] = 0
         if T_ref_C is not None:
-            if not math.isfinite(T_ref_C):
-                raise ModelError(f"T_ref_C: {T_ref_C!r}; must be a finite temperature in °C")
-            st.T_ref[0] = float(T_ref_C)
+            st.T_ref[0] = _temperature_C("T_ref_C", T_ref_C)
             st.ints[1] = 1
 
     @property
@@ -740,9 +760,7 @@ class DriftPredictor:
 
     def step(self, T_C: float, u_V: np.ndarray) -> np.ndarray:
         """One sample: temperature [°C], voltages (3,) [V] → drift (3,) [nm]."""
-        T = float(T_C)
-        if not math.isfinite(T):
-            raise ModelError(f"T_C: {T_C!r}; temperature must be a finite number in °C")
+        T = _temperature_C("T_C", T_C)
         try:
             if len(u_V) != 3:
                 raise TypeError
@@ -762,11 +780,14 @@ class DriftPredictor:
     def block(self, T_C: np.ndarray, u_V: np.ndarray | None = None) -> np.ndarray:
         """N samples: temperatures (N,) [°C], voltages (N, 3) [V] (None → 0 V) → drift
         (N, 3) [nm], with carried state."""
-        T = np.ascontiguousarray(check_finite("T_C", T_C).reshape(-1))
+        T = np.ascontiguousarray(check_finite("T_C", _float_array("T_C", T_C)).reshape(-1))
+        if T.size and not (T_MIN_C <= T.min() and T.max() <= T_MAX_C):
+            i = int(np.flatnonzero((T < T_MIN_C) | (T > T_MAX_C))[0])
+            raise ModelError(f"T_C: {float(T[i])!r} °C at index {i}; allowed {T_MIN_C:g}..{T_MAX_C:g} °C")
         if u_V is None:
             U = np.zeros((T.shape[0], 3))
         else:
-            U = np.ascontiguousarray(check_finite("u_V", u_V))
+            U = np.ascontiguousarray(check_finite("u_V", _float_array("u_V", u_V)))
             if U.ndim != 2 or U.shape != (T.shape[0], 3):
                 raise ModelError(f"u_V: shape {U.shape}; need ({T.shape[0]}, 3) to match T_C")
         out = np.empty((T.shape[0], 3))

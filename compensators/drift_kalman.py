@@ -78,12 +78,31 @@ def _predict_loop(x, P, m, dt, q_rate, q_bias, est):
 _predict_kernel = numba.njit(cache=True)(_predict_loop)
 
 
+def _number(value: object) -> float:
+    """``value`` as a float; NaN for anything that is not a number (callers reject NaN)."""
+    if isinstance(value, (str, bytes, bool)):
+        return math.nan
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError, OverflowError):
+        return math.nan
+
+
+def _vector(name: str, value: object) -> np.ndarray:
+    """``value`` as a float array (-1,), or ModelError naming ``name`` (checks of length
+    and finiteness follow at the caller)."""
+    try:
+        return np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise ModelError(f"{name}: {value!r:.60}; need 3 numbers [nm]") from None
+
+
 class DriftKalman:
     """Per-axis bias (+ bias rate) Kalman filter around a drift model; see the module
     docstring. ``dt_s`` [s] is the default step of :meth:`predict`."""
 
     def __init__(self, dt_s: float, params: KalmanParams | None = None, **overrides: float | bool) -> None:
-        if not (math.isfinite(dt_s) and dt_s > 0):
+        if not (isinstance(dt_s, (int, float)) and not isinstance(dt_s, bool) and math.isfinite(dt_s) and dt_s > 0):
             raise ModelError(f"dt_s: {dt_s!r} s; must be a positive finite number")
         base = params if params is not None else KalmanParams()
         self.params = base.model_copy(update=overrides) if overrides else base
@@ -109,10 +128,10 @@ class DriftKalman:
     def predict(self, model_drift_nm: np.ndarray, dt_s: float | None = None) -> np.ndarray:
         """Advance by ``dt_s`` (default: the constructor's) and return ``model + bias``
         [nm] (3,)."""
-        dt = self.dt_s if dt_s is None else float(dt_s)
+        dt = self.dt_s if dt_s is None else _number(dt_s)
         if not (math.isfinite(dt) and dt >= 0):
             raise ModelError(f"dt_s: {dt_s!r} s; must be a non-negative finite number")
-        m = np.array(model_drift_nm, dtype=np.float64).reshape(-1)
+        m = _vector("model_drift_nm", model_drift_nm).copy()
         if m.shape[0] != 3 or not math.isfinite(m[0] + m[1] + m[2]):
             raise ModelError(f"model_drift_nm: {model_drift_nm!r}; need 3 finite values [nm]")
         p = self.params
@@ -130,16 +149,19 @@ class DriftKalman:
         frame for a frame-mean measurement): the bias then was ``b − age·ḃ``, so the
         measurement row is ``H = [1, −age]`` (process noise over the age is neglected).
         Returns the new estimate [nm] (3,)."""
-        z = np.asarray(measured_drift_nm, dtype=np.float64).reshape(-1)
+        z = _vector("measured_drift_nm", measured_drift_nm)
         if z.shape[0] != 3 or np.any(np.isinf(z)):
             raise ModelError(f"measured_drift_nm: {measured_drift_nm!r}; need 3 values [nm] (NaN = not measured)")
-        r = np.broadcast_to(np.asarray(meas_std_nm, dtype=np.float64), (3,))
+        try:
+            r = np.broadcast_to(np.asarray(meas_std_nm, dtype=np.float64), (3,))
+        except (TypeError, ValueError):
+            r = np.full(3, np.nan)
         if not np.all(np.isfinite(r)) or np.any(r <= 0):
             raise ModelError(f"meas_std_nm: {meas_std_nm!r}; must be > 0 and finite [nm]")
-        m = self.model_nm if model_drift_nm is None else np.asarray(model_drift_nm, dtype=np.float64).reshape(-1)
+        m = self.model_nm if model_drift_nm is None else _vector("model_drift_nm", model_drift_nm)
         if m.shape[0] != 3 or not np.all(np.isfinite(m)):
             raise ModelError(f"model_drift_nm: {model_drift_nm!r}; need 3 finite values [nm]")
-        age = float(age_s)
+        age = _number(age_s)
         if not (math.isfinite(age) and age >= 0):
             raise ModelError(f"age_s: {age_s!r} s; must be a non-negative finite number")
         H = np.array([1.0, -age]) if self.n == 2 else np.array([1.0])

@@ -18,6 +18,9 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from compensators.base import ModelError
 
+#: plausible ambient temperatures [°C]; anything outside is a sensor or file error
+T_MIN_C, T_MAX_C = -100.0, 200.0
+
 
 class TemperatureProfile(BaseModel):
     """Ambient temperature ``T(t)`` [°C].
@@ -43,6 +46,10 @@ class TemperatureProfile(BaseModel):
         for name in ("T0_C", "delta_K", "t_start_s", "duration_s", "period_s"):
             if not math.isfinite(getattr(self, name)):
                 raise ValueError(f"{name}: must be finite")
+        T0, d = self.T0_C, self.delta_K
+        lo, hi = (T0 - abs(d), T0 + abs(d)) if self.shape == "sine" else (min(T0, T0 + d), max(T0, T0 + d))
+        if self.shape != "constant" and not (T_MIN_C <= lo and hi <= T_MAX_C):
+            raise ValueError(f"delta_K: the profile reaches {lo:g}..{hi:g} °C; allowed {T_MIN_C:g}..{T_MAX_C:g} °C")
         return self
 
     def at(self, t_s: np.ndarray | float) -> np.ndarray:
@@ -73,9 +80,10 @@ def check_temperature_series(t_s: np.ndarray, T_C: np.ndarray, where: str = "tem
         bad = np.flatnonzero(~np.isfinite(arr))
         if bad.size:
             raise ModelError(f"{where}: column {name}: row {int(bad[0]) + 1} is {arr[bad[0]]!r}; values must be finite")
-    out = np.flatnonzero((T < -100.0) | (T > 200.0))
+    out = np.flatnonzero((T < T_MIN_C) | (T > T_MAX_C))
     if out.size:
-        raise ModelError(f"{where}: column T: row {int(out[0]) + 1} is {T[out[0]]!r} °C; allowed -100..200 °C")
+        raise ModelError(f"{where}: column T: row {int(out[0]) + 1} is {T[out[0]]!r} °C; "
+                         f"allowed {T_MIN_C:g}..{T_MAX_C:g} °C")
     d = np.diff(t)
     bad = np.flatnonzero(d <= 0)
     if bad.size:

@@ -17,7 +17,7 @@ from collections.abc import Mapping
 
 from drivers import codec_can as codec
 from drivers.base import ConnectionState, VoltageLimits
-from drivers.errors import AmplifierConnectionError, AmplifierError, AmplifierTimeout, ProtocolError
+from drivers.errors import AmplifierConnectionError, AmplifierError, AmplifierTimeout, LimitError, ProtocolError
 from drivers.serial_amp import HostLimits, LimitedAmplifier
 from drivers.transport_can import CanTransport
 
@@ -34,13 +34,9 @@ class CANAmplifier(LimitedAmplifier):
     def __init__(self, transport: CanTransport, *, timeout_s: float = 0.5, host_limits: HostLimits = None,
                  max_step_V: float | None = None, reconnect_timeout_s: float = 5.0,
                  backoff_s: tuple[float, float] = (0.05, 1.0), connect: bool = True) -> None:
-        super().__init__(host_limits=host_limits, max_step_V=max_step_V)
-        self.transport = transport
+        super().__init__(transport, host_limits=host_limits, max_step_V=max_step_V,
+                         reconnect_timeout_s=reconnect_timeout_s, backoff_s=backoff_s)
         self.timeout_s = float(timeout_s)
-        self.reconnect_timeout_s = float(reconnect_timeout_s)
-        self.backoff_s = backoff_s
-        self._state = ConnectionState.DISCONNECTED
-        self._lock = threading.RLock()
         self._cond = threading.Condition()
         self._status: dict[str, float] | None = None
         self._status_count = 0
@@ -51,17 +47,12 @@ class CANAmplifier(LimitedAmplifier):
         self._last_sent_seq: int | None = None
         self._counter = 0
         self.sent = 0
-        self.reconnects = 0
         if connect:
             self.connect()
 
     @property
     def axes(self) -> tuple[str, ...]:
         return ("x", "y", "z")
-
-    @property
-    def state(self) -> ConnectionState:
-        return self._state
 
     # -- receive side (notifier thread) --
     def _on_message(self, msg) -> None:
@@ -156,32 +147,6 @@ class CANAmplifier(LimitedAmplifier):
                 raise
             self._state = ConnectionState.CONNECTED
 
-    def reconnect(self) -> None:
-        with self._lock:
-            if self._state is ConnectionState.CLOSED:
-                raise AmplifierConnectionError("can amplifier is closed; open a new one")
-            self._state = ConnectionState.RECONNECTING
-            deadline = time.monotonic() + self.reconnect_timeout_s
-            delay, max_delay = self.backoff_s
-            last_err: AmplifierError | None = None
-            while True:
-                self.transport.close()
-                try:
-                    self._open_and_handshake()
-                except AmplifierError as err:
-                    last_err = err
-                else:
-                    self._state = ConnectionState.CONNECTED
-                    self.reconnects += 1
-                    return
-                if time.monotonic() + delay > deadline:
-                    self.transport.close()
-                    self._state = ConnectionState.DISCONNECTED
-                    raise AmplifierConnectionError(f"can: could not reconnect to {self.transport.url} within "
-                                                   f"{self.reconnect_timeout_s:g} s (last error: {last_err})")
-                time.sleep(delay)
-                delay = min(delay * 2, max_delay)
-
     def close(self) -> None:
         with self._lock:
             if self._state is ConnectionState.CLOSED:
@@ -191,11 +156,19 @@ class CANAmplifier(LimitedAmplifier):
 
     # -- commands --
     def set_voltages(self, volts: Mapping[str, float]) -> None:
-        values = self.validate(volts)
-        with self._lock:
+        with self._lock:  # validate under the lock: max_step_V is relative to the last output
+            values = self.validate(volts)
             self._guard()
             full = {**self._last, **values}
             lim = self._limits
+            # One frame carries all three axes: an axis not asked for is re-sent at its
+            # held value, which must itself be inside the limits (the output at connect may
+            # not be, e.g. 0 V under host limits of 10-50 V) — never clamp it silently.
+            for a in self.axes:
+                if a not in values and not lim[a].min_V <= full[a] <= lim[a].max_V:
+                    raise LimitError(
+                        f"axis {a} holds {full[a]:g} V, outside the limits [{lim[a].min_V:g}, "
+                        f"{lim[a].max_V:g}] V; a CAN setpoint carries every axis, so give {a} a value too")
             data = codec.encode_setpoint([full[a] for a in self.axes], self._seq,
                                          [lim[a].min_V for a in self.axes], [lim[a].max_V for a in self.axes])
             self._io_send(codec.SETPOINT_ID, data)

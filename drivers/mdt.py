@@ -113,12 +113,16 @@ class MDT693B(SerialAmplifier):
     def raw(self, command: str) -> str:
         """Send one command line and return the reply body (for the bench; no limit check!
         Only queries ending in ``?`` are allowed)."""
-        if not command.strip().endswith("?"):
-            raise ProtocolError("raw() only sends queries (commands ending in '?')")
+        command = command.strip()
+        # one printable line, no assignment: "XVOLTAGE=200\rID?" must not slip a set through
+        if (not command.endswith("?") or "=" in command
+                or any(not (" " <= ch <= "~") for ch in command)):
+            raise ProtocolError(f"raw() only sends one query line (printable, ending in '?', no '='), "
+                                f"got {command!r}")
         with self._lock:
             self._guard()
             self._io(self._sync)
-            cmd, reply = self._io(self._query, command.strip())
+            cmd, reply = self._io(self._query, command)
             return codec.reply_body(cmd, reply, self._prompts).decode("ascii", "replace")
 
 

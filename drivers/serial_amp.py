@@ -67,10 +67,40 @@ def intersect_limits(device: Mapping[str, VoltageLimits], host: Mapping[str, Vol
     return out
 
 
-class LimitedAmplifier(Amplifier):
-    """Host-side limit handling shared by every backend (serial and CAN)."""
+def _volts(axis: object, value: object) -> float:
+    """``value`` as a float [V], or LimitError: text, bytes and booleans are not voltages
+    (``"5"`` or ``True`` is a caller's bug, not a request), and a number too large for a
+    float is out of every range."""
+    if isinstance(value, (str, bytes, bytearray, bool, _numpy_bool_types())):
+        raise LimitError(f"axis {axis}: {value!r} is not a voltage (expected a number of volts)")
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except OverflowError:
+        raise LimitError(f"axis {axis}: {value!r} V is outside every voltage range") from None
+    except (TypeError, ValueError) as err:
+        raise LimitError(f"axis {axis}: voltage is not a number: {err}") from None
 
-    def __init__(self, *, host_limits: HostLimits = None, max_step_V: float | None = None) -> None:
+
+def _numpy_bool_types() -> tuple[type, ...]:
+    """numpy's bool type if numpy is already imported (drivers do not import it)."""
+    import sys
+    np = sys.modules.get("numpy")
+    return (np.bool_,) if np is not None else ()
+
+
+class LimitedAmplifier(Amplifier):
+    """What every backend (serial and CAN) shares: host-side limit checks, the visible
+    state, the lock that serialises callers, and reconnect with backoff. A backend
+    implements :meth:`_open_and_handshake`; ``transport`` has ``close()`` and ``url``."""
+
+    def __init__(self, transport: object, *, host_limits: HostLimits = None, max_step_V: float | None = None,
+                 reconnect_timeout_s: float = 5.0, backoff_s: tuple[float, float] = (0.05, 1.0)) -> None:
+        self.transport = transport
+        self.reconnect_timeout_s = float(reconnect_timeout_s)
+        self.backoff_s = backoff_s
+        self._state = ConnectionState.DISCONNECTED
+        self._lock = threading.RLock()
+        self.reconnects = 0
         self._host_limits_arg = host_limits
         self._limits: dict[str, VoltageLimits] = {}
         self._device_limits: dict[str, VoltageLimits] = {}
@@ -99,12 +129,11 @@ class LimitedAmplifier(Amplifier):
     def validate(self, volts: Mapping[str, float]) -> dict[str, float]:
         """Limit check of a request (finite, inside limits, within ``max_step_V`` of the
         last output); returns the request as ``{axis: float}`` in axis order."""
+        if not isinstance(volts, Mapping):
+            raise LimitError(f"voltages must be a mapping axis -> V, e.g. {{'x': 10.0}}; got {type(volts).__name__}")
         if not volts:
             raise LimitError("no axis given; axes: " + ", ".join(self.axes))
-        try:
-            values = {a: float(v) for a, v in volts.items()}
-        except (TypeError, ValueError) as err:
-            raise LimitError(f"voltage is not a number: {err}") from None
+        values = {a: _volts(a, v) for a, v in volts.items()}
         self.check_limits(values)
         if self.max_step_V is not None:
             for a, v in values.items():
@@ -112,6 +141,48 @@ class LimitedAmplifier(Amplifier):
                 if prev is not None and abs(v - prev) > self.max_step_V:
                     raise LimitError(f"axis {a}: step {prev:g} V -> {v:g} V exceeds max_step_V={self.max_step_V:g} V")
         return {a: values[a] for a in self.axes if a in values}
+
+    @property
+    def state(self) -> ConnectionState:
+        return self._state
+
+    @abstractmethod
+    def _open_and_handshake(self) -> None:
+        """Open the transport if needed, read the device limits and the actual output."""
+
+    def reconnect(self) -> None:
+        """Close and re-open the link until the handshake succeeds, waiting ``backoff_s``
+        (first, largest delay [s]) doubling between attempts, for at most
+        ``reconnect_timeout_s``. Sends no setpoint: :attr:`last_output` is what the
+        amplifier outputs now, so the output never jumps."""
+        with self._lock:
+            if self._state is ConnectionState.CLOSED:
+                raise AmplifierConnectionError(f"{self.name} is closed; open a new one")
+            self._state = ConnectionState.RECONNECTING
+            deadline = time.monotonic() + self.reconnect_timeout_s
+            delay, max_delay = self.backoff_s
+            last_err: AmplifierError | None = None
+            while True:
+                self.transport.close()
+                try:
+                    self._open_and_handshake()
+                except AmplifierError as err:
+                    last_err = err
+                    log.info("%s: reconnect to %s failed (%s); retrying in %.2f s", self.name,
+                             self.transport.url, err, delay)
+                else:
+                    self._state = ConnectionState.CONNECTED
+                    self.reconnects += 1
+                    log.info("%s: reconnected to %s; output is %s", self.name, self.transport.url, self._last)
+                    return
+                if time.monotonic() + delay > deadline:
+                    self.transport.close()
+                    self._state = ConnectionState.DISCONNECTED
+                    raise AmplifierConnectionError(
+                        f"{self.name}: could not reconnect to {self.transport.url} within "
+                        f"{self.reconnect_timeout_s:g} s (last error: {last_err})")
+                time.sleep(delay)
+                delay = min(delay * 2, max_delay)
 
 
 class SerialAmplifier(LimitedAmplifier):
@@ -123,14 +194,9 @@ class SerialAmplifier(LimitedAmplifier):
     def __init__(self, transport: SerialTransport, *, host_limits: HostLimits = None,
                  max_step_V: float | None = None, reconnect_timeout_s: float = 5.0,
                  backoff_s: tuple[float, float] = (0.05, 1.0), connect: bool = True) -> None:
-        super().__init__(host_limits=host_limits, max_step_V=max_step_V)
-        self.transport = transport
-        self.reconnect_timeout_s = float(reconnect_timeout_s)
-        self.backoff_s = backoff_s
-        self._state = ConnectionState.DISCONNECTED
-        self._lock = threading.RLock()
+        super().__init__(transport, host_limits=host_limits, max_step_V=max_step_V,
+                         reconnect_timeout_s=reconnect_timeout_s, backoff_s=backoff_s)
         self._identity: dict[str, object] = {}
-        self.reconnects = 0
         if connect:
             self.connect()
 
@@ -155,23 +221,22 @@ class SerialAmplifier(LimitedAmplifier):
         """Forget outstanding replies (after reopen)."""
 
     # -- state --
-    @property
-    def state(self) -> ConnectionState:
-        return self._state
-
     def _io(self, fn, *args):
         """Run ``fn`` and map link failures onto the visible state."""
+        # A failure while connected is news worth a warning; during connect/reconnect the
+        # caller gets the exception itself (the CLI prints it as its one error line).
+        level = logging.WARNING if self._state is ConnectionState.CONNECTED else logging.DEBUG
         try:
             return fn(*args)
         except AmplifierConnectionError:
             if self._state is not ConnectionState.CLOSED:
                 self._state = ConnectionState.DISCONNECTED
-                log.warning("%s: link lost on %s", self.name, self.transport.url)
+                log.log(level, "%s: link lost on %s", self.name, self.transport.url)
             raise
         except AmplifierTimeout:
             if self._state is not ConnectionState.CLOSED:
                 self._state = ConnectionState.FAULT
-                log.warning("%s: device on %s went silent", self.name, self.transport.url)
+                log.log(level, "%s: device on %s went silent", self.name, self.transport.url)
             raise
         except ProtocolError as err:
             # A reply that does not parse (no device error code) means the reply stream is
@@ -203,36 +268,6 @@ class SerialAmplifier(LimitedAmplifier):
         self._identity = identity
         self._last = self._read_voltages()
 
-    def reconnect(self) -> None:
-        with self._lock:
-            if self._state is ConnectionState.CLOSED:
-                raise AmplifierConnectionError(f"{self.name} is closed; open a new one")
-            self._state = ConnectionState.RECONNECTING
-            deadline = time.monotonic() + self.reconnect_timeout_s
-            delay, max_delay = self.backoff_s
-            last_err: AmplifierError | None = None
-            while True:
-                self.transport.close()
-                try:
-                    self._open_and_handshake()
-                except AmplifierError as err:
-                    last_err = err
-                    log.info("%s: reconnect to %s failed (%s); retrying in %.2f s", self.name,
-                             self.transport.url, err, delay)
-                else:
-                    self._state = ConnectionState.CONNECTED
-                    self.reconnects += 1
-                    log.info("%s: reconnected to %s; output is %s", self.name, self.transport.url, self._last)
-                    return
-                if time.monotonic() + delay > deadline:
-                    self.transport.close()
-                    self._state = ConnectionState.DISCONNECTED
-                    raise AmplifierConnectionError(
-                        f"{self.name}: could not reconnect to {self.transport.url} within "
-                        f"{self.reconnect_timeout_s:g} s (last error: {last_err})")
-                time.sleep(delay)
-                delay = min(delay * 2, max_delay)
-
     def close(self) -> None:
         with self._lock:
             if self._state is ConnectionState.CLOSED:
@@ -247,8 +282,8 @@ class SerialAmplifier(LimitedAmplifier):
 
     # -- commands --
     def set_voltages(self, volts: Mapping[str, float]) -> None:
-        values = self.validate(volts)
-        with self._lock:
+        with self._lock:  # validate under the lock: max_step_V is relative to the last output
+            values = self.validate(volts)
             self._guard()
             self._io(self._write_setpoint, values)
             self._last.update(values)

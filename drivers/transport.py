@@ -66,7 +66,7 @@ class SerialTransport:
                                                write_timeout=self.write_timeout_s, **self._options)
             self._port.reset_input_buffer()
         except (serial.SerialException, OSError, ValueError) as err:
-            self._port = None
+            self.close()  # a port opened before the failure must not leak its fd
             raise AmplifierConnectionError(f"cannot open {self.url}: {err}") from None
         self._buf.clear()
         self._wire_free_at = 0.0

@@ -44,7 +44,11 @@ class CanTransport:
         except (can.CanError, OSError, ValueError, ImportError) as err:
             self._bus = None
             raise AmplifierConnectionError(f"cannot open CAN bus {self.url}: {err}") from None
-        self._notifier = can.Notifier(self._bus, [_Listener()], timeout=0.05)
+        try:
+            self._notifier = can.Notifier(self._bus, [_Listener()], timeout=0.05)
+        except Exception:
+            self.close()  # shut the bus down again
+            raise
 
     def send(self, frame_id: int, data: bytes, timeout_s: float) -> None:
         import can

@@ -41,6 +41,43 @@ def serve_can(channel: str = "afm0", sink=None, *, interface: str = "virtual", *
         yield amp
 
 
+def open_fds() -> set[int]:
+    """File descriptors open in this process now (Linux ``/proc/self/fd``; empty elsewhere)."""
+    import os
+    try:
+        return {int(n) for n in os.listdir("/proc/self/fd")}
+    except OSError:
+        return set()
+
+
+@contextlib.contextmanager
+def no_leaks(grace_s: float = 2.0) -> Iterator[None]:
+    """Assert that the block leaves no thread and no file descriptor behind (servers,
+    notifiers and ports it opened must be closed by its end). Threads get ``grace_s`` [s]
+    to finish; a leak raises AssertionError naming the threads / fds."""
+    import os
+    import threading
+    import time
+    threads = set(threading.enumerate())
+    fds = open_fds()
+    yield
+    deadline = time.monotonic() + grace_s
+    while True:
+        extra_threads = [t for t in threading.enumerate() if t not in threads and t.is_alive()]
+        extra_fds = open_fds() - fds
+        if not extra_threads and not extra_fds or time.monotonic() > deadline:
+            break
+        time.sleep(0.02)
+
+    def describe(fd: int) -> str:
+        try:
+            return f"{fd}->{os.readlink(f'/proc/self/fd/{fd}')}"
+        except OSError:
+            return str(fd)
+    assert not extra_threads, f"threads left running: {[t.name for t in extra_threads]}"
+    assert not extra_fds, f"file descriptors left open: {[describe(fd) for fd in sorted(extra_fds)]}"
+
+
 if False:  # pragma: no cover - names for type checkers only
     from sim_backend.amplifiers.can_amp import SimCANAmplifier
     from sim_backend.amplifiers.pty_server import PtyServer

@@ -61,7 +61,8 @@ def test_stream_single_axis_at_a_rate(mdt, tmp_path, capsys):
                  "--axis", "y", "--rate", "200"]) == 0
     out = capsys.readouterr().out
     rate = float(out.split("s: ")[1].split(" setpoints/s")[0])
-    assert 100 < rate <= 205
+    assert rate <= 205          # the pacing holds: never faster than --rate (+ the first row's head start)
+    assert rate > 40            # and not stalled (generous: the machine may be busy)
     assert mdt.device.outputs["y"] == 2.0
 
 

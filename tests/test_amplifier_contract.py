@@ -15,7 +15,7 @@ from drivers.base import ConnectionState, VoltageLimits
 from drivers.errors import AmplifierConnectionError, AmplifierTimeout, LimitError, ProtocolError
 from drivers.registry import open_amplifier
 from sim_backend.amplifiers import RecordingSink
-from sim_backend.testing import serve_can, serve_pty
+from sim_backend.testing import no_leaks, serve_can, serve_pty
 
 BACKENDS = ["mdt693b", "mdt694b", "gcs", "nv200", "can"]
 #: resolution of the numbers each protocol sends [V]
@@ -64,7 +64,8 @@ def make_backend(name: str):
 
 @pytest.fixture(params=BACKENDS)
 def backend(request):
-    with make_backend(request.param) as b:
+    # every test of the contract must leave no thread, pty, port or CAN notifier behind
+    with no_leaks(), make_backend(request.param) as b:
         yield b
 
 
@@ -114,7 +115,7 @@ def test_host_limits_narrow_the_device_range_and_refuse_before_sending(backend):
     try:
         for axis, (lo, hi) in backend.device_limits().items():
             assert amp.limits[axis] == VoltageLimits(max(lo, 10.0), min(hi, 50.0))
-        amp.set_voltages({"x": 20.0})
+        amp.set_voltages({a: 20.0 for a in amp.axes})  # every axis from 0 V into the host range
         amp.flush()
         count = backend.sink.count
         for bad in (50.5, 9.99, math.nan, math.inf, -math.inf, 1e300):
@@ -154,7 +155,7 @@ def test_timeout_when_the_device_goes_silent(backend, amp):
     t0 = time.monotonic()
     with pytest.raises(AmplifierTimeout):
         amp.get_voltages()
-    assert time.monotonic() - t0 < 2.0
+    assert time.monotonic() - t0 < 4.0  # bounded by the timeout (generous: busy machine)
     assert amp.state is ConnectionState.FAULT
     with pytest.raises(AmplifierConnectionError):  # refuses until reconnect
         amp.set_voltages(midpoints(amp, 0.4))

@@ -280,6 +280,21 @@ def test_bad_step_inputs():
         TransferPath(K=1.0, integrators=3)
 
 
+@pytest.mark.parametrize("T", ["20", None, True, 1e308, -273.15, 250.0, float("inf")])
+def test_a_temperature_that_is_no_plausible_number_is_a_model_error(T):
+    """A text, a flag or a sensor glitch (1e308 °C) must not reach the predictor: it
+    would be taken as a temperature change and the drift would explode."""
+    pred = DriftParams.named("physical_tube").predictor(1e-3)
+    with pytest.raises(ModelError, match="T_C"):
+        pred.step(T, np.zeros(3))
+    with pytest.raises(ModelError, match="T_C"):
+        pred.block(np.array([20.0, 20.0, T], dtype=object))
+    if T is not None:  # reset(None) means: the first sample is the reference
+        with pytest.raises(ModelError, match="T_ref_C"):
+            pred.reset(T_ref_C=T)
+    assert np.all(pred.block(np.full(10, 20.0)) == 0.0)  # still usable afterwards
+
+
 @pytest.mark.parametrize("name", NAMES)
 def test_zoh_equals_scipy_cont2discrete(name):
     from scipy.signal import cont2discrete

@@ -28,6 +28,11 @@ def test_profile_validation_and_json():
         TemperatureProfile(duration_s=0.0)
     p = TemperatureProfile(shape="ramp", delta_K=2.0)
     assert TemperatureProfile.model_validate_json(p.model_dump_json()) == p
+    # a profile must stay within the temperatures the predictor accepts (-100..200 °C)
+    for shape, T0, d in (("ramp", 150.0, 90.0), ("step", -50.0, -60.0), ("sine", -50.0, 60.0)):
+        with pytest.raises(ValidationError, match="delta_K"):
+            TemperatureProfile(shape=shape, T0_C=T0, delta_K=d)
+    TemperatureProfile(shape="ramp", T0_C=150.0, delta_K=-90.0)  # going down is fine
 
 
 def test_profile_drives_the_predictor():

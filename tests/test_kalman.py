@@ -82,6 +82,19 @@ def test_bad_inputs():
         kf.update(np.zeros(2), 1.0)
     with pytest.raises(ModelError, match="dt_s"):
         DriftKalman(0.0)
+    for bad in ("x", None, True):
+        with pytest.raises(ModelError, match="dt_s"):
+            DriftKalman(bad)
+    with pytest.raises(ModelError, match="model_drift_nm"):
+        kf.predict("abc")
+    with pytest.raises(ModelError, match="dt_s"):
+        kf.predict(np.zeros(3), dt_s="1")
+    with pytest.raises(ModelError, match="measured_drift_nm"):
+        kf.update([1.0, 2.0, "a"], 1.0)
+    with pytest.raises(ModelError, match="meas_std_nm"):
+        kf.update(np.zeros(3), "x")
+    with pytest.raises(ModelError, match="age_s"):
+        kf.update(np.zeros(3), 1.0, age_s=None)
     kf.reset()
     assert np.all(kf.estimate_nm == 0.0)
 

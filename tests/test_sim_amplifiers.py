@@ -70,11 +70,12 @@ def test_mdt_is_no_faster_than_115200_baud(mdt):
     lines = b"".join(f"XVOLTAGE={i % 150:.2f}\r".encode() for i in range(400))
     t0 = time.monotonic()
     port.write(lines)
-    replies = read_until(port, b">", timeout_s=5.0, count=400)
+    replies = read_until(port, b">", timeout_s=15.0, count=400)
     elapsed = time.monotonic() - t0
     assert replies == b">" * 400
     assert elapsed >= len(lines) * 10 / 115200
-    assert elapsed < 3 * len(lines) * 10 / 115200  # and not absurdly slow either
+    # and not absurdly slow either (generous: the test machine may be busy)
+    assert elapsed < 8 * len(lines) * 10 / 115200
     assert server.sink.last["x"] == 399 % 150
 
 
@@ -190,3 +191,32 @@ def test_adapter_latency_is_modelled_on_replies():
             assert time.monotonic() - t0 >= 0.05
         finally:
             port.close()
+
+
+def test_no_leaks_notices_a_server_left_running_and_passes_once_it_stopped():
+    from sim_backend.amplifiers.pty_server import PtyServer
+    from sim_backend.amplifiers import make_device
+    from sim_backend.testing import no_leaks
+    server = PtyServer(make_device("nv200"))
+    try:
+        with pytest.raises(AssertionError, match="threads left running"), no_leaks(grace_s=0.1):
+            server.start()
+    finally:
+        server.stop()
+    with no_leaks():
+        with serve_pty("gcs") as s:
+            link = s.port
+        with serve_can(f"leak-{uuid.uuid4().hex[:8]}"):
+            pass
+    assert not os.path.exists(link) and not os.path.exists(os.path.dirname(link))  # symlink and temp dir gone
+
+
+def test_a_link_that_cannot_be_made_raises_and_leaks_nothing(tmp_path):
+    from sim_backend.amplifiers import make_device
+    from sim_backend.amplifiers.pty_server import PtyServer
+    from sim_backend.testing import no_leaks
+    with no_leaks(grace_s=0.5):
+        server = PtyServer(make_device("mdt693b"), link=tmp_path / "missing-dir" / "tty")
+        with pytest.raises(OSError):
+            server.start()
+        server.stop()

@@ -2,6 +2,7 @@
 SIGTERM stops it with exit status 0."""
 from __future__ import annotations
 
+import contextlib
 import os
 import select
 import signal
@@ -11,11 +12,25 @@ import time
 
 import serial
 
+from sim_backend.testing import no_leaks
+
 
 def _start(*extra):
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     return subprocess.Popen([sys.executable, "-m", "afmctl", "sim", *extra], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=env)
+
+
+@contextlib.contextmanager
+def _running(*extra):
+    """``afmctl sim`` as a subprocess; killed at the end if it did not stop itself."""
+    proc = _start(*extra)
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
 
 
 def _first_line(proc, timeout_s=60.0) -> str:
@@ -33,8 +48,7 @@ def _ask(port, cmd: bytes, end: bytes = b">") -> bytes:
 
 
 def test_sim_prints_the_pty_serves_mdt693b_and_stops_on_sigterm():
-    proc = _start()
-    try:
+    with _running() as proc:
         path = _first_line(proc)
         assert path.startswith("/dev/pts/") and os.path.exists(path)
         with serial.serial_for_url(path, timeout=0.05, write_timeout=1.0) as port:
@@ -43,26 +57,17 @@ def test_sim_prints_the_pty_serves_mdt693b_and_stops_on_sigterm():
             assert _ask(port, b"XVOLTAGE?\r") == b"[ 12.50]\r>"
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=20) == 0
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
 
 
 def test_sim_with_a_config_file_chooses_the_protocol(tmp_path):
     cfg = tmp_path / "sim.toml"
     cfg.write_text('[amplifier]\nprotocol = "nv200"\nbaud = 57600\n[sim]\ntick_s = 0.02\n')
-    proc = _start("--config", str(cfg))
-    try:
+    with _running("--config", str(cfg)) as proc:
         path = _first_line(proc)
         with serial.serial_for_url(path, timeout=0.05, write_timeout=1.0) as port:
             assert _ask(port, b"avmax\r\n", b"\x11") == b"avmax,130.000\r\n\x11"
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=20) == 0
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
 
 
 def test_sim_bad_config_is_a_one_line_error(tmp_path):
@@ -90,7 +95,7 @@ def test_sim_service_advances_the_plant_on_the_wall_clock_and_calls_on_tick():
     settings = load_settings(None)
     settings.sim.tick_s = 0.02
     service = SimService(settings, on_tick=lambda t, pos: ticks.append((t, pos)))
-    with service:
+    with no_leaks(), service:
         assert os.path.islink(service.port) and service.pty_path.startswith("/dev/pts/")
         with serial.serial_for_url(service.port, timeout=0.05, write_timeout=1.0) as port:
             _ask(port, b"ECHO=0\r")
@@ -106,3 +111,24 @@ def test_sim_service_advances_the_plant_on_the_wall_clock_and_calls_on_tick():
     assert abs(service.scanner.time_s - wall) < 0.5      # the plant kept up with the wall clock
     assert service.scanner.held_voltage_V()[0] == 30.0
     assert not os.path.exists(service.port)             # cleaned up
+
+
+def test_make_scanner_uses_the_real_scanner_and_falls_back_only_when_it_is_missing(monkeypatch, caplog):
+    from afmctl.commands.sim import make_scanner
+    from sim_backend.amplifiers import RecordingSink
+    from sim_backend.scanner import Scanner
+    sink, description = make_scanner({})
+    assert isinstance(sink, Scanner) and description.startswith("scanner ")
+    monkeypatch.setitem(sys.modules, "sim_backend.scanner", None)  # as if the module were not installed
+    sink, description = make_scanner({})
+    assert isinstance(sink, RecordingSink) and "no scanner" in description
+    assert "recording sink" in caplog.text
+
+
+def test_sim_bad_arguments_are_one_line_errors(tmp_path, capsys):
+    from afmctl.cli import main
+    for args in (["--duration", "nan"], ["--duration", "-1"], ["--baud", "10"],
+                 ["--link", str(tmp_path / "missing-dir" / "tty"), "--duration", "0.1"]):
+        assert main(["sim", *args]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("afmctl: error: ") and err.count("\n") == 1 and "Traceback" not in err

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import signal
 import sys
 import threading
@@ -101,9 +102,14 @@ def make_scanner(overrides: dict[str, Any]):
     :mod:`sim_backend.scanner` is not available. Returns ``(sink, description)``."""
     try:
         from sim_backend.scanner import Scanner, ScannerConfig, default_scanner_config
-    except ImportError as err:  # pragma: no cover - only while the scanner is missing
+    except ModuleNotFoundError as err:
+        # Only a missing scanner module falls back (a stripped install): a scanner that is
+        # there but fails to import is a bug to see, not to paper over.
+        if err.name not in ("sim_backend.scanner", "sim_backend"):
+            raise
         from sim_backend.amplifiers import RecordingSink
-        log.warning("sim_backend.scanner unavailable (%s); using a recording sink", err)
+        log.warning("sim_backend.scanner unavailable (%s); the amplifier drives a recording sink, "
+                    "no plant", err)
         return RecordingSink(max_history=10_000), f"recording sink (no scanner: {err})"
     from pydantic import ValidationError
 
@@ -151,7 +157,13 @@ class SimService:
         return self.server.pty_path
 
     def start(self) -> "SimService":
-        self.server.start()
+        try:
+            self.server.start()
+        except OSError as err:
+            from afmctl.errors import AfmctlError
+            self.server.stop()
+            raise AfmctlError(f"cannot serve the simulated amplifier on {self.server.port}: "
+                              f"{err.strerror or err}") from None
         self._thread = threading.Thread(target=self._loop, name="afmctl-sim-clock", daemon=True)
         self._thread.start()
         return self
@@ -195,6 +207,8 @@ def run(args) -> int:
         settings.amplifier.baud = args.baud
     if args.link:
         settings.amplifier.link = args.link
+    if args.duration is not None and not (args.duration > 0 and math.isfinite(args.duration)):
+        raise AfmctlError(f"--duration: {args.duration} s must be a positive number of seconds")
     stop = threading.Event()
 
     def _on_signal(signum, frame):  # noqa: ARG001

@@ -60,6 +60,8 @@ class SimDevice:
         #: smallest and largest voltage ever *requested* by a host (before clamping) [V]
         self.requested_min_V = float("inf")
         self.requested_max_V = float("-inf")
+        #: per axis: (smallest, largest) voltage ever requested by a host [V]
+        self.requested_V: dict[str, tuple[float, float]] = {}
         self.commands = 0
         self._inject: object | None = None
         self._rx = bytearray()
@@ -72,9 +74,11 @@ class SimDevice:
         code, self._inject = self._inject, None
         return code
 
-    def _requested(self, v: float) -> None:
+    def _requested(self, v: float, axis: str) -> None:
         self.requested_min_V = min(self.requested_min_V, v)
         self.requested_max_V = max(self.requested_max_V, v)
+        lo, hi = self.requested_V.get(axis, (v, v))
+        self.requested_V[axis] = (min(lo, v), max(hi, v))
 
     def _apply(self, changes: Mapping[str, float]) -> None:
         changed = {a: v for a, v in changes.items() if self.outputs.get(a) != v}
@@ -86,6 +90,37 @@ class SimDevice:
         """The link dropped: a partial command line in the input buffer is discarded."""
         self._rx.clear()
 
+    #: bytes that end a command line (any of them)
+    line_ends: bytes = b"\r\n"
+    #: a partial line longer than this is dropped and answered by :meth:`overflow`
+    max_line: int = 256
+
     def feed(self, data: bytes) -> bytes:
-        """Bytes from the host in, reply bytes out (may be empty)."""
+        """Bytes from the host in, reply bytes out (may be empty): every complete line
+        (empty ones ignored, a trailing CR stripped) goes to :meth:`reply`."""
+        self._rx += data
+        out = bytearray()
+        while True:
+            ends = [k for k in (self._rx.find(bytes((e,))) for e in self.line_ends) if k >= 0]
+            if not ends:
+                if len(self._rx) > self.max_line:  # no real device buffers a line this long
+                    self._rx.clear()
+                    out += self.overflow()
+                return bytes(out)
+            i = min(ends)
+            line = bytes(self._rx[:i]).rstrip(b"\r")
+            del self._rx[: i + 1]
+            if line.strip():
+                out += self.reply(line)
+
+    def reply(self, line: bytes) -> bytes:
+        """The bytes sent back for one command line (default: :meth:`command`)."""
+        return self.command(line)
+
+    def command(self, line: bytes) -> bytes:
+        """One command line (without terminator) → its reply."""
         raise NotImplementedError
+
+    def overflow(self) -> bytes:
+        """Reply to an over-long line without terminator."""
+        return b""

@@ -81,6 +81,8 @@ class SimCANAmplifier:
         self.seq_log: list[int] = []
         self.requested_min_V = math.inf
         self.requested_max_V = -math.inf
+        #: per axis: (smallest, largest) voltage ever requested by a host [V]
+        self.requested_V: dict[str, tuple[float, float]] = {}
         self._silent = False
         self._inject: int | None = None
         self._bus = None
@@ -188,9 +190,11 @@ class SimCANAmplifier:
             self._error(2, expected, seq)
         self.last_seq = seq
         values = {"x": float(sig["X_V"]), "y": float(sig["Y_V"]), "z": float(sig["Z_V"])}
-        for v in values.values():
+        for a, v in values.items():
             self.requested_min_V = min(self.requested_min_V, v)
             self.requested_max_V = max(self.requested_max_V, v)
+            lo, hi = self.requested_V.get(a, (v, v))
+            self.requested_V[a] = (min(lo, v), max(hi, v))
         if self._inject is not None:
             code, self._inject = self._inject, None
             self.rejected += 1

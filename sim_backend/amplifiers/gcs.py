@@ -46,18 +46,12 @@ class SimGCS(SimDevice):
     def _items(items: list[tuple[str, str]]) -> bytes:
         return b" \n".join(f"{k}={v}".encode() for k, v in items) + b"\n"
 
-    def feed(self, data: bytes) -> bytes:
-        self._rx += data
-        out = bytearray()
-        while (i := self._rx.find(b"\n")) >= 0:
-            line = bytes(self._rx[:i]).rstrip(b"\r")
-            del self._rx[: i + 1]
-            if line.strip():
-                out += self.command(line)
-        if len(self._rx) > 1024:
-            self._rx.clear()
-            self._latch(304)
-        return bytes(out)
+    line_ends = b"\n"  # LF ends a command (a CR before it is stripped)
+    max_line = 1024
+
+    def overflow(self) -> bytes:
+        self._latch(304)  # "received command is too long", read with ERR?
+        return b""
 
     def command(self, line: bytes) -> bytes:
         self.commands += 1
@@ -113,7 +107,7 @@ class SimGCS(SimDevice):
                 (self.vma if cmd == "VMA" else self.vmi)[key] = v
             return b""
         for key, v in values:  # SVA: all or nothing
-            self._requested(v)
+            self._requested(v, _AXIS[key])
             if self.servo[key]:
                 return self._latch(303)
             if not self.vmi[key] <= v <= self.vma[key]:

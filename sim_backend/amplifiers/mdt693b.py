@@ -49,28 +49,16 @@ class SimMDT693B(SimDevice):
         self.max_V = {a: self._default_max for a in self.axes}
 
     def _clamp(self, axis: str, v: float) -> float:
-        self._requested(v)
+        self._requested(v, axis)
         lo = self.min_V[axis]
         hi = min(self.max_V[axis], self.vlimit_V)
         return min(max(v, lo), hi)
 
-    def feed(self, data: bytes) -> bytes:
-        self._rx += data
-        out = bytearray()
-        while True:
-            i = min((k for k in (self._rx.find(b"\r"), self._rx.find(b"\n")) if k >= 0), default=-1)
-            if i < 0:
-                if len(self._rx) > 256:  # no real device buffers a line this long
-                    self._rx.clear()
-                    out += b"CMD_NOT_DEFINED" + self.prompt
-                return bytes(out)
-            line = bytes(self._rx[:i])
-            del self._rx[: i + 1]
-            if not line.strip():
-                continue
-            if self.echo:
-                out += line + b"\r"
-            out += self.command(line)
+    def reply(self, line: bytes) -> bytes:
+        return (line + b"\r" if self.echo else b"") + self.command(line)
+
+    def overflow(self) -> bytes:
+        return b"CMD_NOT_DEFINED" + self.prompt
 
     def _ok(self, body: bytes = b"") -> bytes:
         return (body + b"\r" if body else b"") + self.prompt

@@ -41,20 +41,8 @@ class SimNV200(SimDevice):
     def status_word(self) -> int:
         return 1 | (8 if self.params["cl"] else 0)
 
-    def feed(self, data: bytes) -> bytes:
-        self._rx += data
-        out = bytearray()
-        while True:
-            i = min((k for k in (self._rx.find(b"\r"), self._rx.find(b"\n")) if k >= 0), default=-1)
-            if i < 0:
-                if len(self._rx) > 256:
-                    self._rx.clear()
-                    out += self._error(1)
-                return bytes(out)
-            line = bytes(self._rx[:i])
-            del self._rx[: i + 1]
-            if line.strip():
-                out += self.command(line)
+    def overflow(self) -> bytes:
+        return self._error(1)
 
     def command(self, line: bytes) -> bytes:
         self.commands += 1
@@ -87,7 +75,7 @@ class SimNV200(SimDevice):
         if v != v or abs(v) == float("inf"):
             return self._error(1)
         if name == "set":
-            self._requested(v)
+            self._requested(v, "x")
             if not self.params["avmin"] <= v <= self.params["avmax"]:
                 return self._error(4)
             self.params["set"] = v

@@ -135,17 +135,23 @@ class PtyServer:
     # -- internals --
     def _open(self) -> None:
         master, slave = os.openpty()
-        tty.setraw(slave)  # no echo, no line editing on the device side
-        os.set_blocking(master, False)
-        self._master, self._slave = master, slave
-        self.pty_path = os.ttyname(slave)
-        tmp = f"{self.port}.{os.getpid()}.tmp"
         try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        os.symlink(self.pty_path, tmp)
-        os.replace(tmp, self.port)
+            tty.setraw(slave)  # no echo, no line editing on the device side
+            os.set_blocking(master, False)
+            pty_path = os.ttyname(slave)
+            tmp = f"{self.port}.{os.getpid()}.tmp"
+            try:
+                os.unlink(tmp)
+            except FileNotFoundError:
+                pass
+            os.symlink(pty_path, tmp)
+            os.replace(tmp, self.port)
+        except OSError:
+            os.close(master)  # e.g. the link's directory does not exist: leak nothing
+            os.close(slave)
+            raise
+        self._master, self._slave = master, slave
+        self.pty_path = pty_path
         self._stop = threading.Event()
         self._txq = queue.Queue()
         self._threads = [threading.Thread(target=self._rx_loop, args=(self._stop, master), daemon=True,
