@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import re
 import statistics
 import sys
 import time
@@ -31,6 +30,7 @@ sys.path.insert(0, str(ROOT))
 
 from compensators.epi import EPIModel  # noqa: E402
 from compensators.pi import PIModel  # noqa: E402
+from sections import write_section  # noqa: E402  (benchmarks/sections.py)
 
 NAME = "pi"
 
@@ -49,30 +49,38 @@ def make_model(n: int) -> PIModel:
     return PIModel(thresholds=r.tolist(), weights=w.tolist(), offset_nm=-100.0)
 
 
-def time_block(op, x: np.ndarray, repeats: int) -> float:
+def time_block(op, x: np.ndarray, repeats: int) -> tuple[float, float]:
+    """Median block throughput (wall clock, CPU time of this process) [samples/s]."""
     op.reset()
-    op.block(x[:1000])                    # compile / warm caches
-    rates = []
+    op.block(x[:1000])                    # compile / load the numba cache before timing
+    wall, cpu = [], []
     for _ in range(repeats):
         op.reset()
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         op.block(x)
-        rates.append(x.size / (time.perf_counter() - t0))
-    return statistics.median(rates)
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return x.size / statistics.median(wall), x.size / max(statistics.median(cpu), 1e-9)
 
 
-def time_step(op, x: np.ndarray, repeats: int) -> float:
+def time_step(op, x: np.ndarray, repeats: int) -> tuple[float, float]:
+    """Median cost of one ``step()`` call from Python (wall clock, CPU time) [µs]."""
     xs = x[:50_000].tolist()
     step = op.step
     step(xs[0])
-    per = []
+    wall, cpu = [], []
     for _ in range(repeats):
         op.reset()
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         for v in xs:
             step(v)
-        per.append((time.perf_counter() - t0) / len(xs))
-    return statistics.median(per) * 1e6
+        wall.append((time.perf_counter() - t0) / len(xs))
+        cpu.append((time.process_time() - c0) / len(xs))
+    return statistics.median(wall) * 1e6, statistics.median(cpu) * 1e6
+
+
+def _fmt(pair: tuple[float, float], scale: float, digits: int) -> str:
+    return f"{pair[0] * scale:.{digits}f} ({pair[1] * scale:.{digits}f})"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -92,9 +100,10 @@ def main(argv: list[str] | None = None) -> int:
                          inv_block=time_block(inv, y, args.repeats),
                          fwd_step=time_step(fwd, x, args.repeats),
                          inv_step=time_step(inv, y, args.repeats)))
-        print(f"n={n:3d}: forward block {rows[-1]['fwd_block'] / 1e6:7.1f} M samples/s, inverse block "
-              f"{rows[-1]['inv_block'] / 1e6:7.1f} M samples/s, step fwd {rows[-1]['fwd_step']:.2f} µs, "
-              f"inv {rows[-1]['inv_step']:.2f} µs", flush=True)
+        r = rows[-1]
+        print(f"n={n:3d}: forward block {_fmt(r['fwd_block'], 1e-6, 1)} M samples/s, inverse block "
+              f"{_fmt(r['inv_block'], 1e-6, 1)} M samples/s, step fwd {_fmt(r['fwd_step'], 1, 2)} µs, "
+              f"inv {_fmt(r['inv_step'], 1, 2)} µs  [wall clock (CPU time)]", flush=True)
     # extended PI inverse (compiled creep state machine), on a staircase with dwells
     e = EPIModel(**{**make_model(13).model_dump(), "kind": "epi"}, creep_a_nm=20.0, creep_b=1.005,
                  creep_lambda_per_s=3.0)
@@ -102,10 +111,10 @@ def main(argv: list[str] | None = None) -> int:
     einv = e.inverse(1e-3)
     epi_rate = time_block(einv, ys, args.repeats)
     epi_step = time_step(einv, ys, args.repeats)
-    print(f"extended PI inverse (n=13, staircase with dwells): block {epi_rate / 1e6:.1f} M samples/s, "
-          f"step {epi_step:.2f} µs")
+    print(f"extended PI inverse (n=13, staircase with dwells): block {_fmt(epi_rate, 1e-6, 1)} M samples/s, "
+          f"step {_fmt(epi_step, 1, 2)} µs")
 
-    cmd = "`.venv/bin/python benchmarks/bench_pi.py`"
+    cmd = "`" + " ".join([".venv/bin/python benchmarks/bench_pi.py"] + list(sys.argv[1:] if argv is None else argv)) + "`"
     lines = [
         "## PI operator and inverse (compensators.pi)",
         "",
@@ -114,12 +123,15 @@ def main(argv: list[str] | None = None) -> int:
         f"{platform.python_implementation()} {platform.python_version()}, {os.cpu_count()} CPUs visible, "
         f"{time.strftime('%Y-%m-%d')}).",
         "",
+        "Each figure: median wall clock (median CPU time of this single-threaded process, the fairer "
+        "one-core figure on a shared machine).",
+        "",
         "| plays n | forward block [M samples/s] | inverse block [M samples/s] | step forward [µs/call] | step inverse [µs/call] |",
         "|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
-        lines.append(f"| {r['n']} | {r['fwd_block'] / 1e6:.1f} | {r['inv_block'] / 1e6:.1f} | "
-                     f"{r['fwd_step']:.2f} | {r['inv_step']:.2f} |")
+        lines.append(f"| {r['n']} | {_fmt(r['fwd_block'], 1e-6, 1)} | {_fmt(r['inv_block'], 1e-6, 1)} | "
+                     f"{_fmt(r['fwd_step'], 1, 2)} | {_fmt(r['inv_step'], 1, 2)} |")
     lines += [
         "",
         "Targets: inverse block ≥ 40 M samples/s (n = 13) and ≥ 12 M samples/s (n = 64); step ≤ 3 µs. "
@@ -127,24 +139,12 @@ def main(argv: list[str] | None = None) -> int:
         "operator is a PI operator, eqs. 8–11); `step` calls a scalar kernel on one "
         "preallocated (3, n) array.",
         f"Extended-PI inverse (n = 13, compiled creep state machine, staircase of 400 levels with 0.5 s "
-        f"dwells at 1 kHz): block {epi_rate / 1e6:.1f} M samples/s, step {epi_step:.2f} µs/call.",
+        f"dwells at 1 kHz): block {_fmt(epi_rate, 1e-6, 1)} M samples/s, step {_fmt(epi_step, 1, 2)} µs/call.",
     ]
     if not args.no_write:
-        write_section("\n".join(lines))
+        path = write_section(NAME, "\n".join(lines))
+        print(f"updated {path.relative_to(ROOT)} section {NAME}")
     return 0
-
-
-def write_section(body: str) -> None:
-    path = ROOT / "docs" / "BENCHMARKS.md"
-    text = path.read_text(encoding="utf-8") if path.exists() else "# Benchmarks\n"
-    start, end = f"<!-- bench:{NAME} -->", f"<!-- /bench:{NAME} -->"
-    block = f"{start}\n{body}\n{end}"
-    if start in text and end in text:
-        text = re.sub(re.escape(start) + r".*?" + re.escape(end), lambda _: block, text, flags=re.S)
-    else:
-        text = text.rstrip("\n") + "\n\n" + block + "\n"
-    path.write_text(text, encoding="utf-8")
-    print(f"updated {path.relative_to(ROOT)} section {NAME}")
 
 
 if __name__ == "__main__":

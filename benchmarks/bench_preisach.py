@@ -13,13 +13,12 @@ warmed up first):
 
 Rewrites the ``bench:preisach`` section of docs/BENCHMARKS.md:
 
-    .venv/bin/python benchmarks/bench_preisach.py [--repeats N] [--samples N] [--no-accuracy]
+    .venv/bin/python benchmarks/bench_preisach.py [--repeats N] [--samples N] [--no-accuracy] [--no-write]
 """
 from __future__ import annotations
 
 import argparse
 import platform
-import re
 import statistics
 import sys
 import time
@@ -29,6 +28,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from sections import write_section  # noqa: E402  (benchmarks/sections.py)
 COMMAND = ".venv/bin/python benchmarks/bench_preisach.py"
 
 
@@ -62,6 +62,11 @@ def _m(rates: tuple[float, float]) -> tuple[float, float]:
     return rates[0] / 1e6, rates[1] / 1e6
 
 
+def _us(rates: tuple[float, float]) -> tuple[float, float]:
+    """samples/s → µs per call (wall, CPU)."""
+    return 1e6 / rates[0], 1e6 / rates[1]
+
+
 def measure_throughput(samples: int, repeats: int) -> list[tuple[str, str, float, str]]:
     from compensators.bouc_wen import BoucWenModel
     from compensators.preisach import PreisachModel
@@ -85,9 +90,18 @@ def measure_throughput(samples: int, repeats: int) -> list[tuple[str, str, float
 
         rows.append((f"Preisach forward, {levels} levels", f"block of {samples} samples", _m(_median_rate(run_fwd, samples, repeats)), "M samples/s"))
         rows.append((f"Preisach inverse, {levels} levels", f"block of {samples} samples", _m(_median_rate(run_inv, samples, repeats)), "M samples/s"))
-        f.reset()
         n_step = 20000
-        rows.append((f"Preisach forward, {levels} levels", "per-sample step() from Python", _m(_median_rate(lambda: [f.step(x) for x in u[:n_step]], n_step, repeats)), "M samples/s"))
+        us, ys = u[:n_step].tolist(), y[:n_step].tolist()
+
+        def steps(op, xs):
+            op.reset()
+            for x in xs:
+                op.step(x)
+
+        rows.append((f"Preisach forward, {levels} levels", "per-sample step() from Python",
+                     _us(_median_rate(lambda: steps(f, us), n_step, repeats)), "µs/call"))
+        rows.append((f"Preisach inverse, {levels} levels", "per-sample step() from Python",
+                     _us(_median_rate(lambda: steps(inv, ys), n_step, repeats)), "µs/call"))
     bw = BoucWenModel(d_nm_per_V=100.0, A_nm_per_V=30.0, beta=0.004, gamma=0.0015, n=1.2)
     u = _signal(samples // 4, 0.0, 150.0)
     bf, bi = bw.forward(), bw.inverse()
@@ -95,10 +109,19 @@ def measure_throughput(samples: int, repeats: int) -> list[tuple[str, str, float
     bi.block(yb[:100])
     rows.append(("Bouc–Wen forward", f"block of {u.size} samples", _m(_median_rate(lambda: (bf.reset(), bf.block(u)), u.size, repeats)), "M samples/s"))
     rows.append(("Bouc–Wen inverse", f"block of {u.size} samples", _m(_median_rate(lambda: (bi.reset(), bi.block(yb)), u.size, repeats)), "M samples/s"))
+    ul, yl = u[:20000].tolist(), yb[:20000].tolist()
+    bf.step(ul[0])
+    bi.step(yl[0])
+    for name, op, xs in (("Bouc–Wen forward", bf, ul), ("Bouc–Wen inverse", bi, yl)):
+        def run_steps(op=op, xs=xs) -> None:
+            op.reset()
+            for x in xs:
+                op.step(x)
+        rows.append((name, "per-sample step() from Python", _us(_median_rate(run_steps, len(xs), repeats)), "µs/call"))
     return rows
 
 
-def measure_accuracy() -> tuple[list[tuple[str, float, float]], str]:
+def measure_accuracy(plots: bool = True) -> tuple[list[tuple[str, float, float]], str]:
     """Feedforward on the asymmetric relay plant: Preisach vs PI."""
     sys.path.insert(0, str(ROOT / "tests"))
     from plants import RelayPreisachPlant, decaying_triangle, triangle  # noqa: E402
@@ -136,7 +159,8 @@ def measure_accuracy() -> tuple[list[tuple[str, float, float]], str]:
         e = plant.run(m.inverse().block(target)) - target
         results.append((name, 100 * np.max(np.abs(e)) / span, 100 * np.sqrt(np.mean(e * e)) / span))
         curves[name] = e
-    _plots(t, target, curves, span, pre)
+    if plots:
+        _plots(t, target, curves, span, pre)
     note = (f"Plant: `tests/plants.py` RelayPreisachPlant(grid=300) — relays on a 0.5 V lattice over 0…150 V, asymmetric "
             f"Gaussian-mixture density, 40 nm/V reversible part, range {span:.0f} nm. Identification: decaying "
             f"triangle (10 cycles) + 10 minor loops, {u_id.size} samples, 0.05 % Gaussian noise. Test: 1 Hz triangle "
@@ -181,9 +205,9 @@ def _plots(t, target, curves, span, model) -> None:
     plt.close(fig)
 
 
-def write_section(rows, acc, note, repeats: int, samples: int) -> str:
-    lines = ["<!-- bench:preisach -->", "## Preisach and Bouc–Wen", "",
-             f"Command: `{COMMAND}` (median of {repeats} runs; one core; "
+def format_section(rows, acc, note, repeats: int) -> str:
+    lines = ["## Preisach and Bouc–Wen", "",
+             f"Command: `{' '.join([COMMAND] + sys.argv[1:])}` (median of {repeats} runs; one core; "
              f"{platform.python_implementation()} {platform.python_version()}, {platform.machine()}). "
              "Targets at 32 levels: ≥ 10 M samples/s forward, ≥ 3 M samples/s exact inverse. "
              "Signal: wandering 1 Hz triangle with noise over the whole −160…160 V grid.", "",
@@ -198,14 +222,7 @@ def write_section(rows, acc, note, repeats: int, samples: int) -> str:
         for name, mx, rms in acc:
             lines.append(f"| {name} | {mx:.3g} | {rms:.3g} |")
         lines += ["", "![feedforward errors](img/preisach_feedforward.png)"]
-    lines.append("<!-- /bench:preisach -->")
-    section = "\n".join(lines)
-    doc = ROOT / "docs" / "BENCHMARKS.md"
-    body = doc.read_text(encoding="utf-8") if doc.exists() else "# Benchmarks\n"
-    pat = re.compile(r"<!-- bench:preisach -->.*?<!-- /bench:preisach -->", re.S)
-    body = pat.sub(lambda _m: section, body) if pat.search(body) else body.rstrip("\n") + "\n\n" + section + "\n"
-    doc.write_text(body, encoding="utf-8")
-    return section
+    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -213,10 +230,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=7, help="timed runs per figure (median is quoted)")
     ap.add_argument("--samples", type=int, default=2_000_000, help="samples per timed block")
     ap.add_argument("--no-accuracy", action="store_true", help="skip the feedforward accuracy comparison")
+    ap.add_argument("--no-write", action="store_true", help="print only; do not touch docs/BENCHMARKS.md or docs/img")
     args = ap.parse_args(argv)
     rows = measure_throughput(args.samples, args.repeats)
-    acc, note = ([], "") if args.no_accuracy else measure_accuracy()
-    print(write_section(rows, acc, note, args.repeats, args.samples))
+    acc, note = ([], "") if args.no_accuracy else measure_accuracy(plots=not args.no_write)
+    section = format_section(rows, acc, note, args.repeats)
+    print(section)
+    if not args.no_write:
+        path = write_section("preisach", section)
+        print(f"updated {path.relative_to(ROOT)} section preisach")
     return 0
 
 

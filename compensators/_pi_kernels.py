@@ -243,6 +243,9 @@ def creep_inv_block_ref(y: np.ndarray, a: np.ndarray, c: np.ndarray, z: np.ndarr
 # Parameters ``prm`` (float64[6]): 0 a, 1 log b, 2 λ, 3 dt, 4 min slope, 5 band margin.
 
 CS_SIZE = 15
+#: most bracket doublings of the extended-PI inverse (1e-9 V · 2^2200 overflows any float):
+#: a target that no finite voltage reaches holds the previous voltage instead of looping
+BRACKET_DOUBLINGS = 2200
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -372,13 +375,15 @@ def _epi_solve(y, c0, Pi, in_off, Pf, out_off, cs):  # pragma: no cover - compil
     sgn = 1.0 if rising else -1.0
     step = max(0.25 * abs(c0 - up), 1e-9 * (1.0 + abs(up)))
     near = up
-    while True:
+    for _ in range(BRACKET_DOUBLINGS + 1):
         far = up + sgn * step
         yf = _epi_Y(far, Pf, out_off, cs)
         if (yf >= y) if rising else (yf <= y):
             break
         near = far
         step *= 2.0
+    else:
+        return up  # no finite bracket (overflowing creep law): hold the voltage
     if rising:
         lo = near
         hi = far

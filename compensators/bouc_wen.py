@@ -17,6 +17,9 @@ is therefore inside RK4's stability region whatever the sample step: the update 
 stable for any step size and the result does not depend on the sampling rate beyond
 the integration error (RK4; near h = 0 the term h·|h|^(n−1) is not smooth, so in
 practice ~1e-6 of the output range between a 1-sample and a 2000-sample path).
+A move longer than 10⁶ sub-steps integrates only its last 10⁶ sub-steps (10⁵ stiffness
+lengths, long after h has reached its branch), so absurd inputs (1e300 V) or very stiff
+models cost at most 10⁶ sub-steps per sample and still give finite outputs.
 
 Initial state (``reset``): input ``u0_V`` with ``h = h0_nm`` (defaults 0 V, 0 nm).
 
@@ -40,11 +43,14 @@ from pydantic import Field, model_validator
 
 from compensators.base import ModelError, StreamingOperator, check_finite
 from compensators.models import HysteresisModel
+from compensators.input_checks import block_samples, finite_sample, number_option
 
 log = logging.getLogger(__name__)
 
 #: sub-step as a fraction of the inverse largest stiffness (RK4 is stable below 2.78)
 _SUB = 0.1
+#: most RK4 sub-steps per sample; longer moves integrate only their last _MAX_SUB sub-steps
+_MAX_SUB = 1000000
 
 
 class BoucWenModel(HysteresisModel):
@@ -142,13 +148,18 @@ def _advance(h, u_from, u_to, A, beta, gamma, n, du_sub):
     du = u_to - u_from
     if du == 0.0:
         return h
-    m = int(math.ceil(abs(du) / du_sub))
-    if m < 1:
-        m = 1
-    if m > 1000000:
-        m = 1000000
-    dx = du / m
     sgn = 1.0 if du > 0.0 else -1.0
+    ratio = abs(du) / du_sub
+    if ratio > _MAX_SUB:
+        # a huge move: integrate only its last _MAX_SUB sub-steps (10⁵ stiffness lengths);
+        # h has converged to its branch long before, and RK4 stays inside its stability region
+        m = _MAX_SUB
+        dx = sgn * du_sub
+    else:
+        m = int(math.ceil(ratio))
+        if m < 1:
+            m = 1
+        dx = du / m
     for _ in range(m):
         k1 = _rhs(h, sgn, A, beta, gamma, n)
         k2 = _rhs(h + 0.5 * dx * k1, sgn, A, beta, gamma, n)
@@ -159,17 +170,21 @@ def _advance(h, u_from, u_to, A, beta, gamma, n, du_sub):
 
 
 @njit(cache=True)
-def bw_forward_block(u, state, d, A, beta, gamma, n, off, du_sub):
-    """state = [h, u_prev]; returns y [nm]."""
-    y = np.empty(u.shape[0])
-    h = state[0]
-    up = state[1]
-    for k in range(u.shape[0]):
-        h = _advance(h, up, u[k], A, beta, gamma, n, du_sub)
-        up = u[k]
-        y[k] = d * up - h + off
+def bw_forward_step(x, state, p):
+    """One sample u [V] → y [nm]; ``state = [h, u_prev]`` updated in place,
+    ``p = [d, A, β, γ, n, offset, du_sub]``."""
+    h = _advance(state[0], state[1], x, p[1], p[2], p[3], p[4], p[6])
     state[0] = h
-    state[1] = up
+    state[1] = x
+    return p[0] * x - h + p[5]
+
+
+@njit(cache=True)
+def bw_forward_block(u, state, p):
+    """:func:`bw_forward_step` over a block; returns y [nm]."""
+    y = np.empty(u.shape[0])
+    for k in range(u.shape[0]):
+        y[k] = bw_forward_step(u[k], state, p)
     return y
 
 
@@ -214,55 +229,118 @@ def _solve_u(yd, h, up, d, A, beta, gamma, n, off, du_sub):
 
 
 @njit(cache=True)
-def bw_inverse_block(yd, state, d, A, beta, gamma, n, off, du_sub):
-    """state = [h, u_prev]; returns u [V] with forward(u) == yd."""
-    out = np.empty(yd.shape[0])
+def bw_inverse_step(yd, state, p):
+    """One target y [nm] → u [V] with forward(u) == y; ``state``/``p`` as for
+    :func:`bw_forward_step`."""
     h = state[0]
     up = state[1]
+    u = _solve_u(yd, h, up, p[0], p[1], p[2], p[3], p[4], p[5], p[6])
+    state[0] = _advance(h, up, u, p[1], p[2], p[3], p[4], p[6])
+    state[1] = u
+    return u
+
+
+@njit(cache=True)
+def bw_inverse_block(yd, state, p):
+    """:func:`bw_inverse_step` over a block; returns u [V]."""
+    out = np.empty(yd.shape[0])
     for k in range(yd.shape[0]):
-        u = _solve_u(yd[k], h, up, d, A, beta, gamma, n, off, du_sub)
-        h = _advance(h, up, u, A, beta, gamma, n, du_sub)
-        up = u
-        out[k] = u
-    state[0] = h
-    state[1] = up
+        out[k] = bw_inverse_step(yd[k], state, p)
     return out
+
+
+class ReferenceBoucWen:
+    """Plain-Python reference of the forward operator and its inverse (no numba): the
+    same arithmetic in the same order as the kernels, tested bit for bit."""
+
+    def __init__(self, model: BoucWenModel) -> None:
+        self.d, self.A, self.beta, self.gamma = model.d_nm_per_V, model.A_nm_per_V, model.beta, model.gamma
+        self.n, self.off, self.du_sub = model.n, model.offset_nm, model.du_sub_V()
+        self.h0, self.u0 = model.h0_nm, model.u0_V
+        self.reset()
+
+    def reset(self) -> None:
+        self.h, self.up = float(self.h0), float(self.u0)
+
+    def rhs(self, h: float, sgn: float) -> float:
+        s = 1.0 if h > 0.0 else (-1.0 if h < 0.0 else 0.0)
+        return self.A - (self.beta * sgn * s + self.gamma) * abs(h) ** self.n
+
+    def advance(self, h: float, u_from: float, u_to: float) -> float:
+        du = u_to - u_from
+        if du == 0.0:
+            return h
+        sgn = 1.0 if du > 0.0 else -1.0
+        ratio = abs(du) / self.du_sub
+        if ratio > _MAX_SUB:
+            m, dx = _MAX_SUB, sgn * self.du_sub
+        else:
+            m = max(int(math.ceil(ratio)), 1)
+            dx = du / m
+        for _ in range(m):
+            k1 = self.rhs(h, sgn)
+            k2 = self.rhs(h + 0.5 * dx * k1, sgn)
+            k3 = self.rhs(h + 0.5 * dx * k2, sgn)
+            k4 = self.rhs(h + dx * k3, sgn)
+            h = h + dx / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        return h
+
+    def forward(self, u: np.ndarray) -> np.ndarray:
+        out = np.empty(len(u))
+        for k, x in enumerate(np.asarray(u, dtype=float).tolist()):
+            self.h = self.advance(self.h, self.up, x)
+            self.up = x
+            out[k] = self.d * x - self.h + self.off
+        return out
+
+    def solve(self, yd: float) -> float:
+        """Safeguarded Newton for d·u − h(u) + off = yd (mirrors the kernel's _solve_u)."""
+        d, h, up, off = self.d, self.h, self.up, self.off
+        y_prev = d * up - h + off
+        if yd == y_prev:
+            return up
+        sgn = 1.0 if yd > y_prev else -1.0
+        u = up + (yd - y_prev) / (d - self.rhs(h, sgn))
+        a, b = (up, math.inf) if sgn > 0 else (-math.inf, up)
+        scale = abs(yd) + abs(d) * (abs(up) + 1.0)
+        for _ in range(100):
+            hu = self.advance(h, up, u)
+            g = d * u - hu + off - yd
+            if abs(g) <= 1e-15 * scale:
+                return u
+            if g > 0.0:
+                b = u
+            else:
+                a = u
+            gp = d - self.rhs(hu, 1.0 if u >= up else -1.0)
+            un = u - g / gp
+            if not (un > a and un < b):
+                un = u - 2.0 * g / gp if (math.isinf(a) or math.isinf(b)) else 0.5 * (a + b)
+            if un == u:
+                return u
+            u = un
+        return u
+
+    def inverse(self, y: np.ndarray) -> np.ndarray:
+        out = np.empty(len(y))
+        for k, target in enumerate(np.asarray(y, dtype=float).tolist()):
+            u = self.solve(target)
+            self.h = self.advance(self.h, self.up, u)
+            self.up = u
+            out[k] = u
+        return out
 
 
 def reference_forward(model: BoucWenModel, u: np.ndarray) -> np.ndarray:
-    """Plain-Python reference of the forward operator (same arithmetic as the kernel)."""
-    A, beta, gamma, n = model.A_nm_per_V, model.beta, model.gamma, model.n
-    du_sub = model.du_sub_V()
-
-    def rhs(h: float, sgn: float) -> float:
-        s = 1.0 if h > 0.0 else (-1.0 if h < 0.0 else 0.0)
-        return A - (beta * sgn * s + gamma) * abs(h) ** n
-
-    h, up = model.h0_nm, model.u0_V
-    out = np.empty(len(u))
-    for k, x in enumerate(np.asarray(u, dtype=float)):
-        x = float(x)
-        du = x - up
-        if du != 0.0:
-            m = min(max(int(math.ceil(abs(du) / du_sub)), 1), 1000000)
-            dx = du / m
-            sgn = 1.0 if du > 0 else -1.0
-            for _ in range(m):
-                k1 = rhs(h, sgn)
-                k2 = rhs(h + 0.5 * dx * k1, sgn)
-                k3 = rhs(h + 0.5 * dx * k2, sgn)
-                k4 = rhs(h + dx * k3, sgn)
-                h = h + dx / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-        up = x
-        out[k] = model.d_nm_per_V * up - h + model.offset_nm
-    return out
+    """Plain-Python reference of the forward operator from the reset state."""
+    return ReferenceBoucWen(model).forward(u)
 
 
 class _BWBase(StreamingOperator):
     def __init__(self, model: BoucWenModel) -> None:
         self.model = model
-        self.p = (float(model.d_nm_per_V), float(model.A_nm_per_V), float(model.beta), float(model.gamma),
-                  float(model.n), float(model.offset_nm), float(model.du_sub_V()))
+        self.p = np.array([model.d_nm_per_V, model.A_nm_per_V, model.beta, model.gamma, model.n,
+                           model.offset_nm, model.du_sub_V()], dtype=np.float64)
         self.state = np.zeros(2)
         self.reset()
 
@@ -279,22 +357,22 @@ class BoucWenOperator(_BWBase):
     """Forward streaming operator u [V] → y [nm]."""
 
     def step(self, x: float) -> float:
-        return float(self.block(np.array([x], dtype=np.float64))[0])
+        return bw_forward_step(finite_sample("u_V", x), self.state, self.p)
 
     def block(self, x: np.ndarray) -> np.ndarray:
-        x = np.ascontiguousarray(check_finite("u_V", x)).reshape(-1)
-        return bw_forward_block(x, self.state, *self.p)
+        x = block_samples("u_V", x)
+        return bw_forward_block(x, self.state, self.p)
 
 
 class BoucWenInverse(_BWBase):
     """Exact inverse y [nm] → u [V]."""
 
     def step(self, x: float) -> float:
-        return float(self.block(np.array([x], dtype=np.float64))[0])
+        return bw_inverse_step(finite_sample("y_nm", x), self.state, self.p)
 
     def block(self, x: np.ndarray) -> np.ndarray:
-        x = np.ascontiguousarray(check_finite("y_nm", x)).reshape(-1)
-        return bw_inverse_block(x, self.state, *self.p)
+        x = block_samples("y_nm", x)
+        return bw_inverse_block(x, self.state, self.p)
 
 
 # ------------------------------------------------------------------------ identification
@@ -318,7 +396,7 @@ def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n: float | None = None, 
         raise ModelError(f"n: must be a number in 1..10, got {n!r}")
     if isinstance(max_rows, bool) or not isinstance(max_rows, (int, np.integer)) or max_rows < 20:
         raise ModelError(f"max_rows: must be an integer >= 20, got {max_rows!r}")
-    u0 = float(u[0]) if u0_V is None else float(u0_V)
+    u0 = float(u[0]) if u0_V is None else number_option("u0_V", u0_V)
     u = np.ascontiguousarray(u)
     sel = np.unique(np.linspace(0, u.shape[0] - 1, min(max_rows, u.shape[0])).round().astype(np.int64))
     travel = float(np.sum(np.abs(np.diff(np.r_[u0, u]))))
@@ -344,7 +422,7 @@ def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n: float | None = None, 
         du_sub = _SUB / max(k, 1e-300)
         if not math.isfinite(du_sub) or travel / du_sub > 2e7:
             return np.full(sel.shape[0], 10.0)  # far too stiff to be a piezo loop: reject
-        y_m = bw_forward_block(u, np.array([0.0, u0]), d, A, beta, gamma, nn, off, du_sub)
+        y_m = bw_forward_block(u, np.array([0.0, u0]), np.array([d, A, beta, gamma, nn, off, du_sub]))
         return (y_m[sel] - y[sel]) / yscale
 
     best = None

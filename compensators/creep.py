@@ -28,6 +28,7 @@ from pydantic import Field, FiniteFloat, model_validator
 
 from compensators import _pi_kernels as K
 from compensators.base import ModelError, StreamingOperator, check_finite
+from compensators.input_checks import block_samples, finite_sample, number_option
 from compensators.models import HysteresisModel
 
 log = logging.getLogger(__name__)
@@ -89,11 +90,11 @@ class LinearCreep(StreamingOperator):
         return K.creep_block_ref(x, self.a, self.c, self.z)
 
     def block(self, x: np.ndarray) -> np.ndarray:
-        x = check_finite("input", x)
-        return self.out_offset + self.gain * self._raw(np.ascontiguousarray(x - self.in_offset))
+        x = block_samples("input", x)
+        return self.out_offset + self.gain * self._raw(x - self.in_offset)
 
     def step(self, x: float) -> float:
-        self._buf[0] = float(x)
+        self._buf[0] = finite_sample("input", x)
         return float(self.block(self._buf)[0])
 
 
@@ -104,8 +105,8 @@ class LinearCreepInverse(LinearCreep):
     """
 
     def block(self, y: np.ndarray) -> np.ndarray:
-        y = check_finite("input", y)
-        v = np.ascontiguousarray((y - self.out_offset) / self.gain)
+        y = block_samples("input", y)
+        v = (y - self.out_offset) / self.gain
         if self.use_numba:
             out = np.empty_like(v)
             K.creep_inv_block(v, self.a, self.c, self.z, out)
@@ -127,8 +128,10 @@ class LinearCreepModel(HysteresisModel):
     gain_nm_per_V: FiniteFloat = Field(gt=0, description="static gain [nm/V]")
     offset_nm: FiniteFloat = Field(default=0.0, description="output offset [nm]")
     initial_V: FiniteFloat = Field(default=0.0, description="input at rest before the first sample [V]")
-    time_constants_s: list[FiniteFloat] = Field(min_length=1, description="lag time constants τ_k [s]")
-    creep_weights: list[FiniteFloat] = Field(min_length=1, description="creep fractions c_k ≥ 0, Σ c_k < 1")
+    time_constants_s: list[FiniteFloat] = Field(min_length=1, max_length=1000,
+                                                description="lag time constants τ_k [s]")
+    creep_weights: list[FiniteFloat] = Field(min_length=1, max_length=1000,
+                                             description="creep fractions c_k ≥ 0, Σ c_k < 1")
 
     @model_validator(mode="after")
     def _check(self) -> "LinearCreepModel":
@@ -185,8 +188,8 @@ class LinearCreepModel(HysteresisModel):
             raise ModelError("t_s: the creep model needs strictly increasing, uniformly sampled time")
         if np.ptp(u) <= 0:
             raise ModelError("u_V: the input voltage never changes")
-        tau_min = float(options.pop("tau_min_s", 5 * dt))
-        tau_max = float(options.pop("tau_max_s", max(0.2 * (t[-1] - t[0]), 2 * tau_min)))
+        tau_min = number_option("tau_min_s", options.pop("tau_min_s", 5 * dt))
+        tau_max = number_option("tau_max_s", options.pop("tau_max_s", max(0.2 * (t[-1] - t[0]), 2 * tau_min)))
         if options:
             raise ModelError(f"options: unknown option(s) {', '.join(sorted(options))}; allowed: tau_min_s, tau_max_s")
         if not (0 < tau_min < tau_max):

@@ -53,7 +53,8 @@ import numpy as np
 from pydantic import Field, FiniteFloat
 
 from compensators import _pi_kernels as K
-from compensators.base import ModelError, StreamingOperator, check_finite
+from compensators.base import ModelError, StreamingOperator
+from compensators.input_checks import block_samples, finite_sample, number_option
 from compensators.pi import (PIFamilyModel, PIOperator, fit_pi_weights,
                              prepare_pi_identification)
 
@@ -217,9 +218,7 @@ class EPIForward(StreamingOperator):
         self._cs[:] = self._cs0
 
     def step(self, x: float) -> float:
-        u = float(x)
-        if not math.isfinite(u):
-            raise ModelError("input: non-finite value; all values must be finite")
+        u = finite_sample("input", x)
         if self.use_numba:
             return K.epi_forward_step(u, self.pi._P, self.pi.out_offset, self._cs, self._prm)
         h = self.pi.step(u)
@@ -230,10 +229,10 @@ class EPIForward(StreamingOperator):
         return h + T
 
     def block(self, x: np.ndarray) -> np.ndarray:
-        x = check_finite("input", x)
+        x = block_samples("input", x)
         out = np.empty_like(x)
         if self.use_numba:
-            K.epi_forward_block(np.ascontiguousarray(x), self.pi._P, self.pi.out_offset, self._cs, self._prm, out)
+            K.epi_forward_block(x, self.pi._P, self.pi.out_offset, self._cs, self._prm, out)
             return out
         step = self.step
         for i, v in enumerate(x.tolist()):
@@ -288,12 +287,14 @@ class EPIInverse(StreamingOperator):
         sgn = 1.0 if rising else -1.0
         step = max(0.25 * abs(c0 - up), 1e-9 * (1.0 + abs(up)))
         near = up
-        while True:
+        for _ in range(K.BRACKET_DOUBLINGS + 1):
             far = up + sgn * step
             if (Y(far) >= y) if rising else (Y(far) <= y):
                 break
             near = far
             step *= 2.0
+        else:
+            return up          # no finite bracket (overflowing creep law): hold the voltage
         lo, hi = (near, far) if rising else (far, near)
         while True:
             mid = 0.5 * (lo + hi)
@@ -310,9 +311,7 @@ class EPIInverse(StreamingOperator):
                 hi = mid
 
     def step(self, x: float) -> float:
-        y = float(x)
-        if not math.isfinite(y):
-            raise ModelError("input: non-finite value; all values must be finite")
+        y = finite_sample("input", x)
         if self.use_numba:
             return K.epi_inverse_step(y, self.pi_inv._P, self.pi_inv.in_offset, self.pi_fwd._P,
                                       self.pi_fwd.out_offset, self._cs, self._prm)
@@ -322,16 +321,19 @@ class EPIInverse(StreamingOperator):
         T0 = ep.term(up)
         c0 = self.pi_inv.peek(y - T0)
         u = c0 if c0 == up else self._solve(y, c0)
-        self.pi_inv.step(y - ep.term(u))
-        self.pi_fwd.step(u)
+        # advance both PI banks (kernel calls without the input check of step(): the creep
+        # term may be ±inf for an overflowing creep law, exactly as in the compiled twin)
+        pi, pf = self.pi_inv, self.pi_fwd
+        K.pi_step_packed(y - ep.term(u), pi._P, pi.in_offset, pi.out_offset)
+        K.pi_step_packed(u, pf._P, pf.in_offset, pf.out_offset)
         ep.commit(u)
         return u
 
     def block(self, x: np.ndarray) -> np.ndarray:
-        x = check_finite("input", x)
+        x = block_samples("input", x)
         out = np.empty_like(x)
         if self.use_numba:
-            K.epi_inverse_block(np.ascontiguousarray(x), self.pi_inv._P, self.pi_inv.in_offset, self.pi_fwd._P,
+            K.epi_inverse_block(x, self.pi_inv._P, self.pi_inv.in_offset, self.pi_fwd._P,
                                 self.pi_fwd.out_offset, self._cs, self._prm, out)
             return out
         step = self.step
@@ -347,7 +349,7 @@ class EPIModel(PIFamilyModel):
 
     kind: Literal["epi"] = "epi"
     time_dependent: ClassVar[bool] = True
-    creep_a_nm: FiniteFloat = Field(ge=0, description="creep magnitude factor a in M(u) = a·b^u [nm]")
+    creep_a_nm: FiniteFloat = Field(ge=0, le=1e6, description="creep magnitude factor a in M(u) = a·b^u [nm], ≤ 1 mm")
     creep_b: FiniteFloat = Field(gt=0.5, le=2.0, description="creep magnitude base b per volt (M(u) = a·b^u), 0.5 < b ≤ 2")
     creep_lambda_per_s: FiniteFloat = Field(gt=0, description="creep rate λ in C = (1 − e^{−λt})·M [1/s]")
 
@@ -398,8 +400,8 @@ class EPIModel(PIFamilyModel):
         ``min_dwell_samples``, ``dwell_tol_V`` (default 0: a dwell is exact repetition).
         The time column must be uniformly sampled.
         """
-        min_dwell = int(options.pop("min_dwell_samples", 10))
-        tol = float(options.pop("dwell_tol_V", 0.0))
+        min_dwell = number_option("min_dwell_samples", options.pop("min_dwell_samples", 10), lo=3, integer=True)
+        tol = number_option("dwell_tol_V", options.pop("dwell_tol_V", 0.0), lo=0.0)
         u, y, r, x0 = prepare_pi_identification(t_s, u_V, y_nm, n_operators, options)
         t = np.asarray(t_s, dtype=np.float64).ravel()
         dt = _uniform_dt(t)

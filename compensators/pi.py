@@ -46,11 +46,14 @@ from pydantic import Field, FiniteFloat, ValidationInfo, field_validator
 from compensators import _pi_kernels as K
 from compensators.base import ModelError, StreamingOperator, check_finite
 from compensators.models import HysteresisModel
+from compensators.input_checks import block_samples, finite_sample, number_option
 
 log = logging.getLogger(__name__)
 
 #: default number of play operators for identification (the paper's Table I has 13)
 DEFAULT_OPERATORS = 13
+#: most play operators a model file or an identification may have
+MAX_OPERATORS = 1000
 
 
 # --------------------------------------------------------------------- parameters -----
@@ -146,8 +149,8 @@ class PIOperator(StreamingOperator):
     (``in_offset = offset_nm``, ``out_offset = 0``). ``use_numba=False`` selects the
     plain-numpy reference path (bit-identical, much slower).
 
-    ``block`` rejects non-finite input (:class:`ModelError`); ``step`` is the fast
-    per-sample path and does not check (a NaN in gives NaN out) — validate upstream.
+    ``block`` and ``step`` reject non-finite input and ``block`` anything but a 1-D
+    array (:class:`ModelError`): a NaN must never reach the play states.
     """
 
     def __init__(self, thresholds: Any, weights: Any, initial_state: Any = None, *,
@@ -174,23 +177,22 @@ class PIOperator(StreamingOperator):
         self.state[:] = self.initial_state
 
     def step(self, x: float) -> float:
+        v = finite_sample("input", x)
         if self.use_numba:
-            return K.pi_step_packed(float(x), self._P, self.in_offset, self.out_offset)
-        return K.pi_step_ref(float(x), self.thresholds, self.weights, self.state, self.in_offset, self.out_offset)
+            return K.pi_step_packed(v, self._P, self.in_offset, self.out_offset)
+        return K.pi_step_ref(v, self.thresholds, self.weights, self.state, self.in_offset, self.out_offset)
 
     def peek(self, x: float) -> float:
-        """The output ``step(x)`` would give, without changing the state."""
+        """The output ``step(x)`` would give, without changing the state (no input check:
+        an internal helper of the extended-PI inverse, which may probe with ±inf)."""
         return K.pi_peek_packed(float(x), self._P, self.in_offset, self.out_offset)
 
     def block(self, x: np.ndarray) -> np.ndarray:
-        x = check_finite("input", x)
-        if x.ndim != 1:
-            raise ModelError(f"input: expected a 1-D array, got shape {x.shape}")
+        x = block_samples("input", x)
         if not self.use_numba:
             return K.pi_block_ref(x, self.thresholds, self.weights, self.state, self.in_offset, self.out_offset)
         out = np.empty_like(x)
-        K.pi_block(np.ascontiguousarray(x), self.thresholds, self.weights, self.state,
-                   self.in_offset, self.out_offset, out)
+        K.pi_block(x, self.thresholds, self.weights, self.state, self.in_offset, self.out_offset, out)
         return out
 
 
@@ -200,10 +202,13 @@ class PIFamilyModel(HysteresisModel):
     """Fields shared by the PI and extended-PI model files (see the module docstring)."""
 
     direction: Literal["forward", "inverse"] = "forward"
-    thresholds: list[FiniteFloat] = Field(description="play thresholds r_i; V (forward) or nm (inverse)")
-    weights: list[FiniteFloat] = Field(description="weights w_i; nm/V (forward) or V/nm (inverse)")
+    thresholds: list[FiniteFloat] = Field(max_length=MAX_OPERATORS,
+                                          description="play thresholds r_i; V (forward) or nm (inverse)")
+    weights: list[FiniteFloat] = Field(max_length=MAX_OPERATORS,
+                                       description="weights w_i; nm/V (forward) or V/nm (inverse)")
     initial_state: list[FiniteFloat] | None = Field(
-        default=None, description="initial play states; V (forward) or nm (inverse); default all 0")
+        default=None, max_length=MAX_OPERATORS,
+        description="initial play states; V (forward) or nm (inverse); default all 0")
     offset_nm: FiniteFloat = Field(default=0.0, description="output offset y = offset_nm + Σ w_i x_i [nm]")
 
     @field_validator("thresholds")
@@ -324,8 +329,8 @@ class PIModel(PIFamilyModel):
 
 def check_pi_data(t_s: Any, u_V: Any, y_nm: Any, n_operators: int) -> tuple[np.ndarray, np.ndarray]:
     """Validate identification data; return ``(u, y)`` as float64 arrays."""
-    if n_operators < 1 or n_operators > 1000:
-        raise ModelError(f"n_operators: {n_operators} is out of range; allowed 1 … 1000")
+    if n_operators < 1 or n_operators > MAX_OPERATORS:
+        raise ModelError(f"n_operators: {n_operators} is out of range; allowed 1 … {MAX_OPERATORS}")
     t = check_finite("t_s", t_s).ravel()
     u = check_finite("u_V", u_V).ravel()
     y = check_finite("y_nm", y_nm).ravel()
@@ -404,11 +409,11 @@ def fit_pi_weights(u: np.ndarray, y: np.ndarray, r: np.ndarray, x0: np.ndarray, 
     """
     from scipy.optimize import lsq_linear
 
-    if not (0 < float(min_slope_fraction) < 1):
+    min_slope_fraction = number_option("min_slope_fraction", min_slope_fraction, allowed="a number in (0, 1)")
+    if not 0 < min_slope_fraction < 1:
         raise ModelError(f"min_slope_fraction: {min_slope_fraction!r} must be in (0, 1)")
-    if int(max_rows) < 2 * r.size + 2:
-        raise ModelError(f"max_rows: {max_rows!r} must be at least {2 * r.size + 2}")
-    stride = max(1, int(np.ceil(u.size / int(max_rows))))
+    max_rows = number_option("max_rows", max_rows, lo=2 * r.size + 2, integer=True)
+    stride = max(1, int(np.ceil(u.size / max_rows)))
     X = play_matrix(u, r, x0, stride)
     yy = y[::stride]
     n = r.size

@@ -14,7 +14,8 @@ from __future__ import annotations
 import numpy as np
 
 from compensators import _pi_kernels as K
-from compensators.base import ModelError, StreamingOperator, check_finite
+from compensators.base import ModelError, StreamingOperator
+from compensators.input_checks import block_samples, finite_sample
 
 _ONE = np.ones(1)
 
@@ -50,10 +51,10 @@ class PlayOperator(StreamingOperator):
         self._state[0] = self._x0
 
     def step(self, x: float) -> float:
-        return K.pi_step(float(x), self._r, _ONE, self._state, 0.0, 0.0)
+        return K.pi_step(finite_sample("input", x), self._r, _ONE, self._state, 0.0, 0.0)
 
     def block(self, x: np.ndarray) -> np.ndarray:
-        x = check_finite("input", x)
+        x = block_samples("input", x)
         out = np.empty_like(x)
         K.pi_block(x, self._r, _ONE, self._state, 0.0, 0.0, out)
         return out

@@ -52,10 +52,11 @@ import math
 from typing import Any, Callable, ClassVar, Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, FiniteFloat, model_validator
 
 from compensators import _preisach_kernels as _k
-from compensators.base import ModelError, StreamingOperator, check_finite
+from compensators.base import ModelError, StreamingOperator
+from compensators.input_checks import block_samples, finite_sample
 from compensators.models import HysteresisModel
 
 log = logging.getLogger(__name__)
@@ -72,13 +73,13 @@ class PreisachModel(HysteresisModel):
     """
 
     kind: Literal["preisach"] = "preisach"
-    u_min_V: float = Field(-160.0, description="lower end of the input grid [V]")
-    u_max_V: float = Field(160.0, description="upper end of the input grid [V]")
+    u_min_V: FiniteFloat = Field(-160.0, description="lower end of the input grid [V]")
+    u_max_V: FiniteFloat = Field(160.0, description="upper end of the input grid [V]")
     levels: int = Field(32, ge=1, le=512, description="number of sub-ranges of the input grid")
     everett_nm: list[list[float]] = Field(
         description="Everett function E(v_i, v_j) = f_α − f_αβ [nm] at grid nodes, row i has "
                     "i+1 values j = 0..i (lower triangle, diagonal 0)")
-    offset_nm: float = Field(0.0, description="output at negative saturation f(u_min) [nm]")
+    offset_nm: FiniteFloat = Field(0.0, description="output at negative saturation f(u_min) [nm]")
     memory_depth: int | None = Field(None, ge=2, le=100000,
                                      description="max remembered pairs; default 2·levels+2")
     fit_method: str | None = Field(None, description="identification method, if identified")
@@ -100,6 +101,8 @@ class PreisachModel(HysteresisModel):
         G = self._lower()
         if not np.all(np.isfinite(G)):
             raise ValueError("everett_nm values must be finite")
+        if float(np.max(np.abs(G))) > 1e12 or abs(self.offset_nm) > 1e12:
+            raise ValueError("everett_nm, offset_nm: values must be within ±1e12 nm (sums of them must not overflow)")
         if np.any(np.diag(G) != 0.0):
             raise ValueError("everett_nm diagonal E(v_i, v_i) must be 0")
         w = cell_masses_from_nodes(G)
@@ -228,7 +231,7 @@ class PreisachModel(HysteresisModel):
             mx = "" if self.fit_max_residual_nm is None else f", {self.fit_max_residual_nm:.4g} nm max"
             span = hi - lo
             rel = "" if self.fit_residual_nm is None or span == 0 else f" ({100 * self.fit_residual_nm / abs(span):.3g} % of range)"
-            lines.append(f"  identified by {self.fit_method}: residual {res}{mx}{rel}")
+            lines.append(f"  identified by {self.fit_method}: residual {res}{rel}{mx}")
         return "\n".join(lines)
 
 
@@ -323,17 +326,16 @@ class PreisachOperator(_PreisachBase):
     """Forward streaming operator u [V] → y [nm] (eq. 8)."""
 
     def step(self, x: float) -> float:
-        if not math.isfinite(x):
-            raise ModelError(f"u_V: non-finite input {x}; all values must be finite")
+        x = finite_sample("u_V", x)
         before = self.ist[1]
-        y = _k.fwd_update(float(x), self.s, self.P, self.ist, self.fst, self.G, self.u_min, self.u_max,
+        y = _k.fwd_update(x, self.s, self.P, self.ist, self.fst, self.G, self.u_min, self.u_max,
                           self.inv_du, self.L, self.capacity)
         if self.ist[1] != before:
             self._warn(int(before), "forward")
         return y
 
     def block(self, x: np.ndarray) -> np.ndarray:
-        x = np.ascontiguousarray(check_finite("u_V", x)).reshape(-1)
+        x = block_samples("u_V", x)
         before = int(self.ist[1])
         y = _k.forward_block(x, self.s, self.P, self.ist, self.fst, self.G, self.u_min, self.u_max,
                              self.inv_du, self.L, self.capacity)
@@ -346,19 +348,16 @@ class PreisachInverse(_PreisachBase):
     memory driven by the computed u, so ``forward(inverse(y)) == y`` for reachable y."""
 
     def step(self, x: float) -> float:
-        if not math.isfinite(x):
-            raise ModelError(f"y_nm: non-finite target {x}; all values must be finite")
+        x = finite_sample("y_nm", x)
         before = self.ist[1]
-        u = _k.inv_solve(float(x), self.s, self.P, self.ist, self.fst, self.G, self.v, self.u_min, self.u_max,
-                         self.inv_du, self.du, self.L, self.capacity)
-        _k.fwd_update(u, self.s, self.P, self.ist, self.fst, self.G, self.u_min, self.u_max,
-                      self.inv_du, self.L, self.capacity)
+        u = _k.inv_step(x, self.s, self.P, self.ist, self.fst, self.G, self.v, self.u_min, self.u_max,
+                        self.inv_du, self.du, self.L, self.capacity)
         if self.ist[1] != before:
             self._warn(int(before), "inverse (target out of reach)")
         return u
 
     def block(self, x: np.ndarray) -> np.ndarray:
-        x = np.ascontiguousarray(check_finite("y_nm", x)).reshape(-1)
+        x = block_samples("y_nm", x)
         before = int(self.ist[1])
         u = _k.inverse_block(x, self.s, self.P, self.ist, self.fst, self.G, self.v, self.u_min, self.u_max,
                              self.inv_du, self.du, self.L, self.capacity)

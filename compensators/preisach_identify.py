@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from compensators.base import ModelError, check_finite
+from compensators.input_checks import number_option
 
 log = logging.getLogger(__name__)
 
@@ -68,8 +69,8 @@ def identify_preisach(cls: type, t_s: Any, u_V: Any, y_nm: Any, n_operators: int
     if isinstance(L, bool) or not isinstance(L, (int, np.integer)) or not 1 <= int(L) <= 512:
         raise ModelError(f"n_operators: number of Preisach levels must be an integer in 1..512, got {L!r}")
     L = int(L)
-    lo = float(np.min(u)) if u_min_V is None else float(u_min_V)
-    hi = float(np.max(u)) if u_max_V is None else float(u_max_V)
+    lo = float(np.min(u)) if u_min_V is None else number_option("u_min_V", u_min_V)
+    hi = float(np.max(u)) if u_max_V is None else number_option("u_max_V", u_max_V)
     if not (math.isfinite(lo) and math.isfinite(hi)) or hi <= lo:
         raise ModelError(f"u_max_V: must be > u_min_V (got u_min_V={lo}, u_max_V={hi})")
     if method not in ("auto", "for", "nnls"):

@@ -212,3 +212,31 @@ def test_help_teaches(capsys):
             main(verb + ["--help"])
         out = capsys.readouterr().out
         assert "Example" in out
+
+
+BAD_PARAMS = [
+    ("pi", "min_slope_fraction=abc", "min_slope_fraction"),
+    ("pi", "max_rows=abc", "max_rows"),
+    ("epi", "min_dwell_samples=abc", "min_dwell_samples"),
+    ("creep", "tau_min_s=abc", "tau_min_s"),
+    ("preisach", "u_min_V=abc", "u_min_V"),
+    ("preisach", "method=magic", "method"),
+    ("bouc-wen", "u0_V=abc", "u0_V"),
+    ("bouc-wen", "n=abc", "n:"),
+]
+
+
+@pytest.mark.parametrize("kind, param, needle", BAD_PARAMS)
+def test_bad_param_values_are_one_line_errors(kind, param, needle, files, capsys, tmp_path):
+    rc, _, err = run_cli(["identify", "--model", kind, "--data", files / "data.csv", "--out", tmp_path / "m.json",
+                          "--param", param], capsys)
+    assert rc == 2 and err.startswith("afmctl: error: ") and err.count("\n") == 1, err
+    assert needle in err and "Traceback" not in err
+
+
+def test_non_invertible_bouc_wen_file_is_blamed_on_the_model(files, capsys, tmp_path):
+    m = _write(tmp_path / "bw.json", json.dumps({"kind": "bouc-wen", "d_nm_per_V": 1.0, "A_nm_per_V": 30.0,
+                                                  "beta": 1.0, "gamma": 0.0}))
+    rc, _, err = run_cli(["compensate", "--model", m, "--target", files / "target.csv", "--out", tmp_path / "v.csv"],
+                         capsys)
+    assert rc == 2 and err.startswith(f"afmctl: error: {m}: d_nm_per_V") and err.count("\n") == 1, err

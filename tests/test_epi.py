@@ -287,3 +287,18 @@ def test_creep_term_compiled_equals_reference():
     m = model(a=3.0, b=1.01, lam=5.0, offset=0.0)
     pi = PIModel(thresholds=m.thresholds, weights=m.weights)
     np.testing.assert_allclose(m.forward(DT).block(u) - pi.forward().block(u), a, rtol=0, atol=1e-12)
+
+
+@pytest.mark.timeout(120)
+def test_inverse_terminates_and_stays_finite_when_the_creep_law_overflows():
+    # a creep law whose magnitude overflows (a·b^u = inf): once looped forever in the bracket
+    # search; now the inverse holds the voltage. Model files refuse such a (a ≤ 1e6 nm).
+    fields = dict(thresholds=[0.0, 5.0], weights=[1.0, 0.5], creep_b=2.0, creep_lambda_per_s=1.0)
+    with pytest.raises(ModelError, match="creep_a_nm"):
+        model_from_dict({"kind": "epi", **fields, "creep_a_nm": 1e300})
+    m = EPIModel.model_construct(kind="epi", direction="forward", initial_state=None, offset_nm=0.0,
+                                 creep_a_nm=1e300, **fields)
+    tgt = np.r_[np.linspace(0, 150, 20), np.full(50, 150.0), np.linspace(150, 75, 10), np.full(20, 75.0)]
+    fast, ref = m.inverse(DT).block(tgt), m.inverse(DT, use_numba=False).block(tgt)
+    assert np.all(np.isfinite(fast))
+    np.testing.assert_array_equal(fast, ref)

@@ -60,8 +60,13 @@ def test_inverse_thresholds_eq8_and_partial_sums():
     r = np.array([0.0, 2.0, 5.0, 9.0])
     w = np.array([1.0, 0.5, -0.2, 0.3])
     ri, wi, _ = invert_pi_parameters(r, w)
+    # eq. 8 says r'_i is the initial loading curve at r_i: the output of the forward
+    # operator (relaxed, no offset) after a ramp from 0 V up to r_i — measured, not recomputed
+    ramp = np.linspace(0.0, 9.0, 9001)
+    y = PIOperator(r, w).block(ramp)
     for i in range(4):
-        assert ri[i] == pytest.approx(sum(w[j] * (r[i] - r[j]) for j in range(i + 1)), rel=1e-15)
+        assert ri[i] == pytest.approx(y[int(round(r[i] * 1000))], rel=1e-12, abs=1e-12)
+    # and the inverse's branch slopes are the reciprocals of the forward ones (eqs. 9-10)
     np.testing.assert_allclose(np.cumsum(wi), 1.0 / np.cumsum(w), rtol=1e-14)
 
 

@@ -25,7 +25,8 @@ Output:
                        unless --clip is given, which clips and reports how many samples.
 
 The model's operator starts from the state stored in the model file (a scanner at rest)
-and runs through the whole file.
+and runs through the whole file. A preisach model clamps targets it cannot reach to the
+ends of its grid range u_min_V..u_max_V and logs a warning.
 
 Example:
   afmctl compensate --model pi.json --target raster_x.csv --out volts_x.csv --limits 0 150
@@ -60,7 +61,11 @@ def run(args: argparse.Namespace) -> int:
     t, y = data["t"], data["y"]
     dt = uniform_period(t, str(args.target)) if getattr(model, "time_dependent", False) else None
     try:
-        u = _run_chunked(model.inverse(dt), y)
+        inverse = model.inverse(dt)
+    except ModelError as err:  # e.g. a Bouc–Wen model that is not invertible
+        raise ModelError(f"{args.model}: {err}") from None
+    try:
+        u = _run_chunked(inverse, y)
     except ModelError as err:
         raise ModelError(f"{args.target}: {err}") from None
     if not np.all(np.isfinite(u)):

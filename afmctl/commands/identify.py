@@ -25,17 +25,27 @@ Model kinds (--model):
   pi        Prandtl-Ishlinskii: play operators, constrained least squares (always invertible)
   epi       extended PI: PI + inflexion creep C(u,t) = (1-exp(-lambda t)) a b^u, needs dwells
   creep     linear creep (bank of first-order lags), no hysteresis
-  preisach, bouc-wen   see their documentation
+  preisach  classical Preisach on an (alpha, beta) grid: asymmetric loops, exact inverse
+  bouc-wen  Bouc-Wen differential model, nonlinear least squares
 Options:
-  --operators N     number of play operators / lags / cells (kind-specific default)
-  --param KEY=VALUE model-specific options, VALUE parsed as JSON when possible, e.g.
-                    --param min_slope_fraction=1e-3 --param 'thresholds=[0,10,20,30]'
+  --operators N     pi/epi: play operators (default 13, max 1000); creep: lags (default 4);
+                    preisach: grid levels (default 32; nnls up to 64, for up to 512);
+                    bouc-wen: ignored
+  --param KEY=VALUE model-specific options, VALUE parsed as JSON when possible:
+                    pi, epi: thresholds=[0,10,...] (V), min_slope_fraction (1e-3), max_rows
+                    epi: min_dwell_samples (10), dwell_tol_V (0)
+                    creep: tau_min_s, tau_max_s (time-constant range, s)
+                    preisach: u_min_V, u_max_V (grid range, default the data range),
+                      method=auto|for|nnls, smoothing (1e-4), max_rows, memory_depth
+                    bouc-wen: n (fix the exponent), max_rows (20000), u0_V
+                    e.g. --param min_slope_fraction=1e-3 --param 'thresholds=[0,10,20,30]'
 Output:
   --out MODEL.json  the fitted model (a 'kind' field plus its parameters); a summary and
                     the fit residual are printed. --plot FIT.png draws data and fit.
 
-Example:
+Examples:
   afmctl identify --model pi --data sweep.csv --out pi.json --operators 13
+  afmctl identify --model preisach --data sweep.csv --out pre.json --param u_min_V=0 --param u_max_V=150
   afmctl compensate --model pi.json --target path.csv --out volts.csv
 """
 
@@ -96,6 +106,8 @@ def run(args: argparse.Namespace) -> int:
         raise ModelError(f"{args.data}: {err}") from None
     except np.linalg.LinAlgError as err:
         raise ModelError(f"{args.data}: the fit failed ({err}); is the input excited over its range?") from None
+    except ValueError as err:  # a --param value of the wrong type that a kind did not check itself
+        raise AfmctlError(f"--param: a value is not accepted by kind {args.model!r} ({err})") from None
     y_fit = model.forward(dt).block(u)
     rms = float(np.sqrt(np.mean((y_fit - y) ** 2)))
     peak = float(np.max(np.abs(y_fit - y)))
