@@ -55,6 +55,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--model", required=True, metavar="KIND", help="model kind: pi, epi, creep, preisach, bouc-wen")
     p.add_argument("--data", metavar="DATA.csv", help="CSV with columns t,u,y (s, V, nm)")
+    p.add_argument("--from-images", metavar="SCANS.npz",
+                   help="instead of --data: identify without a position sensor from AFM images of a "
+                        "calibration grating (npz of line images + voltage ramps, format in docs/SIM.md)")
     p.add_argument("--out", required=True, metavar="MODEL.json", help="where to write the fitted model")
     p.add_argument("--operators", type=int, default=None, metavar="N",
                    help="number of operators (PI plays, creep lags, ...); default depends on the kind")
@@ -90,6 +93,18 @@ def run(args: argparse.Namespace) -> int:
     from compensators.models import model_class, save_model
 
     cls = model_class(args.model)
+    if getattr(args, "from_images", None) is not None:  # image-based identification, docs/SIM.md
+        from sim_backend.image_scans import identify_from_scan_file
+
+        model = identify_from_scan_file(args.from_images, args.model, n_operators=args.operators,
+                                        **parse_params(args.param))
+        try:
+            save_model(model, args.out)
+        except OSError as err:
+            raise AfmctlError(f"--out: cannot write {args.out} ({err.strerror})") from None
+        print(model.summary())
+        print(f"written          : {args.out}")
+        return 0
     if args.data is None:
         raise AfmctlError("--data: required; give a CSV with columns t,u,y (s, V, nm)")
     if args.operators is not None and args.operators < 1:

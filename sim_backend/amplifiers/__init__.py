@@ -17,6 +17,7 @@ import importlib
 
 _EXPORTS = {
     "RecordingSink": "sim_backend.amplifiers.base",
+    "CsvRecorder": "sim_backend.amplifiers.base",
     "SimDevice": "sim_backend.amplifiers.base",
     "SimMDT693B": "sim_backend.amplifiers.mdt693b",
     "SimMDT694B": "sim_backend.amplifiers.mdt693b",

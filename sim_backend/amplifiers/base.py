@@ -39,6 +39,48 @@ class RecordingSink:
                 del self.history[: len(self.history) - self.max_history]
 
 
+class CsvRecorder:
+    """A sink that writes every output change to a CSV file and forwards it to ``inner``.
+
+    Columns ``t_s,x_V,y_V,z_V``: the time the amplifier applied the change [s] and the
+    voltages [V] then held on every axis (axes never set read 0). One row per
+    :meth:`apply`, in the order the amplifier applied them, so a test can check that every
+    setpoint arrived in order. Rows are buffered and flushed by :meth:`close`.
+    """
+
+    AXES = ("x", "y", "z")
+
+    def __init__(self, path: str, inner: "Sink | None" = None) -> None:
+        self.inner = inner
+        self._held = {a: 0.0 for a in self.AXES}
+        self._lock = threading.Lock()
+        self._file = open(path, "w", encoding="utf-8", buffering=1 << 16)  # noqa: SIM115
+        self._file.write("t_s,x_V,y_V,z_V\n")
+        self.count = 0
+
+    def apply(self, volts: Mapping[str, float], t_s: float | None = None) -> None:
+        with self._lock:
+            self._held.update({a: float(v) for a, v in volts.items() if a in self._held})
+            if not self._file.closed:
+                t = float(t_s) if t_s is not None else float("nan")
+                self._file.write(f"{t!r},{self._held['x']!r},{self._held['y']!r},{self._held['z']!r}\n")
+                self.count += 1
+        if self.inner is not None:
+            self.inner.apply(volts, t_s)
+
+    def __getattr__(self, name: str):
+        # the rest of the sink's interface (advance, position_nm, ...) is the inner sink's
+        inner = self.__dict__.get("inner")
+        if inner is None:
+            raise AttributeError(name)
+        return getattr(inner, name)
+
+    def close(self) -> None:
+        with self._lock:
+            if not self._file.closed:
+                self._file.close()
+
+
 def elapsed_clock() -> Callable[[], float]:
     """A clock that reads 0 s now and counts wall-clock seconds from here (the default
     ``now`` of every simulated amplifier, so a Scanner sink starts at its t = 0)."""

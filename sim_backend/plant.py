@@ -1,0 +1,215 @@
+"""Per-axis plant of the simulated scanner: amplifier → hysteresis → creep → structural mode.
+
+* :func:`everett_table` — Everett function of a Gaussian-mixture Preisach density on a grid.
+* :class:`GaussianPreisachOperator` — the classical Preisach operator (image-based paper,
+  eqs. 3, 7, 8) as a :class:`~compensators.base.StreamingOperator` u [V] → y [nm].
+* :class:`AxisPlant` — one axis, block simulation with carried state for any sample period.
+
+Every stage has a plain-Python reference in :mod:`sim_backend._plant_kernels`; the numba
+twin is used when ``fast=True`` (the default).
+"""
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+from scipy.linalg import expm
+
+from compensators.base import StreamingOperator
+from sim_backend import _plant_kernels as K
+from sim_backend.config import AxisConfig, CreepConfig, DynamicsConfig, ExternalModelConfig, GaussianPreisachConfig
+
+log = logging.getLogger(__name__)
+
+#: capacity of the Preisach memory (turning points); deeper nesting wipes the innermost loop
+MEMORY_CAPACITY = 512
+
+
+def preisach_weights(cfg: GaussianPreisachConfig) -> np.ndarray:
+    """Relay weights [nm] of the discretised Preisach plane: ``W[i, j]`` is the mass of the
+    cell α ∈ [v_i, v_{i+1}], β ∈ [v_j, v_{j+1}] (v = grid nodes), zero for j > i, half a
+    cell on the diagonal. Relay (i, j) switches up at u ≥ v_{i+1} and down at u ≤ v_j."""
+    n = cfg.n_grid
+    v = np.linspace(cfg.u_min_V, cfg.u_max_V, n)
+    c = 0.5 * (v[:-1] + v[1:])
+    A, B = np.meshgrid(c, c, indexing="ij")  # A: α (rows), B: β (columns)
+    tri = np.tril(np.ones((n - 1, n - 1)), 0)
+    tri[np.diag_indices(n - 1)] = 0.5
+    W = np.zeros((n - 1, n - 1))
+    for comp in cfg.components:
+        da = (A - comp.alpha_V) / comp.sigma_alpha_V
+        db = (B - comp.beta_V) / comp.sigma_beta_V
+        q = (da * da - 2 * comp.rho * da * db + db * db) / (1 - comp.rho**2)
+        g = np.exp(-0.5 * q) * tri
+        total = g.sum()
+        if total > 0:
+            W += comp.mass_nm * g / total
+    return W
+
+
+def everett_table(cfg: GaussianPreisachConfig) -> np.ndarray:
+    """Everett function at the grid nodes: ``E[a, b]`` = mass of the relays with
+    α ≤ v_a and β ≥ v_b (the relays switched off by falling from v_a to v_b), zero for
+    a ≤ b. Shape (n_grid, n_grid), nm."""
+    W = preisach_weights(cfg)
+    n = cfg.n_grid
+    # S[i, b] = Σ_{j ≥ b} W[i, j]
+    S = np.cumsum(W[:, ::-1], axis=1)[:, ::-1]
+    E = np.zeros((n, n))
+    E[1:, : n - 1] = np.cumsum(S, axis=0)
+    E[np.triu_indices(n, 0)] = 0.0
+    return E
+
+
+class GaussianPreisachOperator(StreamingOperator):
+    """Classical Preisach hysteresis u [V] → y [nm] (image-based paper, eq. 3) with a
+    Gaussian-mixture density; output y = linear_nm_per_V·(u − u_min_V) + P[u]. Starts in
+    negative saturation (u = u_min_V, all relays down). Inputs are clipped to the plane."""
+
+    def __init__(self, cfg: GaussianPreisachConfig, fast: bool = True) -> None:
+        self.cfg = cfg
+        self.E = everett_table(cfg)
+        self.lo = float(cfg.u_min_V)
+        self.hi = float(cfg.u_max_V)
+        self.lin = float(cfg.linear_nm_per_V)
+        self._kernel = K.preisach_nb if fast else K.preisach_py
+        self.reset()
+
+    def reset(self) -> None:
+        self.stk = np.zeros(MEMORY_CAPACITY)
+        self.stk[0] = self.lo
+        self.cum = np.zeros(MEMORY_CAPACITY)
+        self.m = np.ones(1, dtype=np.int64)
+        self.cur = np.array([self.lo])
+
+    def step(self, x: float) -> float:
+        return float(self.block(np.array([x]))[0])
+
+    def block(self, x: np.ndarray) -> np.ndarray:
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        out = np.empty_like(x)
+        self._kernel(x, out, self.E, self.lo, self.hi, self.lin, self.stk, self.cum, self.m, self.cur)
+        return out
+
+    @property
+    def saturation_nm(self) -> float:
+        """Output at u_max_V (all relays up)."""
+        return self.lin * (self.hi - self.lo) + float(self.E[-1, 0])
+
+
+def mode_matrices(dyn: DynamicsConfig, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact zero-order-hold discretisation of p'' = ω²(r − p) − (ω/Q)p' (unit DC gain):
+    returns (Ad 2×2, Bd 2,) with [p, v]_{k+1} = Ad·[p, v]_k + Bd·r_k."""
+    w = 2 * math.pi * dyn.resonance_Hz
+    Ac = np.array([[0.0, 1.0], [-w * w, -w / dyn.quality_factor]])
+    Bc = np.array([0.0, w * w])
+    M = np.zeros((3, 3))
+    M[:2, :2] = Ac
+    M[:2, 2] = Bc
+    Md = expm(M * dt_s)
+    return np.ascontiguousarray(Md[:2, :2]), np.ascontiguousarray(Md[:2, 2])
+
+
+def creep_coefficients(creep: CreepConfig, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(a_k, g_k): lag poles exp(−dt/τ_k) for log-spaced τ_k and equal gains summing to
+    ``fraction`` (nonlinearities paper, eq. 21)."""
+    tau = np.geomspace(creep.tau_min_s, creep.tau_max_s, creep.n_lags)
+    return np.exp(-dt_s / tau), np.full(creep.n_lags, creep.fraction / creep.n_lags)
+
+
+class AxisPlant:
+    """One axis of the scanner: command voltage [V] → displacement [nm] (before coupling
+    and drift). :meth:`run` simulates a block with any sample period and carries state."""
+
+    def __init__(self, cfg: AxisConfig, fast: bool = True) -> None:
+        self.cfg = cfg
+        self.fast = fast
+        amp = cfg.amplifier
+        self.u_min_V = amp.u_min_V
+        self.u_max_V = amp.u_max_V
+        self.lsb_V = (amp.u_max_V - amp.u_min_V) / (2**amp.bits - 1) if amp.bits > 0 else 0.0
+        hyst = cfg.hysteresis
+        self._external = isinstance(hyst, ExternalModelConfig)
+        if self._external:
+            from compensators.models import model_from_dict
+
+            self.model = model_from_dict(hyst.model, where="hysteresis.model")
+            self._hyst_ops: dict[float, StreamingOperator] = {}
+            self.hysteresis: StreamingOperator | None = None
+        else:
+            self.model = None
+            self.hysteresis = GaussianPreisachOperator(hyst, fast=fast)
+        self._cache: dict[float, tuple] = {}
+        self.reset()
+
+    # ------------------------------------------------------------------ helpers
+    def _coeffs(self, dt_s: float) -> tuple:
+        c = self._cache.get(dt_s)
+        if c is None:
+            amp = self.cfg.amplifier
+            max_step = amp.slew_V_per_s * dt_s if amp.slew_V_per_s else math.inf
+            a_lp = math.exp(-2 * math.pi * amp.bandwidth_Hz * dt_s) if amp.bandwidth_Hz else 0.0
+            if self.cfg.creep is not None and self.cfg.creep.fraction > 0:
+                a_c, g_c = creep_coefficients(self.cfg.creep, dt_s)
+            else:
+                a_c, g_c = np.zeros(0), np.zeros(0)
+            if self.cfg.dynamics is not None:
+                ad, bd = mode_matrices(self.cfg.dynamics, dt_s)
+                use_dyn = True
+            else:
+                ad, bd, use_dyn = np.eye(2), np.zeros(2), False
+            c = (max_step, a_lp, a_c, g_c, ad, bd, use_dyn)
+            self._cache[dt_s] = c
+        return c
+
+    def _hyst(self, dt_s: float) -> StreamingOperator:
+        if not self._external:
+            return self.hysteresis
+        # one operator for the whole run; time-dependent models are built for the first dt
+        if self.hysteresis is None:
+            self.hysteresis = self.model.forward(dt_s)
+        return self.hysteresis
+
+    def reset(self) -> None:
+        """Initial state: amplifier at u_min_V, hysteresis in negative saturation, creep
+        and mode at rest at the corresponding displacement."""
+        self.amp_state = np.array([self.u_min_V, self.u_min_V])
+        if self._external:
+            self.hysteresis = None  # built lazily for the first sample period used
+            h0 = 0.0
+        else:
+            self.hysteresis.reset()
+            h0 = float(self.hysteresis.block(np.array([self.u_min_V]))[0])
+        n_l = self.cfg.creep.n_lags if self.cfg.creep is not None else 0
+        self.creep_state = np.full(n_l, h0)
+        self.mode_state = np.array([h0, 0.0])
+        self.u_piezo_V = self.u_min_V
+        self.y_nm = h0
+
+    # ------------------------------------------------------------------ simulation
+    def run(self, u_V: np.ndarray, dt_s: float, return_voltage: bool = False):
+        """Simulate the command voltages ``u_V`` (N,) held for ``dt_s`` each; returns the
+        displacement (N,) nm, and the piezo voltage (N,) V after the amplifier if asked."""
+        u = np.ascontiguousarray(u_V, dtype=np.float64)
+        max_step, a_lp, a_c, g_c, ad, bd, use_dyn = self._coeffs(float(dt_s))
+        v = np.empty_like(u)
+        amp_k = K.amplifier_nb if self.fast else K.amplifier_py
+        amp_k(u, v, self.amp_state, self.u_min_V, self.u_max_V, self.lsb_V, max_step, a_lp)
+        h = self._hyst(float(dt_s)).block(v)
+        y = np.empty_like(u)
+        post_k = K.creep_dynamics_nb if self.fast else K.creep_dynamics_py
+        post_k(h, y, a_c, g_c, self.creep_state, ad, bd, self.mode_state, use_dyn)
+        if u.shape[0]:
+            self.u_piezo_V = float(v[-1])
+            self.y_nm = float(y[-1])
+        return (y, v) if return_voltage else y
+
+    def static_gain_nm_per_V(self) -> float:
+        """Mean sensitivity over the full range on the major ascending branch [nm/V]
+        (what a user would calibrate from the data sheet: range / voltage span)."""
+        if not self._external:
+            return self.hysteresis.saturation_nm / (self.u_max_V - self.u_min_V)
+        op = self.model.forward(1e-3)
+        y = op.block(np.linspace(self.u_min_V, self.u_max_V, 301))
+        return float((y[-1] - y[0]) / (self.u_max_V - self.u_min_V))

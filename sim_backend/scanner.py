@@ -1,0 +1,278 @@
+"""The simulated 3-axis piezo scanner (the plant that stands in for hardware).
+
+Chain per axis (x, y lateral; z vertical)::
+
+    command u [V] → amplifier (limits, DAC quantisation, slew, bandwidth)
+                  → hysteresis (asymmetric Gaussian-mixture Preisach by default, or any
+                    compensators model's forward())
+                  → creep (log-spaced lag bank) → structural mode (2nd order, exact zoh)
+    then x/y/z cross-coupling (3×3 matrix) and thermal drift [nm] → true tip position.
+
+Two ways to drive it:
+
+* offline / tests: :meth:`Scanner.run` simulates a whole block of voltages (N, 3) with a
+  given sample period, much faster than real time;
+* streaming / hardware-in-the-loop: simulated amplifiers call :meth:`Scanner.apply` whenever
+  their output changes (the value is held) and :meth:`Scanner.advance` moves simulated time
+  to ``t_s`` (driven by a clock), in steps of ``config.dt_s``.
+
+Both carry the same state. Deterministic for a given ``config.seed`` (noise only enters the
+sensor reading :meth:`Scanner.read_sensor_nm` and image heights).
+"""
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from compensators.base import ModelError
+from sim_backend import _plant_kernels as K
+from sim_backend.config import (
+    AXES,
+    AmplifierConfig,
+    AxisConfig,
+    CreepConfig,
+    DriftConfig,
+    DynamicsConfig,
+    ExternalModelConfig,
+    GaussianPreisachConfig,
+    NoiseConfig,
+    PreisachComponent,
+    ScannerConfig,
+    default_scanner_config,
+    linear_scanner_config,
+)
+from sim_backend.plant import AxisPlant
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "AXES",
+    "AmplifierConfig",
+    "AxisConfig",
+    "CreepConfig",
+    "DriftConfig",
+    "DynamicsConfig",
+    "ExternalModelConfig",
+    "GaussianPreisachConfig",
+    "NoiseConfig",
+    "PreisachComponent",
+    "Scanner",
+    "ScannerConfig",
+    "default_scanner_config",
+    "linear_scanner_config",
+]
+
+
+class _Drift:
+    """Thermal drift [nm] for the three axes from ambient temperature (and voltages)."""
+
+    def __init__(self, cfg: DriftConfig, T0_C: float) -> None:
+        self.cfg = cfg
+        self.T0_C = T0_C
+        self._params = None
+        self._warned_dt = False
+        if cfg.kind == "params":
+            try:
+                from compensators.drift import DriftParams  # interface item 2
+            except ImportError as err:  # pragma: no cover - only without compensators.drift
+                log.warning("compensators.drift unavailable (%s); using the first-order expansion drift model", err)
+                self.cfg = cfg = cfg.model_copy(update={"kind": "expansion"})
+                self.reset(T0_C)
+                return
+            if cfg.params is not None:
+                self._params = DriftParams.from_dict(cfg.params, where="drift.params")
+            else:
+                self._params = DriftParams.named(cfg.named)
+        self.reset(T0_C)
+
+    def reset(self, T0_C: float) -> None:
+        self.T0_C = T0_C
+        self.T_state = np.array([T0_C])
+        self._predictor = None
+        self._predictor_dt = None
+        self.last_nm = np.zeros(3)
+
+    def block(self, T_C: np.ndarray, u_V: np.ndarray, dt_s: float) -> np.ndarray:
+        n = T_C.shape[0]
+        if self.cfg.kind == "none" or n == 0:
+            return np.zeros((n, 3))
+        if self.cfg.kind == "expansion":
+            out = np.empty((n, 3))
+            a = math.exp(-dt_s / self.cfg.thermal_tau_s)
+            coef = np.asarray(self.cfg.expansion_nm_per_K, dtype=np.float64)
+            K.expansion_drift_nb(np.ascontiguousarray(T_C), out, coef, a, self.T_state, self.T0_C)
+        else:
+            if self._predictor is None or self._predictor_dt != dt_s:
+                if self._predictor is not None and not self._warned_dt:
+                    self._warned_dt = True
+                    log.warning("drift predictor rebuilt for a new sample period %.3g s; its state restarts "
+                                "(keep one sample period per scanner for continuous drift)", dt_s)
+                self._predictor = self._params.predictor(dt_s)
+                self._predictor.reset(self.T0_C)
+                self._predictor_dt = dt_s
+            out = np.asarray(self._predictor.block(np.ascontiguousarray(T_C), np.ascontiguousarray(u_V)), dtype=np.float64)
+        self.last_nm = out[-1].copy()
+        return out
+
+
+class Scanner:
+    """A simulated 3-axis piezo scanner; see the module docstring.
+
+    Thread-safe for the streaming calls (:meth:`apply`, :meth:`advance`,
+    :meth:`position_nm`): simulated amplifiers may call from their own threads.
+    """
+
+    def __init__(self, config: ScannerConfig | None = None, *, fast: bool = True) -> None:
+        self.config = config if config is not None else default_scanner_config()
+        self.fast = fast
+        self.axes = {a: AxisPlant(self.config.axis(a), fast=fast) for a in AXES}
+        self.coupling = np.asarray(self.config.coupling, dtype=np.float64)
+        self._lock = threading.RLock()
+        self.reset()
+
+    # ------------------------------------------------------------------ state
+    def reset(self) -> None:
+        """Back to the initial state: t = 0, every axis at its lowest voltage in negative
+        saturation, ambient temperature ``config.ambient_T_C``, drift zero, noise re-seeded."""
+        with self._lock:
+            for ax in self.axes.values():
+                ax.reset()
+            self.time_s = 0.0
+            self._held_V = np.array([self.axes[a].u_min_V for a in AXES])
+            self._T_C = float(self.config.ambient_T_C)
+            self._drift = _Drift(self.config.drift, self._T_C)
+            self.rng = np.random.default_rng(self.config.seed)
+            self._pos = self._compose(np.array([[self.axes[a].y_nm for a in AXES]]), np.zeros((1, 3)))[0]
+
+    def _compose(self, disp: np.ndarray, drift: np.ndarray) -> np.ndarray:
+        return disp @ self.coupling.T + drift
+
+    def set_ambient_temperature(self, T_C: float) -> None:
+        """Ambient temperature [°C] held from now on (drives the thermal drift)."""
+        T = float(T_C)
+        if not math.isfinite(T) or not -50.0 <= T <= 150.0:
+            raise ModelError(f"T_C: {T_C!r} out of range; allowed -50…150 °C")
+        with self._lock:
+            self._T_C = T
+
+    @property
+    def ambient_T_C(self) -> float:
+        return self._T_C
+
+    def position_nm(self) -> np.ndarray:
+        """True tip position [x, y, z] nm at :attr:`time_s` (no noise)."""
+        with self._lock:
+            return self._pos.copy()
+
+    def read_sensor_nm(self) -> np.ndarray:
+        """A position-sensor reading: true position plus Gaussian noise
+        (``config.noise.position_std_nm``)."""
+        with self._lock:
+            return self._pos + self.rng.normal(0.0, self.config.noise.position_std_nm, 3) if self.config.noise.position_std_nm > 0 else self._pos.copy()
+
+    def piezo_voltage_V(self) -> np.ndarray:
+        """Voltage at each piezo [x, y, z] V (after the amplifier model)."""
+        with self._lock:
+            return np.array([self.axes[a].u_piezo_V for a in AXES])
+
+    def held_voltage_V(self) -> np.ndarray:
+        """The command voltage currently held [x, y, z] V."""
+        with self._lock:
+            return self._held_V.copy()
+
+    def drift_nm(self) -> np.ndarray:
+        """The thermal drift part of the last position [x, y, z] nm."""
+        with self._lock:
+            return self._drift.last_nm.copy()
+
+    def nominal_gain_nm_per_V(self) -> np.ndarray:
+        """Range / voltage span per axis [nm/V] — the linear calibration an uncompensated
+        AFM uses to turn positions into voltages."""
+        return np.array([self.axes[a].static_gain_nm_per_V() for a in AXES])
+
+    def voltage_limits_V(self) -> np.ndarray:
+        """(3, 2) array of [u_min_V, u_max_V] per axis."""
+        return np.array([[self.axes[a].u_min_V, self.axes[a].u_max_V] for a in AXES])
+
+    # ------------------------------------------------------------------ block simulation
+    def run(self, u_V: np.ndarray, dt_s: float | None = None, T_C: np.ndarray | None = None,
+            return_voltage: bool = False):
+        """Simulate command voltages ``u_V`` (N, 3) [V], each held for ``dt_s`` seconds
+        (default ``config.dt_s``), from the current state; returns the true tip positions
+        (N, 3) [nm] at the end of each sample. ``T_C`` (N,) is the ambient temperature per
+        sample (default: the held one). Advances :attr:`time_s` by N·dt_s and leaves the
+        last voltage held. With ``return_voltage`` also returns the piezo voltages (N, 3)."""
+        dt = float(self.config.dt_s if dt_s is None else dt_s)
+        if not (math.isfinite(dt) and dt > 0):
+            raise ModelError(f"dt_s: {dt_s!r} must be a positive finite number of seconds")
+        u = np.asarray(u_V, dtype=np.float64)
+        if u.ndim != 2 or u.shape[1] != 3:
+            raise ModelError(f"u_V: expected shape (N, 3) [x, y, z volts], got {u.shape}")
+        if not np.all(np.isfinite(u)):
+            bad = int(np.flatnonzero(~np.isfinite(u).all(axis=1))[0])
+            raise ModelError(f"u_V: non-finite voltage in row {bad}; all values must be finite")
+        n = u.shape[0]
+        with self._lock:
+            if T_C is None:
+                T = np.full(n, self._T_C)
+            else:
+                T = np.asarray(T_C, dtype=np.float64).reshape(-1)
+                if T.shape[0] != n or not np.all(np.isfinite(T)):
+                    raise ModelError(f"T_C: expected {n} finite temperatures [°C], got shape {T.shape}")
+            disp = np.empty((n, 3))
+            volts = np.empty((n, 3))
+            for i, a in enumerate(AXES):
+                y, v = self.axes[a].run(np.ascontiguousarray(u[:, i]), dt, return_voltage=True)
+                disp[:, i] = y
+                volts[:, i] = v
+            drift = self._drift.block(T, volts, dt)
+            pos = self._compose(disp, drift)
+            if n:
+                self._pos = pos[-1].copy()
+                self._held_V = u[-1].copy()
+                if T_C is not None:
+                    self._T_C = float(T[-1])
+            self.time_s += n * dt
+        return (pos, volts) if return_voltage else pos
+
+    # ------------------------------------------------------------------ streaming
+    def apply(self, volts: Mapping[str, float], t_s: float | None = None) -> None:
+        """Sink for simulated amplifiers: from time ``t_s`` on (default: now) hold the given
+        voltages, e.g. ``{"x": 10.0, "y": 0.5}``; axes not named keep their value. If
+        ``t_s`` is later than :attr:`time_s` the scanner first advances to ``t_s`` with the
+        old voltages."""
+        with self._lock:
+            if t_s is not None:
+                self.advance(t_s)
+            held = self._held_V.copy()
+            for key, value in volts.items():
+                k = str(key).lower()
+                if k not in AXES:
+                    raise ModelError(f"volts: unknown axis {key!r}; allowed x, y, z")
+                v = float(value)
+                if not math.isfinite(v):
+                    raise ModelError(f"volts.{k}: {value!r} is not a finite voltage")
+                held[AXES.index(k)] = v
+            self._held_V = held
+
+    def advance(self, t_s: float) -> None:
+        """Simulate up to time ``t_s`` [s] with the held voltages, in whole samples of
+        ``config.dt_s`` (a remainder shorter than one sample waits for the next call).
+        Earlier times are ignored."""
+        with self._lock:
+            dt = self.config.dt_s
+            n = int(math.floor((float(t_s) - self.time_s) / dt + 1e-9))
+            if n <= 0:
+                return
+            self.run(np.broadcast_to(self._held_V, (n, 3)), dt)
+
+    def image(self, sample: Any, **kwargs: Any):
+        """Raster-image ``sample``; see :func:`sim_backend.imaging.raster_image`."""
+        from sim_backend.imaging import raster_image
+
+        return raster_image(self, sample, **kwargs)
