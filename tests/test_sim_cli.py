@@ -47,10 +47,21 @@ def _ask(port, cmd: bytes, end: bytes = b">") -> bytes:
     return buf
 
 
+def _sockets_of(pid: int) -> list[str]:
+    out = []
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        with contextlib.suppress(OSError):
+            target = os.readlink(f"/proc/{pid}/fd/{fd}")
+            if target.startswith("socket:"):
+                out.append(target)
+    return out
+
+
 def test_sim_prints_the_pty_serves_mdt693b_and_stops_on_sigterm():
     with _running() as proc:
         path = _first_line(proc)
         assert path.startswith("/dev/pts/") and os.path.exists(path)
+        assert _sockets_of(proc.pid) == []      # zenoh is off by default: no network port
         with serial.serial_for_url(path, timeout=0.05, write_timeout=1.0) as port:
             assert _ask(port, b"ECHO=0\r") == b"ECHO=0\r>"
             assert _ask(port, b"XVOLTAGE=12.5\r") == b">"

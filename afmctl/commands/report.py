@@ -1,0 +1,51 @@
+"""``afmctl report RUN``: plots of a run log (see afmctl.report)."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+HELP = "turn a run log (.afmlog) into plots and a summary"
+
+DESCRIPTION = """\
+Read a run log written by `afmctl run` and write into OUT:
+
+  report_loops.png     voltage sent [V] vs target [nm] per axis (the compensator's loops)
+  report_tracking.png  target, corrected target [nm] and voltages [V] over time [s]
+  report_errors.png    histograms of the correction applied (corrected - target) and, with
+                       --simulate, of the error the default simulated scanner would make
+                       with the logged voltages, in % of the target range
+  report_drift.png     drift estimate [nm] and temperature [°C] over time (if logged)
+  report_summary.json  counts, duration, voltage ranges, states, error numbers
+
+A log torn by a crash is read up to the last intact chunk.
+"""
+
+EPILOG = """\
+examples:
+  afmctl report runs/scan-001.afmlog --out runs/scan-001-report
+  afmctl report runs/scan-001.afmlog --simulate
+"""
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("report", help=HELP, description=DESCRIPTION, epilog=EPILOG,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("run", type=Path, metavar="RUN", help="run log file (.afmlog)")
+    p.add_argument("--out", type=Path, default=None, metavar="DIR",
+                   help="output directory (default: RUN without suffix + '-report')")
+    p.add_argument("--simulate", action="store_true",
+                   help="replay the voltages through the default simulated scanner to estimate errors")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from afmctl.report import run_report
+    out = args.out if args.out is not None else args.run.with_name(args.run.stem + "-report")
+    files, summary = run_report(args.run, out, simulate=args.simulate)
+    print(f"{summary['samples']} setpoints, {summary.get('duration_s', 0.0):.3f} s, states: "
+          f"{' -> '.join(summary['states']) or '-'}")
+    for name, e in summary.get("errors_pct_of_range", {}).items():
+        print(f"{name}: max {e['max']:.3f} %, rms {e['rms']:.3f} % of range")
+    for f in files:
+        print(f"wrote {f}")
+    return 0

@@ -1,0 +1,170 @@
+"""``afmctl run --config FILE.toml``: the controller service."""
+from __future__ import annotations
+
+import argparse
+
+HELP = """\
+Run the feedforward controller: read the configuration (TOML, see `afmctl schema` and
+examples/), open the amplifier (or serve a simulated amplifier + scanner in this process
+with [simulation] enabled = true), start the zenoh API if [zenoh] enabled = true, and
+stream the configured trajectory through drift prediction, the inverse models and the
+safety layer to the amplifier at loop.rate_Hz. Every setpoint is written to a crash-safe
+run log (runlog.dir; read it with `afmctl log show`).
+
+Ctrl-C or SIGTERM ramps the output to the safe value and stops cleanly; a second Ctrl-C
+is an emergency stop (ramp at the slew limit).
+
+Examples:
+  afmctl run --config examples/sim_inprocess.toml
+  afmctl run --config examples/mdt693b_serial.toml --log runs/scan1.afmlog
+  AFMCTL_AMPLIFIER__PORT=/dev/ttyUSB1 afmctl run --config examples/mdt693b_serial.toml
+
+Environment: AFMCTL_<SECTION>__<KEY>=value overrides the file (e.g. AFMCTL_LOOP__RATE_HZ=500).
+
+A configuration (every key: `afmctl schema`; units in the names: _V, _nm, _s, _Hz):
+
+{example}"""
+
+
+def _help() -> str:
+    from afmctl.commands.schema import EXAMPLE_TOML
+    return HELP.format(example="\n".join("  " + line for line in EXAMPLE_TOML.splitlines()))
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("run", help="run the controller service", description=_help(),
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--config", required=True, metavar="FILE.toml", help="configuration file (TOML)")
+    p.add_argument("--log", metavar="FILE.afmlog", help="run log path (default: runlog.dir/<scanner>-<time>.afmlog)")
+    p.add_argument("--port", metavar="URL", help="override amplifier.port")
+    p.add_argument("--seconds", type=float, metavar="S", help="stop after S seconds (default: end of trajectory)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.set_defaults(func=run)
+
+
+#: three-axis (one-axis for mdt694b/nv200) setpoints per second a link carries at 115200
+#: baud, streaming without waiting for replies (docs: PROTOCOLS.md)
+LINK_CEILING_PER_S = {"mdt693b": 380.0, "mdt694b": 770.0, "gcs": 600.0, "nv200": 960.0, "can": 7000.0}
+
+
+def link_warning(config) -> str | None:
+    """A warning when loop.rate_Hz exceeds what the amplifier link carries."""
+    driver = config.amplifier.driver
+    ceiling = LINK_CEILING_PER_S.get(driver)
+    if ceiling is None:
+        return None
+    if driver != "can":
+        baud = config.amplifier.options.get("baudrate") or (config.simulation.baud if config.simulation.enabled
+                                                            else 115200)
+        ceiling *= float(baud) / 115200.0
+    if config.loop.rate_Hz > ceiling:
+        return (f"loop.rate_Hz {config.loop.rate_Hz:g} exceeds what the {driver} link carries (about "
+                f"{ceiling:.0f} setpoints/s): the link will block and the loop run late")
+    return None
+
+
+def _summary(ctl, config, scanner) -> dict:
+    from afmctl.runlog import RunLogReader
+    st = ctl.stats()
+    out = {"state": st["state"], "samples": st["samples"], "ticks": st["ticks"], "rate_Hz": st["rate_Hz"],
+           "lateness_p50_s": st["lateness_p50_s"], "lateness_p99_s": st["lateness_p99_s"],
+           "lateness_max_s": st["lateness_max_s"], "missed_deadlines": st["missed_deadlines"],
+           "overruns": st["overruns"], "errors": st["errors"], "faults": st["faults"],
+           "reconnects": st["reconnects"], "watchdog_trips": st["watchdog_trips"],
+           "slew_limited": st["slew_limited"], "last_error": st["last_error"],
+           "runlog": str(ctl.runlog_path) if ctl.runlog_path else None}
+    if scanner is not None and ctl.runlog_path is not None:
+        from afmctl.simlink import tracking_error
+        reader = RunLogReader(ctl.runlog_path)
+        ev = reader.events()
+        start = max([e["seq"] for e in ev if e.get("event") == "ramp-done"] or [0])
+        ends = [e["seq"] for e in ev if e.get("event") in ("end", "stop", "estop")]
+        end = min(ends) if ends else len(reader.setpoints())
+        if end > start:
+            out["tracking"] = tracking_error(config, reader.setpoints(), (start, end))
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    import contextlib
+    import json
+    import signal
+    import sys
+    import threading
+    import time
+
+    from afmctl.config import load_config
+    from afmctl.loop import Controller, State
+
+    config = load_config(args.config, overrides={"amplifier": {"port": args.port}} if args.port else None)
+    scanner = None
+    warning = link_warning(config)
+    if warning:
+        print(f"afmctl: warning: {warning}", file=sys.stderr)
+    with contextlib.ExitStack() as stack:
+        if config.simulation.enabled:
+            from afmctl.simlink import simulated_amplifier
+            amp, scanner = stack.enter_context(simulated_amplifier(config))
+        else:
+            from afmctl.simlink import open_driver
+            amp = open_driver(config, config.amplifier.port)
+            stack.callback(amp.close)
+        ctl = Controller(config, amp, scanner=scanner)
+        stack.callback(ctl.close)
+        if config.zenoh.enabled:
+            from afmctl.zenoh_api import ZenohBridge
+            bridge = ZenohBridge(ctl, config.zenoh, scanner_name=config.scanner.name)
+            stack.callback(bridge.close)
+
+        stops = {"n": 0}
+
+        def on_signal(signum, frame) -> None:  # noqa: ARG001
+            stops["n"] += 1
+            if stops["n"] == 1:
+                print("afmctl: stopping (ramping to the safe value); again for an emergency stop",
+                      file=sys.stderr)
+                ctl.stop()
+            else:
+                ctl.estop()
+
+        old = {}
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                old[sig] = signal.signal(sig, on_signal)
+                stack.callback(signal.signal, sig, old[sig])
+        ctl.start(config.trajectory, runlog_path=args.log)
+        if not args.quiet:
+            print(f"afmctl: running {config.trajectory.kind} on {config.amplifier.driver} "
+                  f"{'(simulated) ' if scanner is not None else ''}at {config.loop.rate_Hz:g} Hz; "
+                  f"run log {ctl.runlog_path}", file=sys.stderr)
+        t0 = time.monotonic()
+        next_report = t0 + 2.0
+        while not ctl.wait(0.05):
+            now = time.monotonic()
+            if args.seconds is not None and now - t0 >= args.seconds and stops["n"] == 0:
+                stops["n"] = 1
+                ctl.stop()
+            if not args.quiet and now >= next_report:
+                next_report = now + 2.0
+                s = ctl.stats()
+                print(f"afmctl: {s['state']:8s} samples {s['samples']:>9d}  p99 lateness "
+                      f"{s['lateness_p99_s'] * 1e6:7.1f} us  missed {s['missed_deadlines']}", file=sys.stderr)
+        ctl.close()
+        summary = _summary(ctl, config, scanner)
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(f"state             {summary['state']}")
+        print(f"samples           {summary['samples']} at {summary['rate_Hz']:g} Hz")
+        print(f"lateness          p50 {summary['lateness_p50_s'] * 1e6:.1f} us  p99 "
+              f"{summary['lateness_p99_s'] * 1e6:.1f} us  max {summary['lateness_max_s'] * 1e6:.1f} us")
+        print(f"missed deadlines  {summary['missed_deadlines']} (> half a period late); overruns {summary['overruns']}")
+        print(f"errors            {summary['errors']} (faults {summary['faults']}, reconnects {summary['reconnects']}, "
+              f"watchdog trips {summary['watchdog_trips']})")
+        if summary.get("tracking"):
+            t = summary["tracking"]
+            print("tracking error    max |e| " + ", ".join(f"{a} {v:.2f}" for a, v in zip(t["axes"], t["max_abs_nm"]))
+                  + " nm;  rms " + ", ".join(f"{a} {v:.2f}" for a, v in zip(t["axes"], t["rms_nm"])) + " nm")
+        print(f"run log           {summary['runlog']}")
+    return 0 if summary["state"] == State.STOPPED.value else 1

@@ -1,0 +1,486 @@
+"""``afmctl demo``: what feedforward compensation does, on the simulated scanner.
+
+A pipeline of small steps (each one a function of a shared :class:`DemoContext`):
+
+1. **setup** — the default simulated scanner (:func:`sim_backend.scanner.default_scanner_config`:
+   asymmetric Preisach hysteresis, creep, structural modes, x/y cross-coupling, 0–150 V)
+   with the *drift scenario* on: the lab warms by ``warming_K`` during the scan and the
+   scanner drifts (``compensators.drift`` "physical_tube" transfer functions, gains
+   multiplied by ``drift_gain`` — an exaggerated, badly insulated scanner, so that drift is
+   visible next to hysteresis);
+2. **excite** — per lateral axis (the other axes at 0 V): two long dwells (creep),
+   first-order reversal curves 0 → α_k → 0 V with short dwells at the turns, and a decaying
+   sine; simulated at 10 kHz and averaged to 1 kHz (a sensor's output rate);
+3. **identify** — each compensator kind (``pi``, ``epi``, ``preisach``, ``bouc-wen``, and
+   ``preisach+creep`` = Preisach followed by the linear ``creep`` model, fitted
+   alternately) with its own ``identify()`` classmethod on that data; the x/y
+   cross-coupling is estimated from the same runs (least squares of the passive axis on
+   the driven one); kinds not available or failing are *skipped with a message*;
+4. **scan** — the 1.667 µm-period calibration grating (:class:`sim_backend.samples.Grating2D`)
+   raster-scanned at ``size``×``size`` pixels over ``scan_nm`` square, once uncompensated
+   (linear calibration: what a plain AFM does) and once per identified compensator
+   (decoupling → drift prediction subtracted → inverse model per axis); then the best
+   compensator once more without the drift prediction (what drift correction is worth);
+5. **report** — images, hysteresis loops, error histograms, drift over time (PNG) and
+   ``metrics.json``: ``max_error_pct`` and ``rms_error_pct`` keyed by compensator,
+   errors = |actual − commanded| lateral position over every recorded pixel (trace and
+   retrace, x and y), in % of the scan range ``scan_nm``.
+
+Everything is simulated in-process, faster than real time; nothing is sent anywhere.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from afmctl.errors import AfmctlError
+
+log = logging.getLogger(__name__)
+
+#: compensator kinds the demo tries, in this order (model KINDS names)
+DEFAULT_COMPENSATORS = ("pi", "epi", "preisach", "bouc-wen", "preisach+creep")
+LATERAL = ("x", "y")
+
+
+@dataclass
+class DemoOptions:
+    """Knobs of the demo (defaults: the README's run)."""
+
+    out: Path
+    size: int = 256                  #: pixels per side
+    scan_nm: float = 10_000.0        #: scan range (side of the square) [nm]
+    origin_nm: float = 750.0         #: lower-left corner of the scan [nm] (x and y)
+    line_rate_Hz: float = 5.0        #: lines per second (trace + retrace)
+    samples_per_pixel: int | None = None  #: None: enough that the sample period is ≤ 0.2 ms
+    warming_K: float = 3.0           #: ambient temperature rise during the scan [K]
+    drift_gain: float = 60.0         #: multiplier on the physical-tube drift gains
+    drift: bool = True               #: the drift scenario on/off
+    compensators: tuple[str, ...] = DEFAULT_COMPENSATORS
+    quick: bool = False              #: shorter excitation (for tests)
+    seed: int = 0
+    docs_dir: Path | None = None     #: also copy the PNGs here as demo_*.png
+
+    def __post_init__(self) -> None:
+        self.out = Path(self.out)
+        if not 8 <= self.size <= 1024:
+            raise AfmctlError(f"--size: {self.size} pixels; allowed 8..1024")
+        if not (math.isfinite(self.scan_nm) and 100.0 <= self.scan_nm <= 11_000.0):
+            raise AfmctlError(f"scan_nm: {self.scan_nm:g} nm; allowed 100..11000")
+        if not (math.isfinite(self.line_rate_Hz) and 0.1 <= self.line_rate_Hz <= 50.0):
+            raise AfmctlError(f"--line-rate: {self.line_rate_Hz:g} Hz; allowed 0.1..50")
+        if self.samples_per_pixel is None:
+            # keep the simulation period ≤ 0.2 ms: far above the 1 kHz structural mode
+            self.samples_per_pixel = max(2, math.ceil(1.0 / (2.0 * self.line_rate_Hz * self.size * 2e-4)))
+
+
+@dataclass
+class ScanResult:
+    name: str
+    image: Any                        # sim_backend.imaging.ScanImage ("none" keeps its signals)
+    err_nm: np.ndarray                # (rows, 2 passes, cols, 2 axes) actual − commanded
+    drift_pred_nm: np.ndarray | None = None  # (N, 3) per sample, if predicted
+
+
+@dataclass
+class DemoContext:
+    options: DemoOptions
+    scanner_config: Any = None
+    drift_params: Any = None
+    excitation: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    coupling: np.ndarray = field(default_factory=lambda: np.eye(3))
+    models: dict[str, dict[str, Any]] = field(default_factory=dict)
+    skipped: dict[str, str] = field(default_factory=dict)
+    scans: dict[str, ScanResult] = field(default_factory=dict)
+    true_drift_nm: np.ndarray | None = None
+    files: list[Path] = field(default_factory=list)
+    timings_s: dict[str, float] = field(default_factory=dict)
+    metrics: dict[str, Any] = field(default_factory=dict)
+    drift_effect: dict[str, Any] | None = None
+    messages: list[str] = field(default_factory=list)
+
+    def note(self, text: str) -> None:
+        log.info(text)
+        self.messages.append(text)
+
+
+@dataclass
+class Step:
+    name: str
+    run: Callable[[DemoContext], None]
+
+
+# --------------------------------------------------------------------------- steps
+def _new_scanner(ctx: DemoContext, drift: bool) -> Any:
+    from sim_backend.scanner import DriftConfig, Scanner
+    cfg = ctx.scanner_config
+    if drift and ctx.drift_params is not None:
+        cfg = cfg.model_copy(update={"drift": DriftConfig(kind="params", params=ctx.drift_params.model_dump(mode="json"))})
+    else:
+        cfg = cfg.model_copy(update={"drift": DriftConfig(kind="none")})
+    return Scanner(cfg)
+
+
+def step_setup(ctx: DemoContext) -> None:
+    from sim_backend.scanner import default_scanner_config
+    o = ctx.options
+    ctx.scanner_config = default_scanner_config().model_copy(update={"seed": o.seed})
+    if o.drift:
+        try:
+            from compensators.drift import DriftParams
+            ctx.drift_params = DriftParams.named("physical_tube").scaled(o.drift_gain)
+        except ImportError as err:  # pragma: no cover - drift lands with [DRIFT]
+            ctx.note(f"drift scenario skipped: compensators.drift not available ({err})")
+    try:
+        o.out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise AfmctlError(f"--out {o.out}: cannot create the output directory ({err.strerror})") from None
+
+
+def excitation_voltage(dt_s: float, quick: bool) -> np.ndarray:
+    """The identification input [V]: two long dwells (creep), first-order reversal curves
+    0 → α_k → 0 V (α_k = 15…150 V, ramps at 600 V/s, a short dwell at every turning point)
+    and a decaying 2 Hz sine around 75 V."""
+    rate = 600.0
+    long_dwell = 4.0 if quick else 12.0
+    dwell = 0.2
+    parts: list[np.ndarray] = [np.zeros(int(0.05 / dt_s))]
+
+    def ramp(a: float, b: float) -> None:
+        n = max(int(abs(b - a) / rate / dt_s), 2)
+        parts.append(np.linspace(a, b, n)[1:])
+
+    def hold(v: float, seconds: float) -> None:
+        parts.append(np.full(int(seconds / dt_s), v))
+
+    ramp(0.0, 100.0)
+    hold(100.0, long_dwell)
+    ramp(100.0, 30.0)
+    hold(30.0, long_dwell)
+    ramp(30.0, 0.0)
+    hold(0.0, dwell)
+    for a in np.linspace(15.0, 150.0, 6 if quick else 12):
+        ramp(0.0, float(a))
+        hold(float(a), dwell)
+        ramp(float(a), 0.0)
+        hold(0.0, dwell)
+    dur = 1.5 if quick else 3.0
+    t = np.arange(int(dur / dt_s)) * dt_s
+    env = np.linspace(1.0, 0.1, t.size)
+    parts.append(75.0 - 75.0 * env * np.cos(2 * np.pi * 2.0 * t))
+    return np.clip(np.concatenate(parts), 0.0, 150.0)
+
+
+#: identification data: simulated at 10 kHz, averaged over 1 ms (what a sensor with a 1 kHz
+#: output rate reports) — the mean over one period of the 1 kHz structural mode removes its
+#: ringing instead of aliasing it
+EXCITE_SIM_DT_S, EXCITE_DECIMATE = 1e-4, 10
+
+
+def step_excite(ctx: DemoContext) -> None:
+    dt, m = EXCITE_SIM_DT_S, EXCITE_DECIMATE
+    u1 = excitation_voltage(dt * m, ctx.options.quick)
+    u_fine = np.repeat(u1, m)                      # each 1 ms value held for 10 samples
+    for i, axis in enumerate(LATERAL):
+        scanner = _new_scanner(ctx, drift=False)
+        u = np.zeros((u_fine.size, 3))
+        u[:, i] = u_fine
+        pos = scanner.run(u, dt).reshape(u1.size, m, 3).mean(axis=1)
+        ctx.excitation[axis] = {"t_s": np.arange(u1.size) * dt * m, "u_V": u1.copy(), "y_nm": pos[:, i].copy(),
+                                "other_nm": pos[:, 1 - i].copy()}
+    # cross-coupling: passive-axis motion per driven-axis motion (both start at 0 V / 0 nm)
+    C = np.eye(3)
+    for i, axis in enumerate(LATERAL):
+        e = ctx.excitation[axis]
+        y, o = e["y_nm"] - e["y_nm"][0], e["other_nm"] - e["other_nm"][0]
+        C[1 - i, i] = float(np.dot(y, o) / max(np.dot(y, y), 1e-12))
+    ctx.coupling = C
+    ctx.note(f"cross-coupling estimated: x←y {C[0, 1]:.4f}, y←x {C[1, 0]:.4f}")
+
+
+class CreepChainModel:
+    """A hysteresis model followed by linear creep (the plant's structure): forward
+    ``u → hysteresis → creep → y``, inverse ``y → creep⁻¹ → hysteresis⁻¹ → u``; built from
+    two model files (``compensators``), no model math here."""
+
+    def __init__(self, hysteresis: Any, creep: Any) -> None:
+        self.hysteresis = hysteresis
+        self.creep = creep
+
+    def forward(self, dt_s: float | None = None) -> Any:
+        from compensators.base import Chain
+        return Chain(self.hysteresis.forward(dt_s), self.creep.forward(dt_s))
+
+    def inverse(self, dt_s: float | None = None) -> Any:
+        from compensators.base import Chain
+        return Chain(self.creep.inverse(dt_s), self.hysteresis.inverse(dt_s))
+
+
+def identify_with_creep(cls: Any, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, rounds: int = 2) -> CreepChainModel:
+    """Alternate: fit the hysteresis model on the creep-corrected output, then the creep
+    model (kind ``creep``, unit gain expected) from the hysteresis output to the measured
+    output."""
+    from compensators.models import model_class
+    creep_cls = model_class("creep")
+    dt = float(t_s[1] - t_s[0])
+    x = y_nm
+    hyst = creep = None
+    for _ in range(rounds):
+        hyst = cls.identify(t_s, u_V, x)
+        h = hyst.forward(dt).block(np.ascontiguousarray(u_V))
+        creep = creep_cls.identify(t_s, h, y_nm, n_operators=5, tau_min_s=0.01, tau_max_s=100.0)
+        x = creep.inverse(dt).block(np.ascontiguousarray(y_nm))
+    return CreepChainModel(hyst, creep)
+
+
+def make_identify_step(kind: str) -> Step:
+    base, _, extra = kind.partition("+")
+
+    def run(ctx: DemoContext) -> None:
+        from compensators.models import model_class
+        try:
+            cls = model_class(base)
+            if extra:
+                if extra != "creep":
+                    raise AfmctlError(f"compensator {kind!r}: only '<kind>+creep' chains are known")
+                model_class("creep")
+        except ImportError as err:
+            ctx.skipped[kind] = f"not available in this installation ({err})"
+            return
+        except Exception as err:  # unknown kind
+            ctx.skipped[kind] = " ".join(str(err).split())
+            return
+        models = {}
+        for axis in LATERAL:
+            e = ctx.excitation[axis]
+            try:
+                if extra:
+                    models[axis] = identify_with_creep(cls, e["t_s"], e["u_V"], e["y_nm"])
+                else:
+                    models[axis] = cls.identify(e["t_s"], e["u_V"], e["y_nm"])
+                models[axis].inverse(1e-4).reset()   # can it be inverted at all?
+            except NotImplementedError:
+                ctx.skipped[kind] = "identify() not implemented yet"
+                return
+            except Exception as err:  # ModelError etc.: report, keep the demo going
+                ctx.skipped[kind] = f"{axis} axis: {' '.join(str(err).split())}"
+                log.warning("demo: %s skipped: %s", kind, ctx.skipped[kind])
+                return
+        ctx.models[kind] = models
+    return Step(f"identify {kind}", run)
+
+
+def _scan_T(ctx: DemoContext) -> Callable[[np.ndarray], np.ndarray] | None:
+    o = ctx.options
+    if ctx.drift_params is None:
+        return None
+    T0 = float(ctx.scanner_config.ambient_T_C)
+    total = o.size / o.line_rate_Hz
+    return lambda t: T0 + o.warming_K * np.clip(np.asarray(t) / total, 0.0, 1.0)
+
+
+def _scan(ctx: DemoContext, name: str, compensator: Any, drift: bool = True) -> Any:
+    from sim_backend.imaging import raster_image
+    from sim_backend.samples import Grating2D
+    o = ctx.options
+    scanner = _new_scanner(ctx, drift=drift)
+    return raster_image(scanner, Grating2D(period_nm=1667.0), scan_size_nm=o.scan_nm, pixels=o.size,
+                        line_rate_Hz=o.line_rate_Hz, origin_nm=(o.origin_nm, o.origin_nm),
+                        samples_per_pixel=o.samples_per_pixel, compensator=compensator,
+                        T_C=_scan_T(ctx) if drift else None, settle_lines=1, keep_signals=(name == "none"))
+
+
+def _errors(image: Any) -> np.ndarray:
+    """(rows, 2, cols, 2): actual − commanded lateral position per pixel, trace/retrace, x/y."""
+    xt, yt = image.x_target_nm[None, :], image.y_target_nm[:, None]
+    ex = np.stack([image.x_trace_nm - xt, image.x_retrace_nm - xt], axis=1)
+    ey = np.stack([image.y_trace_nm - yt, image.y_retrace_nm - yt], axis=1)
+    return np.stack([ex, ey], axis=-1)
+
+
+def step_scan_uncompensated(ctx: DemoContext) -> None:
+    img = _scan(ctx, "none", None)
+    ctx.scans["none"] = ScanResult("none", img, _errors(img))
+    if ctx.drift_params is not None:
+        # the same voltages without drift: the difference is the true drift
+        scanner = _new_scanner(ctx, drift=False)
+        dt = float(img.signals["t_s"][1] - img.signals["t_s"][0])
+        pos0 = scanner.run(img.signals["u_V"], dt)
+        ctx.true_drift_nm = img.signals["position_nm"] - pos0
+
+
+class FeedforwardCompensator:
+    """Targets (N, 3) nm → voltages (N, 3) V for one scan: decouple x/y, subtract the drift
+    predicted from the ambient temperature, invert the identified model per lateral axis
+    (z: linear calibration). Built per scan from fresh (reset) operators."""
+
+    def __init__(self, models: dict[str, Any], coupling: np.ndarray, dt_s: float, gain_nm_per_V: np.ndarray,
+                 drift_params: Any = None, T_of_t: Callable[[np.ndarray], np.ndarray] | None = None,
+                 t0_s: float = 0.0) -> None:
+        self.models = models
+        self.inv_coupling = np.linalg.inv(coupling)
+        self.dt_s = dt_s
+        self.gain = gain_nm_per_V
+        self.drift_params = drift_params
+        self.T_of_t = T_of_t
+        self.t0_s = t0_s
+        self.drift_pred_nm: np.ndarray | None = None
+
+    def __call__(self, targets: np.ndarray) -> np.ndarray:
+        r = np.array(targets, dtype=np.float64)
+        if self.drift_params is not None and self.T_of_t is not None:
+            t = self.t0_s + np.arange(r.shape[0]) * self.dt_s
+            T = self.T_of_t(np.maximum(t, 0.0))
+            u_guess = np.clip(r / self.gain, 0.0, 150.0)          # heat input: nominal voltages
+            d = self.drift_params.predictor(self.dt_s).block(T, u_guess)
+            self.drift_pred_nm = d
+            r = r - d
+        disp = r @ self.inv_coupling.T                                # wanted axis displacements
+        u = disp / self.gain
+        for i, axis in enumerate(LATERAL):
+            model = self.models.get(axis)
+            if model is not None:
+                u[:, i] = model.inverse(self.dt_s).block(np.ascontiguousarray(disp[:, i]))
+        return u
+
+
+def _compensator(ctx: DemoContext, kind: str, drift: bool = True) -> FeedforwardCompensator:
+    """The feedforward compensator of ``kind`` for one scan (with or without the drift
+    prediction); its time origin is the scan's, after the one settling line."""
+    o = ctx.options
+    ns = o.size * o.samples_per_pixel
+    dt = 1.0 / (2.0 * o.line_rate_Hz * ns)
+    gain = _new_scanner(ctx, drift=False).nominal_gain_nm_per_V()
+    if drift:
+        return FeedforwardCompensator(ctx.models[kind], ctx.coupling, dt, gain, ctx.drift_params, _scan_T(ctx),
+                                      t0_s=-2 * ns * dt)
+    return FeedforwardCompensator(ctx.models[kind], ctx.coupling, dt, gain, None, None)
+
+
+def make_scan_step(kind: str) -> Step:
+    def run(ctx: DemoContext) -> None:
+        if kind not in ctx.models:
+            return
+        comp = _compensator(ctx, kind)
+        try:
+            img = _scan(ctx, kind, comp)
+        except Exception as err:  # a compensator failing mid-scan: report, keep going
+            ctx.skipped[kind] = f"scan failed: {' '.join(str(err).split())}"
+            log.warning("demo: %s skipped: %s", kind, ctx.skipped[kind])
+            return
+        ctx.scans[kind] = ScanResult(kind, img, _errors(img), comp.drift_pred_nm)
+    return Step(f"scan {kind}", run)
+
+
+def _max_pct(ctx: DemoContext, err_nm: np.ndarray) -> float:
+    """Largest |error| over all pixels, passes and axes [% of the scan range]."""
+    return round(float(np.max(np.abs(err_nm))) / ctx.options.scan_nm * 100.0, 4)
+
+
+def _rms_pct(ctx: DemoContext, err_nm: np.ndarray) -> float:
+    """Root mean square error over all pixels, passes and axes [% of the scan range]."""
+    return round(float(np.sqrt(np.mean(err_nm ** 2))) / ctx.options.scan_nm * 100.0, 4)
+
+
+def step_drift_effect(ctx: DemoContext) -> None:
+    """The best compensator once more with the drift correction switched off: what the
+    drift prediction is worth in this scenario."""
+    compensated = {k: _max_pct(ctx, r.err_nm) for k, r in ctx.scans.items() if k != "none"}
+    if ctx.drift_params is None or not compensated:
+        return
+    best = min(compensated, key=compensated.get)
+    img = _scan(ctx, best, _compensator(ctx, best, drift=False))
+    ctx.drift_effect = {"compensator": best, "max_error_pct_with_drift_correction": compensated[best],
+                        "max_error_pct_without_drift_correction": _max_pct(ctx, _errors(img))}
+
+
+def step_metrics(ctx: DemoContext) -> None:
+    o = ctx.options
+    max_pct = {name: _max_pct(ctx, res.err_nm) for name, res in ctx.scans.items()}
+    rms_pct = {name: _rms_pct(ctx, res.err_nm) for name, res in ctx.scans.items()}
+    compensated = {k: v for k, v in max_pct.items() if k != "none"}
+    best = min(compensated, key=compensated.get) if compensated else None
+    ctx.metrics = {
+        "max_error_pct": max_pct,
+        "rms_error_pct": rms_pct,
+        "best": best,
+        "improvement_max": (round(max_pct["none"] / max_pct[best], 2) if best and max_pct[best] > 0 else None),
+        "skipped": dict(ctx.skipped),
+        "scan": {"size_px": o.size, "range_nm": o.scan_nm, "origin_nm": o.origin_nm, "line_rate_Hz": o.line_rate_Hz,
+                 "samples_per_pixel": o.samples_per_pixel, "sample": "grating-2d, 1667 nm period, 100 nm steps"},
+        "drift": ({"warming_K": o.warming_K, "model": "physical_tube", "gain": o.drift_gain,
+                   "max_true_drift_nm": (round(float(np.max(np.abs(ctx.true_drift_nm[:, :2]))), 3)
+                                         if ctx.true_drift_nm is not None else None)}
+                  if ctx.drift_params is not None else None),
+        "drift_effect": ctx.drift_effect,
+        "coupling": {"x_from_y": round(float(ctx.coupling[0, 1]), 6), "y_from_x": round(float(ctx.coupling[1, 0]), 6)},
+        "error_definition": "|actual - commanded| lateral position (x and y) over every recorded pixel, "
+                            "trace and retrace, in % of the scan range",
+        "timings_s": {k: round(v, 3) for k, v in ctx.timings_s.items()},
+    }
+    path = o.out / "metrics.json"
+    path.write_text(json.dumps(ctx.metrics, indent=2) + "\n", encoding="utf-8")
+    ctx.files.append(path)
+
+
+def step_plots(ctx: DemoContext) -> None:
+    from afmctl import report
+    o = ctx.options
+    ctx.files += report.demo_figures(ctx, o.out)
+
+
+def build_steps(options: DemoOptions) -> list[Step]:
+    steps = [Step("setup", step_setup), Step("excite", step_excite)]
+    steps += [make_identify_step(k) for k in options.compensators]
+    steps += [Step("scan none", step_scan_uncompensated)]
+    steps += [make_scan_step(k) for k in options.compensators]
+    steps += [Step("drift effect", step_drift_effect), Step("metrics", step_metrics), Step("plots", step_plots)]
+    return steps
+
+
+def format_table(metrics: dict[str, Any]) -> str:
+    """The metrics as a small text table (what ``afmctl demo`` prints)."""
+    rows = [("compensator", "max error [% range]", "rms error [% range]")]
+    for name, mx in metrics["max_error_pct"].items():
+        rows.append((name, f"{mx:.3f}", f"{metrics['rms_error_pct'][name]:.3f}"))
+    w = [max(len(r[i]) for r in rows) for i in range(3)]
+    lines = [f"{r[0]:<{w[0]}}  {r[1]:>{w[1]}}  {r[2]:>{w[2]}}" for r in rows]
+    lines.insert(1, "-" * len(lines[0]))
+    if metrics.get("best"):
+        lines.append(f"best: {metrics['best']} ({metrics['improvement_max']}x lower max error than uncompensated)")
+    d = metrics.get("drift_effect")
+    if d:
+        lines.append(f"drift correction: {d['compensator']} max error {d['max_error_pct_with_drift_correction']:.3f} % "
+                     f"with, {d['max_error_pct_without_drift_correction']:.3f} % without")
+    for kind, why in metrics.get("skipped", {}).items():
+        lines.append(f"skipped {kind}: {why}")
+    return "\n".join(lines)
+
+
+def run_demo(options: DemoOptions, progress: bool = True) -> DemoContext:
+    """Run every step (with a tqdm bar when ``progress``); returns the context with
+    ``metrics`` and ``files``."""
+    from tqdm import tqdm
+    ctx = DemoContext(options)
+    steps = build_steps(options)
+    with tqdm(total=len(steps), disable=not progress, unit="step", desc="afmctl demo") as bar:
+        for step in steps:
+            bar.set_postfix_str(step.name)
+            t0 = time.perf_counter()
+            step.run(ctx)
+            ctx.timings_s[step.name] = time.perf_counter() - t0
+            bar.update(1)
+    if options.docs_dir is not None:
+        import shutil
+        options.docs_dir.mkdir(parents=True, exist_ok=True)
+        for f in ctx.files:
+            if f.suffix == ".png":
+                shutil.copy(f, options.docs_dir / f.name)
+    return ctx

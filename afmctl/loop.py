@@ -1,0 +1,840 @@
+"""The real-time loop: trajectory → drift → inverse models → safety → amplifier.
+
+:class:`Controller` runs one thread that ticks at a fixed rate (``loop.rate_Hz``, 1 kHz by
+default) on absolute deadlines (``next += period``): it sleeps until shortly before the
+deadline, then spins (``loop.spin_s``). Per tick it takes the next target sample
+``r`` [nm], asks the drift predictor for ``d̂`` [nm] (ambient temperature, heat from the
+voltages already sent), inverts the hysteresis/creep models on ``r − d̂`` and hands the
+voltages to :class:`afmctl.safety.SafetyLayer`, the only path to the amplifier. A link that
+buffers (serial) makes ``set_voltages`` block; the lateness that causes is measured.
+
+Nothing on the loop thread writes files, logs or calls user code: each sent setpoint goes
+into a preallocated ring buffer, and a dispatcher thread hands batches to the run log
+(:mod:`afmctl.runlog`, whose own thread writes and flushes) and to sinks
+(:meth:`Controller.add_sink`).
+
+Sinks (e.g. the zenoh bridge) may define any of
+
+* ``on_setpoints(batch)`` — numpy structured array, dtype
+  :data:`afmctl.runlog.SETPOINT_DTYPE`: ``seq`` (uint64), ``t_s``, ``target_nm`` (3,),
+  ``corrected_nm`` (3,), ``u_V`` (3,);
+* ``on_drift(estimate)`` — dict ``{"seq", "t_s", "T_C", "drift_nm": [x, y, z], "std_nm": None}``
+  (the latest estimate of the batch);
+* ``on_status(status)`` — dict ``{"state", "event", "detail", "seq", "t_s", "stats"}`` on
+  every state change and every ``status_interval_s``.
+
+They are called from the dispatcher thread, never from the loop thread.
+
+States (:class:`State`): ``idle`` (not started), ``running``, ``holding`` (the watchdog saw
+the trajectory stall: output held or ramping to the safe value), ``fault`` (a driver error:
+output held by the device, reconnecting; on success the output ramps from the read-back
+voltage to the pending setpoint and the run resumes), ``stopped``.
+
+Timing statistics (:meth:`Controller.stats`): lateness = how long after its deadline a
+tick started [s] (p50 and p99 from a histogram of every tick of the run — 0.5 µs bins
+below 2 ms, 100 µs bins above — and the max); a deadline is *missed* when a tick starts more than half a period late. When the loop falls more than
+``loop.resync_periods`` behind (e.g. a blocked link), it restarts its schedule
+(``overruns``) instead of bursting.
+"""
+from __future__ import annotations
+
+import collections
+import enum
+import gc
+import logging
+import math
+import os
+import sys
+import threading
+import time
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from afmctl.errors import AfmctlError
+from afmctl.runlog import DRIFT_DTYPE, SETPOINT_DTYPE, RunLogWriter
+from afmctl.safety import SafetyLayer, Watchdog
+from afmctl.trajectories import check_positions
+from drivers.base import ConnectionState
+from drivers.errors import AmplifierError
+
+log = logging.getLogger(__name__)
+
+_RING = 1 << 16
+#: largest run-time segment after resampling to the loop period [samples]
+MAX_SEGMENT_SAMPLES = 1_000_000
+#: lateness/work histograms: 0.5 µs bins below 2 ms, then 100 µs bins up to 102 ms (later
+#: values land in the last bin; the maximum is kept separately)
+_FINE_S, _N_FINE = 0.5e-6, 4000
+_COARSE_S, _N_COARSE = 100e-6, 1000
+_HBINS = _N_FINE + _N_COARSE
+_FINE_END = _FINE_S * _N_FINE
+_EDGES = np.concatenate([np.arange(_N_FINE) * _FINE_S, _FINE_END + np.arange(_N_COARSE) * _COARSE_S])
+_WIDTHS = np.concatenate([np.full(_N_FINE, _FINE_S), np.full(_N_COARSE, _COARSE_S)])
+
+
+def _bin(v: float) -> int:
+    """Histogram bin of a duration ``v`` ≥ 0 [s]."""
+    if v < _FINE_END:
+        return int(v * 2e6)
+    b = _N_FINE + int((v - _FINE_END) * 1e4)
+    return b if b < _HBINS else _HBINS - 1
+# ring row layout
+_C_SEQ, _C_TICK = 0, 1
+_C_TGT, _C_COR, _C_U, _C_T, _C_D = 2, 5, 8, 11, 12
+_NCOL = 15
+
+_END = object()
+
+
+def _percentiles(hist: np.ndarray, qs: tuple[float, ...]) -> tuple[float, ...]:
+    """Quantiles [s] of a lateness/work histogram (bin centres)."""
+    cum = np.cumsum(hist)
+    total = int(cum[-1])
+    if total == 0:
+        return tuple(0.0 for _ in qs)
+    out = []
+    for q in qs:
+        b = min(int(np.searchsorted(cum, q * total)), _HBINS - 1)
+        out.append(float(_EDGES[b] + 0.5 * _WIDTHS[b]))
+    return tuple(out)
+
+
+class State(str, enum.Enum):
+    IDLE = "idle"
+    RUNNING = "running"
+    HOLDING = "holding"
+    FAULT = "fault"
+    STOPPED = "stopped"
+
+
+def _as_block(arr: Any, where: str = "trajectory") -> np.ndarray:
+    """Validate a block of positions (N, 3) [nm]; returns it as a float64 array."""
+    a = np.ascontiguousarray(arr, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise AfmctlError(f"{where}: positions must have shape (N, 3) [nm], got {a.shape}")
+    check_positions(a, lambda i: f"{where}: sample {i}")
+    return a
+
+
+def _flat(rows: np.ndarray) -> list[float]:
+    """A block as one flat list x0, y0, z0, x1, ... (one GC-tracked object per block)."""
+    return rows.ravel().tolist()
+
+
+def resample(positions_nm: np.ndarray, dt_in_s: float, dt_out_s: float) -> np.ndarray:
+    """Linear resampling of (N, 3) positions from period ``dt_in_s`` to ``dt_out_s`` [s]."""
+    p = np.asarray(positions_nm, dtype=np.float64)
+    if abs(dt_in_s - dt_out_s) <= 1e-12 * dt_out_s or len(p) < 2:
+        return p
+    t_end = (len(p) - 1) * dt_in_s
+    n = int(math.floor(t_end / dt_out_s + 1e-9)) + 1
+    t_out = np.arange(n) * dt_out_s
+    t_in = np.arange(len(p)) * dt_in_s
+    return np.column_stack([np.interp(t_out, t_in, p[:, k]) for k in range(3)])
+
+
+class Controller:
+    """Fixed-rate feedforward controller; see the module docstring.
+
+    Parameters
+    ----------
+    config: :class:`afmctl.config.Config`.
+    amplifier: an open :class:`drivers.base.Amplifier`; the controller never closes it.
+    scanner: optional simulated scanner (sim_backend) behind a simulated amplifier; kept
+        for summaries (tracking error), never touched by the loop thread.
+    pipeline: optional :class:`afmctl.pipeline.CompensationPipeline` (default: built from
+        ``config``).
+    """
+
+    status_interval_s = 0.5
+    dispatch_interval_s = 0.02
+
+    def __init__(self, config, amplifier, *, scanner=None, pipeline=None) -> None:
+        self.config = config
+        self.amplifier = amplifier
+        self.scanner = scanner
+        self.dt_s = float(config.dt_s)
+        if pipeline is None:
+            from afmctl.pipeline import build_pipeline
+            pipeline = build_pipeline(config)
+        self.pipeline = pipeline
+        axes = list(config.scanner.axes)
+        self.safety = SafetyLayer(amplifier, axes, {a: config.limits(a) for a in axes},
+                                  config.slew_V_per_s(), self.dt_s,
+                                  {a: config.safety.safe_value(a) for a in axes})
+        self._state = State.IDLE
+        self._request: str | None = None
+        self._sinks: list[Any] = []
+        self._deque: collections.deque = collections.deque()
+        self._queue_mode = False
+        self._queue_end_when_idle = False
+        self._thread: threading.Thread | None = None
+        self._feeder: threading.Thread | None = None
+        self._rc_thread: threading.Thread | None = None
+        self._rc_error: BaseException | None = None
+        self._dispatcher: threading.Thread | None = None
+        self._feed_stop = False
+        self._feed_error: str | None = None
+        self._events: collections.deque = collections.deque()
+        self._ring = np.zeros((_RING, _NCOL))
+        self._w = 0
+        self._hist = np.zeros(_HBINS, dtype=np.int64)
+        self._whist = np.zeros(_HBINS, dtype=np.int64)
+        self._missed_log: collections.deque = collections.deque(maxlen=32)
+        self._n_late = 0
+        self._late_max = 0.0
+        self._missed = 0
+        self._overruns = 0
+        self._errors = 0
+        self._faults = 0
+        self._reconnects = 0
+        self._watchdog_trips = 0
+        self._dropped = 0
+        self._seq = 0
+        self._tick = 0
+        self._last_error: str | None = None
+        self._T_C = float(config.compensation.temperature.T_C)
+        self._T_file: tuple[np.ndarray, np.ndarray] | None = None
+        self.runlog: RunLogWriter | None = None
+        self.runlog_path: Path | None = None
+        self._done = threading.Event()
+        self._start_wall = 0.0
+
+    # ------------------------------------------------------------------ public API
+    @property
+    def state(self) -> State:
+        return self._state
+
+    @property
+    def running(self) -> bool:
+        """True while the loop thread (or its dispatcher) is alive."""
+        return any(t is not None and t.is_alive() for t in (self._thread, self._dispatcher))
+
+    def add_sink(self, sink: Any) -> None:
+        """Register an object with ``on_setpoints``/``on_drift``/``on_status`` (any subset)."""
+        self._sinks.append(sink)
+
+    def remove_sink(self, sink: Any) -> None:
+        if sink in self._sinks:
+            self._sinks.remove(sink)
+
+    def set_temperature(self, t_s: float, T_C: float) -> None:
+        """Ambient temperature reading [°C] at time ``t_s`` [s] for the drift predictor."""
+        try:
+            T = float(T_C)
+        except (TypeError, ValueError):
+            raise AfmctlError(f"temperature: T_C {T_C!r} is not a number") from None
+        if not (math.isfinite(T) and -50.0 <= T <= 150.0):
+            raise AfmctlError(f"temperature: T_C {T_C!r} outside the allowed range -50..150 °C")
+        self._T_C = T
+
+    def submit_segment(self, positions_nm: np.ndarray, dt_s: float) -> int:
+        """Append a segment (N, 3) [nm] sampled every ``dt_s`` [s] (resampled to the loop
+        period) to the run-time queue; returns the number of loop samples queued.
+
+        Accepted when idle or when running in queue mode (``start(None)`` or
+        ``trajectory.kind = "queue"``).
+        """
+        try:
+            dt = float(dt_s)
+        except (TypeError, ValueError):
+            raise AfmctlError(f"segment: dt_s {dt_s!r} is not a number") from None
+        if not (math.isfinite(dt) and 1e-6 <= dt <= 10.0):
+            raise AfmctlError(f"segment: dt_s {dt_s!r} outside the allowed range 1e-6..10 s")
+        if self.running and not self._queue_mode:
+            raise AfmctlError("segment: the controller is running a finite trajectory; segments are "
+                              "accepted in queue mode (trajectory.kind = 'queue')")
+        src = _as_block(positions_nm, "segment")  # validate before resampling
+        n_out = int(math.floor(max(len(src) - 1, 0) * dt / self.dt_s + 1e-9)) + 1
+        if n_out > MAX_SEGMENT_SAMPLES:
+            raise AfmctlError(f"segment: {len(src)} samples every {dt:g} s make {n_out} loop samples; "
+                              f"at most {MAX_SEGMENT_SAMPLES} per segment (split it)")
+        rows = _as_block(resample(np.asarray(positions_nm, dtype=np.float64), dt, self.dt_s), "segment")
+        bs = self.config.loop.block_samples
+        for k in range(0, len(rows), bs):
+            self._deque.append(_flat(rows[k:k + bs]))
+        return len(rows)
+
+    def start(self, source: Any = None, *, runlog_path: str | Path | None = None) -> None:
+        """Start the loop thread.
+
+        ``source``: None (run-time segments, queue mode), a trajectory spec of
+        :mod:`afmctl.config` (built by :func:`afmctl.trajectories.build`), an array
+        (N, 3) [nm] at the loop period, or an iterable of such blocks.
+        """
+        if self.running:
+            raise AfmctlError(f"start: controller is {self._state.value}; stop it first")
+        if self._rc_thread is not None:
+            self._rc_thread.join(60.0)
+            if self._rc_thread.is_alive():
+                raise AfmctlError("start: the previous run's reconnect attempt is still in the driver")
+        from afmctl import trajectories
+        it: Iterator | None
+        self._queue_mode = False
+        self._queue_end_when_idle = False
+        if source is None:
+            self._queue_mode = True
+            it = None
+        elif getattr(source, "kind", None) == "queue":
+            self._queue_mode = True
+            self._queue_end_when_idle = source.idle == "end"
+            it = None
+        elif hasattr(source, "blocks_at"):
+            it = iter(source.blocks_at(self.dt_s, self.config.loop.block_samples))
+        elif hasattr(source, "kind"):
+            it = iter(trajectories.build(source, self.dt_s, self.config.loop.block_samples))
+        elif isinstance(source, np.ndarray):
+            it = iter(trajectories.blocks_of(source, self.config.loop.block_samples))
+        elif isinstance(source, Iterable):
+            it = iter(source)
+        else:
+            raise AfmctlError(f"start: unsupported trajectory source {type(source).__name__}")
+        if not self._queue_mode:
+            self._deque.clear()
+        tsec = self.config.compensation.temperature
+        if tsec.source == "file" and tsec.file is not None:
+            from afmctl.datafiles import read_csv
+            data = read_csv(tsec.file, ("t", "T"))
+            self._T_file = (np.asarray(data["t"], float), np.asarray(data["T"], float))
+        # reset counters of a previous run
+        self._request = None
+        self._feed_stop = False
+        self._feed_error = None
+        self._done.clear()
+        self._w = 0
+        self._n_late = 0
+        self._hist[:] = 0
+        self._whist[:] = 0
+        self._missed_log.clear()
+        self._late_max = 0.0
+        self._missed = self._overruns = self._dropped = 0
+        self._seq = self._tick = 0
+        self._warm_up()
+        if self.config.loop.gc_freeze:
+            gc.collect()
+            gc.freeze()   # long-lived objects leave the collector's generations
+        if self.config.runlog.enabled:
+            if runlog_path is None:
+                stamp = time.strftime("%Y%m%d-%H%M%S")
+                base = Path(self.config.runlog.dir) / f"{self.config.scanner.name}-{stamp}"
+                runlog_path = base.with_name(base.name + ".afmlog")
+                k = 1
+                while runlog_path.exists():
+                    runlog_path = base.with_name(f"{base.name}-{k}.afmlog")
+                    k += 1
+            meta = {"scanner": self.config.scanner.name, "dt_s": self.dt_s, "rate_Hz": self.config.loop.rate_Hz,
+                    "axes": list(self.config.scanner.axes), "driver": self.config.amplifier.driver,
+                    "config": self.config.model_dump(mode="json")}
+            prio = self.config.loop.realtime_priority
+            self.runlog = RunLogWriter(runlog_path, meta, flush_interval_s=self.config.runlog.flush_interval_s,
+                                       fsync=self.config.runlog.fsync,
+                                       realtime_priority=max(1, prio - 1) if prio else None)
+            self.runlog_path = Path(runlog_path)
+        self._start_wall = time.time()
+        self._set_state(State.RUNNING, "start")
+        if it is not None:
+            self._feeder = threading.Thread(target=self._feed, args=(it,), name="afmctl-feeder", daemon=True)
+            self._feeder.start()
+        self._thread = threading.Thread(target=self._loop_main, name="afmctl-loop", daemon=True)
+        self._dispatcher = threading.Thread(target=self._dispatch_main, name="afmctl-dispatch", daemon=True)
+        self._thread.start()
+        self._dispatcher.start()
+
+    def _warm_up(self) -> None:
+        """Run the chain once off the loop thread (compiles/loads numba kernels), then reset."""
+        try:
+            self.pipeline.step(0.0, 0.0, 0.0, self._T_C, (0.0, 0.0, 0.0))
+        except Exception as err:  # a model that cannot take 0 nm still works from its range
+            log.debug("warm-up step failed: %s", err)
+        self.pipeline.reset()
+
+    def stop(self) -> None:
+        """Stop: ramp to the safe value (``safety.on_finish = "safe"``) or hold, then
+        ``stopped``. Returns immediately; see :meth:`wait`."""
+        if self._request != "estop":
+            self._request = "stop"
+        self._feed_stop = True
+
+    def estop(self) -> None:
+        """Emergency stop: ramp to the safe value as fast as the slew limit allows."""
+        self._request = "estop"
+        self._feed_stop = True
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Wait until the run has ended and every record has been dispatched."""
+        return self._done.wait(timeout)
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Stop if running, wait, close the run log (the amplifier stays open)."""
+        if self._thread is not None and self._thread.is_alive():
+            self.stop()
+        if self._thread is not None:
+            self._thread.join(timeout)
+        if self._dispatcher is not None:
+            self._dispatcher.join(timeout)
+        if self._feeder is not None:
+            self._feed_stop = True
+            self._feeder.join(timeout)
+        if self._rc_thread is not None:   # a reconnect attempt still in the driver
+            self._rc_thread.join(timeout)
+        if self.runlog is not None:
+            self.runlog.close()
+
+    def __enter__(self) -> "Controller":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def stats(self) -> dict[str, Any]:
+        """Loop statistics: lateness p50/p99/max [s] (histogram of every tick of the run:
+        0.5 µs bins below 2 ms, 100 µs above), work per tick p50/p99 [s], missed deadlines,
+        samples, errors."""
+        p50, p99 = _percentiles(self._hist, (0.50, 0.99))
+        w50, w99 = _percentiles(self._whist, (0.50, 0.99))
+        pmax = self._late_max
+        s = self.safety
+        return {
+            "state": self._state.value, "rate_Hz": self.config.loop.rate_Hz, "ticks": self._tick,
+            "samples": self._seq, "lateness_p50_s": p50, "lateness_p99_s": p99,
+            "lateness_max_s": pmax, "missed_deadlines": self._missed,
+            "work_p50_s": w50, "work_p99_s": w99,
+            "overruns": self._overruns, "errors": self._errors, "faults": self._faults,
+            "reconnects": self._reconnects, "watchdog_trips": self._watchdog_trips,
+            "slew_limited": s.slew_limited, "clamped": s.clamped, "nonfinite": s.nonfinite,
+            "dropped_records": self._dropped, "last_error": self._last_error,
+            "missed_recent": [(int(k), float(v)) for k, v in list(self._missed_log)[-8:]],
+            "T_C": self._T_C,
+        }
+
+    # ------------------------------------------------------------------ internals
+    def _set_state(self, state: State, event: str, detail: str | None = None) -> None:
+        self._state = state
+        self._events.append({"seq": self._seq, "t_s": self._tick * self.dt_s, "wall_time": time.time(),
+                             "state": state.value, "event": event, "detail": detail})
+
+    def _event(self, event: str, detail: str | None = None) -> None:
+        self._events.append({"seq": self._seq, "t_s": self._tick * self.dt_s, "wall_time": time.time(),
+                             "state": self._state.value, "event": event, "detail": detail})
+
+    def _helper_priority(self) -> None:
+        """Helper threads (feeder, dispatcher) hold the GIL now and then; with a real-time
+        loop they run SCHED_FIFO one step below it, so that ordinary processes cannot
+        preempt them while the loop waits for the GIL (priority inversion)."""
+        prio = self.config.loop.realtime_priority
+        if prio is not None:
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(1, prio - 1)))
+            except (AttributeError, OSError):
+                pass
+
+    def _feed(self, it: Iterator) -> None:
+        self._helper_priority()
+        bs = self.config.loop.block_samples
+        prefetch = self.config.loop.prefetch_blocks
+        dq = self._deque
+        try:
+            for blk in it:
+                rows = _as_block(blk)
+                for k in range(0, len(rows), bs):
+                    while len(dq) >= prefetch and not self._feed_stop:
+                        time.sleep(0.002)
+                    if self._feed_stop:
+                        return
+                    dq.append(_flat(rows[k:k + bs]))
+        except Exception as err:  # a trajectory generator failed: end the run safely
+            self._feed_error = " ".join(str(err).split()) or type(err).__name__
+            log.error("trajectory: %s", self._feed_error)
+        dq.append(_END)
+
+    def _loop_main(self) -> None:
+        old_switch = sys.getswitchinterval()
+        si = self.config.loop.switch_interval_s
+        if si is not None:
+            sys.setswitchinterval(si)
+        prio = self.config.loop.realtime_priority
+        if prio is not None:
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))  # this thread only
+                self._event("realtime", f"loop thread SCHED_FIFO priority {prio}")
+            except (AttributeError, OSError) as err:
+                self._event("realtime-refused", f"SCHED_FIFO {prio} not granted ({err}); normal scheduling")
+                log.warning("loop.realtime_priority %s not granted (%s)", prio, err)
+        try:
+            self._loop()
+        except BaseException as err:  # never leave silently
+            self._last_error = f"{type(err).__name__}: {err}"
+            self._errors += 1
+            log.exception("control loop crashed")
+            self._set_state(State.FAULT, "crash", self._last_error)
+        finally:
+            self._feed_stop = True      # release a feeder waiting for room
+            self._deque.clear()         # nothing of this run is played by the next one
+            if si is not None:
+                sys.setswitchinterval(old_switch)
+
+    def _loop(self) -> None:  # noqa: C901 - one flat state machine reads best here
+        cfg = self.config
+        dt = self.dt_s
+        period = dt
+        half = 0.5 * period
+        spin = cfg.loop.spin_s
+        resync = cfg.loop.resync_periods * period
+        perf = time.perf_counter
+        sleep = time.sleep
+        safety = self.safety
+        pipe = self.pipeline
+        ring = self._ring
+        hist = self._hist
+        whist = self._whist
+        missed_log = self._missed_log
+        hbin = 1.0 / _FINE_S
+        nfine = _N_FINE
+        binof = _bin
+        dq = self._deque
+        popleft = dq.popleft
+        mask_r = _RING - 1
+        ramp_rate = min(cfg.safety.ramp_V_per_s, safety.slew_V_per_s)
+        safe = list(safety.safe)
+        on_finish = cfg.safety.on_finish
+        on_stall = cfg.safety.on_stall
+        watchdog = Watchdog(cfg.safety.watchdog_s)
+        T_file = self._T_file
+        reconnect_interval = cfg.safety.reconnect_interval_s
+        max_reconnects = cfg.safety.max_reconnects
+        fault_errors = (AmplifierError, OSError)
+        FAULT = State.FAULT
+
+        blk: list | None = None
+        bi = 0
+        cur: tuple | None = None          # computed sample not yet fully sent
+        need_ramp = True                  # ramp to the next sample (start / resume)
+        ramping = False
+        mode = "run"                      # run | finish
+        finish_rate = ramp_rate
+        finish_hold = False
+        next_attempt = 0.0
+        attempts = 0
+        last_tgt = (0.0, 0.0, 0.0)
+        last_cor = (0.0, 0.0, 0.0)
+        last_d = (0.0, 0.0, 0.0)
+        u_prev = [0.0, 0.0, 0.0]
+        rc_thread: threading.Thread | None = None   # reconnect attempt in flight
+        in_fault = False                            # the loop ended without a link
+
+        try:
+            for w in safety.sync_from_device():
+                self._event("readback", w)
+            u_prev = safety.xyz(safety.last)
+        except fault_errors as err:
+            self._enter_fault(err)
+            next_attempt = perf() + reconnect_interval
+
+        def record(tgt, cor, d, T) -> None:
+            seq = self._seq
+            u = safety.last
+            ux = uy = uz = 0.0
+            for i, k in enumerate(safety.index):
+                if k == 0:
+                    ux = u[i]
+                elif k == 1:
+                    uy = u[i]
+                else:
+                    uz = u[i]
+            ring[self._w & mask_r] = (seq, self._tick, tgt[0], tgt[1], tgt[2], cor[0], cor[1], cor[2],
+                                      ux, uy, uz, T, d[0], d[1], d[2])
+            self._w += 1
+            self._seq = seq + 1
+            u_prev[0] = ux
+            u_prev[1] = uy
+            u_prev[2] = uz
+
+        next_t = perf()
+        now = next_t
+        watchdog.feed(next_t)
+        while True:
+            work = perf() - now                     # the previous tick's work [s]
+            if work > 0.0:
+                b = int(work * hbin)
+                whist[b if b < nfine else binof(work)] += 1
+            next_t += period
+            now = perf()
+            rem = next_t - now
+            if rem > spin:
+                sleep(rem - spin)
+            while perf() < next_t:
+                pass
+            now = perf()
+            late = now - next_t
+            if self._state is not FAULT:            # reconnect time is not loop lateness
+                b = int(late * hbin)
+                hist[b if b < nfine else binof(late)] += 1
+                self._n_late += 1
+                if late > self._late_max:
+                    self._late_max = late
+                if late > half:
+                    self._missed += 1
+                    missed_log.append((self._tick, late))
+            if late > resync:
+                self._overruns += 1
+                next_t = now
+            self._tick += 1
+            T = self._T_C if T_file is None else float(np.interp(self._tick * dt, T_file[0], T_file[1]))
+
+            req = self._request
+            if req is not None and mode != "finish":
+                mode = "finish"
+                if req == "estop":
+                    finish_rate = safety.slew_V_per_s
+                    finish_hold = False
+                    self._event("estop")
+                else:
+                    finish_rate = ramp_rate
+                    finish_hold = on_finish == "hold"
+                    self._event("stop")
+            elif req == "estop" and finish_rate != safety.slew_V_per_s:
+                finish_rate = safety.slew_V_per_s
+                finish_hold = False
+                self._event("estop")
+
+            # ---------------------------------------------------------- fault
+            if self._state is State.FAULT:
+                # reconnect() of a serial driver blocks for up to its reconnect_timeout_s:
+                # it runs on a helper thread, so that this loop keeps ticking and a stop or
+                # estop during a fault is honoured at once (the device holds its output).
+                if mode == "finish":
+                    self._event("stop-in-fault", "link lost: the output could not be ramped")
+                    self._set_state(State.STOPPED, "stopped")
+                    in_fault = True
+                    break
+                if rc_thread is not None:
+                    if rc_thread.is_alive():
+                        continue
+                    rc_thread = None
+                    err = self._rc_error
+                    if err is None:
+                        try:
+                            for w in safety.sync_from_device():
+                                self._event("readback", w)
+                        except Exception as e:   # noqa: BLE001 - any failure: stay in fault
+                            err = e
+                    if err is not None:
+                        self._errors += 1
+                        self._last_error = " ".join(str(err).split()) or type(err).__name__
+                        next_attempt = perf() + reconnect_interval
+                        continue
+                    self._reconnects += 1
+                    u_prev[:] = safety.xyz(safety.last)
+                    attempts = 0
+                    need_ramp = True
+                    mode = "run"
+                    self._set_state(State.RUNNING, "resume", "reconnected; ramping from the read-back voltage")
+                    watchdog.feed()
+                    next_t = perf()
+                    continue
+                if now < next_attempt:
+                    continue
+                if attempts >= max_reconnects:
+                    self._event("give-up", f"{attempts} reconnect attempts failed")
+                    in_fault = True
+                    break
+                attempts += 1
+                self._rc_error = None
+                rc_thread = threading.Thread(target=self._reconnect_job, name="afmctl-reconnect", daemon=True)
+                self._rc_thread = rc_thread
+                rc_thread.start()
+                continue
+
+            try:
+                # ------------------------------------------------------ finish / stop
+                if mode == "finish":
+                    if finish_hold:
+                        break
+                    done = safety.ramp_step(safe, finish_rate)
+                    record(last_tgt, last_cor, last_d, T)
+                    if done:
+                        break
+                    continue
+
+                # ------------------------------------------------------ next sample
+                if cur is None:
+                    if blk is None or bi >= len(blk):
+                        blk = None
+                        item = popleft() if dq else None
+                        if item is _END:
+                            if self._feed_error:
+                                self._errors += 1
+                                self._last_error = self._feed_error
+                                self._event("trajectory-error", self._feed_error)
+                            else:
+                                self._event("end")
+                            mode = "finish"
+                            finish_rate = ramp_rate
+                            finish_hold = on_finish == "hold"
+                            continue
+                        if item is None:
+                            if self._queue_mode and self._queue_end_when_idle:
+                                self._event("end")
+                                mode = "finish"
+                                finish_rate = ramp_rate
+                                finish_hold = on_finish == "hold"
+                                continue
+                            if watchdog.expired(now):
+                                if self._state is not State.HOLDING:
+                                    self._watchdog_trips += 1
+                                    self._set_state(State.HOLDING, "watchdog",
+                                                    f"no trajectory sample for {watchdog.since(now):.3f} s")
+                                if on_stall == "safe":
+                                    safety.ramp_step(safe, ramp_rate)
+                                    record(last_tgt, last_cor, last_d, T)
+                            continue
+                        blk = item
+                        bi = 0
+                    j = bi
+                    bi += 3
+                    rx, ry, rz = blk[j], blk[j + 1], blk[j + 2]
+                    watchdog.feed(now)
+                    if self._state is State.HOLDING:
+                        self._set_state(State.RUNNING, "resume", "trajectory samples again")
+                        need_ramp = True
+                    cur = pipe.step(rx, ry, rz, T, u_prev)
+                    last_tgt = (rx, ry, rz)
+                    last_cor = (cur[3], cur[4], cur[5])
+                    last_d = (cur[0], cur[1], cur[2])
+                if need_ramp:
+                    need_ramp = False
+                    tgt = safety.driven_target(cur[6:9])
+                    m = safety.max_step_V
+                    ramping = any(abs(min(max(tgt[i], safety.lo[i]), safety.hi[i]) - safety.last[i]) > m
+                                  for i in range(len(tgt)))
+                    if ramping:
+                        self._event("ramp", "ramping from the present output to the setpoint")
+                if ramping:
+                    if safety.ramp_step(safety.driven_target(cur[6:9]), ramp_rate):
+                        ramping = False
+                        cur = None
+                        self._event("ramp-done")
+                    record(last_tgt, last_cor, last_d, T)
+                    continue
+                safety.send(cur[6:9])
+                cur = None
+                record(last_tgt, last_cor, last_d, T)
+            except fault_errors as err:
+                self._enter_fault(err)
+                ramping = False
+                next_attempt = perf() + reconnect_interval
+                attempts = 0
+
+        if not in_fault and self._state is not State.FAULT and self.amplifier.state is ConnectionState.CONNECTED:
+            try:
+                self.amplifier.flush()       # pipelined setpoints applied and checked
+            except fault_errors as err:
+                self._errors += 1
+                self._last_error = " ".join(str(err).split()) or type(err).__name__
+                self._event("flush-error", self._last_error)
+        if self._state not in (State.FAULT, State.STOPPED):
+            self._set_state(State.STOPPED, "stopped")
+
+    def _reconnect_job(self) -> None:
+        """One ``amplifier.reconnect()`` attempt (helper thread; may block for the driver's
+        reconnect_timeout_s). The loop thread reads the outcome from ``_rc_error``."""
+        try:
+            self.amplifier.reconnect()
+        except Exception as err:  # noqa: BLE001 - reported by the loop thread
+            self._rc_error = err
+
+    def _enter_fault(self, err: BaseException) -> None:
+        self._errors += 1
+        self._faults += 1
+        self._last_error = " ".join(str(err).split()) or type(err).__name__
+        log.warning("amplifier fault: %s", self._last_error)
+        self._set_state(State.FAULT, "fault", self._last_error)
+
+    # ------------------------------------------------------------------ dispatcher
+    def _dispatch_main(self) -> None:
+        self._helper_priority()
+        r = 0
+        next_status = time.monotonic()
+        try:
+            while True:
+                alive = self._thread is not None and self._thread.is_alive()
+                r = self._dispatch_records(r)
+                self._dispatch_events()
+                if time.monotonic() >= next_status:
+                    next_status = time.monotonic() + self.status_interval_s
+                    self._call_sinks("on_status", self._status("periodic"))
+                if not alive:
+                    r = self._dispatch_records(r)
+                    self._dispatch_events()
+                    self._call_sinks("on_status", self._status("final"))
+                    break
+                time.sleep(self.dispatch_interval_s)
+        finally:
+            if self.runlog is not None:
+                self.runlog.write_event({"seq": self._seq, "t_s": self._tick * self.dt_s, "wall_time": time.time(),
+                                         "state": self._state.value, "event": "stats",
+                                         "detail": self.stats()})
+                self.runlog.close()
+            self._done.set()
+
+    def _dispatch_records(self, r: int) -> int:
+        w = self._w
+        if w == r:
+            return r
+        if w - r > _RING:
+            lost = w - r - _RING
+            self._dropped += lost
+            r = w - _RING
+        idx = np.arange(r, w) & (_RING - 1)
+        rows = self._ring[idx]
+        if self._w - r > _RING:  # overwritten while copying
+            keep = (self._w - _RING) - r
+            rows = rows[keep:] if keep < len(rows) else rows[:0]
+            self._dropped += keep
+        sp = np.zeros(len(rows), SETPOINT_DTYPE)
+        sp["seq"] = rows[:, _C_SEQ].astype(np.uint64)
+        sp["t_s"] = rows[:, _C_TICK] * self.dt_s
+        sp["target_nm"] = rows[:, _C_TGT:_C_TGT + 3]
+        sp["corrected_nm"] = rows[:, _C_COR:_C_COR + 3]
+        sp["u_V"] = rows[:, _C_U:_C_U + 3]
+        dr = np.zeros(len(rows), DRIFT_DTYPE)
+        dr["seq"] = sp["seq"]
+        dr["t_s"] = sp["t_s"]
+        dr["T_C"] = rows[:, _C_T]
+        dr["drift_nm"] = rows[:, _C_D:_C_D + 3]
+        if self.runlog is not None:
+            self.runlog.write_setpoints(sp)
+            self.runlog.write_drift(dr)
+        if len(sp):
+            self._call_sinks("on_setpoints", sp)
+            last = dr[-1]
+            self._call_sinks("on_drift", {"seq": int(last["seq"]), "t_s": float(last["t_s"]),
+                                          "T_C": float(last["T_C"]),
+                                          "drift_nm": [float(v) for v in last["drift_nm"]], "std_nm": None})
+        return w
+
+    def _dispatch_events(self) -> None:
+        while self._events:
+            ev = self._events.popleft()
+            if self.runlog is not None:
+                self.runlog.write_event(ev)
+            st = self._status(ev["event"], ev.get("detail"))
+            st["state"] = ev["state"]
+            self._call_sinks("on_status", st)
+
+    def _status(self, event: str, detail: Any = None) -> dict[str, Any]:
+        return {"state": self._state.value, "event": event, "detail": detail, "seq": self._seq,
+                "t_s": self._tick * self.dt_s, "stats": self.stats()}
+
+    def _call_sinks(self, method: str, arg: Any) -> None:
+        for sink in list(self._sinks):
+            fn = getattr(sink, method, None)
+            if fn is None:
+                continue
+            try:
+                fn(arg)
+            except Exception:  # a sink must not stop the controller
+                log.exception("sink %r.%s failed", sink, method)

@@ -1,0 +1,154 @@
+"""The compensation chain of one tick, composed from compensators (no model math here).
+
+Per sample, for the target ``r`` [nm] (x, y, z):
+
+1. drift estimate ``d̂`` [nm] from :class:`compensators.drift.DriftParams.predictor`,
+   driven by the ambient temperature [°C] and the voltages already sent [V] (heat);
+2. corrected target ``r' = r − d̂`` [nm];
+3. per axis, the inverse hysteresis/creep model ``u = model.inverse(dt_s).step(r')`` [V],
+   or, without a model, the linear calibration ``u = offset_V + r' / nm_per_V``.
+
+The result goes to :class:`afmctl.safety.SafetyLayer`, never straight to an amplifier.
+"""
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from compensators.base import StreamingOperator
+
+log = logging.getLogger(__name__)
+
+
+class LinearAxis(StreamingOperator):
+    """``u_V = offset_V + y_nm / nm_per_V`` (the uncompensated linear calibration)."""
+
+    def __init__(self, nm_per_V: float, offset_V: float = 0.0) -> None:
+        self.inv_gain = 1.0 / float(nm_per_V)
+        self.offset_V = float(offset_V)
+
+    def reset(self) -> None:
+        pass
+
+    def step(self, x: float) -> float:
+        return self.offset_V + x * self.inv_gain
+
+    def block(self, x: np.ndarray) -> np.ndarray:
+        return self.offset_V + np.asarray(x, dtype=np.float64) * self.inv_gain
+
+
+class CompensationPipeline:
+    """Drift correction followed by a per-axis inverse model.
+
+    ``inverses``: three operators y[nm] → u[V] for x, y, z. ``drift``: an object with
+    ``reset()`` and ``step(T_C, u_V (3,)) -> (3,) nm`` (interface of
+    compensators.drift.DriftPredictor) or None.
+    """
+
+    def __init__(self, inverses: Sequence[StreamingOperator], drift: Any | None = None) -> None:
+        if len(inverses) != 3:
+            raise ValueError("inverses: one operator per axis x, y, z")
+        self.inverses = list(inverses)
+        self.drift = drift
+        self._u_prev = np.zeros(3)
+        self._zero = (0.0, 0.0, 0.0)
+
+    def reset(self) -> None:
+        for op in self.inverses:
+            op.reset()
+        if self.drift is not None:
+            self.drift.reset()
+        self._u_prev[:] = 0.0
+
+    def step(self, x: float, y: float, z: float, T_C: float, u_sent: Sequence[float]
+             ) -> tuple[float, float, float, float, float, float, float, float, float]:
+        """One tick. ``u_sent``: voltages already sent (x, y, z) [V] for the heat input.
+
+        Returns ``(dx, dy, dz, cx, cy, cz, ux, uy, uz)``: drift estimate [nm], corrected
+        target [nm], voltages [V].
+        """
+        if self.drift is not None:
+            up = self._u_prev
+            up[0] = u_sent[0]
+            up[1] = u_sent[1]
+            up[2] = u_sent[2]
+            d = self.drift.step(T_C, up)
+            dx, dy, dz = float(d[0]), float(d[1]), float(d[2])
+        else:
+            dx = dy = dz = 0.0
+        cx, cy, cz = x - dx, y - dy, z - dz
+        inv = self.inverses
+        return (dx, dy, dz, cx, cy, cz, inv[0].step(cx), inv[1].step(cy), inv[2].step(cz))
+
+    def run(self, targets_nm: np.ndarray, T_C: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Offline: the whole chain over ``targets_nm`` (N, 3), heat from its own output.
+
+        Returns drift (N, 3) [nm], corrected (N, 3) [nm], u (N, 3) [V]; the same numbers as
+        calling :meth:`step` per sample with ``u_sent`` = the previous output.
+        """
+        r = np.asarray(targets_nm, dtype=np.float64)
+        n = r.shape[0]
+        T = np.broadcast_to(np.asarray(T_C, dtype=np.float64), (n,))
+        d = np.zeros((n, 3))
+        c = np.zeros((n, 3))
+        u = np.zeros((n, 3))
+        prev = (0.0, 0.0, 0.0)
+        for i in range(n):
+            out = self.step(float(r[i, 0]), float(r[i, 1]), float(r[i, 2]), float(T[i]), prev)
+            d[i] = out[0:3]
+            c[i] = out[3:6]
+            u[i] = out[6:9]
+            prev = out[6:9]
+        return d, c, u
+
+
+def load_drift_params(name_or_file: str, overrides: dict[str, Any] | None = None):
+    """A :class:`compensators.drift.DriftParams` from a named set or a JSON file, with
+    field overrides."""
+    from compensators.drift import DriftParams
+
+    from afmctl.errors import AfmctlError
+    if name_or_file.endswith(".json"):
+        try:
+            data = json.loads(Path(name_or_file).read_text(encoding="utf-8"))
+        except (OSError, json.JSONDecodeError) as err:
+            raise AfmctlError(f"compensation.drift.params: cannot read {name_or_file} ({err})") from None
+    else:
+        try:
+            data = DriftParams.named(name_or_file).model_dump()
+        except Exception as err:
+            raise AfmctlError(f"compensation.drift.params: {err}") from None
+    if overrides:
+        data = {**data, **overrides}
+    from pydantic import ValidationError
+    try:
+        return DriftParams.model_validate(data)
+    except ValidationError as err:
+        from afmctl.config import format_validation_error
+        raise AfmctlError(format_validation_error(err, "compensation.drift", DriftParams)) from None
+
+
+def build_pipeline(config) -> CompensationPipeline:
+    """The pipeline described by an :class:`afmctl.config.Config`."""
+    from compensators.models import load_model
+    dt = config.dt_s
+    inverses: list[StreamingOperator] = []
+    for axis in ("x", "y", "z"):
+        spec = config.compensation.axis(axis)
+        if spec.model is not None:
+            model = load_model(spec.model)
+            inverses.append(model.inverse(dt))
+            log.info("axis %s: inverse %s model from %s", axis, model.kind, spec.model)
+        else:
+            cal = config.scanner.axis_spec(axis)
+            inverses.append(LinearAxis(cal.nm_per_V, cal.offset_V))
+    drift = None
+    if config.compensation.drift.enabled:
+        params = load_drift_params(config.compensation.drift.params, config.compensation.drift.overrides)
+        drift = params.predictor(dt)
+    return CompensationPipeline(inverses, drift)

@@ -1,0 +1,79 @@
+"""A reduced ``afmctl demo`` (64×64 px, short excitation, two compensators and one unknown
+kind) through the real command line: files, metrics and the improvement it measures."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from afmctl.cli import main
+
+
+@pytest.fixture(scope="module")
+def demo_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo")
+    rc = main(["demo", "--out", str(out), "--size", "64", "--quick", "--no-progress",
+               "--only", "pi", "--only", "preisach+creep", "--only", "no-such-kind"])
+    return rc, out
+
+
+def test_demo_writes_images_plots_and_metrics(demo_run, capsys):
+    rc, out = demo_run
+    assert rc == 0
+    for name in ("demo_images.png", "demo_hysteresis.png", "demo_errors.png", "demo_lines.png", "demo_drift.png"):
+        data = (out / name).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000, name
+    m = json.loads((out / "metrics.json").read_text())
+    assert set(m["max_error_pct"]) == {"none", "pi", "preisach+creep"}
+    assert set(m["rms_error_pct"]) == set(m["max_error_pct"])
+    assert "no-such-kind" in m["skipped"]
+    for name, v in m["max_error_pct"].items():
+        assert 0 < m["rms_error_pct"][name] <= v
+
+
+def test_demo_compensation_beats_uncompensated(demo_run):
+    _, out = demo_run
+    m = json.loads((out / "metrics.json").read_text())
+    mx = m["max_error_pct"]
+    assert mx["none"] > 5.0                       # the simulated scanner really is nonlinear
+    best = m["best"]
+    assert best == min((k for k in mx if k != "none"), key=mx.get)
+    assert mx[best] * 5 <= mx["none"]
+    assert mx[best] <= 2.0                        # full-size run: ≤ 1.5 % (docs/DEMO.md)
+    assert m["drift"]["max_true_drift_nm"] > 1.0  # the drift scenario is on
+    d = m["drift_effect"]
+    assert d["compensator"] == best and d["max_error_pct_with_drift_correction"] == mx[best]
+    assert d["max_error_pct_without_drift_correction"] > 0
+
+
+def test_demo_rejects_bad_size(capsys, tmp_path):
+    assert main(["demo", "--out", str(tmp_path), "--size", "3"]) == 2
+    assert "--size" in capsys.readouterr().err
+
+
+def test_demo_unwritable_out_is_one_line(capsys, tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    assert main(["demo", "--out", str(blocker / "out"), "--size", "16", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("afmctl: error: --out") and err.count("\n") == 1
+
+
+def test_demo_error_is_actual_minus_commanded_over_every_sample(tmp_path):
+    """The uncompensated metric recomputed from the raw simulation signals (true tip
+    position and commanded target per sample, settle line dropped, averaged per pixel):
+    every pixel of trace and retrace, x and y — nothing left out."""
+    import numpy as np
+    from afmctl.demo import DemoOptions, run_demo
+    ctx = run_demo(DemoOptions(out=tmp_path, size=16, quick=True, compensators=()), progress=False)
+    o = ctx.options
+    sig = ctx.scans["none"].image.signals
+    rec = sig["t_s"] >= 0
+    err = (sig["position_nm"][rec] - sig["target_nm"][rec])[:, :2]
+    per_pixel = err.reshape(o.size, 2, o.size, o.samples_per_pixel, 2).mean(axis=3)
+    assert per_pixel.size == o.size * o.size * 2 * 2
+    expected_max = np.max(np.abs(per_pixel)) / o.scan_nm * 100
+    expected_rms = np.sqrt(np.mean(per_pixel ** 2)) / o.scan_nm * 100
+    assert ctx.metrics["max_error_pct"]["none"] == pytest.approx(expected_max, abs=1e-4)
+    assert ctx.metrics["rms_error_pct"]["none"] == pytest.approx(expected_rms, abs=1e-4)
+    assert ctx.metrics["best"] is None and set(ctx.metrics["max_error_pct"]) == {"none"}
