@@ -61,6 +61,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from compensators.base import ModelError, check_finite
 from compensators.heat import AxisHeat, HeatParams, TubeGeometry
+from compensators.models import format_validation_error, read_json_file
 from compensators.temperature import T_MAX_C, T_MIN_C
 
 log = logging.getLogger(__name__)
@@ -237,23 +238,12 @@ class DriftParams(BaseModel):
         try:
             return cls.model_validate(data)
         except ValidationError as err:
-            first = err.errors()[0]
-            loc = ".".join(str(p) for p in first["loc"]) or "(root)"
-            raise ModelError(f"{where}: field {loc}: {first['msg']}") from None
+            raise ModelError(format_validation_error(err, where)) from None
 
     @classmethod
     def load(cls, path: str | Path) -> "DriftParams":
         """Read a JSON file written by :meth:`save` (or by hand)."""
-        p = Path(path)
-        try:
-            text = p.read_text(encoding="utf-8")
-        except OSError as err:
-            raise ModelError(f"{p}: cannot read drift parameter file ({err.strerror})") from None
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as err:
-            raise ModelError(f"{p}: not valid JSON (line {err.lineno}: {err.msg})") from None
-        return cls.from_dict(data, where=str(p))
+        return cls.from_dict(read_json_file(path, "drift parameter file"), where=str(path))
 
     def save(self, path: str | Path) -> None:
         Path(path).write_text(json.dumps(self.model_dump(mode="json"), indent=2) + "\n", encoding="utf-8")

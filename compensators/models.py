@@ -69,10 +69,24 @@ def model_class(kind: str) -> type[HysteresisModel]:
     return getattr(importlib.import_module(module_name), cls_name)
 
 
-def _format_validation_error(err: ValidationError, where: str) -> str:
+def format_validation_error(err: ValidationError, where: str) -> str:
+    """One line ``WHERE: field a.b: message`` for the first error of ``err``."""
     first = err.errors()[0]
     loc = ".".join(str(p) for p in first["loc"]) or "(root)"
     return f"{where}: field {loc}: {first['msg']}"
+
+
+def read_json_file(path: str | Path, what: str = "model file") -> Any:
+    """Decode a JSON file; :class:`ModelError` naming the file for I/O and syntax errors."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as err:
+        raise ModelError(f"{p}: cannot read {what} ({err.strerror})") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as err:
+        raise ModelError(f"{p}: not valid JSON (line {err.lineno}: {err.msg})") from None
 
 
 def model_from_dict(data: Any, where: str = "model") -> HysteresisModel:
@@ -86,21 +100,13 @@ def model_from_dict(data: Any, where: str = "model") -> HysteresisModel:
     try:
         return cls.model_validate(data)
     except ValidationError as err:
-        raise ModelError(_format_validation_error(err, where)) from None
+        raise ModelError(format_validation_error(err, where)) from None
 
 
 def load_model(path: str | Path, expect: tuple[str, ...] | None = None) -> HysteresisModel:
     """Read a model JSON file. ``expect`` restricts the accepted kinds."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as err:
-        raise ModelError(f"{p}: cannot read model file ({err.strerror})") from None
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as err:
-        raise ModelError(f"{p}: not valid JSON (line {err.lineno}: {err.msg})") from None
-    model = model_from_dict(data, where=str(p))
+    model = model_from_dict(read_json_file(p), where=str(p))
     if expect is not None and model.kind not in expect:
         raise ModelError(f"{p}: field kind: {model.kind!r} is not accepted here; allowed: {', '.join(expect)}")
     return model
