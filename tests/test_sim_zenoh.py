@@ -22,6 +22,7 @@ import serial
 
 from afmctl.messages import SimTipMsg, decode_json
 from afmctl.zenoh_config import ZenohSettings, free_loopback_endpoint
+from afmctl.testing import wait_for as _wait_for
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -55,13 +56,6 @@ def _read_until(lines: "queue.Queue[str]", prefix: str, timeout_s: float = 30.0)
     raise AssertionError(f"no line starting with {prefix!r}; got {got!r}")
 
 
-def _wait_for(cond, timeout_s: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.01)
-    return cond()
 
 
 @contextlib.contextmanager

@@ -24,6 +24,7 @@ from afmctl.messages import (
 )
 from afmctl.zenoh_api import ZenohBridge
 from afmctl.zenoh_config import loopback_pair
+from afmctl.testing import wait_for
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -145,13 +146,6 @@ class Client:
         self.session.close()
 
 
-def wait_for(cond, timeout: float = 5.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.01)
-    return cond()
 
 
 def bridge_on_free_port(ctl, server=None, attempts: int = 3):

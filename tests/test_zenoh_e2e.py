@@ -14,6 +14,7 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 
 from afmctl.messages import CmdRequest, LineMsg, SegmentMsg, TemperatureMsg, decode_setpoints
 from afmctl.zenoh_config import AclSettings, AclSubject, UserPasswordSettings, ZenohSettings, loopback_pair
+from afmctl.testing import wait_for
 
 zenoh = pytest.importorskip("zenoh")
 loop = pytest.importorskip("afmctl.loop")
@@ -41,13 +42,6 @@ enabled = true
 """
 
 
-def wait_for(cond, timeout: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.01)
-    return cond()
 
 
 class Client:
