@@ -1,14 +1,22 @@
 """Speed of the simulated scanner (sim_backend): plant samples per second per axis, imaging,
 streaming calls. Writes its section of docs/BENCHMARKS.md (markers ``bench:sim``).
 
-    .venv/bin/python benchmarks/bench_sim.py [--reps N] [--samples N] [--no-write]
+    .venv/bin/python benchmarks/bench_sim.py [--reps N] [--samples N] [--gil-seconds S] [--gil-rounds N] [--no-write]
 
 Target: ≥ 1 M samples/s per axis on one core for the Preisach plant.
+
+GIL part: how late a 1 kHz ticker thread (a stand-in for the controller's real-time loop)
+wakes while another thread drives ``Scanner.apply(volts, now())`` every 1 ms like a
+simulated amplifier does, with a 1 s idle gap every second (the next apply() then simulates
+1 s = 100 000 samples). "before" rebuilds the plant kernels without ``nogil`` and advances
+a gap in one block (the code before the review); "now" is the shipped code.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import platform
+import threading
 import re
 import statistics
 import sys
@@ -56,10 +64,121 @@ def write_section(text: str) -> None:
     path.write_text(doc, encoding="utf-8")
 
 
+def _tick(stop: threading.Event, late: list[tuple[float, float]], period_s: float = 1e-3) -> None:
+    """A 1 kHz loop: records (target time, lateness) of every tick [s]."""
+    t0 = time.perf_counter()
+    k = 0
+    while not stop.is_set():
+        k += 1
+        target = t0 + k * period_s
+        d = target - time.perf_counter()
+        if d > 0:
+            time.sleep(d)
+        now = time.perf_counter()
+        late.append((target, now - target))
+        k = max(k, int((now - t0) / period_s))  # a missed tick is not counted twice
+
+
+def _drive(stop: threading.Event, calls: list[tuple[float, float]], s: Scanner, gap_s: float) -> None:
+    """Like a simulated amplifier: apply(volts, now()) every 1 ms, a ``gap_s`` pause every
+    second; records (start, end) of every apply() call [s]."""
+    t0 = time.perf_counter()
+    k = 0
+    next_gap = 1.0
+    while not stop.is_set():
+        k += 1
+        a = time.perf_counter()
+        s.apply({"x": 75.0 + 50.0 * np.sin(k / 100.0), "y": 75.0, "z": 60.0}, a - t0)
+        calls.append((a, time.perf_counter()))
+        time.sleep(1e-3)
+        if gap_s and time.perf_counter() - t0 > next_gap:
+            time.sleep(gap_s)
+            next_gap += 1.0 + gap_s
+
+
+@contextlib.contextmanager
+def _gil_holding_kernels():
+    """The plant kernels as they were before the review: compiled without ``nogil`` and a
+    long gap advanced in one block."""
+    import numba
+
+    from sim_backend import _plant_kernels as K
+
+    saved = {n: getattr(K, n) for n in ("amplifier_nb", "preisach_nb", "creep_dynamics_nb", "expansion_drift_nb")}
+    chunk = Scanner.ADVANCE_CHUNK
+    try:
+        K.amplifier_nb = numba.njit(K.amplifier_py)
+        K.preisach_nb = numba.njit(K._rebind(K.preisach_py, _segment=K._segment_nb, _memory_update=K._memory_update_nb))
+        K.creep_dynamics_nb = numba.njit(K.creep_dynamics_py)
+        K.expansion_drift_nb = numba.njit(K.expansion_drift_py)
+        Scanner.ADVANCE_CHUNK = 1 << 62
+        yield
+    finally:
+        for n, f in saved.items():
+            setattr(K, n, f)
+        Scanner.ADVANCE_CHUNK = chunk
+
+
+def gil_lateness(seconds: float, with_scanner: bool) -> dict[str, float]:
+    """Lateness [ms] of a 1 kHz ticker (p50, p99, max over all ticks; max over the ticks
+    due while a long apply() — the one after an idle gap — was running) and the time of
+    those long apply() calls [ms]."""
+    stop = threading.Event()
+    late: list[tuple[float, float]] = []
+    calls: list[tuple[float, float]] = []
+    threads = [threading.Thread(target=_tick, args=(stop, late), daemon=True)]
+    if with_scanner:
+        s = Scanner()
+        s.apply({"x": 10.0})
+        s.advance(s.time_s + 0.01)
+        s.reset()
+        threads.append(threading.Thread(target=_drive, args=(stop, calls, s, 1.0), daemon=True))
+    for t in threads:
+        t.start()
+    time.sleep(seconds)
+    stop.set()
+    for t in threads:
+        t.join()
+    tk = np.array(late[20:])
+    lat = tk[:, 1] * 1e3
+    r = {"p50": float(np.median(lat)), "p99": float(np.percentile(lat, 99)), "max": float(lat.max())}
+    long_calls = [(a, b) for a, b in calls if b - a > 5e-3]
+    if long_calls:
+        inside = np.zeros(len(tk), dtype=bool)
+        for a, b in long_calls:
+            inside |= (tk[:, 0] >= a) & (tk[:, 0] < b)
+        r["during_max"] = float(lat[inside].max()) if inside.any() else float("nan")
+        r["long_call"] = float(np.median([b - a for a, b in long_calls]) * 1e3)
+    return r
+
+
+def gil_rows(seconds: float, rounds: int = 3) -> list[tuple[str, str, str, str]]:
+    """The three cases, interleaved ``rounds`` times; medians over the rounds."""
+    cases = [("ticker alone", False, None),
+             ("ticker + scanner thread, before (kernels hold the GIL, gap in one block)", True, _gil_holding_kernels),
+             ("ticker + scanner thread, now (nogil kernels, gap in 2048-sample chunks)", True, None)]
+    results: dict[str, list[dict[str, float]]] = {c[0]: [] for c in cases}
+    for _ in range(rounds):
+        for label, with_scanner, ctx in cases:
+            with ctx() if ctx else contextlib.nullcontext():
+                results[label].append(gil_lateness(seconds, with_scanner))
+            print(label, results[label][-1], flush=True)
+    rows = []
+    for label, _, _ in cases:
+        med = {k: statistics.median(r[k] for r in results[label]) for k in results[label][0]}
+        val = f"{med['p50']:.3g} / {med['p99']:.3g} / {med['max']:.3g}"
+        if "during_max" in med:
+            val += f" / {med['during_max']:.3g} (apply() after a gap: {med['long_call']:.3g})"
+        rows.append((label, val))
+    return rows
+
+
 def main(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--reps", type=int, default=5, help="repetitions per case (median reported)")
     ap.add_argument("--samples", type=int, default=1_000_000, help="samples per block")
+    ap.add_argument("--gil-seconds", type=float, default=6.0, help="duration of each GIL lateness case [s]; 0 = skip")
+    ap.add_argument("--gil-rounds", type=int, default=3, help="rounds of the GIL cases (median reported)")
     ap.add_argument("--no-write", action="store_true", help="print only, do not touch docs/BENCHMARKS.md")
     a = ap.parse_args(argv)
     n, reps = a.samples, a.reps
@@ -137,10 +256,13 @@ def main(argv: list[str]) -> int:
     t = median_time(stream, reps)
     rows.append(("streaming apply() + advance() (1 ms of held input = 100 samples)", "per call", f"{t / 2000 * 1e6:.3g}", "µs"))
 
+    gil = gil_rows(a.gil_seconds, a.gil_rounds) if a.gil_seconds > 0 else []
+
     lines = [
         "## Simulated scanner (sim_backend)",
         "",
-        f"Command: `.venv/bin/python benchmarks/bench_sim.py --reps {reps}` (median of {reps} runs; one core; "
+        f"Command: `.venv/bin/python benchmarks/bench_sim.py --reps {reps} --gil-seconds {a.gil_seconds:g} "
+        f"--gil-rounds {a.gil_rounds}` (median of {reps} runs; one core; "
         f"CPython {platform.python_version()}, {platform.machine()}). Target: ≥ 1 M samples/s per axis for the "
         "Preisach plant. Signal: wandering triangle with noise over 0…150 V at 100 kHz (nested minor loops).",
         "",
@@ -148,6 +270,21 @@ def main(argv: list[str]) -> int:
         "|---|---|---|---|",
     ]
     lines += [f"| {w} | {c} | {v} | {u} |" for w, c, v, u in rows]
+    if gil:
+        lines += [
+            "",
+            "GIL: a 1 kHz ticker thread (stand-in for the controller loop) while another thread calls "
+            "`Scanner.apply(volts, now())` every 1 ms like a simulated amplifier, with a 1 s idle gap every "
+            "second (the next apply() simulates 100 000 samples × 3 axes). \"before\" = kernels without "
+            f"`nogil` and a gap in one block (the code before the review). {a.gil_seconds:g} s per case, "
+            f"cases interleaved, median over {a.gil_rounds} rounds. Lateness of the ticker [ms]: p50 / p99 / max "
+            "over all ticks / max over the ticks due while a long apply() (after a gap) ran; in brackets the "
+            "duration of that apply() [ms].",
+            "",
+            "| case | ticker lateness p50 / p99 / max / max during long apply() [ms] |",
+            "|---|---|",
+        ]
+        lines += [f"| {w} | {v} |" for w, v in gil]
     text = "\n".join(lines) + "\n"
     print(text)
     if not a.no_write:

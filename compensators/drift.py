@@ -667,7 +667,7 @@ def _drift_loop(T, U, out, dt, s_de, s_ee, scale,
             out[i, r] = out[i, r] * scale
 
 
-_drift_kernel = numba.njit(cache=True)(_drift_loop)
+_drift_kernel = numba.njit(cache=True, nogil=True)(_drift_loop)
 
 
 # --------------------------------------------------------------------------- predictor

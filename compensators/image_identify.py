@@ -260,9 +260,12 @@ def check_scans(scans: Mapping[str, Any]) -> dict[str, np.ndarray]:
     out = {}
     for k in REQUIRED_ARRAYS:
         try:
-            out[k] = np.asarray(scans[k], dtype=np.float64)
+            raw = np.asarray(scans[k])
+            if raw.dtype.kind not in "biuf":  # complex, strings, objects: no silent casting
+                raise TypeError
+            out[k] = raw.astype(np.float64)
         except (TypeError, ValueError):
-            raise ModelError(f"{k}: not a numeric array") from None
+            raise ModelError(f"{k}: not a real numeric array") from None
     if out["period_nm"].size != 1 or not (np.isfinite(out["period_nm"]).all() and out["period_nm"].item() > 0):
         raise ModelError("period_nm: must be one positive number of nanometres")
     R, P = out["u_trace_V"].shape if out["u_trace_V"].ndim == 2 else (0, 0)
@@ -277,8 +280,9 @@ def check_scans(scans: Mapping[str, Any]) -> dict[str, np.ndarray]:
         if not np.all(np.isfinite(v)):
             raise ModelError(f"{k}: contains non-finite values; all values must be finite")
     skip = np.asarray(scans.get("skip_lines", 1))
-    if skip.size != 1 or skip.dtype.kind not in "iu" or int(skip.reshape(-1)[0]) < 0:
-        raise ModelError(f"skip_lines: must be one integer ≥ 0, got {skip!r}")
+    lines = out["trace_nm"].shape[1]
+    if skip.size != 1 or skip.dtype.kind not in "iu" or not 0 <= int(skip.reshape(-1)[0]) < lines:
+        raise ModelError(f"skip_lines: must be one integer in 0…{lines - 1} (lines per range − 1), got {skip!r}")
     out["skip_lines"] = skip
     return out
 
@@ -292,8 +296,8 @@ def branches_from_scans(scans: Mapping[str, Any], order: int = 12, a: float = 1.
     period = float(s["period_nm"].reshape(-1)[0])
     out = []
     for r in range(s["u_trace_V"].shape[0]):
-        tr = s["trace_nm"][r, skip:] if s["trace_nm"].shape[1] > skip else s["trace_nm"][r]
-        rt = s["retrace_nm"][r, skip:] if s["retrace_nm"].shape[1] > skip else s["retrace_nm"][r]
+        tr = s["trace_nm"][r, skip:]
+        rt = s["retrace_nm"][r, skip:]
         try:
             out.append(range_branches(tr, rt, s["u_trace_V"][r], s["u_retrace_V"][r], period, order, a, c))
         except ModelError as err:

@@ -1,7 +1,8 @@
 """Sample loops of the simulated plant: plain-Python references and their numba twins.
 
 Each ``*_py`` function is the reference; ``*_nb`` is the same source compiled with
-``numba.njit(cache=True)``. Tests run both on the same input and require equal output.
+``numba.njit(cache=True, nogil=True)`` (the loops release the GIL). Tests run both on the
+same input and require equal output.
 All loops carry their state in small arrays passed in and updated in place, so that a
 signal run in blocks of any size gives exactly the per-sample result.
 
@@ -13,6 +14,8 @@ import math
 import types
 
 import numba
+
+from compensators._preisach_kernels import _memory_update as _memory_update_nb
 
 
 # --------------------------------------------------------------------------- amplifier
@@ -78,44 +81,34 @@ def _segment_py(E, lo, h, n, p, q):
     return 0.0
 
 
-def preisach_py(u, out, E, lo, hi, lin, stk, cum, m_state, cur_state):
+def preisach_py(u, out, E, lo, hi, lin, s, P, ist):
     """Classical Preisach operator by its memory of dominant extrema with wiping-out
-    (image-based paper, eqs. 3 and 8): y = lin·(u − lo) + Σ segments between the stored
-    turning points ``stk[0..m-1]`` (stk[0] = lo, negative saturation) and the input.
-    ``cum[j]`` is the sum of the first j segments, so a step costs O(1) amortised."""
+    (image-based paper, eqs. 3 and 8): y = lin·(u − lo) + Σ ±E over the pairs of the
+    memory. The memory is the one of :mod:`compensators._preisach_kernels` and is updated
+    by its ``_memory_update`` (one piece of code for both): ``s[0] = lo`` (negative
+    saturation), ``s[1..K]`` the alternating dominant extrema, ``s[K]`` the current input,
+    ``ist = [K]``; at ``K = len(s) − 1`` the innermost loop is forgotten. ``P[j]`` is the
+    sum of the segments of the first j finished pairs, so a step costs O(1) amortised."""
     n = E.shape[0]
     h = (hi - lo) / (n - 1)
-    cap = stk.shape[0]
-    m = m_state[0]
-    cur = cur_state[0]
+    cap = s.shape[0] - 1
+    K = ist[0]
     for k in range(u.shape[0]):
         x = u[k]
         if x < lo:
             x = lo
         elif x > hi:
             x = hi
-        if x > cur:
-            if cur < stk[m - 1]:  # the input was falling: cur is a minimum
-                if m >= cap:
-                    m -= 2
-                cum[m] = cum[m - 1] + _segment(E, lo, h, n, stk[m - 1], cur)
-                stk[m] = cur
-                m += 1
-            while m >= 3 and x >= stk[m - 2]:  # wipe out dominated maxima
-                m -= 2
-        elif x < cur:
-            if cur > stk[m - 1]:  # the input was rising: cur is a maximum
-                if m >= cap:
-                    m -= 2
-                cum[m] = cum[m - 1] + _segment(E, lo, h, n, stk[m - 1], cur)
-                stk[m] = cur
-                m += 1
-            while m >= 3 and x <= stk[m - 2]:  # wipe out dominated minima
-                m -= 2
-        cur = x
-        out[k] = lin * (x - lo) + cum[m - 1] + _segment(E, lo, h, n, stk[m - 1], x)
-    m_state[0] = m
-    cur_state[0] = cur
+        K0 = K
+        K = _memory_update(x, s, K0, cap)
+        if K == K0 + 1 and K0 >= 1:
+            # a reversal finished pair K0 and wiped nothing: s[K0-1], s[K0] are its ends
+            P[K0] = P[K0 - 1] + _segment(E, lo, h, n, s[K0 - 1], s[K0])
+        if K == 0:
+            out[k] = lin * (x - lo)
+        else:
+            out[k] = lin * (x - lo) + P[K - 1] + _segment(E, lo, h, n, s[K - 1], x)
+    ist[0] = K
 
 
 # --------------------------------------------------------------------------- creep + mode
@@ -162,6 +155,8 @@ def expansion_drift_py(T_amb, out, coef, a, T_state, T_ref):
 # --------------------------------------------------------------------------- numba twins
 _everett = _everett_py
 _segment = _segment_py
+#: the plain-Python source of the compensators' memory update, for the reference path
+_memory_update = _memory_update_nb.py_func
 
 
 def _rebind(func, **names):
@@ -172,9 +167,16 @@ def _rebind(func, **names):
     return types.FunctionType(func.__code__, g, func.__name__, func.__defaults__, func.__closure__)
 
 
-amplifier_nb = numba.njit(cache=True)(amplifier_py)
-_everett_nb = numba.njit(cache=True)(_everett_py)
-_segment_nb = numba.njit(cache=True)(_rebind(_segment_py, _everett=_everett_nb))
-preisach_nb = numba.njit(cache=True)(_rebind(preisach_py, _segment=_segment_nb))
-creep_dynamics_nb = numba.njit(cache=True)(creep_dynamics_py)
-expansion_drift_nb = numba.njit(cache=True)(expansion_drift_py)
+#: ``nogil=True``: the compiled loops release the GIL, so a scanner simulated in-process
+#: (simulated amplifier thread → Scanner.apply) does not stall other Python threads such
+#: as a controller's real-time loop while it computes.
+_njit = numba.njit(cache=True, nogil=True)
+
+amplifier_nb = _njit(amplifier_py)
+_everett_nb = _njit(_everett_py)
+_segment_nb = _njit(_rebind(_segment_py, _everett=_everett_nb))
+# Note: numba's cache does not track the callee in another file; after editing
+# compensators/_preisach_kernels._memory_update, delete sim_backend/__pycache__/*.nbi.
+preisach_nb = _njit(_rebind(preisach_py, _segment=_segment_nb, _memory_update=_memory_update_nb))
+creep_dynamics_nb = _njit(creep_dynamics_py)
+expansion_drift_nb = _njit(expansion_drift_py)

@@ -18,10 +18,21 @@ AXES = ("x", "y", "z")
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # no unknown fields; NaN/±inf rejected in every float field ("Input should be a finite number")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
-class AmplifierConfig(_Strict):
+class _VoltageSpan(_Strict):
+    """A model with fields ``u_min_V`` < ``u_max_V`` (checked after validation)."""
+
+    @model_validator(mode="after")
+    def _range(self):
+        if not self.u_max_V > self.u_min_V:
+            raise ValueError(f"u_max_V ({self.u_max_V}) must be greater than u_min_V ({self.u_min_V})")
+        return self
+
+
+class AmplifierConfig(_VoltageSpan):
     """Piezo amplifier model: command → clip → quantise → slew limit → low-pass → piezo."""
 
     u_min_V: float = Field(0.0, description="lowest output voltage [V]")
@@ -29,12 +40,6 @@ class AmplifierConfig(_Strict):
     bits: int = Field(16, ge=0, le=32, description="DAC resolution over u_min_V…u_max_V; 0 = no quantisation")
     slew_V_per_s: float | None = Field(1.0e4, gt=0, description="slew-rate limit [V/s]; null = unlimited")
     bandwidth_Hz: float | None = Field(5.0e3, gt=0, description="first-order -3 dB bandwidth [Hz]; null = unlimited")
-
-    @model_validator(mode="after")
-    def _range(self) -> "AmplifierConfig":
-        if not self.u_max_V > self.u_min_V:
-            raise ValueError(f"u_max_V ({self.u_max_V}) must be greater than u_min_V ({self.u_min_V})")
-        return self
 
 
 class PreisachComponent(_Strict):
@@ -50,7 +55,7 @@ class PreisachComponent(_Strict):
     rho: float = Field(0.0, gt=-1, lt=1, description="correlation of α and β (dimensionless)")
 
 
-class GaussianPreisachConfig(_Strict):
+class GaussianPreisachConfig(_VoltageSpan):
     """Classical Preisach hysteresis (image-based paper, eq. 3) whose density is a Gaussian
     mixture on the (α, β) half-plane over u_min_V…u_max_V, discretised on ``n_grid`` nodes,
     plus a reversible linear part ``linear_nm_per_V``: y = linear_nm_per_V·(u − u_min_V) + P[u].
@@ -62,12 +67,6 @@ class GaussianPreisachConfig(_Strict):
     n_grid: int = Field(151, ge=3, le=2001, description="grid nodes per axis of the Everett table")
     linear_nm_per_V: float = Field(50.0, description="reversible (anhysteretic) sensitivity [nm/V]")
     components: list[PreisachComponent] = Field(default_factory=list)
-
-    @model_validator(mode="after")
-    def _range(self) -> "GaussianPreisachConfig":
-        if not self.u_max_V > self.u_min_V:
-            raise ValueError(f"u_max_V ({self.u_max_V}) must be greater than u_min_V ({self.u_min_V})")
-        return self
 
 
 class ExternalModelConfig(_Strict):
@@ -150,7 +149,7 @@ class ScannerConfig(_Strict):
 
     name: str = "sim0"
     dt_s: float = Field(1.0e-5, gt=0, le=1.0)
-    seed: int = 0
+    seed: int = Field(0, ge=0, description="seed of the sensor/height noise (non-negative integer)")
     ambient_T_C: float = Field(22.0, ge=-50, le=150)
     x: AxisConfig = Field(default_factory=AxisConfig)
     y: AxisConfig = Field(default_factory=AxisConfig)

@@ -11,6 +11,8 @@ identification); the image-based identification never reads it.
 from __future__ import annotations
 
 import logging
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -137,7 +139,8 @@ def load_scans_npz(path: str | Path) -> dict[str, np.ndarray]:
             data = {k: f[k] for k in f.files}
     except FileNotFoundError:
         raise ModelError(f"{p}: no such scan file") from None
-    except (OSError, ValueError, EOFError) as err:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as err:
+        # truncated or corrupted archives fail in zipfile/zlib, not with an OSError
         raise ModelError(f"{p}: not a readable .npz scan file ({err})") from None
     try:
         check_scans(data)

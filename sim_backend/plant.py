@@ -77,11 +77,12 @@ class GaussianPreisachOperator(StreamingOperator):
         self.reset()
 
     def reset(self) -> None:
-        self.stk = np.zeros(MEMORY_CAPACITY)
-        self.stk[0] = self.lo
-        self.cum = np.zeros(MEMORY_CAPACITY)
-        self.m = np.ones(1, dtype=np.int64)
-        self.cur = np.array([self.lo])
+        # memory of :func:`sim_backend._plant_kernels.preisach_py`: turning points s[0..K]
+        # (s[0] = lo), prefix sums P, ist = [K]
+        self.s = np.zeros(MEMORY_CAPACITY + 1)
+        self.s[0] = self.lo
+        self.P = np.zeros(MEMORY_CAPACITY + 1)
+        self.ist = np.zeros(1, dtype=np.int64)
 
     def step(self, x: float) -> float:
         return float(self.block(np.array([x]))[0])
@@ -89,7 +90,7 @@ class GaussianPreisachOperator(StreamingOperator):
     def block(self, x: np.ndarray) -> np.ndarray:
         x = np.ascontiguousarray(x, dtype=np.float64)
         out = np.empty_like(x)
-        self._kernel(x, out, self.E, self.lo, self.hi, self.lin, self.stk, self.cum, self.m, self.cur)
+        self._kernel(x, out, self.E, self.lo, self.hi, self.lin, self.s, self.P, self.ist)
         return out
 
     @property

@@ -16,8 +16,12 @@ Two ways to drive it:
   their output changes (the value is held) and :meth:`Scanner.advance` moves simulated time
   to ``t_s`` (driven by a clock), in steps of ``config.dt_s``.
 
-Both carry the same state. Deterministic for a given ``config.seed`` (noise only enters the
-sensor reading :meth:`Scanner.read_sensor_nm` and image heights).
+Both carry the same state, bit for bit (a run in blocks of any size, or sample by sample
+through apply/advance, gives identical positions). Deterministic for a given
+``config.seed`` (noise only enters the sensor reading :meth:`Scanner.read_sensor_nm` and
+image heights). The plant kernels release the GIL and :meth:`Scanner.advance` simulates a
+long gap in chunks of :attr:`Scanner.ADVANCE_CHUNK` samples, so an in-process scanner
+driven from an amplifier thread leaves other threads (a real-time loop) running.
 """
 from __future__ import annotations
 
@@ -95,7 +99,17 @@ class _Drift:
         self.T_state = np.array([T0_C])
         self._predictor = None
         self._predictor_dt = None
+        self._predictor_used = False
         self.last_nm = np.zeros(3)
+
+    def prepare(self, dt_s: float) -> None:
+        """Build the drift predictor for the sample period ``dt_s`` now (it is otherwise
+        built by the first :meth:`block`); no effect for the other kinds."""
+        if self.cfg.kind == "params" and (self._predictor is None or self._predictor_dt != dt_s):
+            self._predictor = self._params.predictor(dt_s)
+            self._predictor.reset(self.T0_C)
+            self._predictor_dt = dt_s
+            self._predictor_used = False
 
     def block(self, T_C: np.ndarray, u_V: np.ndarray, dt_s: float) -> np.ndarray:
         n = T_C.shape[0]
@@ -108,13 +122,13 @@ class _Drift:
             K.expansion_drift_nb(np.ascontiguousarray(T_C), out, coef, a, self.T_state, self.T0_C)
         else:
             if self._predictor is None or self._predictor_dt != dt_s:
-                if self._predictor is not None and not self._warned_dt:
+                if self._predictor is not None and self._predictor_used and not self._warned_dt:
                     self._warned_dt = True
                     log.warning("drift predictor rebuilt for a new sample period %.3g s; its state restarts "
                                 "(keep one sample period per scanner for continuous drift)", dt_s)
-                self._predictor = self._params.predictor(dt_s)
-                self._predictor.reset(self.T0_C)
-                self._predictor_dt = dt_s
+                self._predictor = None
+                self.prepare(dt_s)
+            self._predictor_used = True
             out = np.asarray(self._predictor.block(np.ascontiguousarray(T_C), np.ascontiguousarray(u_V)), dtype=np.float64)
         self.last_nm = out[-1].copy()
         return out
@@ -134,6 +148,11 @@ class Scanner:
         self.coupling = np.asarray(self.config.coupling, dtype=np.float64)
         self._lock = threading.RLock()
         self.reset()
+        # Load the compiled kernels (numba cache) and build the drift predictor now, not in
+        # the first apply() on an amplifier thread, where the load holds the GIL for tens
+        # of ms and stalls a real-time loop running beside it; then start from scratch.
+        self.run(np.zeros((1, 3)))
+        self.reset()
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
@@ -146,11 +165,19 @@ class Scanner:
             self._held_V = np.array([self.axes[a].u_min_V for a in AXES])
             self._T_C = float(self.config.ambient_T_C)
             self._drift = _Drift(self.config.drift, self._T_C)
+            self._drift.prepare(self.config.dt_s)
             self.rng = np.random.default_rng(self.config.seed)
             self._pos = self._compose(np.array([[self.axes[a].y_nm for a in AXES]]), np.zeros((1, 3)))[0]
 
     def _compose(self, disp: np.ndarray, drift: np.ndarray) -> np.ndarray:
-        return disp @ self.coupling.T + drift
+        """Coupling then drift, row by row in a fixed order of operations (not ``disp @ C.T``,
+        whose BLAS rounding depends on the number of rows), so that a run in blocks of any
+        size — and the streaming path — gives bit-identical positions."""
+        c = self.coupling
+        out = np.empty_like(disp)
+        for i in range(3):
+            out[:, i] = disp[:, 0] * c[i, 0] + disp[:, 1] * c[i, 1] + disp[:, 2] * c[i, 2] + drift[:, i]
+        return out
 
     def set_ambient_temperature(self, T_C: float) -> None:
         """Ambient temperature [°C] held from now on (drives the thermal drift)."""
@@ -254,22 +281,35 @@ class Scanner:
                 k = str(key).lower()
                 if k not in AXES:
                     raise ModelError(f"volts: unknown axis {key!r}; allowed x, y, z")
-                v = float(value)
+                try:
+                    v = float(value)
+                except (TypeError, ValueError):
+                    raise ModelError(f"volts.{k}: {value!r} is not a number of volts") from None
                 if not math.isfinite(v):
                     raise ModelError(f"volts.{k}: {value!r} is not a finite voltage")
                 held[AXES.index(k)] = v
             self._held_V = held
 
+    #: most samples simulated in one block by :meth:`advance`; a long idle gap is simulated
+    #: in chunks of this size so that no single stretch of Python-level work (e.g. the
+    #: drift predictor, which holds the GIL) stalls other threads for long. Chunking does
+    #: not change the result (block simulation carries its state exactly).
+    ADVANCE_CHUNK = 2048
+
     def advance(self, t_s: float) -> None:
         """Simulate up to time ``t_s`` [s] with the held voltages, in whole samples of
         ``config.dt_s`` (a remainder shorter than one sample waits for the next call).
-        Earlier times are ignored."""
+        Earlier times are ignored. ``t_s`` must be finite."""
+        t = float(t_s)
+        if not math.isfinite(t):
+            raise ModelError(f"t_s: {t_s!r} is not a finite time in seconds")
         with self._lock:
             dt = self.config.dt_s
-            n = int(math.floor((float(t_s) - self.time_s) / dt + 1e-9))
-            if n <= 0:
-                return
-            self.run(np.broadcast_to(self._held_V, (n, 3)), dt)
+            n = int(math.floor((t - self.time_s) / dt + 1e-9))
+            while n > 0:
+                k = min(n, self.ADVANCE_CHUNK)
+                self.run(np.broadcast_to(self._held_V, (k, 3)), dt)
+                n -= k
 
     def image(self, sample: Any, **kwargs: Any):
         """Raster-image ``sample``; see :func:`sim_backend.imaging.raster_image`."""

@@ -112,8 +112,10 @@ def good_scans() -> dict[str, np.ndarray]:
     (lambda d: d.update(u_retrace_V=d["u_retrace_V"][:, :5]), "u_retrace_V"),
     (lambda d: d.update(trace_nm=d["trace_nm"][0]), "trace_nm"),
     (lambda d: d["retrace_nm"].__setitem__((0, 0, 3), np.nan), "non-finite"),
-    (lambda d: d.update(u_trace_V=np.array([["a", "b"]])), "u_trace_V: not a numeric"),
+    (lambda d: d.update(u_trace_V=np.array([["a", "b"]])), "u_trace_V: not a real numeric"),
+    (lambda d: d.update(trace_nm=d["trace_nm"] + 1j), "trace_nm: not a real numeric"),  # no silent cast
     (lambda d: d.update(skip_lines=np.float64(1.5)), "skip_lines"),
+    (lambda d: d.update(skip_lines=np.int64(10**6)), r"skip_lines: must be one integer in 0…"),  # ≥ lines
 ])
 def test_bad_scan_arrays_name_the_array(mutate, match):
     d = good_scans()
@@ -192,6 +194,15 @@ def test_scan_file_roundtrip_and_errors(tmp_path, x_scans):
     (tmp_path / "bad.npz").write_bytes(b"not a zip")
     with pytest.raises(ModelError, match="bad.npz"):
         load_scans_npz(tmp_path / "bad.npz")
+    raw = p.read_bytes()
+    (tmp_path / "truncated.npz").write_bytes(raw[: len(raw) // 2])  # zipfile.BadZipFile
+    with pytest.raises(ModelError, match="truncated.npz: not a readable"):
+        load_scans_npz(tmp_path / "truncated.npz")
+    hurt = bytearray(raw)
+    hurt[200:260] = bytes(60)  # inside the first compressed member: zlib.error
+    (tmp_path / "corrupt.npz").write_bytes(bytes(hurt))
+    with pytest.raises(ModelError, match="corrupt.npz"):
+        load_scans_npz(tmp_path / "corrupt.npz")
     np.savez(tmp_path / "partial.npz", period_nm=278.0)
     with pytest.raises(ModelError, match="missing array"):
         load_scans_npz(tmp_path / "partial.npz")
