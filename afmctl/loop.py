@@ -58,7 +58,7 @@ from afmctl.runlog import DRIFT_DTYPE, SETPOINT_DTYPE, RunLogWriter
 from afmctl.safety import SafetyLayer, Watchdog
 from afmctl.trajectories import check_positions
 from drivers.base import ConnectionState
-from drivers.errors import AmplifierError
+from drivers.errors import AmplifierError, LimitError
 
 log = logging.getLogger(__name__)
 
@@ -180,22 +180,10 @@ class Controller:
         self._feed_error: str | None = None
         self._events: collections.deque = collections.deque()
         self._ring = np.zeros((_RING, _NCOL))
-        self._w = 0
         self._hist = np.zeros(_HBINS, dtype=np.int64)
         self._whist = np.zeros(_HBINS, dtype=np.int64)
         self._missed_log: collections.deque = collections.deque(maxlen=32)
-        self._n_late = 0
-        self._late_max = 0.0
-        self._missed = 0
-        self._overruns = 0
-        self._errors = 0
-        self._faults = 0
-        self._reconnects = 0
-        self._watchdog_trips = 0
-        self._dropped = 0
-        self._seq = 0
-        self._tick = 0
-        self._last_error: str | None = None
+        self._reset_stats()
         self._T_C = float(config.compensation.temperature.T_C)
         self._T_file: tuple[np.ndarray, np.ndarray] | None = None
         self.runlog: RunLogWriter | None = None
@@ -304,14 +292,7 @@ class Controller:
         self._feed_stop = False
         self._feed_error = None
         self._done.clear()
-        self._w = 0
-        self._n_late = 0
-        self._hist[:] = 0
-        self._whist[:] = 0
-        self._missed_log.clear()
-        self._late_max = 0.0
-        self._missed = self._overruns = self._dropped = 0
-        self._seq = self._tick = 0
+        self._reset_stats()
         self._warm_up()
         if self.config.loop.gc_freeze:
             gc.collect()
@@ -411,6 +392,20 @@ class Controller:
         }
 
     # ------------------------------------------------------------------ internals
+    def _reset_stats(self) -> None:
+        """Zero every counter of :meth:`stats` (a new run starts from scratch)."""
+        self._w = 0
+        self._n_late = 0
+        self._hist[:] = 0
+        self._whist[:] = 0
+        self._missed_log.clear()
+        self._late_max = 0.0
+        self._missed = self._overruns = self._dropped = 0
+        self._errors = self._faults = self._reconnects = self._watchdog_trips = 0
+        self._seq = self._tick = 0
+        self._last_error: str | None = None
+        self.safety.slew_limited = self.safety.clamped = self.safety.nonfinite = 0
+
     def _set_state(self, state: State, event: str, detail: str | None = None) -> None:
         self._state = state
         self._events.append({"seq": self._seq, "t_s": self._tick * self.dt_s, "wall_time": time.time(),
@@ -723,6 +718,15 @@ class Controller:
                 cur = None
                 record(last_tgt, last_cor, last_d, T)
             except fault_errors as err:
+                if isinstance(err, LimitError):
+                    # the driver refused a value the safety layer allowed (its own limits
+                    # disagree with the configuration): nothing was sent, the output is held;
+                    # reconnecting would not help, so the run ends here
+                    self._errors += 1
+                    self._last_error = " ".join(str(err).split()) or type(err).__name__
+                    self._set_state(State.FAULT, "refused", f"the driver refused a setpoint: {self._last_error}")
+                    in_fault = True
+                    break
                 self._enter_fault(err)
                 ramping = False
                 next_attempt = perf() + reconnect_interval

@@ -90,7 +90,13 @@ class SafetyLayer:
         self.hi = hi
         self.dt_s = float(dt_s)
         self.slew_V_per_s = float(slew_V_per_s)
+        #: largest step per sample [V]: slew · dt, and below the driver's own ``max_step_V``
+        #: (if it has one) by a margin for the device's output resolution, so that the
+        #: driver never refuses a step (a refusal ends the run, see afmctl.loop)
         self.max_step_V = self.slew_V_per_s * self.dt_s
+        dev_step = getattr(amplifier, "max_step_V", None)
+        if isinstance(dev_step, (int, float)) and math.isfinite(dev_step) and dev_step > 0:
+            self.max_step_V = min(self.max_step_V, max(dev_step - max(0.02 * dev_step, 0.01), 0.5 * dev_step))
         safe = safe_V or {}
         self.safe = [min(max(float(safe.get(a, 0.0)), lo[i]), hi[i]) for i, a in enumerate(self.axes)]
         #: last value sent (or read back) per driven axis [V]
@@ -144,7 +150,7 @@ class SafetyLayer:
         el = self.clock() - self._t_last
         if el >= self.dt_s:
             return self.max_step_V
-        return self.slew_V_per_s * el if el > 0.0 else 0.0
+        return min(self.slew_V_per_s * el, self.max_step_V) if el > 0.0 else 0.0
 
     def limit(self, i: int, v: float, m: float | None = None) -> float:
         """The value axis index ``i`` would get for request ``v`` with largest step ``m``
@@ -180,7 +186,8 @@ class SafetyLayer:
         cmd = self._cmd
         now = self.clock()
         el = now - self._t_last
-        m = self.max_step_V if el >= self.dt_s else (self.slew_V_per_s * el if el > 0.0 else 0.0)
+        m = self.max_step_V if el >= self.dt_s else (min(self.slew_V_per_s * el, self.max_step_V) if el > 0.0
+                                                     else 0.0)
         new = [self.limit(i, float(u_xyz[k]), m) for i, k in enumerate(self.index)]
         for a, v in zip(self.axes, new):
             cmd[a] = v
@@ -192,7 +199,7 @@ class SafetyLayer:
         """One sample of a ramp towards ``target`` (per driven axis, clamped into the
         limits) at ``rate_V_per_s`` (capped by the slew limit). Returns True when the
         output sent is the target."""
-        m = min(rate_V_per_s, self.slew_V_per_s) * self.dt_s
+        m = min(min(rate_V_per_s, self.slew_V_per_s) * self.dt_s, self.max_step_V)
         goal = []
         req = []
         for i in range(len(self.axes)):

@@ -163,6 +163,14 @@ def raster(dt_s: float, *, x0_nm: float = 0.0, y0_nm: float = 0.0, z_nm: float =
 
 
 # --------------------------------------------------------------------------- indentation, text
+def _move(p0: np.ndarray, p1: np.ndarray, dt_s: float, v_max: float, a_max: float,
+          j_max: float) -> Iterator[Block]:
+    """The samples of :func:`smooth_move` as a block, unless the move is empty."""
+    seg = smooth_move(p0, p1, dt_s, v_max, a_max, j_max)
+    if len(seg):
+        yield seg
+
+
 def indentation_array(dt_s: float, *, x0_nm: float = 0.0, y0_nm: float = 0.0, nx: int = 5, ny: int = 5,
                       pitch_x_nm: float = 500.0, pitch_y_nm: float = 500.0, z_up_nm: float = 0.0,
                       depth_nm: float = 100.0, dwell_s: float = 0.05, v_max: float = 5000.0, a_max: float = 1e5,
@@ -177,16 +185,14 @@ def indentation_array(dt_s: float, *, x0_nm: float = 0.0, y0_nm: float = 0.0, nx
         cols = range(nx) if j % 2 == 0 else range(nx - 1, -1, -1)
         for i in cols:
             p = np.array([x0_nm + i * pitch_x_nm, y0_nm + j * pitch_y_nm, z_up_nm])
-            for seg in (smooth_move(cur, p, dt_s, v_max, a_max, j_max),):
-                if len(seg):
-                    yield seg
+            yield from _move(cur, p, dt_s, v_max, a_max, j_max)
             down = p.copy()
             down[2] = z_up_nm - depth_nm
-            yield smooth_move(p, down, dt_s, v_max, a_max, j_max)
+            yield from _move(p, down, dt_s, v_max, a_max, j_max)
             h = hold(down, dwell_s, dt_s)
             if len(h):
                 yield h
-            yield smooth_move(down, p, dt_s, v_max, a_max, j_max)
+            yield from _move(down, p, dt_s, v_max, a_max, j_max)
             cur = p
 
 
@@ -202,25 +208,17 @@ def text(dt_s: float, *, text: str = "NK", x0_nm: float = 0.0, y0_nm: float = 0.
     v = speed_nm_per_s
     for st in strokes(text, height_nm, x0_nm, y0_nm):
         first = np.array([st[0, 0], st[0, 1], z_up_nm])
-        seg = smooth_move(cur, first, dt_s, v, a_max, j_max)
-        if len(seg):
-            yield seg
+        yield from _move(cur, first, dt_s, v, a_max, j_max)
         pen = first.copy()
         pen[2] = z_down_nm
-        seg = smooth_move(first, pen, dt_s, v, a_max, j_max)
-        if len(seg):
-            yield seg
+        yield from _move(first, pen, dt_s, v, a_max, j_max)
         for q in st[1:]:
             nxt = np.array([q[0], q[1], z_down_nm])
-            seg = smooth_move(pen, nxt, dt_s, v, a_max, j_max)
-            if len(seg):
-                yield seg
+            yield from _move(pen, nxt, dt_s, v, a_max, j_max)
             pen = nxt
         up = pen.copy()
         up[2] = z_up_nm
-        seg = smooth_move(pen, up, dt_s, v, a_max, j_max)
-        if len(seg):
-            yield seg
+        yield from _move(pen, up, dt_s, v, a_max, j_max)
         cur = up
 
 

@@ -305,7 +305,10 @@ def test_restart_after_stop_and_after_giving_up(tmp_path):
     ctl.start(np.full((50, 3), 800.0))
     assert ctl.wait(5)
     ctl.close()
-    assert ctl.state is State.STOPPED and ctl.stats()["samples"] > 50
+    st = ctl.stats()
+    assert ctl.state is State.STOPPED and st["samples"] > 50
+    # the second run's statistics are its own (the first one's fault is in its own log)
+    assert st["errors"] == st["faults"] == 0 and st["last_error"] is None
 
 
 def test_lateness_histogram_percentiles():

@@ -277,11 +277,13 @@ class FuzzAmplifier(RecordingAmplifier):
     output reads back as ``moved_V`` on x (moved while away); at send ``action_at`` it asks
     the controller to stop or estop (from the loop thread: only a flag is set)."""
 
-    def __init__(self, *, fail_at, bad_reconnects, moved_V, action_at, action, **kw):
+    def __init__(self, *, fail_at, bad_reconnects, moved_V, action_at, action, action_in_fault=False, **kw):
         super().__init__(**kw)
         self.fail_after = fail_at
         self.bad_reconnects, self.moved_V = bad_reconnects, moved_V
         self.action_at, self.action = action_at, action
+        self.action_in_fault = action_in_fault
+        self.sent_at_action = None
         self.ctl = None
 
     def set_voltages(self, volts):
@@ -290,6 +292,10 @@ class FuzzAmplifier(RecordingAmplifier):
             getattr(self.ctl, self.action)()
 
     def reconnect(self):
+        if self.ctl is not None and self.action_in_fault:
+            self.action_in_fault = False
+            self.sent_at_action = len(self.received)
+            getattr(self.ctl, self.action)()      # stop / estop while the link is away
         if self.bad_reconnects > 0:
             self.bad_reconnects -= 1
             raise AmplifierConnectionError("still away (fuzz)")
@@ -304,9 +310,9 @@ class FuzzAmplifier(RecordingAmplifier):
        start_V=st.floats(-5.0, 160.0), moved_V=st.one_of(st.floats(-5.0, 160.0), st.just(math.nan)),
        fail_at=st.one_of(st.none(), st.integers(0, 150)), bad_reconnects=st.integers(0, 2),
        action_at=st.integers(1, 300), action=st.sampled_from(["stop", "estop"]),
-       lo=st.floats(0.0, 60.0), span=st.floats(5.0, 150.0))
+       action_in_fault=st.booleans(), lo=st.floats(0.0, 60.0), span=st.floats(5.0, 150.0))
 def test_faults_reconnects_stops_and_readbacks_never_make_an_unsafe_step(
-        traj, start_V, moved_V, fail_at, bad_reconnects, action_at, action, lo, span):
+        traj, start_V, moved_V, fail_at, bad_reconnects, action_at, action, action_in_fault, lo, span):
     """The whole controller under faults at any sample, read-backs inside/outside the
     limits (also after a reconnect), stop/estop at any time (also during a ramp or a
     fault): every value the amplifier receives is inside the limits and, against the
@@ -322,7 +328,8 @@ max_V = {hi}
 """, rate=5000.0, slew=2000.0)
     clock = SendClock()
     amp = FuzzAmplifier(fail_at=fail_at, bad_reconnects=bad_reconnects, moved_V=moved_V, action_at=action_at,
-                        action=action, check_limits_V={"x": (lo, hi), "y": (0.0, 150.0), "z": (0.0, 150.0)},
+                        action=action, action_in_fault=action_in_fault,
+                        check_limits_V={"x": (lo, hi), "y": (0.0, 150.0), "z": (0.0, 150.0)},
                         check_step_V=cfg.slew_V_per_s() * cfg.dt_s, check_slew_V_per_s=cfg.slew_V_per_s(),
                         clock=clock.stamp, initial_V={"x": start_V, "y": 0.0, "z": 0.0})
     ctl = Controller(cfg, amp)
@@ -333,3 +340,53 @@ max_V = {hi}
     ctl.close()
     assert amp.violations == []
     assert ctl.state in (State.STOPPED, State.FAULT)
+    if amp.sent_at_action is not None:     # stopped during a fault: nothing sent after it
+        assert len(amp.received) == amp.sent_at_action and ctl.state is State.STOPPED
+
+
+class StepCheckingAmplifier(RecordingAmplifier):
+    """Like the serial/CAN drivers with ``max_step_V``: refuses (LimitError) a step larger
+    than that from its last output, which it keeps at the device's resolution."""
+
+    def __init__(self, max_step_V, resolution_V=0.0025, refuse_at=None, **kw):
+        super().__init__(**kw)
+        self.max_step_V, self.resolution_V, self.refuse_at = max_step_V, resolution_V, refuse_at
+
+    def set_voltages(self, volts):
+        from drivers.errors import LimitError
+        if self.refuse_at is not None and len(self.received) >= self.refuse_at:
+            raise LimitError("axis x: 200 V is outside the device limits (test)")
+        for a, v in volts.items():
+            if abs(v - self.outputs[a]) > self.max_step_V:
+                raise LimitError(f"axis {a}: step {self.outputs[a]} -> {v} exceeds max_step_V")
+        super().set_voltages({a: round(v / self.resolution_V) * self.resolution_V for a, v in volts.items()})
+
+
+def test_driver_step_limit_is_respected_so_the_driver_never_refuses():
+    """A driver with its own max_step_V (amplifier.options) below slew · dt refused steps
+    the safety layer allowed, and the run went fault → reconnect → fault for ever."""
+    cfg = _cfg(rate=1000.0, slew=5000.0)
+    amp = StepCheckingAmplifier(max_step_V=0.5)
+    ctl = Controller(cfg, amp)
+    assert ctl.safety.max_step_V < 0.5
+    gain = cfg.scanner.axis_spec("x").nm_per_V
+    traj = np.column_stack([np.linspace(0, 100 * gain, 300), np.zeros(300), np.zeros(300)])
+    ctl.start(traj)
+    assert ctl.wait(20)
+    ctl.close()
+    st = ctl.stats()
+    assert st["faults"] == 0 and st["errors"] == 0 and ctl.state is State.STOPPED
+    assert amp.outputs["x"] == pytest.approx(0.0)   # ramped back to the safe value
+
+
+def test_a_refused_setpoint_ends_the_run_without_reconnecting():
+    cfg = _cfg(rate=2000.0)
+    amp = StepCheckingAmplifier(max_step_V=100.0, refuse_at=50)
+    ctl = Controller(cfg, amp)
+    ctl.start(np.zeros((2000, 3)))
+    assert ctl.wait(5)
+    ctl.close()
+    assert ctl.state is State.FAULT and amp.reconnects == 0
+    st = ctl.stats()
+    assert st["errors"] == 1 and st["reconnects"] == 0 and "outside the device limits" in st["last_error"]
+    assert len(amp.received) == 50

@@ -162,6 +162,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"missed deadlines  {summary['missed_deadlines']} (> half a period late); overruns {summary['overruns']}")
         print(f"errors            {summary['errors']} (faults {summary['faults']}, reconnects {summary['reconnects']}, "
               f"watchdog trips {summary['watchdog_trips']})")
+        if summary.get("last_error"):
+            print(f"last error        {summary['last_error']}")
         if summary.get("tracking"):
             t = summary["tracking"]
             print("tracking error    max |e| " + ", ".join(f"{a} {v:.2f}" for a, v in zip(t["axes"], t["max_abs_nm"]))
