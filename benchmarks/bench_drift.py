@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import platform
-import re
 import sys
 import time
 from pathlib import Path
@@ -22,6 +21,7 @@ if str(ROOT) not in sys.path:
 from compensators.drift import DriftParams  # noqa: E402
 from compensators.drift_kalman import DriftKalman  # noqa: E402
 from compensators.phase_correlation import phase_correlation  # noqa: E402
+from sections import write_section as _write_section  # noqa: E402  (benchmarks/sections.py)
 
 COMMAND = ".venv/bin/python benchmarks/bench_drift.py"
 
@@ -71,20 +71,15 @@ def measure(repeats: int = 7, n_block: int = 200_000, n_step: int = 5_000) -> li
 
 
 def write_section(rows, repeats: int) -> str:
-    lines = ["<!-- bench:drift -->", "## Drift prediction", "",
+    lines = ["", "## Drift prediction", "",
              f"Command: `{COMMAND}` (median of {repeats} runs; block of 200 000 samples; "
              f"{platform.python_implementation()} {platform.python_version()}, {platform.machine()}). "
              "Target: ≤ 2 µs per 3-axis sample in the block path.", "",
              "| what | conditions | median | unit |", "|---|---|---|---|"]
     for what, cond, val, unit in rows:
         lines.append(f"| {what} | {cond} | {val:.3g} | {unit} |")
-    lines.append("<!-- /bench:drift -->")
-    section = "\n".join(lines)
-    doc = ROOT / "docs" / "BENCHMARKS.md"
-    body = doc.read_text(encoding="utf-8") if doc.exists() else "# Benchmarks\n"
-    pat = re.compile(r"<!-- bench:drift -->.*?<!-- /bench:drift -->", re.S)
-    body = pat.sub(lambda _m: section, body) if pat.search(body) else body.rstrip("\n") + "\n\n" + section + "\n"
-    doc.write_text(body, encoding="utf-8")
+    section = "\n".join(lines[1:])
+    _write_section("drift", section)
     return section
 
 

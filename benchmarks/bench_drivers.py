@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import platform
-import re
 import statistics
 import sys
 import time
@@ -29,6 +28,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from sections import write_section as _write_section  # noqa: E402  (benchmarks/sections.py)
 
 from drivers.registry import open_amplifier  # noqa: E402
 from sim_backend.amplifiers import RecordingSink  # noqa: E402
@@ -88,15 +89,7 @@ def can_case(n: int) -> dict:
 
 
 def update_section(text: str) -> None:
-    path = ROOT / "docs" / "BENCHMARKS.md"
-    doc = path.read_text(encoding="utf-8") if path.exists() else "# Benchmarks\n"
-    start, end = "<!-- bench:drivers -->", "<!-- /bench:drivers -->"
-    block = f"{start}\n{text.rstrip()}\n{end}"
-    if start in doc and end in doc:
-        doc = re.sub(re.escape(start) + r".*?" + re.escape(end), lambda _: block, doc, flags=re.S)
-    else:
-        doc = doc.rstrip() + "\n\n" + block + "\n"
-    path.write_text(doc, encoding="utf-8")
+    _write_section("drivers", text)
 
 
 def main(argv: list[str]) -> int:

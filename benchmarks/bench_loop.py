@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import re
 import statistics
 import sys
 import tempfile
@@ -32,6 +31,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from sections import write_section as _write_section  # noqa: E402  (benchmarks/sections.py)
 
 
 def _pi_models(d: Path) -> dict[str, Path]:
@@ -139,15 +140,25 @@ def bare_loop(rate: float, seconds: float, spin_s: float = 2e-4, rt: int | None 
             "max_us": float(late.max()), "missed": int((late > 0.5e6 / rate).sum()), "ticks": len(late)}
 
 
+def c_floor(rate: float, seconds: float, rt: int | None, workdir: Path) -> dict | None:
+    """The floor without Python: benchmarks/timer_floor.c (clock_nanosleep at absolute
+    deadlines, doing nothing), when a C compiler is on the PATH; None otherwise."""
+    import shutil
+    import subprocess
+    cc = shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        return None
+    exe = workdir / "timer_floor"
+    subprocess.run([cc, "-O2", "-o", str(exe), str(ROOT / "benchmarks" / "timer_floor.c")], check=True)
+    out = subprocess.run([str(exe), f"{rate:g}", f"{seconds:g}", str(rt or 0)], check=True,
+                         capture_output=True, text=True).stdout.split()
+    vals = dict(zip(out[0::2], out[1::2]))
+    return {"rt": vals["rt"] == "1", "ticks": int(vals["ticks"]), "missed": int(vals["missed"]),
+            "p50_us": float(vals["p50_us"]), "p99_us": float(vals["p99_us"]), "max_us": float(vals["max_us"])}
+
+
 def write_section(text: str, name: str = "loop") -> None:
-    path = ROOT / "docs" / "BENCHMARKS.md"
-    begin, end = f"<!-- bench:{name} -->", f"<!-- /bench:{name} -->"
-    block = f"{begin}\n{text.rstrip()}\n{end}"
-    old = path.read_text(encoding="utf-8") if path.exists() else "# Benchmarks\n"
-    pat = re.compile(re.escape(begin) + r".*?" + re.escape(end), re.S)
-    new = pat.sub(lambda _m: block, old) if pat.search(old) else old.rstrip() + "\n\n" + block + "\n"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(new, encoding="utf-8")
+    _write_section(name, text)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -174,6 +185,10 @@ def main(argv: list[str] | None = None) -> int:
         base = bare_loop(args.rate, min(10.0, args.seconds), rt=args.rt)
         print(f"bare sleep+spin loop: p50 {base['p50_us']:.1f} us  p99 {base['p99_us']:.1f} us  "
               f"max {base['max_us']:.1f} us  missed {base['missed']} of {base['ticks']}", flush=True)
+        cbase = c_floor(args.rate, args.seconds, args.rt, tmp)
+        if cbase is not None:
+            print(f"C timer floor: p50 {cbase['p50_us']:.1f} us  p99 {cbase['p99_us']:.1f} us  "
+                  f"max {cbase['max_us']:.1f} us  missed {cbase['missed']} of {cbase['ticks']}", flush=True)
     med = {k: statistics.median(r[k] for r in runs)
            for k in ("p50_us", "p99_us", "max_us", "missed", "ticks", "work_p50_us", "work_p99_us",
                      "slew_limited")}
@@ -205,6 +220,14 @@ Floor of this machine at the time: the same sleep-then-spin schedule doing nothi
 ({min(10.0, args.seconds):g} s, same scheduling): p50 {base['p50_us']:.1f} µs, p99 {base['p99_us']:.1f} µs, max {base['max_us']:.1f} µs,
 {base['missed']} of {base['ticks']} ticks more than half a period late. A stall of the whole thread
 (another process, the hypervisor) also makes the ticks after it late while the loop catches up.
+"""
+    if cbase is not None:
+        text += f"""
+Floor without Python: `benchmarks/timer_floor.c` (a C thread waking at absolute deadlines with
+`clock_nanosleep`, doing nothing; {'SCHED_FIFO' if cbase['rt'] else 'normal scheduling'}; {args.seconds:g} s): p50 {cbase['p50_us']:.1f} µs,
+p99 {cbase['p99_us']:.1f} µs, max {cbase['max_us']:.1f} µs, **{cbase['missed']} of {cbase['ticks']} ticks more than half a period
+late**. Where this is not 0 the machine itself (its hypervisor) stalls threads for longer than half
+a period, and no program on it can meet the "no missed deadline" target.
 """
     print(text)
     if not args.no_write:

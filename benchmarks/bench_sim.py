@@ -17,7 +17,6 @@ import argparse
 import contextlib
 import platform
 import threading
-import re
 import statistics
 import sys
 import time
@@ -27,6 +26,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+
+from sections import write_section as _write_section  # noqa: E402  (benchmarks/sections.py)
 
 from sim_backend.config import DriftConfig, ExternalModelConfig, default_preisach, default_scanner_config  # noqa: E402
 from sim_backend.plant import AxisPlant, GaussianPreisachOperator  # noqa: E402
@@ -56,12 +57,7 @@ def signal(n: int) -> np.ndarray:
 
 
 def write_section(text: str) -> None:
-    path = ROOT / "docs" / "BENCHMARKS.md"
-    doc = path.read_text(encoding="utf-8") if path.exists() else "# Benchmarks\n"
-    block = f"<!-- bench:{NAME} -->\n{text.rstrip()}\n<!-- /bench:{NAME} -->"
-    pat = re.compile(rf"<!-- bench:{NAME} -->.*?<!-- /bench:{NAME} -->", re.S)
-    doc = pat.sub(lambda _: block, doc) if pat.search(doc) else doc.rstrip() + "\n\n" + block + "\n"
-    path.write_text(doc, encoding="utf-8")
+    _write_section(NAME, text)
 
 
 def _tick(stop: threading.Event, late: list[tuple[float, float]], period_s: float = 1e-3) -> None:
