@@ -136,6 +136,30 @@ class DriftSection(_Strict):
     params: str = Field("physical_tube", description="named parameter set (physical_tube, table_a1) "
                                                 "or a JSON file of DriftParams")
     overrides: dict[str, Any] = Field(default_factory=dict, description="DriftParams fields to override")
+    kalman: bool = Field(False, description="fuse the prediction with drift measurements "
+                                            "(compensators.drift_kalman.DriftKalman; needs enabled = true)")
+    kalman_bias_std0_nm: float = Field(10.0, gt=0, le=1e6, description="prior 1-sigma of the bias [nm], (0, 1e6]")
+    kalman_rate_std0_nm_per_s: float = Field(0.05, gt=0, le=1e4,
+                                             description="prior 1-sigma of the bias rate [nm/s], (0, 1e4]")
+    kalman_q_bias_nm2_per_s: float = Field(1e-4, ge=0, le=1e6,
+                                           description="bias random-walk density [nm^2/s], 0..1e6")
+    kalman_q_rate_nm2_per_s3: float = Field(1e-7, ge=0, le=1e6,
+                                            description="bias-rate random-walk density [nm^2/s^3], 0..1e6")
+    kalman_with_rate: bool = Field(True, description="track the bias rate [nm/s] as well as the bias")
+
+    @model_validator(mode="after")
+    def _kalman_needs_model(self) -> "DriftSection":
+        if self.kalman and not self.enabled:
+            raise ValueError("compensation.drift.kalman = true needs compensation.drift.enabled = true")
+        return self
+
+    def kalman_params(self):
+        """The :class:`compensators.drift_kalman.KalmanParams` of this section."""
+        from compensators.drift_kalman import KalmanParams
+        return KalmanParams(with_rate=self.kalman_with_rate, bias_std0_nm=self.kalman_bias_std0_nm,
+                            rate_std0_nm_per_s=self.kalman_rate_std0_nm_per_s,
+                            q_bias_nm2_per_s=self.kalman_q_bias_nm2_per_s,
+                            q_rate_nm2_per_s3=self.kalman_q_rate_nm2_per_s3)
 
 
 class TemperatureSection(_Strict):

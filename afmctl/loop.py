@@ -18,12 +18,16 @@ Sinks (e.g. the zenoh bridge) may define any of
 * ``on_setpoints(batch)`` — numpy structured array, dtype
   :data:`afmctl.runlog.SETPOINT_DTYPE`: ``seq`` (uint64), ``t_s``, ``target_nm`` (3,),
   ``corrected_nm`` (3,), ``u_V`` (3,);
-* ``on_drift(estimate)`` — dict ``{"seq", "t_s", "T_C", "drift_nm": [x, y, z], "std_nm": None}``
-  (the latest estimate of the batch);
+* ``on_drift(estimate)`` — dict ``{"seq", "t_s", "T_C", "drift_nm": [x, y, z], "std_nm"}``
+  (the latest estimate of the batch; ``std_nm`` is the Kalman filter's 1-σ per axis [nm]
+  with ``compensation.drift.kalman = true``, else None);
 * ``on_status(status)`` — dict ``{"state", "event", "detail", "seq", "t_s", "stats"}`` on
   every state change and every ``status_interval_s``.
 
 They are called from the dispatcher thread, never from the loop thread.
+
+Drift measurements (:meth:`Controller.submit_drift_measurement`, any thread) wait in a
+small deque; the loop thread fuses them into the Kalman filter before its next sample.
 
 States (:class:`State`): ``idle`` (not started), ``running``, ``holding`` (the watchdog saw
 the trajectory stall: output held or ramping to the safe value), ``fault`` (a driver error:
@@ -83,8 +87,11 @@ def _bin(v: float) -> int:
     return b if b < _HBINS else _HBINS - 1
 # ring row layout
 _C_SEQ, _C_TICK = 0, 1
-_C_TGT, _C_COR, _C_U, _C_T, _C_D = 2, 5, 8, 11, 12
-_NCOL = 15
+_C_TGT, _C_COR, _C_U, _C_T, _C_D, _C_S = 2, 5, 8, 11, 12, 15
+_NCOL = 18
+#: drift measurements waiting for the loop thread (more are refused)
+MAX_PENDING_DRIFT_MEASUREMENTS = 64
+_NAN3 = (math.nan, math.nan, math.nan)
 
 _END = object()
 
@@ -179,6 +186,7 @@ class Controller:
         self._feed_stop = False
         self._feed_error: str | None = None
         self._events: collections.deque = collections.deque()
+        self._drift_meas: collections.deque = collections.deque()
         self._ring = np.zeros((_RING, _NCOL))
         self._hist = np.zeros(_HBINS, dtype=np.int64)
         self._whist = np.zeros(_HBINS, dtype=np.int64)
@@ -218,6 +226,51 @@ class Controller:
         if not (math.isfinite(T) and -50.0 <= T <= 150.0):
             raise AfmctlError(f"temperature: T_C {T_C!r} outside the allowed range -50..150 °C")
         self._T_C = T
+
+    def submit_drift_measurement(self, measured_drift_nm: Any, std_nm: float, t_s: float | None = None) -> None:
+        """Hand a drift measurement to the Kalman filter (``compensation.drift.kalman``).
+
+        ``measured_drift_nm``: 3 values [nm] x, y, z (NaN = axis not measured), the drift
+        at controller time ``t_s`` [s] (default: now); ``std_nm``: its 1-σ [nm]. Validated
+        here (AfmctlError naming the field and range); the loop thread fuses it before its
+        next sample (never blocks the loop). Accepted while the controller runs.
+        """
+        if getattr(self.pipeline, "kalman", None) is None:
+            raise AfmctlError("drift-measurement: the Kalman filter is off "
+                              "(set compensation.drift.enabled = true and compensation.drift.kalman = true)")
+        try:
+            z = np.asarray(measured_drift_nm, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            z = np.empty(0)
+        if z.shape != (3,) or np.any(np.isinf(z)) or np.all(np.isnan(z)) or np.any(np.abs(z[np.isfinite(z)]) > 1e6):
+            raise AfmctlError(f"drift-measurement: measured_drift_nm {measured_drift_nm!r:.80} must be 3 values "
+                              "in -1e6..1e6 nm (NaN = axis not measured, at least one measured)")
+        if isinstance(std_nm, (str, bytes, bool)):
+            std = math.nan
+        else:
+            try:
+                std = float(std_nm)
+            except (TypeError, ValueError):
+                std = math.nan
+        if not (math.isfinite(std) and 1e-6 <= std <= 1e6):
+            raise AfmctlError(f"drift-measurement: std_nm {std_nm!r:.40} outside the allowed range 1e-6..1e6 nm")
+        t = math.nan
+        if t_s is not None:
+            if not isinstance(t_s, (str, bytes, bool)):
+                try:
+                    t = float(t_s)
+                except (TypeError, ValueError):
+                    pass
+            if not (math.isfinite(t) and 0.0 <= t <= 1e7):
+                raise AfmctlError(f"drift-measurement: t_s {t_s!r:.40} outside the allowed range 0..1e7 s "
+                                  "(controller time since start)")
+        if not self.running or self._state is State.STOPPED:
+            raise AfmctlError(f"drift-measurement: controller is {self._state.value}; "
+                              "measurements are accepted while it runs")
+        if len(self._drift_meas) >= MAX_PENDING_DRIFT_MEASUREMENTS:
+            raise AfmctlError(f"drift-measurement: {MAX_PENDING_DRIFT_MEASUREMENTS} measurements already "
+                              "pending; the loop is not consuming them")
+        self._drift_meas.append(((float(z[0]), float(z[1]), float(z[2])), std, t))
 
     def submit_segment(self, positions_nm: np.ndarray, dt_s: float) -> int:
         """Append a segment (N, 3) [nm] sampled every ``dt_s`` [s] (resampled to the loop
@@ -282,6 +335,7 @@ class Controller:
             raise AfmctlError(f"start: unsupported trajectory source {type(source).__name__}")
         if not self._queue_mode:
             self._deque.clear()
+        self._drift_meas.clear()        # measurements of a previous run refer to its filter
         tsec = self.config.compensation.temperature
         if tsec.source == "file" and tsec.file is not None:
             from afmctl.datafiles import read_csv
@@ -491,6 +545,8 @@ class Controller:
         binof = _bin
         dq = self._deque
         popleft = dq.popleft
+        meas = self._drift_meas
+        has_kalman = getattr(pipe, "kalman", None) is not None
         mask_r = _RING - 1
         ramp_rate = min(cfg.safety.ramp_V_per_s, safety.slew_V_per_s)
         safe = list(safety.safe)
@@ -516,6 +572,7 @@ class Controller:
         last_tgt = (0.0, 0.0, 0.0)
         last_cor = (0.0, 0.0, 0.0)
         last_d = (0.0, 0.0, 0.0)
+        last_s = pipe.drift_std_nm() if has_kalman else _NAN3
         u_prev = [0.0, 0.0, 0.0]
         rc_thread: threading.Thread | None = None   # reconnect attempt in flight
         in_fault = False                            # the loop ended without a link
@@ -540,7 +597,7 @@ class Controller:
                 else:
                     uz = u[i]
             ring[self._w & mask_r] = (seq, self._tick, tgt[0], tgt[1], tgt[2], cor[0], cor[1], cor[2],
-                                      ux, uy, uz, T, d[0], d[1], d[2])
+                                      ux, uy, uz, T, d[0], d[1], d[2], last_s[0], last_s[1], last_s[2])
             self._w += 1
             self._seq = seq + 1
             u_prev[0] = ux
@@ -695,7 +752,11 @@ class Controller:
                     if self._state is State.HOLDING:
                         self._set_state(State.RUNNING, "resume", "trajectory samples again")
                         need_ramp = True
+                    if meas:
+                        self._apply_drift_measurement(meas.popleft())
                     cur = pipe.step(rx, ry, rz, T, u_prev)
+                    if has_kalman:
+                        last_s = pipe.drift_std_nm()
                     last_tgt = (rx, ry, rz)
                     last_cor = (cur[3], cur[4], cur[5])
                     last_d = (cur[0], cur[1], cur[2])
@@ -741,6 +802,16 @@ class Controller:
                 self._event("flush-error", self._last_error)
         if self._state not in (State.FAULT, State.STOPPED):
             self._set_state(State.STOPPED, "stopped")
+
+    def _apply_drift_measurement(self, item: tuple) -> None:
+        """Loop thread: fuse one validated measurement (see :meth:`submit_drift_measurement`);
+        its age is the controller time since ``t_s`` (0 when not given or in the future)."""
+        z, std, t = item
+        age = 0.0 if t != t else max(0.0, (self._tick - 1) * self.dt_s - t)
+        try:
+            self.pipeline.update_drift(z, std, age)
+        except Exception as err:  # noqa: BLE001 - a bad measurement must not stop the loop
+            self._event("drift-measurement-error", " ".join(str(err).split()) or type(err).__name__)
 
     def _reconnect_job(self) -> None:
         """One ``amplifier.reconnect()`` attempt (helper thread; may block for the driver's
@@ -809,15 +880,18 @@ class Controller:
         dr["t_s"] = sp["t_s"]
         dr["T_C"] = rows[:, _C_T]
         dr["drift_nm"] = rows[:, _C_D:_C_D + 3]
+        dr["std_nm"] = rows[:, _C_S:_C_S + 3]      # NaN when the Kalman filter is off
         if self.runlog is not None:
             self.runlog.write_setpoints(sp)
             self.runlog.write_drift(dr)
         if len(sp):
             self._call_sinks("on_setpoints", sp)
             last = dr[-1]
+            std = rows[-1, _C_S:_C_S + 3]
             self._call_sinks("on_drift", {"seq": int(last["seq"]), "t_s": float(last["t_s"]),
                                           "T_C": float(last["T_C"]),
-                                          "drift_nm": [float(v) for v in last["drift_nm"]], "std_nm": None})
+                                          "drift_nm": [float(v) for v in last["drift_nm"]],
+                                          "std_nm": None if math.isnan(std[0]) else [float(v) for v in std]})
         return w
 
     def _dispatch_events(self) -> None:

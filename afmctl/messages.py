@@ -162,15 +162,40 @@ class TemperatureMsg(_Message):
 
 
 # --------------------------------------------------------------------------- cmd
-CMD_NAMES = ("start", "stop", "estop", "status", "config")
+CMD_NAMES = ("start", "stop", "estop", "status", "config", "drift-measurement")
 
 
 class CmdRequest(_Message):
     """The payload of a query on ``cmd`` (or ``?cmd=NAME`` in the selector)."""
 
-    cmd: Literal["start", "stop", "estop", "status", "config"]
+    cmd: Literal["start", "stop", "estop", "status", "config", "drift-measurement"]
     args: dict[str, Any] = Field(default_factory=dict)
     seq: int = Field(0, ge=0, lt=2**63)
+
+
+class DriftMeasurementArgs(BaseModel):
+    """``args`` of the ``drift-measurement`` command: a measured drift [nm] per axis x, y, z
+    (``null`` = axis not measured), its 1-sigma [nm] and optionally the controller time
+    [s] it refers to (default: when it arrives)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    measured_drift_nm: list[Annotated[float, Field(ge=-1e6, le=1e6, allow_inf_nan=False)] | None] = Field(
+        ..., min_length=3, max_length=3)
+    std_nm: float = Field(..., ge=1e-6, le=1e6, allow_inf_nan=False)
+    t_s: float | None = Field(None, ge=0.0, le=1e7, allow_inf_nan=False)
+
+    def measured_nm(self) -> list[float]:
+        """The measurement with NaN for axes not measured."""
+        return [math.nan if v is None else float(v) for v in self.measured_drift_nm]
+
+
+def drift_measurement_args(args: Any) -> DriftMeasurementArgs:
+    """Validate the ``args`` of a ``drift-measurement`` command (MessageError naming the field)."""
+    try:
+        return DriftMeasurementArgs.model_validate(args)
+    except ValidationError as err:
+        raise MessageError("field args." + _validation_message(err)[len("field "):]) from None
 
 
 class CmdReply(_Message):

@@ -3,7 +3,10 @@
 Per sample, for the target ``r`` [nm] (x, y, z):
 
 1. drift estimate ``d̂`` [nm] from :class:`compensators.drift.DriftParams.predictor`,
-   driven by the ambient temperature [°C] and the voltages already sent [V] (heat);
+   driven by the ambient temperature [°C] and the voltages already sent [V] (heat); with
+   a Kalman filter (:class:`compensators.drift_kalman.DriftKalman`,
+   ``compensation.drift.kalman``) ``d̂ = model + bias``, the bias tracked from drift
+   measurements fused by :meth:`CompensationPipeline.update_drift`;
 2. corrected target ``r' = r − d̂`` [nm];
 3. per axis, the inverse hysteresis/creep model ``u = model.inverse(dt_s).step(r')`` [V],
    or, without a model, the linear calibration ``u = offset_V + r' / nm_per_V``.
@@ -14,7 +17,8 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Sequence
+import math
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -47,14 +51,20 @@ class CompensationPipeline:
 
     ``inverses``: three operators y[nm] → u[V] for x, y, z. ``drift``: an object with
     ``reset()`` and ``step(T_C, u_V (3,)) -> (3,) nm`` (interface of
-    compensators.drift.DriftPredictor) or None.
+    compensators.drift.DriftPredictor) or None. ``kalman``: a
+    :class:`compensators.drift_kalman.DriftKalman` stepped once per sample (its ``dt_s``
+    must be the loop period) on the model's drift, or None (needs ``drift``).
     """
 
-    def __init__(self, inverses: Sequence[StreamingOperator], drift: Any | None = None) -> None:
+    def __init__(self, inverses: Sequence[StreamingOperator], drift: Any | None = None,
+                 kalman: Any | None = None) -> None:
         if len(inverses) != 3:
             raise ValueError("inverses: one operator per axis x, y, z")
+        if kalman is not None and drift is None:
+            raise ValueError("kalman: needs a drift predictor")
         self.inverses = list(inverses)
         self.drift = drift
+        self.kalman = kalman
         self._u_prev = np.zeros(3)
         self._zero = (0.0, 0.0, 0.0)
 
@@ -63,7 +73,23 @@ class CompensationPipeline:
             op.reset()
         if self.drift is not None:
             self.drift.reset()
+        if self.kalman is not None:
+            self.kalman.reset()
         self._u_prev[:] = 0.0
+
+    def update_drift(self, measured_drift_nm: Sequence[float], std_nm: float, age_s: float = 0.0) -> None:
+        """Fuse a drift measurement [nm] (3,; NaN = axis not measured) with 1-σ ``std_nm``
+        [nm], taken ``age_s`` [s] before the last sample (the model drift of the last
+        sample stands for the measured instant). No-op without a Kalman filter."""
+        if self.kalman is not None:
+            self.kalman.update(measured_drift_nm, std_nm, age_s=age_s)
+
+    def drift_std_nm(self) -> tuple[float, float, float] | None:
+        """1-σ of the drift estimate [nm] per axis (the filter's), None without a filter."""
+        if self.kalman is None:
+            return None
+        vx, vy, vz = self.kalman.P[:, 0, 0].tolist()
+        return (math.sqrt(max(vx, 0.0)), math.sqrt(max(vy, 0.0)), math.sqrt(max(vz, 0.0)))
 
     def step(self, x: float, y: float, z: float, T_C: float, u_sent: Sequence[float]
              ) -> tuple[float, float, float, float, float, float, float, float, float]:
@@ -78,6 +104,8 @@ class CompensationPipeline:
             up[1] = u_sent[1]
             up[2] = u_sent[2]
             d = self.drift.step(T_C, up)
+            if self.kalman is not None:
+                d = self.kalman.predict(d)
             dx, dy, dz = float(d[0]), float(d[1]), float(d[2])
         else:
             dx = dy = dz = 0.0
@@ -85,12 +113,17 @@ class CompensationPipeline:
         inv = self.inverses
         return (dx, dy, dz, cx, cy, cz, inv[0].step(cx), inv[1].step(cy), inv[2].step(cz))
 
-    def run(self, targets_nm: np.ndarray, T_C: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def run(self, targets_nm: np.ndarray, T_C: np.ndarray | float,
+            measurements: Mapping[int, tuple[Sequence[float], float]] | None = None,
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Offline: the whole chain over ``targets_nm`` (N, 3), heat from its own output.
+        ``measurements``: ``{i: (measured_drift_nm (3,), std_nm)}`` fused (see
+        :meth:`update_drift`) just before sample ``i``, as the loop does.
 
         Returns drift (N, 3) [nm], corrected (N, 3) [nm], u (N, 3) [V]; the same numbers as
         calling :meth:`step` per sample with ``u_sent`` = the previous output.
         """
+        meas = measurements or {}
         r = np.asarray(targets_nm, dtype=np.float64)
         n = r.shape[0]
         T = np.broadcast_to(np.asarray(T_C, dtype=np.float64), (n,))
@@ -99,6 +132,8 @@ class CompensationPipeline:
         u = np.zeros((n, 3))
         prev = (0.0, 0.0, 0.0)
         for i in range(n):
+            if i in meas:
+                self.update_drift(*meas[i])
             out = self.step(float(r[i, 0]), float(r[i, 1]), float(r[i, 2]), float(T[i]), prev)
             d[i] = out[0:3]
             c[i] = out[3:6]
@@ -151,4 +186,9 @@ def build_pipeline(config) -> CompensationPipeline:
     if config.compensation.drift.enabled:
         params = load_drift_params(config.compensation.drift.params, config.compensation.drift.overrides)
         drift = params.predictor(dt)
-    return CompensationPipeline(inverses, drift)
+    kalman = None
+    if config.compensation.drift.kalman:
+        from compensators.drift_kalman import DriftKalman
+        kalman = DriftKalman(dt, config.compensation.drift.kalman_params())
+        log.info("drift: Kalman bias filter on (%s)", kalman.params)
+    return CompensationPipeline(inverses, drift, kalman)

@@ -20,7 +20,8 @@ so every record flushed before the crash reads back.
 Setpoint records: ``seq`` (sample number, uint64), ``t_s`` (controller time since start,
 s), ``target_nm`` (3,), ``corrected_nm`` (3,) (target minus drift estimate), ``u_V`` (3,)
 (the voltages sent, after the safety layer; 0 on undriven axes).
-Drift records: ``seq``, ``t_s``, ``T_C`` (°C), ``drift_nm`` (3,).
+Drift records: ``seq``, ``t_s``, ``T_C`` (°C), ``drift_nm`` (3,), ``std_nm`` (3,) (the Kalman
+filter's standard deviation [nm]; NaN when the filter is off).
 Events: ``{"seq", "t_s", "wall_time", "state", "event", "detail"}``.
 """
 from __future__ import annotations
@@ -51,7 +52,8 @@ MAX_CHUNK_BYTES = 64 * 1024 * 1024
 
 SETPOINT_DTYPE = np.dtype([("seq", "<u8"), ("t_s", "<f8"), ("target_nm", "<f8", (3,)),
                            ("corrected_nm", "<f8", (3,)), ("u_V", "<f8", (3,))])
-DRIFT_DTYPE = np.dtype([("seq", "<u8"), ("t_s", "<f8"), ("T_C", "<f8"), ("drift_nm", "<f8", (3,))])
+DRIFT_DTYPE = np.dtype([("seq", "<u8"), ("t_s", "<f8"), ("T_C", "<f8"), ("drift_nm", "<f8", (3,)),
+                        ("std_nm", "<f8", (3,))])
 _DTYPES = {KIND_SETPOINTS: SETPOINT_DTYPE, KIND_DRIFT: DRIFT_DTYPE}
 
 

@@ -9,7 +9,8 @@
   loop, and no sample is dropped;
 * it subscribes to ``.../trajectory`` and ``.../temperature``; the zenoh callbacks only
   check size, decode and validate the payload and put it on a bounded queue;
-* it serves ``.../cmd`` (start, stop, estop, status, config); queries are queued too.
+* it serves ``.../cmd`` (start, stop, estop, status, config, drift-measurement — a drift
+  measurement for the Kalman filter, see docs/DRIFT.md); queries are queued too.
 
 One worker thread takes the queue and calls the controller. A rejected message (bad JSON,
 wrong schema version, out of range, oversized, queue full, refused by the controller)
@@ -36,6 +37,7 @@ import numpy as np
 from afmctl.errors import AfmctlError
 from afmctl.messages import (
     CmdReply,
+    CMD_NAMES,
     CmdRequest,
     DriftMsg,
     ErrorInfo,
@@ -46,6 +48,7 @@ from afmctl.messages import (
     TemperatureMsg,
     decode_json,
     decode_trajectory,
+    drift_measurement_args,
     encode_setpoints,
 )
 from afmctl.zenoh_config import ZenohSettings
@@ -325,7 +328,7 @@ class ZenohBridge:
                 params = dict(query.parameters) if query.parameters is not None else {}
                 req = CmdRequest(cmd=params.get("cmd", ""))  # type: ignore[arg-type]
         except (MessageError, ValueError) as err:
-            msg = str(err) if isinstance(err, MessageError) else "field cmd: allowed: start, stop, estop, status, config"
+            msg = str(err) if isinstance(err, MessageError) else "field cmd: allowed: " + ", ".join(CMD_NAMES)
             self._reply(query, CmdReply(seq=0, cmd="?", ok=False, error=msg))
             self._put_inbox(("reject", ("cmd", msg)))
             return
@@ -430,6 +433,10 @@ class ZenohBridge:
                 result = {"state": _state_name(ctl.state)}
             elif req.cmd == "status":
                 result = self.status().model_dump(mode="json", by_alias=True)
+            elif req.cmd == "drift-measurement":
+                m = drift_measurement_args(req.args)
+                ctl.submit_drift_measurement(m.measured_nm(), m.std_nm, m.t_s)
+                result = {"state": _state_name(ctl.state)}
             else:  # config
                 result = self._config_dump()
         except Exception as err:
