@@ -22,6 +22,11 @@ def result():
     return mod.run_scenario(setup, model_error=0.3), setup
 
 
+def test_the_plant_is_the_simulated_scanner(result):
+    res, _ = result
+    assert not res.plant.startswith("own plant"), res.plant
+
+
 def test_uncompensated_drift_is_a_few_nm_growing_through_the_image(result):
     res, setup = result
     e = res.errors["uncompensated"]

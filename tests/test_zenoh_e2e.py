@@ -150,7 +150,7 @@ def test_trajectory_and_temperature_end_to_end(service):
     targets = np.concatenate([b["target_nm"] for _, b in op.batches])
     assert np.any(np.isclose(targets[:, 0], 4000.0)) and np.any(np.isclose(targets[:, 1], 3000.0, atol=5))
     # drift estimates respond to the temperature: zero at 22 °C, growing as it warms
-    assert all(abs(d["drift_nm"][2]) < 1e-6 for d in op.drift if d["T_C"] == 22.0)
+    assert all(abs(d["drift_nm"][2]) < 1e-3 for d in op.drift if d["T_C"] == 22.0)   # only the voltages' heat
     assert max(abs(d["drift_nm"][2]) for d in op.drift) > 0.05
     assert [d["T_C"] for d in op.drift][-1] == pytest.approx(27.5)
     seqs = [d["seq"] for d in op.drift]
