@@ -567,6 +567,7 @@ class Controller:
         mode = "run"                      # run | finish
         finish_rate = ramp_rate
         finish_hold = False
+        last_u_cmd: tuple | None = None   # the trajectory's latest setpoint voltages (x, y, z)
         next_attempt = 0.0
         attempts = 0
         last_tgt = (0.0, 0.0, 0.0)
@@ -584,6 +585,14 @@ class Controller:
         except fault_errors as err:
             self._enter_fault(err)
             next_attempt = perf() + reconnect_interval
+
+        def reached(u_xyz) -> bool:
+            """Whether the output already is the setpoint ``u_xyz`` (clamped into the limits)."""
+            if u_xyz is None:
+                return True
+            tgt = safety.driven_target(u_xyz)
+            return all(not math.isfinite(tgt[i]) or min(max(tgt[i], safety.lo[i]), safety.hi[i]) == safety.last[i]
+                       for i in range(len(tgt)))
 
         def record(tgt, cor, d, T) -> None:
             seq = self._seq
@@ -701,6 +710,17 @@ class Controller:
                 continue
 
             try:
+                # ------------------------------------------------------ settle
+                if mode == "settle":
+                    # the trajectory's last setpoint, not yet reached because the slew
+                    # limit slowed the samples sent back to back after a late tick: reach
+                    # it (at the slew limit) before the finish ramp or the hold
+                    done = safety.ramp_step(safety.driven_target(last_u_cmd), safety.slew_V_per_s)
+                    record(last_tgt, last_cor, last_d, T)
+                    if done:
+                        mode = "finish"
+                    continue
+
                 # ------------------------------------------------------ finish / stop
                 if mode == "finish":
                     if finish_hold:
@@ -723,14 +743,14 @@ class Controller:
                                 self._event("trajectory-error", self._feed_error)
                             else:
                                 self._event("end")
-                            mode = "finish"
+                            mode = "finish" if reached(last_u_cmd) else "settle"
                             finish_rate = ramp_rate
                             finish_hold = on_finish == "hold"
                             continue
                         if item is None:
                             if self._queue_mode and self._queue_end_when_idle:
                                 self._event("end")
-                                mode = "finish"
+                                mode = "finish" if reached(last_u_cmd) else "settle"
                                 finish_rate = ramp_rate
                                 finish_hold = on_finish == "hold"
                                 continue
@@ -755,6 +775,7 @@ class Controller:
                     if meas:
                         self._apply_drift_measurement(meas.popleft())
                     cur = pipe.step(rx, ry, rz, T, u_prev)
+                    last_u_cmd = (cur[6], cur[7], cur[8])
                     if has_kalman:
                         last_s = pipe.drift_std_nm()
                     last_tgt = (rx, ry, rz)

@@ -393,3 +393,39 @@ def test_segment_that_would_resample_to_too_many_samples_is_refused(tmp_path):
     dt_in = (MAX_SEGMENT_SAMPLES - 1) * ctl.dt_s / (n_in - 1)   # exactly the largest segment
     assert ctl.submit_segment(np.zeros((n_in, 3)), dt_in) == MAX_SEGMENT_SAMPLES
     ctl._deque.clear()
+
+
+class _StallingAmplifier(RecordingAmplifier):
+    """Stalls the loop thread once (like a hypervisor pause) when sample ``at`` is sent."""
+
+    def __init__(self, at: int, stall_s: float, **kw) -> None:
+        super().__init__(**kw)
+        self.at, self.stall_s = at, stall_s
+
+    def set_voltages(self, volts) -> None:
+        if len(self.received) == self.at:
+            time.sleep(self.stall_s)
+        super().set_voltages(volts)
+
+
+def test_last_setpoint_is_reached_after_a_stall_near_the_end(tmp_path):
+    """After a late tick the overdue samples go out back to back, each slowed by the slew
+    limit (per wall time), so the output lags the trajectory; the run must still reach the
+    trajectory's last setpoint (at the slew limit) before it ramps to the safe value."""
+    from afmctl.simlink import SendClock
+    cfg = cfg_for(tmp_path)
+    cfg.loop.resync_periods = 1000          # catch up sample by sample (no resync)
+    n = 200
+    clock = SendClock()                     # the amplifier checks slew per time between sends
+    amp = _StallingAmplifier(at=n - 20, stall_s=0.05, check_slew_V_per_s=cfg.slew_V_per_s(),
+                             clock=clock.stamp)
+    ctl = Controller(cfg, amp)
+    ctl.safety.clock = clock
+    ctl.start(np.column_stack([np.linspace(0, 3000, n), np.zeros(n), np.zeros(n)]))
+    assert ctl.wait(10)
+    ctl.close()
+    assert amp.violations == []
+    x = np.array([r["x"] for r in amp.received])
+    goal = 3000 / cfg.scanner.axis_spec("x").nm_per_V
+    assert x.max() == pytest.approx(goal, abs=1e-9)
+    assert ctl.stats()["lateness_max_s"] > 0.03          # the stall happened
