@@ -102,12 +102,20 @@ def tracking_error(config, setpoints: np.ndarray, seq_range: tuple[int, int] | N
     """Replay the voltages sent (``setpoints["u_V"]``) through a fresh simulated scanner of
     the same configuration and compare the true tip position with the target [nm].
 
+    Each voltage is held for one loop period, simulated at the scanner's own time step
+    (so the ringing of its resonance after each step is in the result), and the position
+    is compared at the end of the period — what a sensor sampled at the loop rate reads.
     Returns max and RMS absolute error per axis over ``seq_range`` (default: all)."""
     from sim_backend.scanner import Scanner
     if len(setpoints) == 0:
         return {}
     scanner = Scanner(load_scanner_config(config.simulation.scanner))
-    y = scanner.run(np.asarray(setpoints["u_V"], dtype=np.float64), config.dt_s)
+    fine = scanner.config.dt_s
+    sub = max(1, round(config.dt_s / fine))
+    if not math.isclose(sub * fine, config.dt_s, rel_tol=1e-9):
+        fine = config.dt_s / sub          # loop period not a multiple of the scanner's step
+    u = np.repeat(np.asarray(setpoints["u_V"], dtype=np.float64), sub, axis=0)
+    y = scanner.run(u, fine)[sub - 1::sub]
     err = y - setpoints["target_nm"]
     if seq_range is not None:
         sel = (setpoints["seq"] >= seq_range[0]) & (setpoints["seq"] < seq_range[1])
