@@ -5,7 +5,6 @@ measurements are refused; the voltages stay within the limits."""
 from __future__ import annotations
 
 import math
-import threading
 import time
 
 import numpy as np
@@ -19,6 +18,7 @@ from afmctl.loop import Controller, State
 from afmctl.pipeline import build_pipeline
 from afmctl.runlog import RunLogReader
 from afmctl.simlink import RecordingAmplifier
+from afmctl.testing import assert_no_threads_left
 
 BASE = """
 [simulation]
@@ -45,13 +45,7 @@ kalman_q_bias_nm2_per_s = 10.0
 @pytest.fixture(autouse=True)
 def no_leaked_threads():
     yield
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < 2.0:
-        left = [t.name for t in threading.enumerate() if t.name.startswith("afmctl-")]
-        if not left:
-            return
-        time.sleep(0.02)
-    raise AssertionError(f"threads left running: {left}")
+    assert_no_threads_left("afmctl-")
 
 
 def cfg_for(tmp_path, kalman: bool = True, extra: str = ""):
@@ -252,7 +246,7 @@ def test_drift_measurement_over_zenoh_cmd(tmp_path):
     """The ``drift-measurement`` command on the ``cmd`` queryable (real sessions on
     loopback): accepted → the published drift carries the filter's std and moves by the
     measured offset; bad args → an error reply naming the field."""
-    zenoh = pytest.importorskip("zenoh")
+    import zenoh
     import json
 
     from afmctl.messages import CmdRequest

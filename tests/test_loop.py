@@ -14,6 +14,7 @@ from afmctl.loop import Controller, State
 from afmctl.pipeline import build_pipeline
 from afmctl.runlog import RunLogReader
 from afmctl.simlink import RecordingAmplifier
+from afmctl.testing import assert_no_threads_left
 
 BASE = """
 [simulation]
@@ -36,13 +37,7 @@ flush_interval_s = 0.02
 def no_leaked_threads():
     """Every test here must leave no controller thread behind."""
     yield
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < 2.0:
-        left = [t.name for t in threading.enumerate() if t.name.startswith("afmctl-")]
-        if not left:
-            return
-        time.sleep(0.02)
-    raise AssertionError(f"threads left running: {left}")
+    assert_no_threads_left("afmctl-")
 
 
 def cfg_for(tmp_path, extra: str = "", rate: float = 2000.0, slew: float = 5000.0):

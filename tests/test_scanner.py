@@ -140,7 +140,7 @@ def test_temperature_ramp_gives_growing_drift(kind):
 
 def test_external_model_as_hysteresis():
     """Any compensators model file works as the plant's hysteresis (via forward())."""
-    pre = pytest.importorskip("compensators.preisach")
+    import compensators.preisach as pre
     model = pre.PreisachModel.from_density(lambda a, b: np.exp(-((a - 80) ** 2 + (b - 40) ** 2) / 800.0),
                                            u_min_V=0.0, u_max_V=150.0, levels=10)
     cfg = linear_scanner_config()

@@ -24,7 +24,7 @@ from afmctl.messages import SimTipMsg, decode_json
 from afmctl.zenoh_config import ZenohSettings, free_loopback_endpoint
 from afmctl.testing import wait_for as _wait_for
 
-zenoh = pytest.importorskip("zenoh")
+import zenoh
 
 
 def _processes_mentioning(text: str) -> list[int]:

@@ -26,7 +26,7 @@ from afmctl.zenoh_api import ZenohBridge
 from afmctl.zenoh_config import loopback_pair
 from afmctl.testing import wait_for
 
-zenoh = pytest.importorskip("zenoh")
+import zenoh
 
 LIMITS_V = (0.0, 150.0)
 NM_PER_V = 66.7

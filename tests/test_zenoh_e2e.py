@@ -16,8 +16,8 @@ from afmctl.messages import CmdRequest, LineMsg, SegmentMsg, TemperatureMsg, dec
 from afmctl.zenoh_config import AclSettings, AclSubject, UserPasswordSettings, ZenohSettings, loopback_pair
 from afmctl.testing import wait_for
 
-zenoh = pytest.importorskip("zenoh")
-loop = pytest.importorskip("afmctl.loop")
+import zenoh
+import afmctl.loop as loop
 
 CONFIG = """
 [scanner]

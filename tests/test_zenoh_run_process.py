@@ -23,7 +23,7 @@ from afmctl.runlog import RunLogReader
 from afmctl.testing import wait_for
 from afmctl.zenoh_config import UserPasswordSettings, ZenohSettings, free_loopback_endpoint
 
-zenoh = pytest.importorskip("zenoh")
+import zenoh
 pytestmark = pytest.mark.timeout(180)
 
 SCANNER = "zrun"
