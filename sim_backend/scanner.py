@@ -196,6 +196,12 @@ class Scanner:
         with self._lock:
             return self._pos.copy()
 
+    def snapshot(self) -> tuple[float, np.ndarray]:
+        """``(time_s, position_nm)`` read together: the simulated time [s] and the true tip
+        position [x, y, z] nm at that time (no other thread can advance in between)."""
+        with self._lock:
+            return self.time_s, self._pos.copy()
+
     def read_sensor_nm(self) -> np.ndarray:
         """A position-sensor reading: true position plus Gaussian noise
         (``config.noise.position_std_nm``)."""

@@ -230,7 +230,11 @@ class SimService:
             if advance is not None:
                 advance(t)
             if self.on_tick is not None:
-                pos = self.scanner.position_nm() if hasattr(self.scanner, "position_nm") else None
+                pos = None
+                if hasattr(self.scanner, "snapshot"):
+                    # the plant's own time with its position, read together: another thread
+                    # (the amplifier's apply()) may advance the plant between these lines
+                    t, pos = self.scanner.snapshot()
                 try:
                     self.on_tick(t, pos)
                 except Exception:  # noqa: BLE001 - a publisher failure must not stop the plant
