@@ -29,3 +29,29 @@ def assert_no_threads_left(prefix: str = "afmctl-", timeout_s: float = 2.0) -> N
 
     if not wait_for(none_left, timeout_s, 0.02):
         raise AssertionError(f"threads left running: {left}")
+
+
+def wait_until(cond: Callable[[], object], timeout_s: float = 5.0, interval_s: float = 0.005) -> None:
+    """Like :func:`wait_for`, but raise ``AssertionError("condition not reached")`` when
+    ``cond()`` is still false after ``timeout_s`` seconds."""
+    if not wait_for(cond, timeout_s, interval_s):
+        raise AssertionError("condition not reached")
+
+
+def bridge_on_free_port(controller, scanner_name: str = "s1", server=None, *, attempts: int = 3,
+                        **bridge_options):
+    """A :class:`afmctl.zenoh_api.ZenohBridge` for ``controller`` listening on a fresh
+    loopback port, and the client settings that reach it: ``(bridge, client_settings)``.
+    Retried ``attempts`` times, because another process may take the port between choosing
+    and binding it. ``server``: base server settings for :func:`afmctl.zenoh_config.loopback_pair`."""
+    from afmctl.errors import AfmctlError
+    from afmctl.zenoh_api import ZenohBridge
+    from afmctl.zenoh_config import loopback_pair
+    for attempt in range(attempts):
+        srv, cli = loopback_pair(server)
+        try:
+            return ZenohBridge(controller, srv, scanner_name, **bridge_options), cli
+        except AfmctlError:
+            if attempt == attempts - 1:
+                raise
+    raise ValueError(f"attempts: {attempts} must be at least 1")

@@ -5,7 +5,6 @@ measurements are refused; the voltages stay within the limits."""
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 import pytest
@@ -18,7 +17,8 @@ from afmctl.loop import Controller, State
 from afmctl.pipeline import build_pipeline
 from afmctl.runlog import RunLogReader
 from afmctl.simlink import RecordingAmplifier
-from afmctl.testing import assert_no_threads_left
+from afmctl.testing import assert_no_threads_left, bridge_on_free_port
+from afmctl.testing import wait_until as wait_for
 
 BASE = """
 [simulation]
@@ -58,14 +58,6 @@ class DriftSink:
 
     def on_drift(self, est):
         self.drift.append(est)
-
-
-def wait_for(pred, timeout=5.0):
-    t0 = time.monotonic()
-    while not pred():
-        if time.monotonic() - t0 > timeout:
-            raise AssertionError("condition not reached")
-        time.sleep(0.005)
 
 
 def test_config_off_by_default_and_checked():
@@ -250,19 +242,10 @@ def test_drift_measurement_over_zenoh_cmd(tmp_path):
     import json
 
     from afmctl.messages import CmdRequest
-    from afmctl.zenoh_api import ZenohBridge
-    from afmctl.zenoh_config import loopback_pair
 
     cfg = cfg_for(tmp_path, extra='[scanner]\nname = "s1"\n')
     ctl = Controller(cfg, RecordingAmplifier())
-    for attempt in range(3):   # another process may take the port between choosing and binding it
-        srv, cli = loopback_pair()
-        try:
-            bridge = ZenohBridge(ctl, srv, "s1", status_period_s=0.2)
-            break
-        except AfmctlError:
-            if attempt == 2:
-                raise
+    bridge, cli = bridge_on_free_port(ctl, "s1", status_period_s=0.2)
     session = zenoh.open(cli.to_zenoh_config())
     drift: list[dict] = []
     sub = session.declare_subscriber("afm/s1/drift", lambda s: drift.append(json.loads(s.payload.to_bytes())))

@@ -15,6 +15,7 @@ from afmctl.pipeline import build_pipeline
 from afmctl.runlog import RunLogReader
 from afmctl.simlink import RecordingAmplifier
 from afmctl.testing import assert_no_threads_left
+from afmctl.testing import wait_until as wait_for
 
 BASE = """
 [simulation]
@@ -42,14 +43,6 @@ def no_leaked_threads():
 
 def cfg_for(tmp_path, extra: str = "", rate: float = 2000.0, slew: float = 5000.0):
     return load_config(text=BASE.format(rate=rate, slew=slew, dir=tmp_path) + extra)
-
-
-def wait_for(pred, timeout=5.0):
-    t0 = time.monotonic()
-    while not pred():
-        if time.monotonic() - t0 > timeout:
-            raise AssertionError("condition not reached")
-        time.sleep(0.005)
 
 
 class Sink:

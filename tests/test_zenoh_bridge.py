@@ -24,7 +24,7 @@ from afmctl.messages import (
 )
 from afmctl.zenoh_api import ZenohBridge
 from afmctl.zenoh_config import loopback_pair
-from afmctl.testing import wait_for
+from afmctl.testing import bridge_on_free_port, wait_for
 
 import zenoh
 
@@ -148,25 +148,12 @@ class Client:
 
 
 
-def bridge_on_free_port(ctl, server=None, attempts: int = 3):
-    """A bridge listening on a fresh loopback port (retried: another process may take the
-    port between choosing and binding it) and the client settings that reach it."""
-    from afmctl.errors import AfmctlError
-    for attempt in range(attempts):
-        srv, cli = loopback_pair(server)
-        try:
-            return ZenohBridge(ctl, srv, "s1", status_period_s=0.2), cli
-        except AfmctlError:
-            if attempt == attempts - 1:
-                raise
-
-
 @pytest.fixture(scope="module")
 def service():
     """One service + one client for the module (zenoh sessions are slowish to open)."""
     before = {t.ident for t in threading.enumerate()}
     ctl = StandInController()
-    bridge, cli = bridge_on_free_port(ctl)
+    bridge, cli = bridge_on_free_port(ctl, "s1", status_period_s=0.2)
     client = Client(cli)
     assert wait_for(lambda: len(client.status) > 0), "client never saw a status message"
     yield ctl, bridge, client

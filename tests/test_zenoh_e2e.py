@@ -13,11 +13,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from afmctl.messages import CmdRequest, LineMsg, SegmentMsg, TemperatureMsg, decode_setpoints
-from afmctl.zenoh_config import AclSettings, AclSubject, UserPasswordSettings, ZenohSettings, loopback_pair
-from afmctl.testing import wait_for
+from afmctl.zenoh_config import AclSettings, AclSubject, UserPasswordSettings, ZenohSettings
+from afmctl.testing import bridge_on_free_port, wait_for
 
 import zenoh
-import afmctl.loop as loop
 
 CONFIG = """
 [scanner]
@@ -71,10 +70,8 @@ class Client:
 @pytest.fixture(scope="module")
 def service(tmp_path_factory):
     from afmctl.config import load_config
-    from afmctl.errors import AfmctlError
     from afmctl.loop import Controller
     from afmctl.simlink import simulated_amplifier
-    from afmctl.zenoh_api import ZenohBridge
 
     before = {t.ident for t in threading.enumerate()}
     users = tmp_path_factory.mktemp("zenoh") / "users.txt"
@@ -85,14 +82,7 @@ def service(tmp_path_factory):
     cfg = load_config(text=CONFIG.format(channel=f"zen-e2e-{id(server)}"))
     with simulated_amplifier(cfg) as (amp, scanner):
         ctl = Controller(cfg, amp, scanner=scanner)
-        for attempt in range(3):  # another process may take the port between choosing and binding it
-            srv, cli = loopback_pair(server)
-            try:
-                bridge = ZenohBridge(ctl, srv, "s1", status_period_s=0.2)
-                break
-            except AfmctlError:
-                if attempt == 2:
-                    raise
+        bridge, cli = bridge_on_free_port(ctl, "s1", server, status_period_s=0.2)
         op = Client(cli.model_copy(update={"auth": UserPasswordSettings(user="op", password="op-pw")}))
         viewer = Client(cli.model_copy(update={"auth": UserPasswordSettings(user="viewer", password="viewer-pw")}))
         try:
