@@ -487,7 +487,7 @@ class DiscreteSystem:
     delay, decimation ``m`` and output axis."""
 
     def __init__(self, params: DriftParams, dt_s: float) -> None:
-        blocks, chans, delays, axes = [], [], [], []
+        blocks, chans, delays = [], [], []
         slow = []
         for name in PATH_NAMES:
             path = getattr(params.paths, name)
