@@ -2,7 +2,7 @@
 
 The service package: configuration, trajectory sources, the real-time loop, safety, the
 zenoh API, run logs, the command line and reports. Model math lives in
-:mod:`compensators`, amplifier links in :mod:`drivers`, the simulated scanner in
-:mod:`sim_backend`.
+:mod:`afmctl.compensators`, amplifier links in :mod:`afmctl.drivers`, the simulated scanner in
+:mod:`afmctl.sim_backend`.
 """
 __version__ = "0.1.0"

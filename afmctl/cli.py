@@ -38,7 +38,7 @@ Units everywhere: V, nm, s, °C. Each command has its own --help.
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="afmctl", description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    from afmctl import __version__
+    from . import __version__
     parser.add_argument("--version", action="version", version=f"afmctl {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0,
                         help="more log output (-v info, -vv debug)")
@@ -57,9 +57,9 @@ def build_parser() -> argparse.ArgumentParser:
 def _user_errors() -> tuple[type[BaseException], ...]:
     from pydantic import ValidationError
 
-    from afmctl.errors import AfmctlError
-    from compensators.base import ModelError
-    from drivers.errors import AmplifierError
+    from .errors import AfmctlError
+    from afmctl.compensators.base import ModelError
+    from afmctl.drivers.errors import AmplifierError
     return (AfmctlError, ModelError, AmplifierError, ValidationError)
 
 

@@ -24,8 +24,8 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
-from afmctl.errors import AfmctlError
-from afmctl.zenoh_config import ZenohSettings
+from .errors import AfmctlError
+from .zenoh_config import ZenohSettings
 
 AXES = ("x", "y", "z")
 Axis = Literal["x", "y", "z"]
@@ -154,8 +154,8 @@ class DriftSection(_Strict):
         return self
 
     def kalman_params(self):
-        """The :class:`compensators.drift_kalman.KalmanParams` of this section."""
-        from compensators.drift_kalman import KalmanParams
+        """The :class:`afmctl.compensators.drift_kalman.KalmanParams` of this section."""
+        from afmctl.compensators.drift_kalman import KalmanParams
         return KalmanParams(with_rate=self.kalman_with_rate, bias_std0_nm=self.kalman_bias_std0_nm,
                             rate_std0_nm_per_s=self.kalman_rate_std0_nm_per_s,
                             q_bias_nm2_per_s=self.kalman_q_bias_nm2_per_s,

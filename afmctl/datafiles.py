@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from afmctl.errors import AfmctlError
+from .errors import AfmctlError
 
 
 def read_csv(path: str | Path, columns: Sequence[str], *, min_rows: int = 1,

@@ -2,7 +2,7 @@
 
 A pipeline of small steps (each one a function of a shared :class:`DemoContext`):
 
-1. **setup** — the default simulated scanner (:func:`sim_backend.scanner.default_scanner_config`:
+1. **setup** — the default simulated scanner (:func:`afmctl.sim_backend.scanner.default_scanner_config`:
    asymmetric Preisach hysteresis, creep, structural modes, x/y cross-coupling, 0–150 V)
    with the *drift scenario* on: the lab warms by ``warming_K`` during the scan and the
    scanner drifts (``compensators.drift`` "physical_tube" transfer functions, gains
@@ -16,7 +16,7 @@ A pipeline of small steps (each one a function of a shared :class:`DemoContext`)
    alternately) with its own ``identify()`` classmethod on that data; the x/y
    cross-coupling is estimated from the same runs (least squares of the passive axis on
    the driven one); kinds not available or failing are *skipped with a message*;
-4. **scan** — the 1.667 µm-period calibration grating (:class:`sim_backend.samples.Grating2D`)
+4. **scan** — the 1.667 µm-period calibration grating (:class:`afmctl.sim_backend.samples.Grating2D`)
    raster-scanned at ``size``×``size`` pixels over ``scan_nm`` square, once uncompensated
    (linear calibration: what a plain AFM does) and once per identified compensator
    (decoupling → drift prediction subtracted → inverse model per axis); then the best
@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from afmctl.errors import AfmctlError
+from .errors import AfmctlError
 
 log = logging.getLogger(__name__)
 
@@ -119,7 +119,7 @@ class Step:
 
 # --------------------------------------------------------------------------- steps
 def _new_scanner(ctx: DemoContext, drift: bool) -> Any:
-    from sim_backend.scanner import DriftConfig, Scanner
+    from afmctl.sim_backend.scanner import DriftConfig, Scanner
     cfg = ctx.scanner_config
     if drift and ctx.drift_params is not None:
         cfg = cfg.model_copy(update={"drift": DriftConfig(kind="params", params=ctx.drift_params.model_dump(mode="json"))})
@@ -129,12 +129,12 @@ def _new_scanner(ctx: DemoContext, drift: bool) -> Any:
 
 
 def step_setup(ctx: DemoContext) -> None:
-    from sim_backend.scanner import default_scanner_config
+    from afmctl.sim_backend.scanner import default_scanner_config
     o = ctx.options
     ctx.scanner_config = default_scanner_config().model_copy(update={"seed": o.seed})
     if o.drift:
         try:
-            from compensators.drift import DriftParams
+            from afmctl.compensators.drift import DriftParams
             ctx.drift_params = DriftParams.named("physical_tube").scaled(o.drift_gain)
         except ImportError as err:  # pragma: no cover - drift lands with [DRIFT]
             ctx.note(f"drift scenario skipped: compensators.drift not available ({err})")
@@ -215,11 +215,11 @@ class CreepChainModel:
         self.creep = creep
 
     def forward(self, dt_s: float | None = None) -> Any:
-        from compensators.base import Chain
+        from afmctl.compensators.base import Chain
         return Chain(self.hysteresis.forward(dt_s), self.creep.forward(dt_s))
 
     def inverse(self, dt_s: float | None = None) -> Any:
-        from compensators.base import Chain
+        from afmctl.compensators.base import Chain
         return Chain(self.creep.inverse(dt_s), self.hysteresis.inverse(dt_s))
 
 
@@ -227,7 +227,7 @@ def identify_with_creep(cls: Any, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.nda
     """Alternate: fit the hysteresis model on the creep-corrected output, then the creep
     model (kind ``creep``, unit gain expected) from the hysteresis output to the measured
     output."""
-    from compensators.models import model_class
+    from afmctl.compensators.models import model_class
     creep_cls = model_class("creep")
     dt = float(t_s[1] - t_s[0])
     x = y_nm
@@ -244,7 +244,7 @@ def make_identify_step(kind: str) -> Step:
     base, _, extra = kind.partition("+")
 
     def run(ctx: DemoContext) -> None:
-        from compensators.models import model_class
+        from afmctl.compensators.models import model_class
         try:
             cls = model_class(base)
             if extra:
@@ -287,8 +287,8 @@ def _scan_T(ctx: DemoContext) -> Callable[[np.ndarray], np.ndarray] | None:
 
 
 def _scan(ctx: DemoContext, name: str, compensator: Any, drift: bool = True) -> Any:
-    from sim_backend.imaging import raster_image
-    from sim_backend.samples import Grating2D
+    from afmctl.sim_backend.imaging import raster_image
+    from afmctl.sim_backend.samples import Grating2D
     o = ctx.options
     scanner = _new_scanner(ctx, drift=drift)
     return raster_image(scanner, Grating2D(period_nm=1667.0), scan_size_nm=o.scan_nm, pixels=o.size,
@@ -431,7 +431,7 @@ def step_metrics(ctx: DemoContext) -> None:
 
 
 def step_plots(ctx: DemoContext) -> None:
-    from afmctl import report
+    from . import report
     o = ctx.options
     ctx.files += report.demo_figures(ctx, o.out)
 

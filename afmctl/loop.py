@@ -57,12 +57,12 @@ from typing import Any
 
 import numpy as np
 
-from afmctl.errors import AfmctlError
-from afmctl.runlog import DRIFT_DTYPE, SETPOINT_DTYPE, RunLogWriter
-from afmctl.safety import SafetyLayer, Watchdog
-from afmctl.trajectories import check_positions
-from drivers.base import ConnectionState
-from drivers.errors import AmplifierError, LimitError
+from .errors import AfmctlError
+from .runlog import DRIFT_DTYPE, SETPOINT_DTYPE, RunLogWriter
+from .safety import SafetyLayer, Watchdog
+from .trajectories import check_positions
+from afmctl.drivers.base import ConnectionState
+from afmctl.drivers.errors import AmplifierError, LimitError
 
 log = logging.getLogger(__name__)
 
@@ -149,7 +149,7 @@ class Controller:
     Parameters
     ----------
     config: :class:`afmctl.config.Config`.
-    amplifier: an open :class:`drivers.base.Amplifier`; the controller never closes it.
+    amplifier: an open :class:`afmctl.drivers.base.Amplifier`; the controller never closes it.
     scanner: optional simulated scanner (sim_backend) behind a simulated amplifier; kept
         for summaries (tracking error), never touched by the loop thread.
     pipeline: optional :class:`afmctl.pipeline.CompensationPipeline` (default: built from
@@ -165,7 +165,7 @@ class Controller:
         self.scanner = scanner
         self.dt_s = float(config.dt_s)
         if pipeline is None:
-            from afmctl.pipeline import build_pipeline
+            from .pipeline import build_pipeline
             pipeline = build_pipeline(config)
         self.pipeline = pipeline
         axes = list(config.scanner.axes)
@@ -312,7 +312,7 @@ class Controller:
             self._rc_thread.join(60.0)
             if self._rc_thread.is_alive():
                 raise AfmctlError("start: the previous run's reconnect attempt is still in the driver")
-        from afmctl import trajectories
+        from . import trajectories
         it: Iterator | None
         self._queue_mode = False
         self._queue_end_when_idle = False
@@ -338,7 +338,7 @@ class Controller:
         self._drift_meas.clear()        # measurements of a previous run refer to its filter
         tsec = self.config.compensation.temperature
         if tsec.source == "file" and tsec.file is not None:
-            from afmctl.datafiles import read_csv
+            from .datafiles import read_csv
             data = read_csv(tsec.file, ("t", "T"))
             self._T_file = (np.asarray(data["t"], float), np.asarray(data["T"], float))
         # reset counters of a previous run

@@ -33,7 +33,7 @@ from typing import Annotated, Any, Literal, Union
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
-from afmctl.errors import AfmctlError
+from .errors import AfmctlError
 
 #: version of every payload schema in this module
 SCHEMA_VERSION = 1

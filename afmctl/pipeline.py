@@ -2,9 +2,9 @@
 
 Per sample, for the target ``r`` [nm] (x, y, z):
 
-1. drift estimate ``d̂`` [nm] from :class:`compensators.drift.DriftParams.predictor`,
+1. drift estimate ``d̂`` [nm] from :class:`afmctl.compensators.drift.DriftParams.predictor`,
    driven by the ambient temperature [°C] and the voltages already sent [V] (heat); with
-   a Kalman filter (:class:`compensators.drift_kalman.DriftKalman`,
+   a Kalman filter (:class:`afmctl.compensators.drift_kalman.DriftKalman`,
    ``compensation.drift.kalman``) ``d̂ = model + bias``, the bias tracked from drift
    measurements fused by :meth:`CompensationPipeline.update_drift`;
 2. corrected target ``r' = r − d̂`` [nm];
@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from compensators.base import StreamingOperator
+from afmctl.compensators.base import StreamingOperator
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +52,7 @@ class CompensationPipeline:
     ``inverses``: three operators y[nm] → u[V] for x, y, z. ``drift``: an object with
     ``reset()`` and ``step(T_C, u_V (3,)) -> (3,) nm`` (interface of
     compensators.drift.DriftPredictor) or None. ``kalman``: a
-    :class:`compensators.drift_kalman.DriftKalman` stepped once per sample (its ``dt_s``
+    :class:`afmctl.compensators.drift_kalman.DriftKalman` stepped once per sample (its ``dt_s``
     must be the loop period) on the model's drift, or None (needs ``drift``).
     """
 
@@ -143,11 +143,11 @@ class CompensationPipeline:
 
 
 def load_drift_params(name_or_file: str, overrides: dict[str, Any] | None = None):
-    """A :class:`compensators.drift.DriftParams` from a named set or a JSON file, with
+    """A :class:`afmctl.compensators.drift.DriftParams` from a named set or a JSON file, with
     field overrides."""
-    from compensators.drift import DriftParams
+    from afmctl.compensators.drift import DriftParams
 
-    from afmctl.errors import AfmctlError
+    from .errors import AfmctlError
     if name_or_file.endswith(".json"):
         try:
             data = json.loads(Path(name_or_file).read_text(encoding="utf-8"))
@@ -164,13 +164,13 @@ def load_drift_params(name_or_file: str, overrides: dict[str, Any] | None = None
     try:
         return DriftParams.model_validate(data)
     except ValidationError as err:
-        from afmctl.config import format_validation_error
+        from .config import format_validation_error
         raise AfmctlError(format_validation_error(err, "compensation.drift", DriftParams)) from None
 
 
 def build_pipeline(config) -> CompensationPipeline:
     """The pipeline described by an :class:`afmctl.config.Config`."""
-    from compensators.models import load_model
+    from afmctl.compensators.models import load_model
     dt = config.dt_s
     inverses: list[StreamingOperator] = []
     for axis in ("x", "y", "z"):
@@ -188,7 +188,7 @@ def build_pipeline(config) -> CompensationPipeline:
         drift = params.predictor(dt)
     kalman = None
     if config.compensation.drift.kalman:
-        from compensators.drift_kalman import DriftKalman
+        from afmctl.compensators.drift_kalman import DriftKalman
         kalman = DriftKalman(dt, config.compensation.drift.kalman_params())
         log.info("drift: Kalman bias filter on (%s)", kalman.params)
     return CompensationPipeline(inverses, drift, kalman)

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from afmctl.errors import AfmctlError
+from .errors import AfmctlError
 
 log = logging.getLogger(__name__)
 
@@ -211,7 +211,7 @@ def _demo_drift(ctx: Any, path: Path) -> Path:
     step = max(1, int(keep.sum() // 4000))
     tk = t[keep][::step]
     fig, (a0, a1, a2) = plt.subplots(3, 1, figsize=(10, 7.0), sharex=True)
-    from afmctl.demo import _scan_T
+    from .demo import _scan_T
     T_of_t = _scan_T(ctx)
     if T_of_t is not None:
         a0.plot(tk, T_of_t(tk), color="k")
@@ -241,7 +241,7 @@ def _demo_drift(ctx: Any, path: Path) -> Path:
 # --------------------------------------------------------------------------- run logs
 def run_report(run: str | Path, out: str | Path, *, simulate: bool = False) -> tuple[list[Path], dict[str, Any]]:
     """Plots and a summary for one run log; see the module docstring."""
-    from afmctl.runlog import RunLogReader
+    from .runlog import RunLogReader
     reader = RunLogReader(run)
     sp = reader.setpoints()
     dr = reader.drift()
@@ -342,8 +342,8 @@ def _simulate(sp: np.ndarray, meta: dict[str, Any]) -> np.ndarray:
     """Replay the logged voltages through the run's simulated scanner (its
     ``simulation.scanner`` file from the log's configuration, else the default scanner),
     from rest: the true positions [nm] that scanner would reach."""
-    from afmctl.simlink import load_scanner_config
-    from sim_backend.scanner import Scanner
+    from .simlink import load_scanner_config
+    from afmctl.sim_backend.scanner import Scanner
     t = sp["t_s"]
     dt = float(np.median(np.diff(t))) if len(t) > 1 else 1e-3
     if not np.isfinite(dt) or dt <= 0:

@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from afmctl.errors import AfmctlError
+from .errors import AfmctlError
 
 log = logging.getLogger(__name__)
 

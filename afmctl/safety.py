@@ -2,7 +2,7 @@
 
 Every voltage the controller sends goes through :meth:`SafetyLayer.send` (or a ramp built
 on it). Whatever the trajectory, the models, the configuration or the amplifier's replies
-say, a value that reaches :meth:`drivers.base.Amplifier.set_voltages` is
+say, a value that reaches :meth:`afmctl.drivers.base.Amplifier.set_voltages` is
 
 * finite and inside the voltage limits of its axis — the intersection of the configured
   host limits, the safety limits and the amplifier's own effective limits
@@ -29,9 +29,9 @@ import math
 import time
 from collections.abc import Sequence
 
-from afmctl.errors import AfmctlError
-from drivers.base import Amplifier
-from drivers.errors import ProtocolError
+from .errors import AfmctlError
+from afmctl.drivers.base import Amplifier
+from afmctl.drivers.errors import ProtocolError
 
 log = logging.getLogger(__name__)
 

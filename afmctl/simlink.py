@@ -2,8 +2,8 @@
 
 A simulated amplifier of the configured driver (MDT693B/694B, GCS, NV200 on a pty; the
 CAN amplifier on a python-can ``virtual`` channel) is served in this process with a
-:class:`sim_backend.scanner.Scanner` as its load, and the *real* driver is opened on it
-through :func:`drivers.registry.open_amplifier` — the same code path as with hardware.
+:class:`afmctl.sim_backend.scanner.Scanner` as its load, and the *real* driver is opened on it
+through :func:`afmctl.drivers.registry.open_amplifier` — the same code path as with hardware.
 """
 from __future__ import annotations
 
@@ -18,15 +18,15 @@ from typing import Any
 
 import numpy as np
 
-from afmctl.errors import AfmctlError
-from drivers.base import Amplifier
+from .errors import AfmctlError
+from afmctl.drivers.base import Amplifier
 
 log = logging.getLogger(__name__)
 
 
 def load_scanner_config(path: Path | None):
     """A ScannerConfig from a JSON file, or the default scanner."""
-    from sim_backend.scanner import ScannerConfig, default_scanner_config
+    from afmctl.sim_backend.scanner import ScannerConfig, default_scanner_config
     if path is None:
         return default_scanner_config()
     try:
@@ -37,13 +37,13 @@ def load_scanner_config(path: Path | None):
     try:
         return ScannerConfig.model_validate(data)
     except ValidationError as err:
-        from afmctl.config import format_validation_error
+        from .config import format_validation_error
         raise AfmctlError(format_validation_error(err, str(path), ScannerConfig)) from None
 
 
 def open_driver(config, port: str):
     """Open the configured driver on ``port`` (drivers.registry)."""
-    from drivers.registry import open_amplifier
+    from afmctl.drivers.registry import open_amplifier
     options = dict(config.amplifier.options)
     if "host_limits" not in options and config.amplifier.limits_V:
         options["host_limits"] = {a: (lim.min_V, lim.max_V) for a, lim in config.amplifier.limits_V.items()
@@ -58,8 +58,8 @@ def open_driver(config, port: str):
 def simulated_amplifier(config) -> Iterator[tuple[Any, Any]]:
     """Serve a simulated amplifier + scanner in this process; yields ``(amplifier,
     scanner)`` with the real driver connected to it. Everything is closed on exit."""
-    from sim_backend import testing
-    from sim_backend.scanner import Scanner
+    from afmctl.sim_backend import testing
+    from afmctl.sim_backend.scanner import Scanner
     scanner = Scanner(load_scanner_config(config.simulation.scanner))
     driver = config.amplifier.driver
     with contextlib.ExitStack() as stack:
@@ -82,9 +82,9 @@ def identify_pi_models(folder: str | Path, axes: str = "xy", dt_s: float = 1e-3,
     sweep of nested triangles 0–150 V, ``n`` samples per leg at ``dt_s`` [s]; saved as
     ``folder/<axis>_pi.json``. Returns ``{axis: path}`` — for examples, benchmarks and
     tests that need a compensator of the simulated scanner without a calibration run."""
-    from compensators.models import save_model
-    from compensators.pi import PIModel
-    from sim_backend.scanner import Scanner, default_scanner_config
+    from afmctl.compensators.models import save_model
+    from afmctl.compensators.pi import PIModel
+    from afmctl.sim_backend.scanner import Scanner, default_scanner_config
     legs = [(0, 150), (150, 0), (0, 110), (110, 20), (20, 150), (150, 0)]
     tri = np.concatenate([np.linspace(a, b, n) for a, b in legs])
     u = np.column_stack([tri if a in axes else np.zeros_like(tri) for a in "xyz"])
@@ -106,7 +106,7 @@ def tracking_error(config, setpoints: np.ndarray, seq_range: tuple[int, int] | N
     (so the ringing of its resonance after each step is in the result), and the position
     is compared at the end of the period — what a sensor sampled at the loop rate reads.
     Returns max and RMS absolute error per axis over ``seq_range`` (default: all)."""
-    from sim_backend.scanner import Scanner
+    from afmctl.sim_backend.scanner import Scanner
     if len(setpoints) == 0:
         return {}
     scanner = Scanner(load_scanner_config(config.simulation.scanner))
@@ -149,7 +149,7 @@ class SendClock:
 
 
 class RecordingAmplifier(Amplifier):
-    """An in-memory :class:`drivers.base.Amplifier` that records and checks every value it
+    """An in-memory :class:`afmctl.drivers.base.Amplifier` that records and checks every value it
     receives — a dry-run target and the test double of the safety properties.
 
     ``limits_V``: ``{axis: (min_V, max_V)}`` it reports as its limits. ``check_limits_V`` /
@@ -172,7 +172,7 @@ class RecordingAmplifier(Amplifier):
                  check_slew_V_per_s: float | None = None, clock=None) -> None:
         import threading
 
-        from drivers.base import ConnectionState, VoltageLimits
+        from afmctl.drivers.base import ConnectionState, VoltageLimits
         self._axes = tuple(axes)
         lim = limits_V or {a: (0.0, 150.0) for a in self._axes}
         self._limits = {a: VoltageLimits(*lim[a]) for a in self._axes}
@@ -204,8 +204,8 @@ class RecordingAmplifier(Amplifier):
         return self._state
 
     def set_voltages(self, volts) -> None:
-        from drivers.base import ConnectionState
-        from drivers.errors import AmplifierConnectionError
+        from afmctl.drivers.base import ConnectionState
+        from afmctl.drivers.errors import AmplifierConnectionError
         if self.fail_after is not None and len(self.received) >= self.fail_after:
             self.fail, self.fail_after = True, None
         if self.fail:
@@ -233,7 +233,7 @@ class RecordingAmplifier(Amplifier):
 
     def get_voltages(self) -> dict[str, float]:
         if self.fail:
-            from drivers.errors import AmplifierConnectionError
+            from afmctl.drivers.errors import AmplifierConnectionError
             raise AmplifierConnectionError("recording amplifier: link lost (simulated)")
         if self.readback is not None:
             return self.readback(dict(self.outputs))
@@ -243,15 +243,15 @@ class RecordingAmplifier(Amplifier):
         return {"name": self.name, "axes": list(self._axes)}
 
     def reconnect(self) -> None:
-        from drivers.base import ConnectionState
-        from drivers.errors import AmplifierConnectionError
+        from afmctl.drivers.base import ConnectionState
+        from afmctl.drivers.errors import AmplifierConnectionError
         if self.fail:
             raise AmplifierConnectionError("recording amplifier: still unreachable")
         self.reconnects += 1
         self._state = ConnectionState.CONNECTED
 
     def close(self) -> None:
-        from drivers.base import ConnectionState
+        from afmctl.drivers.base import ConnectionState
         self._state = ConnectionState.CLOSED
 
     def as_array(self) -> np.ndarray:

@@ -1,5 +1,5 @@
 """Helpers for tests of afmctl and of programs built on it (shipped in the package, as
-ophyd-async does). Simulated devices to test against live in :mod:`sim_backend.testing`."""
+ophyd-async does). Simulated devices to test against live in :mod:`afmctl.sim_backend.testing`."""
 from __future__ import annotations
 
 import time
@@ -44,9 +44,9 @@ def bridge_on_free_port(controller, scanner_name: str = "s1", server=None, *, at
     loopback port, and the client settings that reach it: ``(bridge, client_settings)``.
     Retried ``attempts`` times, because another process may take the port between choosing
     and binding it. ``server``: base server settings for :func:`afmctl.zenoh_config.loopback_pair`."""
-    from afmctl.errors import AfmctlError
-    from afmctl.zenoh_api import ZenohBridge
-    from afmctl.zenoh_config import loopback_pair
+    from .errors import AfmctlError
+    from .zenoh_api import ZenohBridge
+    from .zenoh_config import loopback_pair
     for attempt in range(attempts):
         srv, cli = loopback_pair(server)
         try:

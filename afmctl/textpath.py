@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from afmctl.errors import AfmctlError
+from .errors import AfmctlError
 
 CELL_W, CELL_H, ADVANCE = 4.0, 6.0, 5.5
 

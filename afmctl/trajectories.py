@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from afmctl.errors import AfmctlError
+from .errors import AfmctlError
 
 Block = np.ndarray
 
@@ -202,7 +202,7 @@ def text(dt_s: float, *, text: str = "NK", x0_nm: float = 0.0, y0_nm: float = 0.
     """Imprint ``text`` (single-stroke font, :mod:`afmctl.textpath`): for each stroke, move
     at ``z_up_nm`` to its start, lower to ``z_down_nm``, follow the polyline (jerk-limited
     per segment, peak speed ``speed_nm_per_s``), lift. Starts at (x0, y0, z_up)."""
-    from afmctl.textpath import strokes
+    from .textpath import strokes
     cur = np.array([x0_nm, y0_nm, z_up_nm], dtype=np.float64)
     yield cur[None, :].copy()
     v = speed_nm_per_s
@@ -268,7 +268,7 @@ def from_file(path: str | Path, dt_s: float, block_samples: int = 4096) -> Itera
         xyz_src = arr
         cols = (1, 2, 3)
     else:
-        from afmctl.datafiles import read_csv
+        from .datafiles import read_csv
         data = read_csv(p, ("t", "x", "y", "z"))
         t = data["t"]
         xyz_src = np.column_stack([t, data["x"], data["y"], data["z"]])
@@ -311,7 +311,7 @@ def build(spec, dt_s: float, block_samples: int = 256) -> Iterator[Block]:
     if isinstance(spec, dict):
         from pydantic import TypeAdapter, ValidationError
 
-        from afmctl.config import TrajectorySpec, format_validation_error
+        from .config import TrajectorySpec, format_validation_error
         try:
             spec = TypeAdapter(TrajectorySpec).validate_python(spec)
         except ValidationError as err:
@@ -355,5 +355,5 @@ class ArraySource:
         self.dt_s = float(dt_s)
 
     def blocks_at(self, dt_s: float, block_samples: int = 256) -> Iterator[Block]:
-        from afmctl.loop import resample
+        from .loop import resample
         return blocks_of(resample(self.positions_nm, self.dt_s, dt_s), block_samples)

@@ -34,8 +34,8 @@ from typing import Any
 
 import numpy as np
 
-from afmctl.errors import AfmctlError
-from afmctl.messages import (
+from .errors import AfmctlError
+from .messages import (
     CmdReply,
     CMD_NAMES,
     CmdRequest,
@@ -51,7 +51,7 @@ from afmctl.messages import (
     drift_measurement_args,
     encode_setpoints,
 )
-from afmctl.zenoh_config import ZenohSettings
+from .zenoh_config import ZenohSettings
 
 log = logging.getLogger(__name__)
 

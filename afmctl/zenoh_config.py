@@ -298,7 +298,7 @@ class ZenohSettings(BaseModel):
         """Build a ``zenoh.Config``; a bad value raises :class:`afmctl.errors.AfmctlError`."""
         import zenoh
 
-        from afmctl.errors import AfmctlError
+        from .errors import AfmctlError
         config = zenoh.Config()
         for key, value in self.to_json(scanner).items():
             try:

@@ -18,9 +18,9 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from compensators.drift import DriftParams  # noqa: E402
-from compensators.drift_kalman import DriftKalman  # noqa: E402
-from compensators.phase_correlation import phase_correlation  # noqa: E402
+from afmctl.compensators.drift import DriftParams  # noqa: E402
+from afmctl.compensators.drift_kalman import DriftKalman  # noqa: E402
+from afmctl.compensators.phase_correlation import phase_correlation  # noqa: E402
 from sections import write_section as _write_section  # noqa: E402  (benchmarks/sections.py)
 
 COMMAND = ".venv/bin/python benchmarks/bench_drift.py"

@@ -31,9 +31,9 @@ sys.path.insert(0, str(ROOT))
 
 from sections import write_section as _write_section  # noqa: E402  (benchmarks/sections.py)
 
-from drivers.registry import open_amplifier  # noqa: E402
-from sim_backend.amplifiers import RecordingSink  # noqa: E402
-from sim_backend.testing import serve_can, serve_pty  # noqa: E402
+from afmctl.drivers.registry import open_amplifier  # noqa: E402
+from afmctl.sim_backend.amplifiers import RecordingSink  # noqa: E402
+from afmctl.sim_backend.testing import serve_can, serve_pty  # noqa: E402
 
 BAUD = 115200
 BYTES_PER_S = BAUD / 10

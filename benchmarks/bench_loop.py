@@ -85,7 +85,7 @@ line_rate_Hz = {line_rate}
     if amp_kind == "memory":
         amp = RecordingAmplifier()
     else:
-        from sim_backend.testing import serve_can
+        from afmctl.sim_backend.testing import serve_can
         server = serve_can(channel)
         server.__enter__()
         amp = open_driver(cfg, cfg.amplifier.port)

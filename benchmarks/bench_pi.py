@@ -28,8 +28,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from compensators.epi import EPIModel  # noqa: E402
-from compensators.pi import PIModel  # noqa: E402
+from afmctl.compensators.epi import EPIModel  # noqa: E402
+from afmctl.compensators.pi import PIModel  # noqa: E402
 from sections import write_section  # noqa: E402  (benchmarks/sections.py)
 
 NAME = "pi"

@@ -68,8 +68,8 @@ def _us(rates: tuple[float, float]) -> tuple[float, float]:
 
 
 def measure_throughput(samples: int, repeats: int) -> list[tuple[str, str, float, str]]:
-    from compensators.bouc_wen import BoucWenModel
-    from compensators.preisach import PreisachModel
+    from afmctl.compensators.bouc_wen import BoucWenModel
+    from afmctl.compensators.preisach import PreisachModel
 
     rows = []
     for levels in (32, 64):
@@ -126,7 +126,7 @@ def measure_accuracy(plots: bool = True) -> tuple[list[tuple[str, float, float]]
     sys.path.insert(0, str(ROOT / "tests"))
     from plants import RelayPreisachPlant, decaying_triangle, triangle  # noqa: E402
 
-    from compensators.preisach import PreisachModel
+    from afmctl.compensators.preisach import PreisachModel
 
     plant = RelayPreisachPlant(grid=300)
     lo, hi = plant.output_range_nm()
@@ -145,7 +145,7 @@ def measure_accuracy(plots: bool = True) -> tuple[list[tuple[str, float, float]]
     pre = PreisachModel.identify(t_id, u_id, y_id, n_operators=32, u_min_V=0.0, u_max_V=150.0)
     models = [("Preisach, 32 levels (NNLS)", pre)]
     try:
-        from compensators.pi import PIModel
+        from afmctl.compensators.pi import PIModel
         models.append(("PI, 16 play operators", PIModel.identify(t_id, u_id, y_id, n_operators=16)))
     except ImportError:  # pragma: no cover
         pass

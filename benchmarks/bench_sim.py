@@ -29,10 +29,10 @@ sys.path.insert(0, str(ROOT))
 
 from sections import write_section as _write_section  # noqa: E402  (benchmarks/sections.py)
 
-from sim_backend.config import DriftConfig, ExternalModelConfig, default_preisach, default_scanner_config  # noqa: E402
-from sim_backend.plant import AxisPlant, GaussianPreisachOperator  # noqa: E402
-from sim_backend.samples import Grating2D  # noqa: E402
-from sim_backend.scanner import Scanner  # noqa: E402
+from afmctl.sim_backend.config import DriftConfig, ExternalModelConfig, default_preisach, default_scanner_config  # noqa: E402
+from afmctl.sim_backend.plant import AxisPlant, GaussianPreisachOperator  # noqa: E402
+from afmctl.sim_backend.samples import Grating2D  # noqa: E402
+from afmctl.sim_backend.scanner import Scanner  # noqa: E402
 
 NAME = "sim"
 
@@ -98,7 +98,7 @@ def _gil_holding_kernels():
     long gap advanced in one block."""
     import numba
 
-    from sim_backend import _plant_kernels as K
+    from afmctl.sim_backend import _plant_kernels as K
 
     saved = {n: getattr(K, n) for n in ("amplifier_nb", "preisach_nb", "creep_dynamics_nb", "expansion_drift_nb")}
     chunk = Scanner.ADVANCE_CHUNK
@@ -206,7 +206,7 @@ def main(argv: list[str]) -> int:
                  "M samples/s per axis"))
 
     try:
-        from compensators.preisach import PreisachModel
+        from afmctl.compensators.preisach import PreisachModel
 
         m = PreisachModel.from_density(lambda al, be: np.exp(-((al - 80) ** 2 + (be - 40) ** 2) / 800.0),
                                        u_min_V=0.0, u_max_V=150.0, levels=32)
@@ -225,7 +225,7 @@ def main(argv: list[str]) -> int:
     t = median_time(lambda: (s.reset(), s.image(Grating2D(), scan_size_nm=10_000.0, pixels=256)), max(1, reps // 2))
     rows.append(("Scanner.image, 1.667 µm grating, uncompensated", "256×256 px, 2 samples/px, trace+retrace", f"{t:.3g}", "s"))
     try:
-        from sim_backend.image_scans import identify_axes_from_images
+        from afmctl.sim_backend.image_scans import identify_axes_from_images
 
         models = identify_axes_from_images(s, ("x", "y"))
 

@@ -19,7 +19,7 @@ scan ... maximum thermal drift error of about 3.3 nm"):
 * online correction: after every frame the frame image is phase-correlated with the
   first frame (x, y) and its mean height compared (z); that measurement plus the
   correction applied during the frame is the measured drift, fused by
-  :class:`compensators.drift_kalman.DriftKalman` with the model's mean drift over the
+  :class:`afmctl.compensators.drift_kalman.DriftKalman` with the model's mean drift over the
   same frame.
 
 Residual drift = RMS over the whole scan of (actual − target) position, relative to the
@@ -41,10 +41,10 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from compensators.drift import DriftParams, TransferPath  # noqa: E402
-from compensators.drift_kalman import DriftKalman, KalmanParams  # noqa: E402
-from compensators.phase_correlation import phase_correlation  # noqa: E402
-from compensators.temperature import TemperatureProfile  # noqa: E402
+from afmctl.compensators.drift import DriftParams, TransferPath  # noqa: E402
+from afmctl.compensators.drift_kalman import DriftKalman, KalmanParams  # noqa: E402
+from afmctl.compensators.phase_correlation import phase_correlation  # noqa: E402
+from afmctl.compensators.temperature import TemperatureProfile  # noqa: E402
 
 
 @dataclass
@@ -128,14 +128,14 @@ class Plant:
         self.setup = setup
         self.true_params = true_params
         try:
-            from sim_backend.config import DriftConfig, linear_scanner_config
-            from sim_backend.scanner import Scanner
+            from afmctl.sim_backend.config import DriftConfig, linear_scanner_config
+            from afmctl.sim_backend.scanner import Scanner
             cfg = linear_scanner_config(ambient_T_C=setup.T0_C,
                                         drift=DriftConfig(kind="params", params=true_params.model_dump(mode="json")))
             self._scanner_cls, self._cfg = Scanner, cfg
             sc = Scanner(cfg)
             self.gain = sc.nominal_gain_nm_per_V()
-            self.name = "sim_backend.scanner.Scanner (linear axes, drift from DriftParams)"
+            self.name = "afmctl.sim_backend.scanner.Scanner (linear axes, drift from DriftParams)"
         except Exception as err:  # pragma: no cover - fallback when the simulator is unavailable
             self._scanner_cls = None
             self.gain = np.array([80.0, 80.0, 80.0 / 6.0])
@@ -189,7 +189,7 @@ def _particles(setup: Setup):
     centres = rng.uniform((0.0, 0.0), (side, side), size=(60, 2)) - side / 2
     diameters = 15.0 * (1.0 + 0.3 * rng.uniform(-1.0, 1.0, 60))
     try:
-        from sim_backend.samples import Nanoparticles
+        from afmctl.sim_backend.samples import Nanoparticles
         return Nanoparticles(centres, diameters)
     except Exception:  # pragma: no cover - fallback when the simulator is unavailable
         return _Spheres(centres, diameters)
@@ -388,7 +388,7 @@ def path_magnitudes(dt_s: float = 0.1, hours: float = 1.0) -> tuple[str, dict]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from compensators.drift import PATH_NAMES, DriftPaths
+    from afmctl.compensators.drift import PATH_NAMES, DriftPaths
 
     n = int(round(hours * 3600 / dt_s)) + 1
     t = np.arange(n) * dt_s
@@ -415,7 +415,7 @@ def path_magnitudes(dt_s: float = 0.1, hours: float = 1.0) -> tuple[str, dict]:
                 curves[(name, pname)] = d[:, "xyz".index(pname[0])]
             else:
                 # a constant heat of 1 mW: bypass eq. 8 by setting S_EE so that V = 1 V gives −1 mW
-                from compensators.heat import AxisHeat, HeatParams
+                from afmctl.compensators.heat import AxisHeat, HeatParams
                 one.heat = AxisHeat(**{a: HeatParams(S_EE_W_per_V2=-0.0 if a != src[1] else 1e-3) for a in "xyz"})
                 U[1:, "xyz".index(src[1])] = 1.0
                 d = -one.predictor(dt_s).block(T, U)

@@ -21,11 +21,11 @@ import matplotlib  # noqa: E402
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from compensators.image_identify import branches_from_scans, feature_points  # noqa: E402
-from sim_backend.image_scans import DEFAULT_LEVELS, identify_axes_from_images, scan_grating_lines  # noqa: E402
-from sim_backend.plant import AxisPlant  # noqa: E402
-from sim_backend.samples import Grating2D, Nanoparticles, StandardSample  # noqa: E402
-from sim_backend.scanner import CreepConfig, DriftConfig, Scanner, default_scanner_config, linear_scanner_config  # noqa: E402
+from afmctl.compensators.image_identify import branches_from_scans, feature_points  # noqa: E402
+from afmctl.sim_backend.image_scans import DEFAULT_LEVELS, identify_axes_from_images, scan_grating_lines  # noqa: E402
+from afmctl.sim_backend.plant import AxisPlant  # noqa: E402
+from afmctl.sim_backend.samples import Grating2D, Nanoparticles, StandardSample  # noqa: E402
+from afmctl.sim_backend.scanner import CreepConfig, DriftConfig, Scanner, default_scanner_config, linear_scanner_config  # noqa: E402
 
 
 def save(fig, out: Path, name: str) -> None:
@@ -131,8 +131,8 @@ def fig_identification(out: Path) -> dict:
     s = Scanner()
     sc = scan_grating_lines(s, axis="x", pixels=1024, lines_per_range=3)
     br = branches_from_scans(sc.arrays())
-    from compensators.image_identify import identify_from_images
-    from compensators.preisach import PreisachModel
+    from afmctl.compensators.image_identify import identify_from_images
+    from afmctl.compensators.preisach import PreisachModel
 
     m_img = identify_from_images(sc.arrays(), n_operators=DEFAULT_LEVELS)
     tr = sc.truth

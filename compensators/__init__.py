@@ -2,5 +2,5 @@
 identification, and model files.
 
 No I/O happens here besides reading and writing model JSON files
-(:mod:`compensators.models`). Nothing is imported eagerly: import the submodule you need.
+(:mod:`afmctl.compensators.models`). Nothing is imported eagerly: import the submodule you need.
 """

@@ -176,7 +176,7 @@ def pi_block_ref(x: np.ndarray, r: np.ndarray, w: np.ndarray, state: np.ndarray,
 
 @njit(cache=True, nogil=True)
 def creep_block(x, a, c, z, out):  # pragma: no cover - compiled
-    """Linear creep (bank of first-order lags), see :mod:`compensators.creep`."""
+    """Linear creep (bank of first-order lags), see :mod:`afmctl.compensators.creep`."""
     m = a.shape[0]
     for k in range(x.shape[0]):
         v = x[k]

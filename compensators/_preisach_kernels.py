@@ -1,8 +1,8 @@
 """Compiled kernels of the discrete classical Preisach model (numba, ``cache=True``).
 
-The model and the meaning of every array are described in :mod:`compensators.preisach`;
+The model and the meaning of every array are described in :mod:`afmctl.compensators.preisach`;
 this module only holds the hot loops. The plain-Python reference that the tests compare
-against lives in :mod:`compensators.preisach` (``reference_forward`` /
+against lives in :mod:`afmctl.compensators.preisach` (``reference_forward`` /
 ``reference_inverse``).
 
 Memory representation (Mayergoyz; image-based paper eq. 8):
@@ -21,7 +21,7 @@ that ``E(α, α) = 0`` inside diagonal cells too).
 
 The stack holds at most ``cap`` pairs. A reversal that would exceed it first merges the
 innermost loop (``s[K-1]`` is replaced by ``s[K]``), i.e. the smallest remembered loop is
-forgotten; see :mod:`compensators.preisach`.
+forgotten; see :mod:`afmctl.compensators.preisach`.
 """
 from __future__ import annotations
 

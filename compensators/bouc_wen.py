@@ -41,9 +41,9 @@ import numpy as np
 from numba import njit
 from pydantic import Field, model_validator
 
-from compensators.base import ModelError, StreamingOperator, check_finite
-from compensators.models import HysteresisModel
-from compensators.input_checks import block_samples, finite_sample, number_option
+from .base import ModelError, StreamingOperator, check_finite
+from .models import HysteresisModel
+from .input_checks import block_samples, finite_sample, number_option
 
 log = logging.getLogger(__name__)
 

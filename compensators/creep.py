@@ -13,7 +13,7 @@ creeps towards the step in the direction of motion; the static gain is 1. With
     x[n] = (y[n] − Σ_k c_k·a_k·z_k[n−1]) / (1 − Σ_k c_k·a_k)
 
 :class:`LinearCreep` is unit-free (the output has the unit of the input) so it can sit
-after any hysteresis operator in a :class:`~compensators.base.Chain`;
+after any hysteresis operator in a :class:`~afmctl.compensators.base.Chain`;
 :class:`LinearCreepModel` (``kind = "creep"``) is a model file u [V] → y [nm] with a gain
 and an offset: ``y = offset_nm + gain_nm_per_V · creep(u)``.
 """
@@ -26,10 +26,10 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from pydantic import Field, FiniteFloat, model_validator
 
-from compensators import _pi_kernels as K
-from compensators.base import ModelError, StreamingOperator, check_finite
-from compensators.input_checks import block_samples, finite_sample, number_option
-from compensators.models import HysteresisModel
+from . import _pi_kernels as K
+from .base import ModelError, StreamingOperator, check_finite
+from .input_checks import block_samples, finite_sample, number_option
+from .models import HysteresisModel
 
 log = logging.getLogger(__name__)
 

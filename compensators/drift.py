@@ -6,7 +6,7 @@ Drift sources (inputs, in this order inside the predictor):
 
 * ``T``  — change of the ambient temperature from its value at reset / first sample [K]
 * ``Qx``, ``Qy``, ``Qz`` — heat generated in the tube by the x, y, z voltages [W]
-  (eq. 8, :mod:`compensators.heat`)
+  (eq. 8, :mod:`afmctl.compensators.heat`)
 
 Drift (outputs) ``x, y, z`` [nm] is the sum over the paths ``G_IJ`` (drift in direction
 ``I`` from source ``J``), e.g. ``x = G_xT·ΔT + G_xQx·Qx + G_xQy·Qy (+ G_xQz·Qz)``.
@@ -59,10 +59,10 @@ import numba
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from compensators.base import ModelError, check_finite
-from compensators.heat import AxisHeat, HeatParams, TubeGeometry
-from compensators.models import format_validation_error, read_json_file
-from compensators.temperature import T_MAX_C, T_MIN_C
+from .base import ModelError, check_finite
+from .heat import AxisHeat, HeatParams, TubeGeometry
+from .models import format_validation_error, read_json_file
+from .temperature import T_MAX_C, T_MIN_C
 
 log = logging.getLogger(__name__)
 
@@ -196,7 +196,7 @@ class DriftParams(BaseModel):
     """Everything the drift predictor needs; JSON-serialisable (``kind`` = ``"drift"``).
 
     * ``paths`` — transfer functions from sources to drift (see :class:`DriftPaths`);
-    * ``heat`` — eq. 8 coefficients per axis (:class:`compensators.heat.AxisHeat`);
+    * ``heat`` — eq. 8 coefficients per axis (:class:`afmctl.compensators.heat.AxisHeat`);
     * ``output_scale_nm`` — nm per output unit of the paths (1 when the paths give nm;
       1e9 for Table A1, whose outputs we read as metres);
     * ``doubts`` — free-text notes on doubtful entries (Table A1 has several).

@@ -1,7 +1,7 @@
 """Online drift correction: a Kalman filter that fuses the drift model's prediction with
 drift measurements when they arrive.
 
-The drift model (:mod:`compensators.drift`) is right in shape but not in size: its
+The drift model (:mod:`afmctl.compensators.drift`) is right in shape but not in size: its
 coefficients are uncertain (Table A1 of the drift paper has unstated units, and any real
 scanner differs from its nominal set). We write the true drift per axis as
 
@@ -10,7 +10,7 @@ scanner differs from its nominal set). We write the true drift per axis as
 and track the bias ``b`` [nm] (and, by default, its rate ``ḃ`` [nm/s]) as a random walk
 (integrated random walk with ``with_rate=True``). A measurement — the displacement of a
 reference feature found by phase correlation between images
-(:mod:`compensators.phase_correlation`), or a position sensor — is
+(:mod:`afmctl.compensators.phase_correlation`), or a position sensor — is
 ``z = d_true + v``, ``v ~ N(0, σ²)``, so the innovation is ``z − (d_model + b)``.
 
 The three axes are independent two-state (or one-state) filters.
@@ -38,7 +38,7 @@ import numba
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from compensators.base import ModelError
+from .base import ModelError
 
 
 class KalmanParams(BaseModel):

@@ -52,10 +52,10 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from pydantic import Field, FiniteFloat
 
-from compensators import _pi_kernels as K
-from compensators.base import ModelError, StreamingOperator
-from compensators.input_checks import block_samples, finite_sample, number_option
-from compensators.pi import (PIFamilyModel, PIOperator, fit_pi_weights,
+from . import _pi_kernels as K
+from .base import ModelError, StreamingOperator
+from .input_checks import block_samples, finite_sample, number_option
+from .pi import (PIFamilyModel, PIOperator, fit_pi_weights,
                              prepare_pi_identification)
 
 log = logging.getLogger(__name__)
@@ -103,7 +103,7 @@ class CreepEpisodes:
         self.fm_width = 0.0
 
     def packed(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(cs, prm)`` arrays of the compiled twin (:mod:`compensators._pi_kernels`),
+        """``(cs, prm)`` arrays of the compiled twin (:mod:`afmctl.compensators._pi_kernels`),
         in the reset state."""
         cs = np.zeros(K.CS_SIZE)
         cs[0] = self.u_initial

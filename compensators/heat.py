@@ -37,7 +37,7 @@ import math
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from compensators.base import ModelError, check_finite
+from .base import ModelError, check_finite
 
 
 class TubeGeometry(BaseModel):

@@ -5,7 +5,7 @@ AFM piezo-scanner* (seeds/003), Section 2.2; equation numbers are that paper's.
 
 Procedure (the paper's Steps 1–4):
 
-1. *Scans* (done by the caller, e.g. :mod:`sim_backend.image_scans`): one line of a grating
+1. *Scans* (done by the caller, e.g. :mod:`afmctl.sim_backend.image_scans`): one line of a grating
    of known period is scanned repeatedly with a triangular voltage u_min → u_max → u_min,
    for several scan ranges u_max. Each pixel's voltage is known.
 2. *Features* (eqs. 4–5): every line is cut where its height exceeds the threshold
@@ -52,7 +52,7 @@ from typing import Any
 
 import numpy as np
 
-from compensators.base import ModelError
+from .base import ModelError
 
 log = logging.getLogger(__name__)
 
@@ -332,7 +332,7 @@ def identify_from_images(scans: Mapping[str, Any], kind: str = "preisach", n_ope
     ``order`` is the polynomial order m of eq. 6, ``a``/``c`` the threshold parameters of
     eq. 4; other ``options`` go to ``Model.identify`` (for "preisach": the grid range
     defaults to the scanned voltage range)."""
-    from compensators.models import model_class
+    from .models import model_class
 
     branches = branches_from_scans(scans, order=order, a=a, c=c)
     t, u, y = reversal_record(branches, points_per_branch)

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from compensators.base import ModelError, check_finite
+from .base import ModelError, check_finite
 
 
 def block_samples(name: str, x: Any) -> np.ndarray:

@@ -6,8 +6,8 @@ does not import the others.
 
 A model maps input voltage ``u`` [V] to displacement ``y`` [nm]:
 
-* ``model.forward(dt_s)`` → :class:`~compensators.base.StreamingOperator` u[V] → y[nm]
-* ``model.inverse(dt_s)`` → :class:`~compensators.base.StreamingOperator` y[nm] → u[V]
+* ``model.forward(dt_s)`` → :class:`~afmctl.compensators.base.StreamingOperator` u[V] → y[nm]
+* ``model.inverse(dt_s)`` → :class:`~afmctl.compensators.base.StreamingOperator` y[nm] → u[V]
   (the feedforward compensator)
 * ``Model.identify(t_s, u_V, y_nm, **options)`` → a fitted model (classmethod)
 
@@ -23,15 +23,15 @@ from typing import Any, ClassVar
 import numpy as np
 from pydantic import BaseModel, ConfigDict, ValidationError
 
-from compensators.base import ModelError, StreamingOperator
+from .base import ModelError, StreamingOperator
 
 #: kind → "module:Class". Add a line here when a new model kind lands.
 KINDS: dict[str, str] = {
-    "pi": "compensators.pi:PIModel",
-    "epi": "compensators.epi:EPIModel",
-    "creep": "compensators.creep:LinearCreepModel",
-    "preisach": "compensators.preisach:PreisachModel",
-    "bouc-wen": "compensators.bouc_wen:BoucWenModel",
+    "pi": "afmctl.compensators.pi:PIModel",
+    "epi": "afmctl.compensators.epi:EPIModel",
+    "creep": "afmctl.compensators.creep:LinearCreepModel",
+    "preisach": "afmctl.compensators.preisach:PreisachModel",
+    "bouc-wen": "afmctl.compensators.bouc_wen:BoucWenModel",
 }
 
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from compensators.base import ModelError
+from .base import ModelError
 
 
 def _upsampled_dft(data: np.ndarray, region: int, upsample: int, offsets: tuple[float, float]) -> np.ndarray:

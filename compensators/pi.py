@@ -43,10 +43,10 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field, FiniteFloat, ValidationInfo, field_validator
 
-from compensators import _pi_kernels as K
-from compensators.base import ModelError, StreamingOperator, check_finite
-from compensators.models import HysteresisModel
-from compensators.input_checks import block_samples, finite_sample, number_option
+from . import _pi_kernels as K
+from .base import ModelError, StreamingOperator, check_finite
+from .models import HysteresisModel
+from .input_checks import block_samples, finite_sample, number_option
 
 log = logging.getLogger(__name__)
 

@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from compensators import _pi_kernels as K
-from compensators.base import ModelError, StreamingOperator
-from compensators.input_checks import block_samples, finite_sample
+from . import _pi_kernels as K
+from .base import ModelError, StreamingOperator
+from .input_checks import block_samples, finite_sample
 
 _ONE = np.ones(1)
 

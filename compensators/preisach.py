@@ -40,7 +40,7 @@ Out-of-range inputs
     Inputs outside ``[u_min_V, u_max_V]`` are **clamped** to the range and a warning is
     logged (once per operator until :meth:`reset`); the number of clamped samples is kept
     in ``operator.n_clamped``. Targets the model cannot reach are clamped the same way by
-    the inverse. Non-finite samples raise :class:`~compensators.base.ModelError`.
+    the inverse. Non-finite samples raise :class:`~afmctl.compensators.base.ModelError`.
 
 Initial state (``reset``): negative saturation at ``u_min_V`` (output ``offset_nm``); the
 first sample then ascends from ``u_min_V``.
@@ -54,10 +54,10 @@ from typing import Any, Callable, ClassVar, Literal
 import numpy as np
 from pydantic import Field, FiniteFloat, model_validator
 
-from compensators import _preisach_kernels as _k
-from compensators.base import ModelError, StreamingOperator
-from compensators.input_checks import block_samples, finite_sample
-from compensators.models import HysteresisModel
+from . import _preisach_kernels as _k
+from .base import ModelError, StreamingOperator
+from .input_checks import block_samples, finite_sample
+from .models import HysteresisModel
 
 log = logging.getLogger(__name__)
 
@@ -213,9 +213,9 @@ class PreisachModel(HysteresisModel):
         reversal curves, ``"nnls"`` regularised nonnegative least squares, ``"auto"``
         default: FOR when the data are reversal curves from ``u_min``), ``smoothing``
         (NNLS regularisation weight, default 1e-4), ``max_rows`` (NNLS rows, default 200000).
-        See :mod:`compensators.preisach_identify`.
+        See :mod:`afmctl.compensators.preisach_identify`.
         """
-        from compensators.preisach_identify import identify_preisach
+        from .preisach_identify import identify_preisach
         return identify_preisach(cls, t_s, u_V, y_nm, n_operators=n_operators, **options)
 
     def summary(self) -> str:

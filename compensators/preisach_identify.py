@@ -33,8 +33,8 @@ from typing import Any
 
 import numpy as np
 
-from compensators.base import ModelError, check_finite
-from compensators.input_checks import number_option
+from .base import ModelError, check_finite
+from .input_checks import number_option
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +62,7 @@ def identify_preisach(cls: type, t_s: Any, u_V: Any, y_nm: Any, n_operators: int
                       u_min_V: float | None = None, u_max_V: float | None = None, method: str = "auto",
                       smoothing: float = 1e-4, max_rows: int = 200000, memory_depth: int | None = None,
                       levels: int | None = None) -> Any:
-    """Fit ``cls`` (a :class:`~compensators.preisach.PreisachModel`) to the data; see the
+    """Fit ``cls`` (a :class:`~afmctl.compensators.preisach.PreisachModel`) to the data; see the
     module docstring. ``n_operators`` (or ``levels``) is the number of grid levels."""
     u, y = _check_data(t_s, u_V, y_nm)
     L = n_operators if n_operators is not None else (levels if levels is not None else 32)
@@ -219,7 +219,7 @@ def _node_cell_matrix(L: int) -> np.ndarray:
 def _project_nonneg(G: np.ndarray) -> np.ndarray:
     """Nearest nonnegative cell masses (least squares on the node values)."""
     from scipy.optimize import nnls
-    from compensators.preisach import cell_masses_from_nodes
+    from .preisach import cell_masses_from_nodes
     L = G.shape[0] - 1
     w = cell_masses_from_nodes(G)
     ci = np.tril_indices(L)
@@ -239,7 +239,7 @@ def _project_nonneg(G: np.ndarray) -> np.ndarray:
 # ------------------------------------------------------------------ regularised NNLS
 def _features(u: np.ndarray, rows: np.ndarray, lo: float, hi: float, L: int, cap: int) -> np.ndarray:
     """Φ[r, cell]: d y(rows[r]) / d w[cell] (cells in np.tril_indices(L) order)."""
-    from compensators import _preisach_kernels as k
+    from . import _preisach_kernels as k
     R = rows.shape[0]
     plo = np.zeros((R, cap))
     phi = np.zeros((R, cap))

@@ -16,7 +16,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from compensators.base import ModelError
+from .base import ModelError
 
 #: plausible ambient temperatures [°C]; anything outside is a sensor or file error
 T_MIN_C, T_MAX_C = -100.0, 200.0

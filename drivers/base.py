@@ -3,7 +3,7 @@
 Layering (as in pyLabLib / PIPython / caproto): a *transport* moves bytes or frames, a
 *codec* (pure, no I/O) turns typed messages into bytes and back, and the *driver* here
 speaks typed commands. A driver takes an open transport; it never builds one — see
-:func:`drivers.registry.open_amplifier` for selection by name and URL.
+:func:`afmctl.drivers.registry.open_amplifier` for selection by name and URL.
 
 Voltages are in volts. Axes are named ``"x"``, ``"y"``, ``"z"`` (a single-channel unit has
 only ``"x"``).
@@ -13,9 +13,9 @@ and returns without waiting for the device where the protocol allows it (pipelin
 error the device reports for an earlier setpoint is raised by a later call, and
 :meth:`Amplifier.flush` waits until everything written has been applied and checked.
 After a lost link (``DISCONNECTED``) or a silent device (``FAULT``) every command raises
-:class:`~drivers.errors.AmplifierConnectionError` until :meth:`Amplifier.reconnect`.
-Implementations: :mod:`drivers.mdt`, :mod:`drivers.gcs`, :mod:`drivers.nv200`,
-:mod:`drivers.can_amp`; see docs/DRIVERS.md.
+:class:`~afmctl.drivers.errors.AmplifierConnectionError` until :meth:`Amplifier.reconnect`.
+Implementations: :mod:`afmctl.drivers.mdt`, :mod:`afmctl.drivers.gcs`, :mod:`afmctl.drivers.nv200`,
+:mod:`afmctl.drivers.can_amp`; see docs/DRIVERS.md.
 """
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from drivers.errors import LimitError
+from .errors import LimitError
 
 
 class ConnectionState(enum.Enum):
@@ -77,7 +77,7 @@ class Amplifier(ABC):
     @abstractmethod
     def set_voltages(self, volts: Mapping[str, float]) -> None:
         """Command output voltages [V] on some axes (the others keep their value). Values
-        outside :attr:`limits` (or NaN/inf) raise :class:`~drivers.errors.LimitError` before
+        outside :attr:`limits` (or NaN/inf) raise :class:`~afmctl.drivers.errors.LimitError` before
         any byte is sent. May return before the device applied it (see module notes)."""
 
     @abstractmethod

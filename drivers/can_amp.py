@@ -1,4 +1,4 @@
-"""The CAN amplifier driver (frames of ``afm_amplifier.dbc``, see :mod:`drivers.codec_can`).
+"""The CAN amplifier driver (frames of ``afm_amplifier.dbc``, see :mod:`afmctl.drivers.codec_can`).
 
 Streaming: one SETPOINT_XYZ frame per 3-axis setpoint, SEQ counting up by one (mod 256);
 axes not given keep their last value. Nothing waits for the amplifier while streaming;
@@ -15,11 +15,11 @@ import threading
 import time
 from collections.abc import Mapping
 
-from drivers import codec_can as codec
-from drivers.base import ConnectionState, VoltageLimits
-from drivers.errors import AmplifierConnectionError, AmplifierError, AmplifierTimeout, LimitError, ProtocolError
-from drivers.serial_amp import HostLimits, LimitedAmplifier
-from drivers.transport_can import CanTransport
+from . import codec_can as codec
+from .base import ConnectionState, VoltageLimits
+from .errors import AmplifierConnectionError, AmplifierError, AmplifierTimeout, LimitError, ProtocolError
+from .serial_amp import HostLimits, LimitedAmplifier
+from .transport_can import CanTransport
 
 log = logging.getLogger(__name__)
 

@@ -20,7 +20,7 @@ import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from drivers.errors import LimitError, ProtocolError
+from .errors import LimitError, ProtocolError
 
 DBC_PATH = Path(__file__).with_name("afm_amplifier.dbc")
 SETPOINT_ID, HEARTBEAT_ID, STATUS_ID, ERROR_ID, LIMITS_ID = 0x110, 0x111, 0x190, 0x191, 0x192

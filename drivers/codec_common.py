@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import re
 
-from drivers.errors import LimitError, ProtocolError
+from .errors import LimitError, ProtocolError
 
 _NUMBER = re.compile(rb"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?")
 

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
-from drivers.codec_common import format_inside, parse_number
-from drivers.errors import ProtocolError
+from .codec_common import format_inside, parse_number
+from .errors import ProtocolError
 
 TERMINATOR = b"\n"
 DECIMALS = 4

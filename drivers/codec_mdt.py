@@ -12,8 +12,8 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from drivers.codec_common import format_inside, parse_number
-from drivers.errors import ProtocolError
+from .codec_common import format_inside, parse_number
+from .errors import ProtocolError
 
 TERMINATOR = b"\r"
 PROMPTS = b">*"

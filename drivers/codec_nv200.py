@@ -8,8 +8,8 @@ See PROTOCOLS.md.
 """
 from __future__ import annotations
 
-from drivers.codec_common import format_inside, parse_number
-from drivers.errors import ProtocolError
+from .codec_common import format_inside, parse_number
+from .errors import ProtocolError
 
 TERMINATOR = b"\r\n"
 XON = b"\x11"

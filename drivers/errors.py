@@ -1,4 +1,4 @@
-"""The short exception hierarchy of :mod:`drivers`.
+"""The short exception hierarchy of :mod:`afmctl.drivers`.
 
 Every error may carry the device's own error ``code`` and ``text`` and the raw bytes that
 caused it (``data``), so that a person at the bench sees what the amplifier said.

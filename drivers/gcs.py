@@ -4,15 +4,15 @@
 Streaming: ``SVA`` has no reply, so setpoints are written back to back; every
 ``check_every`` setpoints the driver appends ``ERR?`` to the same write and reads that
 reply when it has arrived (at most one check outstanding) — an error latched by the
-device is raised as :class:`~drivers.errors.ProtocolError` with its GCS code.
+device is raised as :class:`~afmctl.drivers.errors.ProtocolError` with its GCS code.
 """
 from __future__ import annotations
 
-from drivers import codec_gcs as codec
-from drivers.base import VoltageLimits
-from drivers.errors import ProtocolError
-from drivers.serial_amp import SerialAmplifier
-from drivers.transport import SerialTransport
+from . import codec_gcs as codec
+from .base import VoltageLimits
+from .errors import ProtocolError
+from .serial_amp import SerialAmplifier
+from .transport import SerialTransport
 
 _AXES = ("x", "y", "z")
 

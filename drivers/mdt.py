@@ -4,17 +4,17 @@ Streaming: every set command is answered by the prompt alone, so the driver writ
 setpoints without waiting and counts the prompts as they come back, keeping at most
 ``max_in_flight`` commands unanswered (bounded latency, full link rate). A
 ``CMD_NOT_DEFINED`` reply to any pipelined command raises
-:class:`~drivers.errors.ProtocolError` at the next call.
+:class:`~afmctl.drivers.errors.ProtocolError` at the next call.
 """
 from __future__ import annotations
 
 import collections
 
-from drivers import codec_mdt as codec
-from drivers.base import VoltageLimits
-from drivers.errors import ProtocolError
-from drivers.serial_amp import SerialAmplifier
-from drivers.transport import SerialTransport
+from . import codec_mdt as codec
+from .base import VoltageLimits
+from .errors import ProtocolError
+from .serial_amp import SerialAmplifier
+from .transport import SerialTransport
 
 
 class MDT693B(SerialAmplifier):

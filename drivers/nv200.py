@@ -3,16 +3,16 @@
 At connect: ``cl,0`` (open loop), ``modsrc,0`` (setpoint from the serial link), voltage
 range from ``avmin``/``avmax``. Setpoints ``set,<V>`` are written back to back; error
 frames (``error,<n>``) that arrive are raised as
-:class:`~drivers.errors.ProtocolError` with the device code at the next call; a read
+:class:`~afmctl.drivers.errors.ProtocolError` with the device code at the next call; a read
 (``set``) serves as the synchronisation point of :meth:`flush`.
 """
 from __future__ import annotations
 
-from drivers import codec_nv200 as codec
-from drivers.base import VoltageLimits
-from drivers.errors import ProtocolError
-from drivers.serial_amp import SerialAmplifier
-from drivers.transport import SerialTransport
+from . import codec_nv200 as codec
+from .base import VoltageLimits
+from .errors import ProtocolError
+from .serial_amp import SerialAmplifier
+from .transport import SerialTransport
 
 #: frames other than the awaited reply or an error tolerated while waiting for a reply
 _MAX_SKIPPED = 64

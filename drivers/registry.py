@@ -9,15 +9,15 @@ python-can (``virtual:afm0``, ``socketcan:can0``).
 """
 from __future__ import annotations
 
-from drivers.base import Amplifier
+from .base import Amplifier
 
 #: driver name -> (module, class)
 DRIVERS: dict[str, tuple[str, str]] = {
-    "mdt693b": ("drivers.mdt", "MDT693B"),
-    "mdt694b": ("drivers.mdt", "MDT694B"),
-    "gcs": ("drivers.gcs", "GCSAmplifier"),
-    "nv200": ("drivers.nv200", "NV200"),
-    "can": ("drivers.can_amp", "CANAmplifier"),
+    "mdt693b": ("afmctl.drivers.mdt", "MDT693B"),
+    "mdt694b": ("afmctl.drivers.mdt", "MDT694B"),
+    "gcs": ("afmctl.drivers.gcs", "GCSAmplifier"),
+    "nv200": ("afmctl.drivers.nv200", "NV200"),
+    "can": ("afmctl.drivers.can_amp", "CANAmplifier"),
 }
 
 
@@ -32,16 +32,16 @@ def open_amplifier(driver: str, port: str, *, baudrate: int | None = None, timeo
     """
     import importlib
 
-    from drivers.errors import AmplifierConnectionError
+    from .errors import AmplifierConnectionError
     name = driver.lower()
     if name not in DRIVERS:
         raise AmplifierConnectionError(f"unknown driver {driver!r}; choose one of {', '.join(DRIVERS)}")
     module, cls_name = DRIVERS[name]
     cls = getattr(importlib.import_module(module), cls_name)
     if name == "can":
-        from drivers.transport_can import CanTransport
+        from .transport_can import CanTransport
         return cls(CanTransport(port, **({"bitrate": baudrate} if baudrate else {})), timeout_s=timeout_s, **options)
-    from drivers.transport import SerialTransport
+    from .transport import SerialTransport
     transport = SerialTransport(port, baudrate=baudrate or cls.default_baudrate, timeout_s=timeout_s,
                                 write_timeout_s=write_timeout_s)
     try:

@@ -1,8 +1,8 @@
 """Common machinery of the serial amplifier drivers: limits, connection state, error
 mapping, pipelined writes and reconnect with backoff.
 
-A driver takes an open-able :class:`~drivers.transport.SerialTransport`; it never builds
-one (see :func:`drivers.registry.open_amplifier`).
+A driver takes an open-able :class:`~afmctl.drivers.transport.SerialTransport`; it never builds
+one (see :func:`afmctl.drivers.registry.open_amplifier`).
 
 Life cycle: the constructor connects (handshake, device limits, read-back of the actual
 output). A lost port puts the driver in ``DISCONNECTED``, a silent device (timeout) or a
@@ -19,9 +19,9 @@ import time
 from abc import abstractmethod
 from collections.abc import Mapping
 
-from drivers.base import Amplifier, ConnectionState, VoltageLimits
-from drivers.errors import AmplifierConnectionError, AmplifierError, AmplifierTimeout, LimitError, ProtocolError
-from drivers.transport import SerialTransport
+from .base import Amplifier, ConnectionState, VoltageLimits
+from .errors import AmplifierConnectionError, AmplifierError, AmplifierTimeout, LimitError, ProtocolError
+from .transport import SerialTransport
 
 log = logging.getLogger(__name__)
 

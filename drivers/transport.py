@@ -2,9 +2,9 @@
 
 Every read and write has a timeout; pyserial's ``write_timeout`` is always set (its
 default ``None`` blocks forever when a device stops reading). pyserial and OS errors are
-mapped onto :mod:`drivers.errors`: a lost port raises
-:class:`~drivers.errors.AmplifierConnectionError`, a stalled one
-:class:`~drivers.errors.AmplifierTimeout` carrying the bytes received so far.
+mapped onto :mod:`afmctl.drivers.errors`: a lost port raises
+:class:`~afmctl.drivers.errors.AmplifierConnectionError`, a stalled one
+:class:`~afmctl.drivers.errors.AmplifierTimeout` carrying the bytes received so far.
 """
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import logging
 import time
 from collections.abc import Callable
 
-from drivers.errors import AmplifierConnectionError, AmplifierTimeout
+from .errors import AmplifierConnectionError, AmplifierTimeout
 
 log = logging.getLogger(__name__)
 

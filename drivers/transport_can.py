@@ -6,8 +6,8 @@ import logging
 import time
 from collections.abc import Callable
 
-from drivers.errors import AmplifierConnectionError, AmplifierTimeout
-from drivers.transport import parse_can_url
+from .errors import AmplifierConnectionError, AmplifierTimeout
+from .transport import parse_can_url
 
 log = logging.getLogger(__name__)
 

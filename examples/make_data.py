@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from afmctl.datafiles import read_csv, write_csv
-from sim_backend.scanner import Scanner, default_scanner_config
+from afmctl.sim_backend.scanner import Scanner, default_scanner_config
 
 DT_S = 1e-3          # sample period of the files [s]
 SUB = 10             # the plant is simulated at 10 kHz and averaged to 1 kHz

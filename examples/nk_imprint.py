@@ -36,7 +36,7 @@ def imprint(models: dict[str, Path] | None, height_nm: float, dt_s: float) -> tu
     from afmctl import trajectories as tr
     from afmctl.config import load_config
     from afmctl.pipeline import build_pipeline
-    from sim_backend.scanner import Scanner, default_scanner_config
+    from afmctl.sim_backend.scanner import Scanner, default_scanner_config
     comp = "".join(f'[compensation.{a}]\nmodel = "{p}"\n' for a, p in (models or {}).items())
     cfg = load_config(text=f"[simulation]\nenabled = true\n[loop]\nrate_Hz = {1 / dt_s}\n"
                            "[scanner.calibration.x]\nnm_per_V = 80\n[scanner.calibration.y]\nnm_per_V = 80\n"

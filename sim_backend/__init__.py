@@ -1,2 +1,2 @@
 """The simulated scanner: plant models, simulated amplifiers speaking the real protocols,
-sample surfaces and AFM imaging. Imports :mod:`compensators`, never :mod:`afmctl`."""
+sample surfaces and AFM imaging. Imports :mod:`afmctl.compensators`, never :mod:`afmctl`."""

@@ -15,7 +15,7 @@ import types
 
 import numba
 
-from compensators._preisach_kernels import _memory_update as _memory_update_nb
+from afmctl.compensators._preisach_kernels import _memory_update as _memory_update_nb
 
 
 # --------------------------------------------------------------------------- amplifier
@@ -84,7 +84,7 @@ def _segment_py(E, lo, h, n, p, q):
 def preisach_py(u, out, E, lo, hi, lin, s, P, ist):
     """Classical Preisach operator by its memory of dominant extrema with wiping-out
     (image-based paper, eqs. 3 and 8): y = lin·(u − lo) + Σ ±E over the pairs of the
-    memory. The memory is the one of :mod:`compensators._preisach_kernels` and is updated
+    memory. The memory is the one of :mod:`afmctl.compensators._preisach_kernels` and is updated
     by its ``_memory_update`` (one piece of code for both): ``s[0] = lo`` (negative
     saturation), ``s[1..K]`` the alternating dominant extrema, ``s[K]`` the current input,
     ``ist = [K]``; at ``K = len(s) − 1`` the innermost loop is forgotten. ``P[j]`` is the

@@ -70,7 +70,7 @@ class GaussianPreisachConfig(_VoltageSpan):
 
 
 class ExternalModelConfig(_Strict):
-    """Any :class:`compensators.models.HysteresisModel` as the plant, given as its model-file
+    """Any :class:`afmctl.compensators.models.HysteresisModel` as the plant, given as its model-file
     JSON object (``{"kind": "pi", ...}``); the plant uses ``model.forward(dt_s)``."""
 
     kind: Literal["model"] = "model"

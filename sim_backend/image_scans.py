@@ -4,7 +4,7 @@ scanner, a triangular voltage u_min → u_max → u_min per line, for several sc
 
 :func:`scan_grating_lines` returns a :class:`GratingScans` whose :meth:`GratingScans.arrays`
 is exactly the ``--from-images`` file of ``afmctl identify`` (see
-:mod:`compensators.image_identify` and docs/SIM.md). The plant's true position is kept
+:mod:`afmctl.compensators.image_identify` and docs/SIM.md). The plant's true position is kept
 apart in :attr:`GratingScans.truth` (for tests that compare with sensor-based
 identification); the image-based identification never reads it.
 """
@@ -19,8 +19,8 @@ from typing import Any, Literal
 
 import numpy as np
 
-from compensators.base import ModelError
-from sim_backend.samples import Grating1D
+from afmctl.compensators.base import ModelError
+from .samples import Grating1D
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +36,7 @@ DEFAULT_LEVELS = 15
 @dataclass
 class GratingScans:
     """Images and voltage ramps of the identification scans (shapes in the module doc of
-    :mod:`compensators.image_identify`); ``truth`` holds the true positions, for tests."""
+    :mod:`afmctl.compensators.image_identify`); ``truth`` holds the true positions, for tests."""
 
     period_nm: float
     u_trace_V: np.ndarray
@@ -131,7 +131,7 @@ def scan_grating_lines(scanner: Any, sample: Any | None = None, *, axis: Literal
 def load_scans_npz(path: str | Path) -> dict[str, np.ndarray]:
     """Read a scan file written by :meth:`GratingScans.save_npz` (or by hand, same arrays);
     :class:`ModelError` with the file name for anything unreadable or incomplete."""
-    from compensators.image_identify import check_scans
+    from afmctl.compensators.image_identify import check_scans
 
     p = Path(path)
     try:
@@ -152,9 +152,9 @@ def load_scans_npz(path: str | Path) -> dict[str, np.ndarray]:
 def identify_from_scan_file(path: str | Path, kind: str = "preisach", n_operators: int | None = None,
                             **options: Any):
     """``afmctl identify --from-images``: load the scan file and run the image-based
-    identification (:func:`compensators.image_identify.identify_from_images`). Options
+    identification (:func:`afmctl.compensators.image_identify.identify_from_images`). Options
     not known to the identification raise :class:`ModelError` naming them."""
-    from compensators.image_identify import identify_from_images
+    from afmctl.compensators.image_identify import identify_from_images
 
     data = load_scans_npz(path)
     try:
@@ -173,12 +173,12 @@ def identify_axes_from_images(scanner: Any, axes: tuple[str, ...] = ("x", "y"), 
                               reset: bool = True, **options: Any) -> dict[str, Any]:
     """Image-based Preisach models for the lateral axes of a simulated scanner: for each
     axis, :func:`scan_grating_lines` on the 278 nm grating (lines across that axis) and
-    :func:`compensators.image_identify.identify_from_images`. ``line_rate_Hz`` per axis
+    :func:`afmctl.compensators.image_identify.identify_from_images`. ``line_rate_Hz`` per axis
     (default x: 1 line/s; y: 1/512 lines/s, i.e. one ramp as slow as the slow axis of a
     512-line image at 1 line/s — identify each axis at the speed it is used, so that creep
     is seen as it will be). The scanner is reset before each axis if ``reset``.
     Returns {axis: PreisachModel}."""
-    from compensators.image_identify import identify_from_images
+    from afmctl.compensators.image_identify import identify_from_images
 
     rates = {"x": 1.0, "y": 1.0 / 512.0}
     rates.update(line_rate_Hz or {})

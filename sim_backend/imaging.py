@@ -27,7 +27,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from compensators.base import ModelError, StreamingOperator
+from afmctl.compensators.base import ModelError, StreamingOperator
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +66,7 @@ class ScanImage:
         """Local periods of a grating in the image along ``axis`` [nm, in commanded
         coordinates]: distances between consecutive feature points (image-based paper,
         eqs. 4–5) of the image averaged across the other axis."""
-        from compensators.image_identify import feature_points
+        from afmctl.compensators.image_identify import feature_points
 
         img = self.trace_nm if which == "trace" else self.retrace_nm
         if axis == "x":

@@ -2,10 +2,10 @@
 
 * :func:`everett_table` — Everett function of a Gaussian-mixture Preisach density on a grid.
 * :class:`GaussianPreisachOperator` — the classical Preisach operator (image-based paper,
-  eqs. 3, 7, 8) as a :class:`~compensators.base.StreamingOperator` u [V] → y [nm].
+  eqs. 3, 7, 8) as a :class:`~afmctl.compensators.base.StreamingOperator` u [V] → y [nm].
 * :class:`AxisPlant` — one axis, block simulation with carried state for any sample period.
 
-Every stage has a plain-Python reference in :mod:`sim_backend._plant_kernels`; the numba
+Every stage has a plain-Python reference in :mod:`afmctl.sim_backend._plant_kernels`; the numba
 twin is used when ``fast=True`` (the default).
 """
 from __future__ import annotations
@@ -16,9 +16,9 @@ import math
 import numpy as np
 from scipy.linalg import expm
 
-from compensators.base import StreamingOperator
-from sim_backend import _plant_kernels as K
-from sim_backend.config import AxisConfig, CreepConfig, DynamicsConfig, ExternalModelConfig, GaussianPreisachConfig
+from afmctl.compensators.base import StreamingOperator
+from . import _plant_kernels as K
+from .config import AxisConfig, CreepConfig, DynamicsConfig, ExternalModelConfig, GaussianPreisachConfig
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +77,7 @@ class GaussianPreisachOperator(StreamingOperator):
         self.reset()
 
     def reset(self) -> None:
-        # memory of :func:`sim_backend._plant_kernels.preisach_py`: turning points s[0..K]
+        # memory of :func:`afmctl.sim_backend._plant_kernels.preisach_py`: turning points s[0..K]
         # (s[0] = lo), prefix sums P, ist = [K]
         self.s = np.zeros(MEMORY_CAPACITY + 1)
         self.s[0] = self.lo
@@ -133,7 +133,7 @@ class AxisPlant:
         hyst = cfg.hysteresis
         self._external = isinstance(hyst, ExternalModelConfig)
         if self._external:
-            from compensators.models import model_from_dict
+            from afmctl.compensators.models import model_from_dict
 
             self.model = model_from_dict(hyst.model, where="hysteresis.model")
             self._hyst_ops: dict[float, StreamingOperator] = {}

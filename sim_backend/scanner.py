@@ -33,9 +33,9 @@ from typing import Any
 
 import numpy as np
 
-from compensators.base import ModelError
-from sim_backend import _plant_kernels as K
-from sim_backend.config import (
+from afmctl.compensators.base import ModelError
+from . import _plant_kernels as K
+from .config import (
     AXES,
     AmplifierConfig,
     AxisConfig,
@@ -50,7 +50,7 @@ from sim_backend.config import (
     default_scanner_config,
     linear_scanner_config,
 )
-from sim_backend.plant import AxisPlant
+from .plant import AxisPlant
 
 log = logging.getLogger(__name__)
 
@@ -82,9 +82,9 @@ class _Drift:
         self._warned_dt = False
         if cfg.kind == "params":
             try:
-                from compensators.drift import DriftParams  # interface item 2
+                from afmctl.compensators.drift import DriftParams  # interface item 2
             except ImportError as err:  # pragma: no cover - only without compensators.drift
-                log.warning("compensators.drift unavailable (%s); using the first-order expansion drift model", err)
+                log.warning("afmctl.compensators.drift unavailable (%s); using the first-order expansion drift model", err)
                 self.cfg = cfg = cfg.model_copy(update={"kind": "expansion"})
                 self.reset(T0_C)
                 return
@@ -318,7 +318,7 @@ class Scanner:
                 n -= k
 
     def image(self, sample: Any, **kwargs: Any):
-        """Raster-image ``sample``; see :func:`sim_backend.imaging.raster_image`."""
-        from sim_backend.imaging import raster_image
+        """Raster-image ``sample``; see :func:`afmctl.sim_backend.imaging.raster_image`."""
+        from .imaging import raster_image
 
         return raster_image(self, sample, **kwargs)

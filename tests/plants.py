@@ -21,7 +21,7 @@ import numpy as np
 
 from numba import njit
 
-from compensators.creep import LinearCreep
+from afmctl.compensators.creep import LinearCreep
 
 
 @njit(cache=True)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from afmctl.cli import main
-from sim_backend.testing import serve_can, serve_pty
+from afmctl.sim_backend.testing import serve_can, serve_pty
 
 
 @pytest.fixture

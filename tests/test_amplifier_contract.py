@@ -11,11 +11,11 @@ import uuid
 
 import pytest
 
-from drivers.base import ConnectionState, VoltageLimits
-from drivers.errors import AmplifierConnectionError, AmplifierTimeout, LimitError, ProtocolError
-from drivers.registry import open_amplifier
-from sim_backend.amplifiers import RecordingSink
-from sim_backend.testing import no_leaks, serve_can, serve_pty
+from afmctl.drivers.base import ConnectionState, VoltageLimits
+from afmctl.drivers.errors import AmplifierConnectionError, AmplifierTimeout, LimitError, ProtocolError
+from afmctl.drivers.registry import open_amplifier
+from afmctl.sim_backend.amplifiers import RecordingSink
+from afmctl.sim_backend.testing import no_leaks, serve_can, serve_pty
 
 BACKENDS = ["mdt693b", "mdt694b", "gcs", "nv200", "can"]
 #: resolution of the numbers each protocol sends [V]

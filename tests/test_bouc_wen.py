@@ -7,9 +7,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from compensators.base import ModelError
-from compensators.bouc_wen import BoucWenModel, ReferenceBoucWen, reference_forward
-from compensators.models import model_from_dict
+from afmctl.compensators.base import ModelError
+from afmctl.compensators.bouc_wen import BoucWenModel, ReferenceBoucWen, reference_forward
+from afmctl.compensators.models import model_from_dict
 
 TRUE = dict(d_nm_per_V=100.0, A_nm_per_V=30.0, beta=0.004, gamma=0.0015, n=1.2)
 

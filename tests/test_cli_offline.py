@@ -12,7 +12,7 @@ from plants import RelayPreisachPlant, decaying_triangle, staircase, triangle
 
 from afmctl.cli import main
 from afmctl.datafiles import read_csv, write_csv
-from compensators.models import load_model
+from afmctl.compensators.models import load_model
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +26,7 @@ def files(tmp_path_factory):
     # staircase data with dwells for epi / creep
     ts, us = staircase(2e-3, [0, 30, 60, 90, 60, 30, 0, 45, 90, 45, 0], 0.6)
     ys = 100.0 * us + 3.0 * np.concatenate([[0.0], np.cumsum(np.sign(np.diff(us)))])  # a little memory
-    from compensators.creep import LinearCreep
+    from afmctl.compensators.creep import LinearCreep
     ys = LinearCreep([0.2], [0.05], 2e-3).block(ys)
     write_csv(d / "stairs.csv", {"t": ts, "u": us, "y": ys})
     return d

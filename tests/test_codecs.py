@@ -12,12 +12,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers import codec_can, codec_gcs, codec_mdt, codec_nv200
-from drivers.codec_common import format_inside
-from drivers.errors import LimitError, ProtocolError
-from sim_backend.amplifiers.gcs import SimGCS
-from sim_backend.amplifiers.mdt693b import SimMDT693B
-from sim_backend.amplifiers.nv200 import SimNV200
+from afmctl.drivers import codec_can, codec_gcs, codec_mdt, codec_nv200
+from afmctl.drivers.codec_common import format_inside
+from afmctl.drivers.errors import LimitError, ProtocolError
+from afmctl.sim_backend.amplifiers.gcs import SimGCS
+from afmctl.sim_backend.amplifiers.mdt693b import SimMDT693B
+from afmctl.sim_backend.amplifiers.nv200 import SimNV200
 
 volts = st.floats(min_value=0.0, max_value=150.0, allow_nan=False)
 any_float = st.floats(allow_nan=True, allow_infinity=True)

@@ -17,14 +17,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from compensators.base import ModelError
-from compensators.bouc_wen import BoucWenModel
-from compensators.creep import LinearCreepModel
-from compensators.epi import EPIModel
-from compensators.models import model_from_dict
-from compensators.pi import PIModel
-from compensators.play import PlayOperator
-from compensators.preisach import PreisachModel, ReferencePreisach
+from afmctl.compensators.base import ModelError
+from afmctl.compensators.bouc_wen import BoucWenModel
+from afmctl.compensators.creep import LinearCreepModel
+from afmctl.compensators.epi import EPIModel
+from afmctl.compensators.models import model_from_dict
+from afmctl.compensators.pi import PIModel
+from afmctl.compensators.play import PlayOperator
+from afmctl.compensators.preisach import PreisachModel, ReferencePreisach
 
 DT = 1e-3
 PI = PIModel(thresholds=[0.0, 6.0, 15.0, 30.0, 45.0], weights=[60.0, 12.0, -4.0, 9.0, 5.0], offset_nm=-30.0)

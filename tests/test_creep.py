@@ -8,9 +8,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from plants import staircase
 
-from compensators.base import ModelError
-from compensators.creep import LinearCreep, LinearCreepInverse, LinearCreepModel, log_spaced_time_constants
-from compensators.models import model_from_dict
+from afmctl.compensators.base import ModelError
+from afmctl.compensators.creep import LinearCreep, LinearCreepInverse, LinearCreepModel, log_spaced_time_constants
+from afmctl.compensators.models import model_from_dict
 
 DT = 1e-3
 

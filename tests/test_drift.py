@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from compensators.base import ModelError
-from compensators.drift import (DriftParams, DriftPaths, SecondOrder, StateSpacePath, TransferPath,
+from afmctl.compensators.base import ModelError
+from afmctl.compensators.drift import (DriftParams, DriftPaths, SecondOrder, StateSpacePath, TransferPath,
                                 drift_reference)
 
 NAMES = ("physical_tube", "table_a1")
@@ -299,7 +299,7 @@ def test_a_temperature_that_is_no_plausible_number_is_a_model_error(T):
 def test_zoh_equals_scipy_cont2discrete(name):
     from scipy.signal import cont2discrete
 
-    from compensators.drift import _continuous_ss, _zoh
+    from afmctl.compensators.drift import _continuous_ss, _zoh
     p = DriftParams.named(name)
     for pname in type(p.paths).model_fields:
         path = getattr(p.paths, pname)
@@ -314,7 +314,7 @@ def test_zoh_equals_scipy_cont2discrete(name):
 
 
 def test_fit_gains_recovers_every_path_gain_noise_free():
-    from compensators.drift import fit_gains, path_responses
+    from afmctl.compensators.drift import fit_gains, path_responses
     true = DriftParams.named("physical_tube")
     t = np.arange(0, 3600.0, 1.0)
     T = 20 + 1.5 * np.sin(2 * np.pi * t / 2400) + t / 3600

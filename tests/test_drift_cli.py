@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from afmctl.cli import main
-from compensators.drift import DriftParams
+from afmctl.compensators.drift import DriftParams
 
 
 def _write(path, header, rows):

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from compensators.base import ModelError
-from compensators.drift import DriftParams
-from compensators.temperature import TemperatureProfile, check_temperature_series, resample_uniform
+from afmctl.compensators.base import ModelError
+from afmctl.compensators.drift import DriftParams
+from afmctl.compensators.temperature import TemperatureProfile, check_temperature_series, resample_uniform
 
 
 def test_profiles():

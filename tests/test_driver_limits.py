@@ -12,9 +12,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from drivers.errors import LimitError
-from drivers.registry import open_amplifier
-from sim_backend.testing import serve_can, serve_pty
+from afmctl.drivers.errors import LimitError
+from afmctl.drivers.registry import open_amplifier
+from afmctl.sim_backend.testing import serve_can, serve_pty
 
 # Odd host limits so that rounding to the protocol's resolution is exercised.
 HOST = {"x": (10.0037, 49.9963), "y": (0.0011, 0.0049 + 20), "z": (99.99, 100.004)}
@@ -149,7 +149,7 @@ def test_max_step_holds_between_concurrent_callers(name):
     add up to a jump of twice the limit at the amplifier."""
     import threading
 
-    from sim_backend.amplifiers import RecordingSink
+    from afmctl.sim_backend.amplifiers import RecordingSink
     sink = RecordingSink()
     ch = f"step-{uuid.uuid4().hex[:8]}"
     ctx = serve_can(ch, sink) if name == "can" else serve_pty(name, sink, baud=0)

@@ -9,16 +9,16 @@ import tty
 
 import pytest
 
-from drivers.errors import AmplifierError, AmplifierTimeout, ProtocolError
-from drivers.registry import open_amplifier
-from drivers.transport import SerialTransport
-from sim_backend.amplifiers.pty_server import PtyServer
+from afmctl.drivers.errors import AmplifierError, AmplifierTimeout, ProtocolError
+from afmctl.drivers.registry import open_amplifier
+from afmctl.drivers.transport import SerialTransport
+from afmctl.sim_backend.amplifiers.pty_server import PtyServer
 
 
 @pytest.fixture(autouse=True)
 def _no_leaks():
     """Every failure path must still close its port, pty, threads and notifiers."""
-    from sim_backend.testing import no_leaks
+    from afmctl.sim_backend.testing import no_leaks
     with no_leaks():
         yield
 
@@ -73,7 +73,7 @@ def test_write_to_a_port_nobody_reads_times_out():
 
 
 def test_unknown_driver_and_missing_port_are_connection_errors():
-    from drivers.errors import AmplifierConnectionError
+    from afmctl.drivers.errors import AmplifierConnectionError
     with pytest.raises(AmplifierConnectionError, match="unknown driver"):
         open_amplifier("nope", "/dev/null")
     with pytest.raises(AmplifierConnectionError, match="cannot open"):
@@ -85,8 +85,8 @@ def test_unknown_driver_and_missing_port_are_connection_errors():
 def test_a_failing_can_bus_reaches_the_driver_through_on_error():
     import uuid
 
-    from drivers.base import ConnectionState
-    from sim_backend.testing import serve_can
+    from afmctl.drivers.base import ConnectionState
+    from afmctl.sim_backend.testing import serve_can
     channel = f"onerr-{uuid.uuid4().hex[:8]}"
     with serve_can(channel):
         amp = open_amplifier("can", f"virtual:{channel}", timeout_s=0.3)
@@ -104,7 +104,7 @@ def test_a_failing_can_bus_reaches_the_driver_through_on_error():
 
 
 def test_older_mdt_firmware_prompt_is_learned_at_connect():
-    from sim_backend.testing import serve_pty
+    from afmctl.sim_backend.testing import serve_pty
     with serve_pty("mdt693b", prompt=b"*") as server:
         amp = open_amplifier("mdt693b", server.port, timeout_s=0.3)
         try:
@@ -117,7 +117,7 @@ def test_older_mdt_firmware_prompt_is_learned_at_connect():
 
 @pytest.mark.parametrize("protocol,partial", [("mdt693b", b"XVOLTA"), ("gcs", b"SVA 1"), ("nv200", b"se")])
 def test_connect_survives_a_partial_command_left_in_the_device(protocol, partial):
-    from sim_backend.testing import serve_pty
+    from afmctl.sim_backend.testing import serve_pty
     with serve_pty(protocol) as server:
         server.device.feed(partial)  # e.g. left over from a link lost mid-command
         amp = open_amplifier(protocol, server.port, timeout_s=0.3)
@@ -129,9 +129,9 @@ def test_connect_survives_a_partial_command_left_in_the_device(protocol, partial
 
 
 def test_a_garbled_reply_puts_the_driver_in_fault_until_reconnect():
-    from drivers.base import ConnectionState
-    from drivers.errors import AmplifierConnectionError
-    from sim_backend.testing import serve_pty
+    from afmctl.drivers.base import ConnectionState
+    from afmctl.drivers.errors import AmplifierConnectionError
+    from afmctl.sim_backend.testing import serve_pty
     with serve_pty("mdt694b") as server:
         amp = open_amplifier("mdt694b", server.port, timeout_s=0.3)
         try:
@@ -152,8 +152,8 @@ def test_a_garbled_reply_puts_the_driver_in_fault_until_reconnect():
 
 
 def test_a_serial_port_is_locked_against_a_second_program():
-    from drivers.errors import AmplifierConnectionError
-    from sim_backend.testing import serve_pty
+    from afmctl.drivers.errors import AmplifierConnectionError
+    from afmctl.sim_backend.testing import serve_pty
     with serve_pty("nv200") as server:
         amp = open_amplifier("nv200", server.port, timeout_s=0.3)
         try:
@@ -168,7 +168,7 @@ def test_a_serial_port_is_locked_against_a_second_program():
 def test_concurrent_callers_are_serialised(protocol):
     import threading
 
-    from sim_backend.testing import serve_pty
+    from afmctl.sim_backend.testing import serve_pty
     with serve_pty(protocol, baud=0) as server:
         amp = open_amplifier(protocol, server.port, timeout_s=0.5)
         errors = []
@@ -248,7 +248,7 @@ def test_any_reply_gives_an_amplifier_error_or_a_sane_connection(flood_server, d
 
 
 def test_mdt_raw_sends_one_query_line_only():
-    from sim_backend.testing import serve_pty
+    from afmctl.sim_backend.testing import serve_pty
     with serve_pty("mdt693b") as server:
         amp = open_amplifier("mdt693b", server.port, timeout_s=0.3)
         try:

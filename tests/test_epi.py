@@ -10,11 +10,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from plants import staircase
 
-from compensators.base import Chain, ModelError
-from compensators.creep import LinearCreep
-from compensators.epi import EPIModel, find_dwells, fit_inflexion_creep
-from compensators.models import model_from_dict
-from compensators.pi import PIModel
+from afmctl.compensators.base import Chain, ModelError
+from afmctl.compensators.creep import LinearCreep
+from afmctl.compensators.epi import EPIModel, find_dwells, fit_inflexion_creep
+from afmctl.compensators.models import model_from_dict
+from afmctl.compensators.pi import PIModel
 
 DT = 1e-3
 
@@ -278,7 +278,7 @@ def test_numba_twin_equals_python_reference_bit_for_bit(seed):
 
 
 def test_creep_term_compiled_equals_reference():
-    from compensators.epi import creep_term
+    from afmctl.compensators.epi import creep_term
 
     u = with_dwells(np.random.default_rng(9), n=30)
     a = creep_term(u, 3.0, 1.01, 5.0, DT, 0.8, 0.0)

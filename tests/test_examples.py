@@ -37,7 +37,7 @@ def test_sim_inprocess_example(tmp_path, monkeypatch, capsys):
 
 
 def test_mdt693b_serial_example_on_a_pty(tmp_path, monkeypatch, capsys):
-    from sim_backend.testing import serve_pty
+    from afmctl.sim_backend.testing import serve_pty
     monkeypatch.setenv("AFMCTL_RUNLOG__DIR", str(tmp_path))
     monkeypatch.setenv("AFMCTL_TRAJECTORY__NX", "2")
     monkeypatch.setenv("AFMCTL_TRAJECTORY__NY", "1")
@@ -50,7 +50,7 @@ def test_mdt693b_serial_example_on_a_pty(tmp_path, monkeypatch, capsys):
 
 
 def test_can_example_on_the_virtual_bus(tmp_path, monkeypatch, capsys):
-    from sim_backend.testing import serve_can
+    from afmctl.sim_backend.testing import serve_can
     channel = f"afmctl-canex-{os.getpid()}"
     monkeypatch.setenv("AFMCTL_RUNLOG__DIR", str(tmp_path))
     monkeypatch.setenv("AFMCTL_TRAJECTORY__TEXT", "N")

@@ -9,9 +9,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from compensators.base import ModelError
-from compensators.drift import DriftParams, DriftPaths, TransferPath
-from compensators.heat import AxisHeat, HeatParams, TubeGeometry, heat_coefficients, heat_generation
+from afmctl.compensators.base import ModelError
+from afmctl.compensators.drift import DriftParams, DriftPaths, TransferPath
+from afmctl.compensators.heat import AxisHeat, HeatParams, TubeGeometry, heat_coefficients, heat_generation
 
 
 def test_coefficients_from_geometry_follow_eq9():

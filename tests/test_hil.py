@@ -139,8 +139,8 @@ def test_two_processes_afmctl_sim_and_afmctl_run_over_a_pty(tmp_path, pi_models)
 def test_afmctl_run_process_every_setpoint_in_order_over_a_pty(tmp_path):
     """`afmctl run` in its own process, the simulated MDT693B (recording load) on a pty in
     this one: the outputs the device applied are exactly the setpoints sent, in order."""
-    from sim_backend.amplifiers.base import RecordingSink
-    from sim_backend.testing import serve_pty
+    from afmctl.sim_backend.amplifiers.base import RecordingSink
+    from afmctl.sim_backend.testing import serve_pty
     sink = RecordingSink()
     with serve_pty("mdt693b", sink=sink) as server:
         cfg_path = tmp_path / "p.toml"
@@ -158,8 +158,8 @@ def test_afmctl_run_process_every_setpoint_in_order_over_a_pty(tmp_path):
 
 
 def test_every_setpoint_reaches_the_pty_amplifier_in_order(tmp_path):
-    from sim_backend.amplifiers.base import RecordingSink
-    from sim_backend.testing import serve_pty
+    from afmctl.sim_backend.amplifiers.base import RecordingSink
+    from afmctl.sim_backend.testing import serve_pty
 
     from afmctl.simlink import open_driver
     sink = RecordingSink()
@@ -186,8 +186,8 @@ def test_every_setpoint_reaches_the_pty_amplifier_in_order(tmp_path):
 def test_amplifier_vanishes_mid_scan_real_pty(tmp_path):
     """The pty disappears mid-scan: fault, output held, reconnect, resume with a ramp from
     the read-back voltage (no jump at the device)."""
-    from sim_backend.amplifiers.base import RecordingSink
-    from sim_backend.testing import serve_pty
+    from afmctl.sim_backend.amplifiers.base import RecordingSink
+    from afmctl.sim_backend.testing import serve_pty
 
     from afmctl.simlink import open_driver
     sink = RecordingSink()
@@ -236,8 +236,8 @@ def test_can_in_process_tip_follows_target(tmp_path, pi_models):
     """CAN amplifier on the virtual bus, the simulated scanner as its load, PI
     compensators: the live tip position follows the target as well as the compensator
     does offline, and far better than the linear calibration."""
-    from sim_backend.scanner import Scanner, default_scanner_config
-    from sim_backend.testing import serve_can
+    from afmctl.sim_backend.scanner import Scanner, default_scanner_config
+    from afmctl.sim_backend.testing import serve_can
 
     from afmctl.simlink import open_driver, tracking_error
 

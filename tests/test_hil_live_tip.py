@@ -85,7 +85,7 @@ def test_live_tip_follows_the_target_within_the_compensators_accuracy(tmp_path):
     from afmctl.messages import SimTipMsg, decode_json
     from afmctl.simlink import identify_pi_models, load_scanner_config, tracking_error
     from afmctl.zenoh_config import ZenohSettings, free_loopback_endpoint
-    from sim_backend.scanner import Scanner
+    from afmctl.sim_backend.scanner import Scanner
 
     (tmp_path / "models").mkdir()
     models = identify_pi_models(tmp_path / "models", "xy", 1e-3)

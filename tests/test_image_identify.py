@@ -9,12 +9,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from compensators.base import ModelError
-from compensators.image_identify import (check_scans, feature_points, fit_closed_loop, fit_polynomial, poly_eval,
+from afmctl.compensators.base import ModelError
+from afmctl.compensators.image_identify import (check_scans, feature_points, fit_closed_loop, fit_polynomial, poly_eval,
                                          range_branches, reversal_record, threshold)
-from sim_backend.samples import Grating1D
+from afmctl.sim_backend.samples import Grating1D
 
-import compensators.preisach as pre
+import afmctl.compensators.preisach as pre
 
 
 def test_threshold_is_eq4():
@@ -128,8 +128,8 @@ def test_bad_scan_arrays_name_the_array(mutate, match):
 # --------------------------------------------------------------------------- on the plant
 @pytest.fixture(scope="module")
 def x_scans():
-    from sim_backend.image_scans import scan_grating_lines
-    from sim_backend.scanner import Scanner
+    from afmctl.sim_backend.image_scans import scan_grating_lines
+    from afmctl.sim_backend.scanner import Scanner
 
     return scan_grating_lines(Scanner(), axis="x", pixels=1024, lines_per_range=3)
 
@@ -137,9 +137,9 @@ def x_scans():
 def test_image_identification_matches_true_position_identification(x_scans):
     """Never reading the true position: the compensator is within 1.5 % of the one
     identified from the true position of the same plant on the same voltages."""
-    from compensators.image_identify import identify_from_images
-    from compensators.preisach import PreisachModel
-    from sim_backend.image_scans import DEFAULT_LEVELS
+    from afmctl.compensators.image_identify import identify_from_images
+    from afmctl.compensators.preisach import PreisachModel
+    from afmctl.sim_backend.image_scans import DEFAULT_LEVELS
 
     arrays = x_scans.arrays()
     assert not set(arrays) & set(x_scans.truth)  # the scan file holds no position
@@ -162,9 +162,9 @@ def test_compensated_grating_period_is_uniform(tmp_path):
     """Image-based paper, Fig. 9(b): 10 µm scan of the 1.667 µm grating at 512×512, 1
     line/s, with Preisach compensators identified from images on x and y. The scan sits
     0.5 µm inside the scanner's range (0.5…10.5 µm of ≈ 12 µm), as a user would place it."""
-    from sim_backend.image_scans import identify_axes_from_images
-    from sim_backend.samples import Grating2D
-    from sim_backend.scanner import Scanner
+    from afmctl.sim_backend.image_scans import identify_axes_from_images
+    from afmctl.sim_backend.samples import Grating2D
+    from afmctl.sim_backend.scanner import Scanner
 
     s = Scanner()
     models = identify_axes_from_images(s, ("x", "y"))
@@ -182,7 +182,7 @@ def test_compensated_grating_period_is_uniform(tmp_path):
 
 
 def test_scan_file_roundtrip_and_errors(tmp_path, x_scans):
-    from sim_backend.image_scans import identify_from_scan_file, load_scans_npz
+    from afmctl.sim_backend.image_scans import identify_from_scan_file, load_scans_npz
 
     p = x_scans.save_npz(tmp_path / "scans.npz")
     data = load_scans_npz(p)

@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from compensators.image_identify import feature_points
-from sim_backend.imaging import raster_image
-from sim_backend.samples import Grating2D, StandardSample
-from sim_backend.scanner import CreepConfig, DriftConfig, Scanner, default_scanner_config, linear_scanner_config
+from afmctl.compensators.image_identify import feature_points
+from afmctl.sim_backend.imaging import raster_image
+from afmctl.sim_backend.samples import Grating2D, StandardSample
+from afmctl.sim_backend.scanner import CreepConfig, DriftConfig, Scanner, default_scanner_config, linear_scanner_config
 
 STD = StandardSample(section_nm=1000.0, amplitude_nm=1.0)
 
@@ -105,7 +105,7 @@ def test_compensator_mapping_and_callable_and_png(tmp_path):
 
 
 def test_bad_scan_arguments():
-    from compensators.base import ModelError
+    from afmctl.compensators.base import ModelError
 
     s = Scanner(linear_scanner_config())
     with pytest.raises(ModelError, match="pixels"):

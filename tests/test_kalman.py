@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from compensators.base import ModelError
-from compensators.drift_kalman import DriftKalman, KalmanParams
+from afmctl.compensators.base import ModelError
+from afmctl.compensators.drift_kalman import DriftKalman, KalmanParams
 
 
 def test_converges_to_a_constant_bias():
@@ -115,7 +115,7 @@ def test_age_of_a_measurement_uses_the_rate():
 
 @pytest.mark.parametrize("with_rate", [True, False])
 def test_numba_time_update_equals_the_python_reference(with_rate):
-    from compensators.drift_kalman import _predict_kernel, _predict_loop
+    from afmctl.compensators.drift_kalman import _predict_kernel, _predict_loop
     rng = np.random.default_rng(2)
     n = 2 if with_rate else 1
     x0 = rng.normal(size=(3, n))

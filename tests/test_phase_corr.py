@@ -6,8 +6,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from compensators.base import ModelError
-from compensators.phase_correlation import image_drift_nm, phase_correlation
+from afmctl.compensators.base import ModelError
+from afmctl.compensators.phase_correlation import image_drift_nm, phase_correlation
 
 
 def _texture(n=256, seed=0, sigma=3.0):

@@ -9,10 +9,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from compensators.base import ModelError
-from compensators.models import load_model, model_from_dict, save_model
-from compensators.pi import PIModel, PIOperator, check_pi_parameters, default_thresholds, invert_pi_parameters
-from compensators.play import PlayOperator, play_reference
+from afmctl.compensators.base import ModelError
+from afmctl.compensators.models import load_model, model_from_dict, save_model
+from afmctl.compensators.pi import PIModel, PIOperator, check_pi_parameters, default_thresholds, invert_pi_parameters
+from afmctl.compensators.play import PlayOperator, play_reference
 
 # Table I of the extended-PI paper: forward and inverse weight vectors
 TABLE_I_FORWARD = [0.793172317251542, 0.442071134534941, 0.020794338851802, 0.106723904368183,

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from plants import RelayPreisachPlant, decaying_triangle, triangle
 
-from compensators.base import ModelError
-from compensators.pi import PIModel, default_thresholds, fit_pi_weights
+from afmctl.compensators.base import ModelError
+from afmctl.compensators.pi import PIModel, default_thresholds, fit_pi_weights
 
 
 def _truth(u: np.ndarray, n: int = 9, seed: int = 0) -> PIModel:
@@ -51,7 +51,7 @@ def test_constraints_keep_the_model_invertible():
     w = np.array([1.0, 0.5, 0.5, -3.0, 0.2])
     y = np.zeros_like(u)
     # evaluate without validation (non-invertible on purpose)
-    from compensators.pi import PIOperator
+    from afmctl.compensators.pi import PIOperator
     y = PIOperator(r, w, np.full(5, u[0]), validate=False).block(u)
     m = PIModel.identify(t, u, y, n_operators=5, min_slope_fraction=1e-3)
     S = np.cumsum(m.weights)

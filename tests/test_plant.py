@@ -10,10 +10,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.signal import cont2discrete
 
-from sim_backend import _plant_kernels as K
-from sim_backend.config import (AmplifierConfig, AxisConfig, CreepConfig, DynamicsConfig, GaussianPreisachConfig,
+from afmctl.sim_backend import _plant_kernels as K
+from afmctl.sim_backend.config import (AmplifierConfig, AxisConfig, CreepConfig, DynamicsConfig, GaussianPreisachConfig,
                                 PreisachComponent, default_preisach)
-from sim_backend.plant import AxisPlant, GaussianPreisachOperator, everett_table, mode_matrices, preisach_weights
+from afmctl.sim_backend.plant import AxisPlant, GaussianPreisachOperator, everett_table, mode_matrices, preisach_weights
 
 SMALL = GaussianPreisachConfig(
     u_min_V=0.0, u_max_V=150.0, n_grid=16, linear_nm_per_V=10.0,
@@ -174,7 +174,7 @@ def test_axis_step_response_creep_and_resonance():
 
 
 def test_axis_plant_reference_path_equals_fast_path():
-    from sim_backend.config import default_scanner_config
+    from afmctl.sim_backend.config import default_scanner_config
 
     cfg = default_scanner_config().x
     u = 75 + 70 * np.sin(np.linspace(0, 20, 3000))
@@ -212,7 +212,7 @@ def test_preisach_memory_overflow_reference_equals_numba_and_blocks(u, cap, cut)
 def test_preisach_memory_is_the_compensators_memory():
     """One piece of code: the sim's Preisach memory after any input equals the memory the
     compensators' Preisach kernel keeps (same turning points, same count)."""
-    from compensators import _preisach_kernels as PK
+    from afmctl.compensators import _preisach_kernels as PK
 
     rng = np.random.default_rng(3)
     u = np.clip(np.cumsum(rng.normal(0, 15, 400)) + 75, 0, 150)

@@ -10,9 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from compensators.base import ModelError
-from compensators.models import load_model, model_from_dict, save_model
-from compensators.preisach import PreisachModel, ReferencePreisach
+from afmctl.compensators.base import ModelError
+from afmctl.compensators.models import load_model, model_from_dict, save_model
+from afmctl.compensators.preisach import PreisachModel, ReferencePreisach
 
 
 def _density(a, b):
@@ -92,7 +92,7 @@ def test_inverse_recovers_the_input_for_strictly_positive_density(model):
 def test_inverse_clamps_unreachable_targets_with_a_warning(model, caplog):
     lo, hi = model.output_range_nm()
     inv = model.inverse()
-    with caplog.at_level(logging.WARNING, logger="compensators.preisach"):
+    with caplog.at_level(logging.WARNING, logger="afmctl.compensators.preisach"):
         u = inv.block(np.array([hi + 100.0, lo - 100.0, 0.5 * (lo + hi)]))
     assert u[0] == model.u_max_V and u[1] == model.u_min_V
     assert inv.n_clamped == 2
@@ -199,7 +199,7 @@ def test_bad_model_files_name_the_field(model, patch, needle):
 
 def test_out_of_range_inputs_are_clamped_with_a_warning(model, caplog):
     f = model.forward()
-    with caplog.at_level(logging.WARNING, logger="compensators.preisach"):
+    with caplog.at_level(logging.WARNING, logger="afmctl.compensators.preisach"):
         y = f.block(np.array([500.0, -500.0]))
     assert f.n_clamped == 2
     assert "clamped" in caplog.text

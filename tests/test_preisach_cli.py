@@ -8,9 +8,9 @@ import pytest
 
 from afmctl.cli import main
 from afmctl.datafiles import read_csv, write_csv
-from compensators.bouc_wen import BoucWenModel
-from compensators.models import load_model
-from compensators.preisach import PreisachModel
+from afmctl.compensators.bouc_wen import BoucWenModel
+from afmctl.compensators.models import load_model
+from afmctl.compensators.preisach import PreisachModel
 
 
 def _plant() -> PreisachModel:

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from compensators.base import ModelError
-from compensators.models import model_class
-from compensators.preisach import PreisachModel
+from afmctl.compensators.base import ModelError
+from afmctl.compensators.models import model_class
+from afmctl.compensators.preisach import PreisachModel
 from plants import RelayPreisachPlant, decaying_triangle, triangle
 
 
@@ -92,7 +92,7 @@ def test_feedforward_on_asymmetric_relay_plant_beats_pi():
     assert np.max(np.abs(e)) <= 0.01 * span
     assert np.sqrt(np.mean(e ** 2)) <= 0.003 * span
     # PI (symmetric loops) identified from the same data does clearly worse here
-    import compensators.pi as pi
+    import afmctl.compensators.pi as pi
     pm = pi.PIModel.identify(t_id, u_id, y_id, n_operators=16)
     plant.reset()
     e_pi = plant.run(pm.inverse().block(target)) - target

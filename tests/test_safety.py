@@ -18,7 +18,7 @@ from afmctl.errors import AfmctlError
 from afmctl.loop import Controller, State
 from afmctl.safety import ReadbackError, SafetyLayer, Watchdog
 from afmctl.simlink import RecordingAmplifier
-from drivers.errors import AmplifierConnectionError
+from afmctl.drivers.errors import AmplifierConnectionError
 
 floats_any = st.one_of(st.floats(allow_nan=True, allow_infinity=True),
                        st.floats(min_value=-1e4, max_value=1e4))
@@ -353,7 +353,7 @@ class StepCheckingAmplifier(RecordingAmplifier):
         self.max_step_V, self.resolution_V, self.refuse_at = max_step_V, resolution_V, refuse_at
 
     def set_voltages(self, volts):
-        from drivers.errors import LimitError
+        from afmctl.drivers.errors import LimitError
         if self.refuse_at is not None and len(self.received) >= self.refuse_at:
             raise LimitError("axis x: 200 V is outside the device limits (test)")
         for a, v in volts.items():

@@ -6,8 +6,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from compensators.image_identify import feature_points
-from sim_backend.samples import Grating1D, Grating2D, Nanoparticles, StandardSample
+from afmctl.compensators.image_identify import feature_points
+from afmctl.sim_backend.samples import Grating1D, Grating2D, Nanoparticles, StandardSample
 
 
 @settings(max_examples=25, deadline=None)

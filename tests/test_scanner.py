@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from compensators.base import ModelError
-from sim_backend.scanner import (DriftConfig, ExternalModelConfig, Scanner, ScannerConfig, default_scanner_config,
+from afmctl.compensators.base import ModelError
+from afmctl.sim_backend.scanner import (DriftConfig, ExternalModelConfig, Scanner, ScannerConfig, default_scanner_config,
                                  linear_scanner_config)
 
 
@@ -140,7 +140,7 @@ def test_temperature_ramp_gives_growing_drift(kind):
 
 def test_external_model_as_hysteresis():
     """Any compensators model file works as the plant's hysteresis (via forward())."""
-    import compensators.preisach as pre
+    import afmctl.compensators.preisach as pre
     model = pre.PreisachModel.from_density(lambda a, b: np.exp(-((a - 80) ** 2 + (b - 40) ** 2) / 800.0),
                                            u_min_V=0.0, u_max_V=150.0, levels=10)
     cfg = linear_scanner_config()
@@ -214,7 +214,7 @@ def test_long_gap_is_advanced_in_bounded_chunks_with_the_same_result(monkeypatch
 def test_kernels_and_drift_predictor_are_ready_before_the_first_apply():
     """Loading the numba cache / building the drift predictor holds the GIL for tens of
     ms; it happens in the constructor, not in the first apply() on an amplifier thread."""
-    from sim_backend import _plant_kernels as K
+    from afmctl.sim_backend import _plant_kernels as K
 
     s = Scanner()
     assert s._drift._predictor is not None

@@ -9,8 +9,8 @@ import uuid
 import pytest
 import serial
 
-from sim_backend.amplifiers import RecordingSink
-from sim_backend.testing import serve_can, serve_pty
+from afmctl.sim_backend.amplifiers import RecordingSink
+from afmctl.sim_backend.testing import serve_can, serve_pty
 
 
 def read_until(port: serial.Serial, end: bytes, timeout_s: float = 1.0, count: int = 1) -> bytes:
@@ -142,7 +142,7 @@ def test_can_simulator_answers_dbc_frames():
     import can
     import cantools
 
-    from sim_backend.amplifiers.can_amp import find_dbc
+    from afmctl.sim_backend.amplifiers.can_amp import find_dbc
     db = cantools.database.load_file(str(find_dbc()))
     channel = f"raw-{uuid.uuid4().hex[:8]}"
     sink = RecordingSink()
@@ -167,8 +167,8 @@ def test_can_simulator_answers_dbc_frames():
 
 
 def test_a_scanner_is_a_sink_and_sees_the_driver_output():
-    import sim_backend.scanner as scanner_mod
-    from drivers.registry import open_amplifier
+    import afmctl.sim_backend.scanner as scanner_mod
+    from afmctl.drivers.registry import open_amplifier
     scanner = scanner_mod.Scanner(scanner_mod.default_scanner_config())
     with serve_pty("mdt693b", sink=scanner) as server:
         amp = open_amplifier("mdt693b", server.port, timeout_s=0.5)
@@ -194,9 +194,9 @@ def test_adapter_latency_is_modelled_on_replies():
 
 
 def test_no_leaks_notices_a_server_left_running_and_passes_once_it_stopped():
-    from sim_backend.amplifiers.pty_server import PtyServer
-    from sim_backend.amplifiers import make_device
-    from sim_backend.testing import no_leaks
+    from afmctl.sim_backend.amplifiers.pty_server import PtyServer
+    from afmctl.sim_backend.amplifiers import make_device
+    from afmctl.sim_backend.testing import no_leaks
     server = PtyServer(make_device("nv200"))
     try:
         with pytest.raises(AssertionError, match="threads left running"), no_leaks(grace_s=0.1):
@@ -212,9 +212,9 @@ def test_no_leaks_notices_a_server_left_running_and_passes_once_it_stopped():
 
 
 def test_a_link_that_cannot_be_made_raises_and_leaks_nothing(tmp_path):
-    from sim_backend.amplifiers import make_device
-    from sim_backend.amplifiers.pty_server import PtyServer
-    from sim_backend.testing import no_leaks
+    from afmctl.sim_backend.amplifiers import make_device
+    from afmctl.sim_backend.amplifiers.pty_server import PtyServer
+    from afmctl.sim_backend.testing import no_leaks
     with no_leaks(grace_s=0.5):
         server = PtyServer(make_device("mdt693b"), link=tmp_path / "missing-dir" / "tty")
         with pytest.raises(OSError):

@@ -12,7 +12,7 @@ import time
 
 import serial
 
-from sim_backend.testing import no_leaks
+from afmctl.sim_backend.testing import no_leaks
 
 
 def _start(*extra):
@@ -126,11 +126,11 @@ def test_sim_service_advances_the_plant_on_the_wall_clock_and_calls_on_tick():
 
 def test_make_scanner_uses_the_real_scanner_and_falls_back_only_when_it_is_missing(monkeypatch, caplog):
     from afmctl.commands.sim import make_scanner
-    from sim_backend.amplifiers import RecordingSink
-    from sim_backend.scanner import Scanner
+    from afmctl.sim_backend.amplifiers import RecordingSink
+    from afmctl.sim_backend.scanner import Scanner
     sink, description = make_scanner({})
     assert isinstance(sink, Scanner) and description.startswith("scanner ")
-    monkeypatch.setitem(sys.modules, "sim_backend.scanner", None)  # as if the module were not installed
+    monkeypatch.setitem(sys.modules, "afmctl.sim_backend.scanner", None)  # as if the module were not installed
     sink, description = make_scanner({})
     assert isinstance(sink, RecordingSink) and "no scanner" in description
     assert "recording sink" in caplog.text

@@ -104,8 +104,8 @@ def _fmt(volts) -> str:
 
 
 def run(args) -> int:
-    from afmctl.errors import AfmctlError
-    from drivers.registry import open_amplifier
+    from ..errors import AfmctlError
+    from afmctl.drivers.registry import open_amplifier
 
     if args.timeout <= 0 or not math.isfinite(args.timeout):
         raise AfmctlError(f"--timeout: {args.timeout} s must be a positive number of seconds")
@@ -138,8 +138,8 @@ def run(args) -> int:
 def _load_stream(args) -> tuple[list[str], "object", list[str]]:
     import numpy as np
 
-    from afmctl.datafiles import read_csv
-    from afmctl.errors import AfmctlError
+    from ..datafiles import read_csv
+    from ..errors import AfmctlError
     data = read_csv(args.file, ["t"], optional=["u", "ux", "uy", "uz"])
     if all(c in data for c in ("ux", "uy", "uz")):
         return ["x", "y", "z"], np.column_stack([data["ux"], data["uy"], data["uz"]]), ["ux", "uy", "uz"]
@@ -151,7 +151,7 @@ def _load_stream(args) -> tuple[list[str], "object", list[str]]:
 def _check_file_limits(amp, loaded, path) -> None:
     import numpy as np
 
-    from afmctl.errors import AfmctlError
+    from ..errors import AfmctlError
     axes, values, columns = loaded
     lim = amp.limits
     for k, (axis, col) in enumerate(zip(axes, columns)):

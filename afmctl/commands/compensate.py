@@ -47,10 +47,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from afmctl.datafiles import read_csv, uniform_period, write_csv
-    from afmctl.errors import AfmctlError
-    from compensators.base import ModelError
-    from compensators.models import load_model
+    from ..datafiles import read_csv, uniform_period, write_csv
+    from ..errors import AfmctlError
+    from afmctl.compensators.base import ModelError
+    from afmctl.compensators.models import load_model
 
     if args.clip and not args.limits:
         raise AfmctlError("--clip: needs --limits LO HI")

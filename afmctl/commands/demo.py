@@ -53,7 +53,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from afmctl.demo import DEFAULT_COMPENSATORS, DemoOptions, format_table, run_demo
+    from ..demo import DEFAULT_COMPENSATORS, DemoOptions, format_table, run_demo
     options = DemoOptions(out=args.out, size=args.size, line_rate_Hz=args.line_rate, quick=args.quick,
                           drift=not args.no_drift,
                           compensators=tuple(args.only) if args.only else DEFAULT_COMPENSATORS,

@@ -117,8 +117,8 @@ def _no_action(parser: argparse.ArgumentParser) -> int:
 
 def load_params(spec: str):
     """A named set or a JSON file (``ModelError`` otherwise)."""
-    from compensators.base import ModelError
-    from compensators.drift import DriftParams
+    from afmctl.compensators.base import ModelError
+    from afmctl.compensators.drift import DriftParams
     if spec in DriftParams.names():
         return DriftParams.named(spec)
     p = Path(spec)
@@ -135,7 +135,7 @@ def run_params(args: argparse.Namespace) -> int:
         try:
             Path(args.out).write_text(text, encoding="utf-8")
         except OSError as err:
-            from afmctl.errors import AfmctlError
+            from ..errors import AfmctlError
             raise AfmctlError(f"{args.out}: cannot write ({err.strerror})") from None
     else:
         print(text, end="")
@@ -145,8 +145,8 @@ def run_params(args: argparse.Namespace) -> int:
 def _read_voltages(path: str):
     import numpy as np
 
-    from afmctl.datafiles import read_csv
-    from afmctl.errors import AfmctlError
+    from ..datafiles import read_csv
+    from ..errors import AfmctlError
     cols = read_csv(path, ["t"], optional=["ux", "uy", "uz", "u"])
     if not any(c in cols for c in ("ux", "uy", "uz", "u")):
         raise AfmctlError(f"{path}: missing voltage columns; need ux,uy,uz (V) (or u for x only)")
@@ -161,8 +161,8 @@ def predict_file(t_s, T_C, params, *, dt_s=None, volts=None, max_gap_s=600.0, wh
     resampling rules). ``volts`` is ``(t_V, u_V (M, 3))`` or None."""
     import numpy as np
 
-    from compensators.base import ModelError
-    from compensators.temperature import check_temperature_series, resample_uniform
+    from afmctl.compensators.base import ModelError
+    from afmctl.compensators.temperature import check_temperature_series, resample_uniform
 
     t = np.asarray(t_s, dtype=np.float64)
     T = np.asarray(T_C, dtype=np.float64)
@@ -196,11 +196,11 @@ def predict_file(t_s, T_C, params, *, dt_s=None, volts=None, max_gap_s=600.0, wh
 
 
 def run_predict(args: argparse.Namespace) -> int:
-    from afmctl.datafiles import read_csv, write_csv
+    from ..datafiles import read_csv, write_csv
 
     params = load_params(args.params)
     if not (args.max_gap > 0):
-        from afmctl.errors import AfmctlError
+        from ..errors import AfmctlError
         raise AfmctlError(f"--max-gap: {args.max_gap!r} s; must be > 0")
     cols = read_csv(args.temperature, ["t", "T"])
     volts = _read_voltages(args.voltages) if args.voltages else None
@@ -216,9 +216,9 @@ def run_predict(args: argparse.Namespace) -> int:
 def run_fit(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from afmctl.datafiles import read_csv
-    from afmctl.errors import AfmctlError
-    from compensators.drift import AXES, fit_gains, path_responses
+    from ..datafiles import read_csv
+    from ..errors import AfmctlError
+    from afmctl.compensators.drift import AXES, fit_gains, path_responses
 
     params = load_params(args.params)
     cols = read_csv(args.temperature, ["t", "T"], min_rows=2)

@@ -1,5 +1,5 @@
 """``afmctl identify``: fit a hysteresis/creep model to measured data (generic over the
-model kinds registered in :data:`compensators.models.KINDS`)."""
+model kinds registered in :data:`afmctl.compensators.models.KINDS`)."""
 from __future__ import annotations
 
 import argparse
@@ -69,7 +69,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def parse_params(items: list[str]) -> dict[str, Any]:
     """``["a=1", "b=[1,2]", "c=text"]`` → ``{"a": 1, "b": [1, 2], "c": "text"}``."""
-    from afmctl.errors import AfmctlError
+    from ..errors import AfmctlError
 
     out: dict[str, Any] = {}
     for item in items:
@@ -87,14 +87,14 @@ def parse_params(items: list[str]) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from afmctl.datafiles import read_csv, uniform_period
-    from afmctl.errors import AfmctlError
-    from compensators.base import ModelError
-    from compensators.models import model_class, save_model
+    from ..datafiles import read_csv, uniform_period
+    from ..errors import AfmctlError
+    from afmctl.compensators.base import ModelError
+    from afmctl.compensators.models import model_class, save_model
 
     cls = model_class(args.model)
     if getattr(args, "from_images", None) is not None:  # image-based identification, docs/SIM.md
-        from sim_backend.image_scans import identify_from_scan_file
+        from afmctl.sim_backend.image_scans import identify_from_scan_file
 
         model = identify_from_scan_file(args.from_images, args.model, n_operators=args.operators,
                                         **parse_params(args.param))
@@ -145,7 +145,7 @@ def _plot(path: str, t, u, y, y_fit, kind: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from afmctl.errors import AfmctlError
+    from ..errors import AfmctlError
 
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4))
     a1.plot(u, y, lw=0.8, label="measured")

@@ -34,7 +34,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def resolve(run_arg: str, directory: str):
     from pathlib import Path
 
-    from afmctl.errors import AfmctlError
+    from ..errors import AfmctlError
     p = Path(run_arg)
     for cand in (p, Path(directory) / p, Path(directory) / f"{run_arg}.afmlog", Path(f"{run_arg}.afmlog")):
         if cand.is_file():
@@ -47,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from afmctl.runlog import RunLogReader
+    from ..runlog import RunLogReader
     reader = RunLogReader(resolve(args.run, args.dir))
     summary = reader.summary()
     meta = reader.meta()
@@ -86,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
             t_txt = f"{t:10.3f}" if isinstance(t, (int, float)) else f"{'?':>10}"
             print(f"  seq {e.get('seq', '?')!s:>8}  t {t_txt} s  {e.get('state', '?')!s:8s} {e.get('event')}{detail}")
     if args.csv:
-        from afmctl.datafiles import write_csv
+        from ..datafiles import write_csv
         sp = reader.setpoints()
         dr = reader.drift()
         n = min(len(sp), len(dr)) if len(dr) else len(sp)

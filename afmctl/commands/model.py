@@ -48,7 +48,7 @@ def _usage(parser: argparse.ArgumentParser) -> int:
 
 
 def run_show(args: argparse.Namespace) -> int:
-    from compensators.models import load_model
+    from afmctl.compensators.models import load_model
 
     model = load_model(args.model)
     print(f"file             : {args.model}")
@@ -57,8 +57,8 @@ def run_show(args: argparse.Namespace) -> int:
 
 
 def run_invert(args: argparse.Namespace) -> int:
-    from afmctl.errors import AfmctlError
-    from compensators.models import load_model, save_model
+    from ..errors import AfmctlError
+    from afmctl.compensators.models import load_model, save_model
 
     model = load_model(args.model, expect=("pi", "epi"))
     inv = model.inverted()

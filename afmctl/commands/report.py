@@ -39,7 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from afmctl.report import run_report
+    from ..report import run_report
     out = args.out if args.out is not None else args.run.with_name(args.run.stem + "-report")
     files, summary = run_report(args.run, out, simulate=args.simulate)
     print(f"{summary['samples']} setpoints, {summary.get('duration_s', 0.0):.3f} s, states: "

@@ -27,7 +27,7 @@ A configuration (every key: `afmctl schema`; units in the names: _V, _nm, _s, _H
 
 
 def _help() -> str:
-    from afmctl.commands.schema import EXAMPLE_TOML
+    from .schema import EXAMPLE_TOML
     return HELP.format(example="\n".join("  " + line for line in EXAMPLE_TOML.splitlines()))
 
 
@@ -65,7 +65,7 @@ def link_warning(config) -> str | None:
 
 
 def _summary(ctl, config, scanner) -> dict:
-    from afmctl.runlog import RunLogReader
+    from ..runlog import RunLogReader
     st = ctl.stats()
     out = {"state": st["state"], "samples": st["samples"], "ticks": st["ticks"], "rate_Hz": st["rate_Hz"],
            "lateness_p50_s": st["lateness_p50_s"], "lateness_p99_s": st["lateness_p99_s"],
@@ -75,7 +75,7 @@ def _summary(ctl, config, scanner) -> dict:
            "slew_limited": st["slew_limited"], "last_error": st["last_error"],
            "runlog": str(ctl.runlog_path) if ctl.runlog_path else None}
     if scanner is not None and ctl.runlog_path is not None:
-        from afmctl.simlink import tracking_error
+        from ..simlink import tracking_error
         reader = RunLogReader(ctl.runlog_path)
         ev = reader.events()
         start = max([e["seq"] for e in ev if e.get("event") == "ramp-done"] or [0])
@@ -94,8 +94,8 @@ def run(args: argparse.Namespace) -> int:
     import threading
     import time
 
-    from afmctl.config import load_config
-    from afmctl.loop import Controller, State
+    from ..config import load_config
+    from ..loop import Controller, State
 
     config = load_config(args.config, overrides={"amplifier": {"port": args.port}} if args.port else None)
     scanner = None
@@ -104,16 +104,16 @@ def run(args: argparse.Namespace) -> int:
         print(f"afmctl: warning: {warning}", file=sys.stderr)
     with contextlib.ExitStack() as stack:
         if config.simulation.enabled:
-            from afmctl.simlink import simulated_amplifier
+            from ..simlink import simulated_amplifier
             amp, scanner = stack.enter_context(simulated_amplifier(config))
         else:
-            from afmctl.simlink import open_driver
+            from ..simlink import open_driver
             amp = open_driver(config, config.amplifier.port)
             stack.callback(amp.close)
         ctl = Controller(config, amp, scanner=scanner)
         stack.callback(ctl.close)
         if config.zenoh.enabled:
-            from afmctl.zenoh_api import ZenohBridge
+            from ..zenoh_api import ZenohBridge
             bridge = ZenohBridge(ctl, config.zenoh, scanner_name=config.scanner.name)
             stack.callback(bridge.close)
 

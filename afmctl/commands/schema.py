@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from afmctl.config import json_schema
+    from ..config import json_schema
     text = json.dumps(json_schema(), indent=2) + "\n"
     if args.out:
         Path(args.out).write_text(text, encoding="utf-8")

@@ -101,7 +101,7 @@ def _settings_model():
         baud: int = Field(115200, ge=300, le=10_000_000)
         link: str | None = None
 
-    from afmctl.zenoh_config import ZenohSettings
+    from ..zenoh_config import ZenohSettings
 
     class SimSection(BaseModel):
         model_config = ConfigDict(extra="forbid")
@@ -123,7 +123,7 @@ def load_settings(path: Path | None):
     """The ``afmctl sim`` settings from a TOML file (or defaults); errors name the field."""
     import tomllib
 
-    from afmctl.errors import AfmctlError
+    from ..errors import AfmctlError
     data: dict[str, Any] = {}
     if path is not None:
         try:
@@ -144,21 +144,21 @@ def _merge(base: dict, over: dict) -> dict:
 
 def make_scanner(overrides: dict[str, Any]):
     """The default simulated scanner with ``overrides`` merged in; a recording sink when
-    :mod:`sim_backend.scanner` is not available. Returns ``(sink, description)``."""
+    :mod:`afmctl.sim_backend.scanner` is not available. Returns ``(sink, description)``."""
     try:
-        from sim_backend.scanner import Scanner, ScannerConfig, default_scanner_config
+        from afmctl.sim_backend.scanner import Scanner, ScannerConfig, default_scanner_config
     except ModuleNotFoundError as err:
         # Only a missing scanner module falls back (a stripped install): a scanner that is
         # there but fails to import is a bug to see, not to paper over.
-        if err.name not in ("sim_backend.scanner", "sim_backend"):
+        if err.name not in ("afmctl.sim_backend.scanner", "sim_backend"):
             raise
-        from sim_backend.amplifiers import RecordingSink
-        log.warning("sim_backend.scanner unavailable (%s); the amplifier drives a recording sink, "
+        from afmctl.sim_backend.amplifiers import RecordingSink
+        log.warning("afmctl.sim_backend.scanner unavailable (%s); the amplifier drives a recording sink, "
                     "no plant", err)
         return RecordingSink(max_history=10_000), f"recording sink (no scanner: {err})"
     from pydantic import ValidationError
 
-    from afmctl.errors import AfmctlError
+    from ..errors import AfmctlError
     config = default_scanner_config()
     if overrides:
         try:
@@ -181,9 +181,9 @@ class SimService:
 
     def __init__(self, settings, *, on_tick: Callable[[float, Any], None] | None = None,
                  record: Path | None = None) -> None:
-        from sim_backend.amplifiers import make_device
-        from sim_backend.amplifiers.base import CsvRecorder, elapsed_clock
-        from sim_backend.amplifiers.pty_server import PtyServer
+        from afmctl.sim_backend.amplifiers import make_device
+        from afmctl.sim_backend.amplifiers.base import CsvRecorder, elapsed_clock
+        from afmctl.sim_backend.amplifiers.pty_server import PtyServer
         self.settings = settings
         self.on_tick = on_tick
         self.scanner, self.description = make_scanner(settings.scanner)
@@ -195,7 +195,7 @@ class SimService:
             try:
                 self.recorder = sink = CsvRecorder(str(record), inner=self.scanner)
             except OSError as err:
-                from afmctl.errors import AfmctlError
+                from ..errors import AfmctlError
                 raise AfmctlError(f"--record {record}: cannot write ({err.strerror})") from None
         self.device = make_device(amp.protocol, sink, now=self.clock)
         self.server = PtyServer(self.device, baud=amp.baud, link=amp.link)
@@ -214,7 +214,7 @@ class SimService:
         try:
             self.server.start()
         except OSError as err:
-            from afmctl.errors import AfmctlError
+            from ..errors import AfmctlError
             self.server.stop()
             raise AfmctlError(f"cannot serve the simulated amplifier on {self.server.port}: "
                               f"{err.strerror or err}") from None
@@ -357,7 +357,7 @@ def _zenoh_overrides(settings, args) -> None:
     """Apply ``--zenoh``, ``--zenoh-listen``, ``--zenoh-connect``, ``--scanner``; check the key."""
     from pydantic import ValidationError
 
-    from afmctl.errors import AfmctlError
+    from ..errors import AfmctlError
     if args.scanner is not None:
         settings.scanner["name"] = args.scanner
     if not (args.zenoh or args.zenoh_listen or args.zenoh_connect):
@@ -382,7 +382,7 @@ def scanner_name(settings) -> str:
     name = settings.scanner.get("name")
     if name is None:
         try:
-            from sim_backend.config import ScannerConfig
+            from afmctl.sim_backend.config import ScannerConfig
             name = ScannerConfig.model_fields["name"].default
         except ModuleNotFoundError:
             name = "sim0"
@@ -390,7 +390,7 @@ def scanner_name(settings) -> str:
 
 
 def run(args) -> int:
-    from afmctl.errors import AfmctlError
+    from ..errors import AfmctlError
     settings = load_settings(args.config)
     if args.protocol:
         settings.amplifier.protocol = args.protocol
@@ -424,7 +424,7 @@ def run(args) -> int:
     try:
         with contextlib.ExitStack() as stack:
             if settings.zenoh.enabled:            # first: a taken port fails before the pty opens
-                from afmctl.zenoh_api import SimPublisher
+                from ..zenoh_api import SimPublisher
                 sim_pub = SimPublisher(settings.zenoh, name)
                 stack.callback(sim_pub.close)
                 tips = TipPublisher(sim_pub.publish_tip, rate_Hz=settings.sim.publish_rate_Hz,

@@ -8,7 +8,7 @@
   python-can bus.
 
 Each drives a *sink* (``sink.apply(volts, t_s)``, e.g. a
-:class:`sim_backend.scanner.Scanner` or a :class:`RecordingSink`). Nothing is imported
+:class:`afmctl.sim_backend.scanner.Scanner` or a :class:`RecordingSink`). Nothing is imported
 eagerly.
 """
 from __future__ import annotations
@@ -16,15 +16,15 @@ from __future__ import annotations
 import importlib
 
 _EXPORTS = {
-    "RecordingSink": "sim_backend.amplifiers.base",
-    "CsvRecorder": "sim_backend.amplifiers.base",
-    "SimDevice": "sim_backend.amplifiers.base",
-    "SimMDT693B": "sim_backend.amplifiers.mdt693b",
-    "SimMDT694B": "sim_backend.amplifiers.mdt693b",
-    "SimGCS": "sim_backend.amplifiers.gcs",
-    "SimNV200": "sim_backend.amplifiers.nv200",
-    "PtyServer": "sim_backend.amplifiers.pty_server",
-    "SimCANAmplifier": "sim_backend.amplifiers.can_amp",
+    "RecordingSink": "afmctl.sim_backend.amplifiers.base",
+    "CsvRecorder": "afmctl.sim_backend.amplifiers.base",
+    "SimDevice": "afmctl.sim_backend.amplifiers.base",
+    "SimMDT693B": "afmctl.sim_backend.amplifiers.mdt693b",
+    "SimMDT694B": "afmctl.sim_backend.amplifiers.mdt693b",
+    "SimGCS": "afmctl.sim_backend.amplifiers.gcs",
+    "SimNV200": "afmctl.sim_backend.amplifiers.nv200",
+    "PtyServer": "afmctl.sim_backend.amplifiers.pty_server",
+    "SimCANAmplifier": "afmctl.sim_backend.amplifiers.can_amp",
 }
 
 __all__ = sorted(_EXPORTS)
@@ -38,9 +38,9 @@ def __getattr__(name: str):
 
 def make_device(protocol: str, sink=None, **options):
     """A simulated serial device by protocol name: mdt693b, mdt694b, gcs, nv200."""
-    from sim_backend.amplifiers.gcs import SimGCS
-    from sim_backend.amplifiers.mdt693b import SimMDT693B
-    from sim_backend.amplifiers.nv200 import SimNV200
+    from .gcs import SimGCS
+    from .mdt693b import SimMDT693B
+    from .nv200 import SimNV200
     p = protocol.lower()
     if p == "mdt693b":
         return SimMDT693B(sink, **options)

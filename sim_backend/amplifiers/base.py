@@ -11,7 +11,7 @@ from typing import Protocol
 class Sink(Protocol):
     """Anything that takes the amplifier's output: ``apply(volts, t_s)`` with
     ``volts`` a mapping axis -> V, ``t_s`` the clock time [s]. A
-    :class:`sim_backend.scanner.Scanner` is one."""
+    :class:`afmctl.sim_backend.scanner.Scanner` is one."""
 
     def apply(self, volts: Mapping[str, float], t_s: float | None = None) -> None: ...
 

@@ -1,7 +1,7 @@
 """Simulated CAN amplifier answering the frames of ``drivers/afm_amplifier.dbc``.
 
-sim_backend must not import :mod:`drivers`, so the DBC file is located with
-``importlib.util.find_spec("drivers")`` (which does not import it) and loaded with
+sim_backend must not import :mod:`afmctl.drivers`, so the DBC file is located with
+``importlib.util.find_spec("afmctl.drivers")`` (which does not import it) and loaded with
 cantools; ``dbc_path`` overrides it.
 
 Behaviour: outputs are enabled at power-up. A SETPOINT_XYZ inside the range is applied;
@@ -21,7 +21,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from sim_backend.amplifiers.base import Sink, elapsed_clock
+from .base import Sink, elapsed_clock
 
 log = logging.getLogger(__name__)
 
@@ -31,7 +31,7 @@ V_PER_BIT = 0.0025
 
 def find_dbc() -> Path:
     """Path of ``afm_amplifier.dbc`` shipped in the drivers package (not imported)."""
-    spec = importlib.util.find_spec("drivers")
+    spec = importlib.util.find_spec("afmctl.drivers")
     if spec is not None and spec.submodule_search_locations:
         for loc in spec.submodule_search_locations:
             p = Path(loc) / "afm_amplifier.dbc"

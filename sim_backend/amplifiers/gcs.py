@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from sim_backend.amplifiers.base import SimDevice, Sink
+from .base import SimDevice, Sink
 
 _AXIS = {"1": "x", "2": "y", "3": "z"}
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import re
 from collections.abc import Callable
 
-from sim_backend.amplifiers.base import SimDevice, Sink
+from .base import SimDevice, Sink
 
 _NUM = r"\s*([+-]?(?:\d+(?:\.\d*)?|\.\d+))\s*"
 _SET = re.compile(rb"([XYZ])VOLTAGE=" + _NUM.encode())
