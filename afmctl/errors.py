@@ -7,3 +7,9 @@ class AfmctlError(Exception):
 
     The message names the file or field and the allowed range.
     """
+
+
+def error_line(err: BaseException) -> str:
+    """An exception as one line for status, events and logs: its message with every run of
+    whitespace (newlines included) folded to one space, or its class name when empty."""
+    return " ".join(str(err).split()) or type(err).__name__

@@ -32,7 +32,10 @@ small deque; the loop thread fuses them into the Kalman filter before its next s
 States (:class:`State`): ``idle`` (not started), ``running``, ``holding`` (the watchdog saw
 the trajectory stall: output held or ramping to the safe value), ``fault`` (a driver error:
 output held by the device, reconnecting; on success the output ramps from the read-back
-voltage to the pending setpoint and the run resumes), ``stopped``.
+voltage to the pending setpoint and the run resumes), ``stopped``. While ``running`` the
+loop thread is in one of the modes of :class:`afmctl.loop_machine.Mode` (``run``,
+``settle``, ``finish``); :mod:`afmctl.loop_machine` holds the loop thread's tick methods,
+:mod:`afmctl.loop_stats` the timing histograms.
 
 Timing statistics (:meth:`Controller.stats`): lateness = how long after its deadline a
 tick started [s] (p50 and p99 from a histogram of every tick of the run — 0.5 µs bins
@@ -43,7 +46,6 @@ below 2 ms, 100 µs bins above — and the max); a deadline is *missed* when a t
 from __future__ import annotations
 
 import collections
-import enum
 import gc
 import logging
 import math
@@ -57,64 +59,27 @@ from typing import Any
 
 import numpy as np
 
-from .errors import AfmctlError
+from . import loop_stats
+from .errors import AfmctlError, error_line
+from .loop_machine import (C_COR, C_D, C_S, C_SEQ, C_T, C_TGT, C_TICK, C_U, END_OF_TRAJECTORY, N_COLS,
+                           RING_ROWS, LoopMachine, Mode, State)  # noqa: F401 - Mode re-exported
 from .runlog import DRIFT_DTYPE, SETPOINT_DTYPE, RunLogWriter
-from .safety import SafetyLayer, Watchdog
-from .trajectories import check_positions
-from afmctl.drivers.base import ConnectionState
-from afmctl.drivers.errors import AmplifierError, LimitError
+from .safety import SafetyLayer
+from . import trajectories
+from .trajectories import check_positions, resample
 
 log = logging.getLogger(__name__)
 
-_RING = 1 << 16
+_RING = RING_ROWS
 #: largest run-time segment after resampling to the loop period [samples]
 MAX_SEGMENT_SAMPLES = 1_000_000
-#: lateness/work histograms: 0.5 µs bins below 2 ms, then 100 µs bins up to 102 ms (later
-#: values land in the last bin; the maximum is kept separately)
-_FINE_S, _N_FINE = 0.5e-6, 4000
-_COARSE_S, _N_COARSE = 100e-6, 1000
-_HBINS = _N_FINE + _N_COARSE
-_FINE_END = _FINE_S * _N_FINE
-_EDGES = np.concatenate([np.arange(_N_FINE) * _FINE_S, _FINE_END + np.arange(_N_COARSE) * _COARSE_S])
-_WIDTHS = np.concatenate([np.full(_N_FINE, _FINE_S), np.full(_N_COARSE, _COARSE_S)])
-
-
-def _bin(v: float) -> int:
-    """Histogram bin of a duration ``v`` ≥ 0 [s]."""
-    if v < _FINE_END:
-        return int(v * 2e6)
-    b = _N_FINE + int((v - _FINE_END) * 1e4)
-    return b if b < _HBINS else _HBINS - 1
-# ring row layout
-_C_SEQ, _C_TICK = 0, 1
-_C_TGT, _C_COR, _C_U, _C_T, _C_D, _C_S = 2, 5, 8, 11, 12, 15
-_NCOL = 18
 #: drift measurements waiting for the loop thread (more are refused)
 MAX_PENDING_DRIFT_MEASUREMENTS = 64
-_NAN3 = (math.nan, math.nan, math.nan)
-
-_END = object()
-
-
-def _percentiles(hist: np.ndarray, qs: tuple[float, ...]) -> tuple[float, ...]:
-    """Quantiles [s] of a lateness/work histogram (bin centres)."""
-    cum = np.cumsum(hist)
-    total = int(cum[-1])
-    if total == 0:
-        return tuple(0.0 for _ in qs)
-    out = []
-    for q in qs:
-        b = min(int(np.searchsorted(cum, q * total)), _HBINS - 1)
-        out.append(float(_EDGES[b] + 0.5 * _WIDTHS[b]))
-    return tuple(out)
-
-
-class State(str, enum.Enum):
-    IDLE = "idle"
-    RUNNING = "running"
-    HOLDING = "holding"
-    FAULT = "fault"
-    STOPPED = "stopped"
+_END = END_OF_TRAJECTORY
+# histogram helpers under their former names (see afmctl.loop_stats)
+_HBINS = loop_stats.N_BINS
+_bin = loop_stats.bin_of
+_percentiles = loop_stats.percentiles
 
 
 def _as_block(arr: Any, where: str = "trajectory") -> np.ndarray:
@@ -129,18 +94,6 @@ def _as_block(arr: Any, where: str = "trajectory") -> np.ndarray:
 def _flat(rows: np.ndarray) -> list[float]:
     """A block as one flat list x0, y0, z0, x1, ... (one GC-tracked object per block)."""
     return rows.ravel().tolist()
-
-
-def resample(positions_nm: np.ndarray, dt_in_s: float, dt_out_s: float) -> np.ndarray:
-    """Linear resampling of (N, 3) positions from period ``dt_in_s`` to ``dt_out_s`` [s]."""
-    p = np.asarray(positions_nm, dtype=np.float64)
-    if abs(dt_in_s - dt_out_s) <= 1e-12 * dt_out_s or len(p) < 2:
-        return p
-    t_end = (len(p) - 1) * dt_in_s
-    n = int(math.floor(t_end / dt_out_s + 1e-9)) + 1
-    t_out = np.arange(n) * dt_out_s
-    t_in = np.arange(len(p)) * dt_in_s
-    return np.column_stack([np.interp(t_out, t_in, p[:, k]) for k in range(3)])
 
 
 class Controller:
@@ -187,9 +140,9 @@ class Controller:
         self._feed_error: str | None = None
         self._events: collections.deque = collections.deque()
         self._drift_meas: collections.deque = collections.deque()
-        self._ring = np.zeros((_RING, _NCOL))
-        self._hist = np.zeros(_HBINS, dtype=np.int64)
-        self._whist = np.zeros(_HBINS, dtype=np.int64)
+        self._ring = np.zeros((_RING, N_COLS))
+        self._hist = loop_stats.new_histogram()
+        self._whist = loop_stats.new_histogram()
         self._missed_log: collections.deque = collections.deque(maxlen=32)
         self._reset_stats()
         self._T_C = float(config.compensation.temperature.T_C)
@@ -312,7 +265,6 @@ class Controller:
             self._rc_thread.join(60.0)
             if self._rc_thread.is_alive():
                 raise AfmctlError("start: the previous run's reconnect attempt is still in the driver")
-        from . import trajectories
         it: Iterator | None
         self._queue_mode = False
         self._queue_end_when_idle = False
@@ -352,22 +304,7 @@ class Controller:
             gc.collect()
             gc.freeze()   # long-lived objects leave the collector's generations
         if self.config.runlog.enabled:
-            if runlog_path is None:
-                stamp = time.strftime("%Y%m%d-%H%M%S")
-                base = Path(self.config.runlog.dir) / f"{self.config.scanner.name}-{stamp}"
-                runlog_path = base.with_name(base.name + ".afmlog")
-                k = 1
-                while runlog_path.exists():
-                    runlog_path = base.with_name(f"{base.name}-{k}.afmlog")
-                    k += 1
-            meta = {"scanner": self.config.scanner.name, "dt_s": self.dt_s, "rate_Hz": self.config.loop.rate_Hz,
-                    "axes": list(self.config.scanner.axes), "driver": self.config.amplifier.driver,
-                    "config": self.config.model_dump(mode="json")}
-            prio = self.config.loop.realtime_priority
-            self.runlog = RunLogWriter(runlog_path, meta, flush_interval_s=self.config.runlog.flush_interval_s,
-                                       fsync=self.config.runlog.fsync,
-                                       realtime_priority=max(1, prio - 1) if prio else None)
-            self.runlog_path = Path(runlog_path)
+            self._open_runlog(runlog_path)
         self._start_wall = time.time()
         self._set_state(State.RUNNING, "start")
         if it is not None:
@@ -377,6 +314,25 @@ class Controller:
         self._dispatcher = threading.Thread(target=self._dispatch_main, name="afmctl-dispatch", daemon=True)
         self._thread.start()
         self._dispatcher.start()
+
+    def _open_runlog(self, runlog_path: str | Path | None) -> None:
+        """Create this run's log (default name: runlog.dir/<scanner>-<time>[-k].afmlog)."""
+        if runlog_path is None:
+            stamp = time.strftime("%Y%m%d-%H%M%S")
+            base = Path(self.config.runlog.dir) / f"{self.config.scanner.name}-{stamp}"
+            runlog_path = base.with_name(base.name + ".afmlog")
+            k = 1
+            while runlog_path.exists():
+                runlog_path = base.with_name(f"{base.name}-{k}.afmlog")
+                k += 1
+        meta = {"scanner": self.config.scanner.name, "dt_s": self.dt_s, "rate_Hz": self.config.loop.rate_Hz,
+                "axes": list(self.config.scanner.axes), "driver": self.config.amplifier.driver,
+                "config": self.config.model_dump(mode="json")}
+        prio = self.config.loop.realtime_priority
+        self.runlog = RunLogWriter(runlog_path, meta, flush_interval_s=self.config.runlog.flush_interval_s,
+                                   fsync=self.config.runlog.fsync,
+                                   realtime_priority=max(1, prio - 1) if prio else None)
+        self.runlog_path = Path(runlog_path)
 
     def _warm_up(self) -> None:
         """Run the chain once off the loop thread (compiles/loads numba kernels), then reset."""
@@ -495,7 +451,7 @@ class Controller:
                         return
                     dq.append(_flat(rows[k:k + bs]))
         except Exception as err:  # a trajectory generator failed: end the run safely
-            self._feed_error = " ".join(str(err).split()) or type(err).__name__
+            self._feed_error = error_line(err)
             log.error("trajectory: %s", self._feed_error)
         dq.append(_END)
 
@@ -513,7 +469,7 @@ class Controller:
                 self._event("realtime-refused", f"SCHED_FIFO {prio} not granted ({err}); normal scheduling")
                 log.warning("loop.realtime_priority %s not granted (%s)", prio, err)
         try:
-            self._loop()
+            LoopMachine(self).run()
         except BaseException as err:  # never leave silently
             self._last_error = f"{type(err).__name__}: {err}"
             self._errors += 1
@@ -525,305 +481,6 @@ class Controller:
             if si is not None:
                 sys.setswitchinterval(old_switch)
 
-    def _loop(self) -> None:  # noqa: C901 - one flat state machine reads best here
-        cfg = self.config
-        dt = self.dt_s
-        period = dt
-        half = 0.5 * period
-        spin = cfg.loop.spin_s
-        resync = cfg.loop.resync_periods * period
-        perf = time.perf_counter
-        sleep = time.sleep
-        safety = self.safety
-        pipe = self.pipeline
-        ring = self._ring
-        hist = self._hist
-        whist = self._whist
-        missed_log = self._missed_log
-        hbin = 1.0 / _FINE_S
-        nfine = _N_FINE
-        binof = _bin
-        dq = self._deque
-        popleft = dq.popleft
-        meas = self._drift_meas
-        has_kalman = getattr(pipe, "kalman", None) is not None
-        mask_r = _RING - 1
-        ramp_rate = min(cfg.safety.ramp_V_per_s, safety.slew_V_per_s)
-        safe = list(safety.safe)
-        on_finish = cfg.safety.on_finish
-        on_stall = cfg.safety.on_stall
-        watchdog = Watchdog(cfg.safety.watchdog_s)
-        T_file = self._T_file
-        reconnect_interval = cfg.safety.reconnect_interval_s
-        max_reconnects = cfg.safety.max_reconnects
-        fault_errors = (AmplifierError, OSError)
-        FAULT = State.FAULT
-
-        blk: list | None = None
-        bi = 0
-        cur: tuple | None = None          # computed sample not yet fully sent
-        need_ramp = True                  # ramp to the next sample (start / resume)
-        ramping = False
-        mode = "run"                      # run | finish
-        finish_rate = ramp_rate
-        finish_hold = False
-        last_u_cmd: tuple | None = None   # the trajectory's latest setpoint voltages (x, y, z)
-        next_attempt = 0.0
-        attempts = 0
-        last_tgt = (0.0, 0.0, 0.0)
-        last_cor = (0.0, 0.0, 0.0)
-        last_d = (0.0, 0.0, 0.0)
-        last_s = pipe.drift_std_nm() if has_kalman else _NAN3
-        u_prev = [0.0, 0.0, 0.0]
-        rc_thread: threading.Thread | None = None   # reconnect attempt in flight
-        in_fault = False                            # the loop ended without a link
-
-        try:
-            for w in safety.sync_from_device():
-                self._event("readback", w)
-            u_prev = safety.xyz(safety.last)
-        except fault_errors as err:
-            self._enter_fault(err)
-            next_attempt = perf() + reconnect_interval
-
-        def reached(u_xyz) -> bool:
-            """Whether the output already is the setpoint ``u_xyz`` (clamped into the limits)."""
-            if u_xyz is None:
-                return True
-            tgt = safety.driven_target(u_xyz)
-            return all(not math.isfinite(tgt[i]) or min(max(tgt[i], safety.lo[i]), safety.hi[i]) == safety.last[i]
-                       for i in range(len(tgt)))
-
-        def record(tgt, cor, d, T) -> None:
-            seq = self._seq
-            u = safety.last
-            ux = uy = uz = 0.0
-            for i, k in enumerate(safety.index):
-                if k == 0:
-                    ux = u[i]
-                elif k == 1:
-                    uy = u[i]
-                else:
-                    uz = u[i]
-            ring[self._w & mask_r] = (seq, self._tick, tgt[0], tgt[1], tgt[2], cor[0], cor[1], cor[2],
-                                      ux, uy, uz, T, d[0], d[1], d[2], last_s[0], last_s[1], last_s[2])
-            self._w += 1
-            self._seq = seq + 1
-            u_prev[0] = ux
-            u_prev[1] = uy
-            u_prev[2] = uz
-
-        next_t = perf()
-        now = next_t
-        watchdog.feed(next_t)
-        while True:
-            work = perf() - now                     # the previous tick's work [s]
-            if work > 0.0:
-                b = int(work * hbin)
-                whist[b if b < nfine else binof(work)] += 1
-            next_t += period
-            now = perf()
-            rem = next_t - now
-            if rem > spin:
-                sleep(rem - spin)
-            while perf() < next_t:
-                pass
-            now = perf()
-            late = now - next_t
-            if self._state is not FAULT:            # reconnect time is not loop lateness
-                b = int(late * hbin)
-                hist[b if b < nfine else binof(late)] += 1
-                self._n_late += 1
-                if late > self._late_max:
-                    self._late_max = late
-                if late > half:
-                    self._missed += 1
-                    missed_log.append((self._tick, late))
-            if late > resync:
-                self._overruns += 1
-                next_t = now
-            self._tick += 1
-            T = self._T_C if T_file is None else float(np.interp(self._tick * dt, T_file[0], T_file[1]))
-
-            req = self._request
-            if req is not None and mode != "finish":
-                mode = "finish"
-                if req == "estop":
-                    finish_rate = safety.slew_V_per_s
-                    finish_hold = False
-                    self._event("estop")
-                else:
-                    finish_rate = ramp_rate
-                    finish_hold = on_finish == "hold"
-                    self._event("stop")
-            elif req == "estop" and finish_rate != safety.slew_V_per_s:
-                finish_rate = safety.slew_V_per_s
-                finish_hold = False
-                self._event("estop")
-
-            # ---------------------------------------------------------- fault
-            if self._state is State.FAULT:
-                # reconnect() of a serial driver blocks for up to its reconnect_timeout_s:
-                # it runs on a helper thread, so that this loop keeps ticking and a stop or
-                # estop during a fault is honoured at once (the device holds its output).
-                if mode == "finish":
-                    self._event("stop-in-fault", "link lost: the output could not be ramped")
-                    self._set_state(State.STOPPED, "stopped")
-                    in_fault = True
-                    break
-                if rc_thread is not None:
-                    if rc_thread.is_alive():
-                        continue
-                    rc_thread = None
-                    err = self._rc_error
-                    if err is None:
-                        try:
-                            for w in safety.sync_from_device():
-                                self._event("readback", w)
-                        except Exception as e:   # noqa: BLE001 - any failure: stay in fault
-                            err = e
-                    if err is not None:
-                        self._errors += 1
-                        self._last_error = " ".join(str(err).split()) or type(err).__name__
-                        next_attempt = perf() + reconnect_interval
-                        continue
-                    self._reconnects += 1
-                    u_prev[:] = safety.xyz(safety.last)
-                    attempts = 0
-                    need_ramp = True
-                    mode = "run"
-                    self._set_state(State.RUNNING, "resume", "reconnected; ramping from the read-back voltage")
-                    watchdog.feed()
-                    next_t = perf()
-                    continue
-                if now < next_attempt:
-                    continue
-                if attempts >= max_reconnects:
-                    self._event("give-up", f"{attempts} reconnect attempts failed")
-                    in_fault = True
-                    break
-                attempts += 1
-                self._rc_error = None
-                rc_thread = threading.Thread(target=self._reconnect_job, name="afmctl-reconnect", daemon=True)
-                self._rc_thread = rc_thread
-                rc_thread.start()
-                continue
-
-            try:
-                # ------------------------------------------------------ settle
-                if mode == "settle":
-                    # the trajectory's last setpoint, not yet reached because the slew
-                    # limit slowed the samples sent back to back after a late tick: reach
-                    # it (at the slew limit) before the finish ramp or the hold
-                    done = safety.ramp_step(safety.driven_target(last_u_cmd), safety.slew_V_per_s)
-                    record(last_tgt, last_cor, last_d, T)
-                    if done:
-                        mode = "finish"
-                    continue
-
-                # ------------------------------------------------------ finish / stop
-                if mode == "finish":
-                    if finish_hold:
-                        break
-                    done = safety.ramp_step(safe, finish_rate)
-                    record(last_tgt, last_cor, last_d, T)
-                    if done:
-                        break
-                    continue
-
-                # ------------------------------------------------------ next sample
-                if cur is None:
-                    if blk is None or bi >= len(blk):
-                        blk = None
-                        item = popleft() if dq else None
-                        if item is _END:
-                            if self._feed_error:
-                                self._errors += 1
-                                self._last_error = self._feed_error
-                                self._event("trajectory-error", self._feed_error)
-                            else:
-                                self._event("end")
-                            mode = "finish" if reached(last_u_cmd) else "settle"
-                            finish_rate = ramp_rate
-                            finish_hold = on_finish == "hold"
-                            continue
-                        if item is None:
-                            if self._queue_mode and self._queue_end_when_idle:
-                                self._event("end")
-                                mode = "finish" if reached(last_u_cmd) else "settle"
-                                finish_rate = ramp_rate
-                                finish_hold = on_finish == "hold"
-                                continue
-                            if watchdog.expired(now):
-                                if self._state is not State.HOLDING:
-                                    self._watchdog_trips += 1
-                                    self._set_state(State.HOLDING, "watchdog",
-                                                    f"no trajectory sample for {watchdog.since(now):.3f} s")
-                                if on_stall == "safe":
-                                    safety.ramp_step(safe, ramp_rate)
-                                    record(last_tgt, last_cor, last_d, T)
-                            continue
-                        blk = item
-                        bi = 0
-                    j = bi
-                    bi += 3
-                    rx, ry, rz = blk[j], blk[j + 1], blk[j + 2]
-                    watchdog.feed(now)
-                    if self._state is State.HOLDING:
-                        self._set_state(State.RUNNING, "resume", "trajectory samples again")
-                        need_ramp = True
-                    if meas:
-                        self._apply_drift_measurement(meas.popleft())
-                    cur = pipe.step(rx, ry, rz, T, u_prev)
-                    last_u_cmd = (cur[6], cur[7], cur[8])
-                    if has_kalman:
-                        last_s = pipe.drift_std_nm()
-                    last_tgt = (rx, ry, rz)
-                    last_cor = (cur[3], cur[4], cur[5])
-                    last_d = (cur[0], cur[1], cur[2])
-                if need_ramp:
-                    need_ramp = False
-                    tgt = safety.driven_target(cur[6:9])
-                    m = safety.max_step_V
-                    ramping = any(abs(min(max(tgt[i], safety.lo[i]), safety.hi[i]) - safety.last[i]) > m
-                                  for i in range(len(tgt)))
-                    if ramping:
-                        self._event("ramp", "ramping from the present output to the setpoint")
-                if ramping:
-                    if safety.ramp_step(safety.driven_target(cur[6:9]), ramp_rate):
-                        ramping = False
-                        cur = None
-                        self._event("ramp-done")
-                    record(last_tgt, last_cor, last_d, T)
-                    continue
-                safety.send(cur[6:9])
-                cur = None
-                record(last_tgt, last_cor, last_d, T)
-            except fault_errors as err:
-                if isinstance(err, LimitError):
-                    # the driver refused a value the safety layer allowed (its own limits
-                    # disagree with the configuration): nothing was sent, the output is held;
-                    # reconnecting would not help, so the run ends here
-                    self._errors += 1
-                    self._last_error = " ".join(str(err).split()) or type(err).__name__
-                    self._set_state(State.FAULT, "refused", f"the driver refused a setpoint: {self._last_error}")
-                    in_fault = True
-                    break
-                self._enter_fault(err)
-                ramping = False
-                next_attempt = perf() + reconnect_interval
-                attempts = 0
-
-        if not in_fault and self._state is not State.FAULT and self.amplifier.state is ConnectionState.CONNECTED:
-            try:
-                self.amplifier.flush()       # pipelined setpoints applied and checked
-            except fault_errors as err:
-                self._errors += 1
-                self._last_error = " ".join(str(err).split()) or type(err).__name__
-                self._event("flush-error", self._last_error)
-        if self._state not in (State.FAULT, State.STOPPED):
-            self._set_state(State.STOPPED, "stopped")
-
     def _apply_drift_measurement(self, item: tuple) -> None:
         """Loop thread: fuse one validated measurement (see :meth:`submit_drift_measurement`);
         its age is the controller time since ``t_s`` (0 when not given or in the future)."""
@@ -832,7 +489,7 @@ class Controller:
         try:
             self.pipeline.update_drift(z, std, age)
         except Exception as err:  # noqa: BLE001 - a bad measurement must not stop the loop
-            self._event("drift-measurement-error", " ".join(str(err).split()) or type(err).__name__)
+            self._event("drift-measurement-error", error_line(err))
 
     def _reconnect_job(self) -> None:
         """One ``amplifier.reconnect()`` attempt (helper thread; may block for the driver's
@@ -845,7 +502,7 @@ class Controller:
     def _enter_fault(self, err: BaseException) -> None:
         self._errors += 1
         self._faults += 1
-        self._last_error = " ".join(str(err).split()) or type(err).__name__
+        self._last_error = error_line(err)
         log.warning("amplifier fault: %s", self._last_error)
         self._set_state(State.FAULT, "fault", self._last_error)
 
@@ -891,24 +548,24 @@ class Controller:
             rows = rows[keep:] if keep < len(rows) else rows[:0]
             self._dropped += keep
         sp = np.zeros(len(rows), SETPOINT_DTYPE)
-        sp["seq"] = rows[:, _C_SEQ].astype(np.uint64)
-        sp["t_s"] = rows[:, _C_TICK] * self.dt_s
-        sp["target_nm"] = rows[:, _C_TGT:_C_TGT + 3]
-        sp["corrected_nm"] = rows[:, _C_COR:_C_COR + 3]
-        sp["u_V"] = rows[:, _C_U:_C_U + 3]
+        sp["seq"] = rows[:, C_SEQ].astype(np.uint64)
+        sp["t_s"] = rows[:, C_TICK] * self.dt_s
+        sp["target_nm"] = rows[:, C_TGT:C_TGT + 3]
+        sp["corrected_nm"] = rows[:, C_COR:C_COR + 3]
+        sp["u_V"] = rows[:, C_U:C_U + 3]
         dr = np.zeros(len(rows), DRIFT_DTYPE)
         dr["seq"] = sp["seq"]
         dr["t_s"] = sp["t_s"]
-        dr["T_C"] = rows[:, _C_T]
-        dr["drift_nm"] = rows[:, _C_D:_C_D + 3]
-        dr["std_nm"] = rows[:, _C_S:_C_S + 3]      # NaN when the Kalman filter is off
+        dr["T_C"] = rows[:, C_T]
+        dr["drift_nm"] = rows[:, C_D:C_D + 3]
+        dr["std_nm"] = rows[:, C_S:C_S + 3]      # NaN when the Kalman filter is off
         if self.runlog is not None:
             self.runlog.write_setpoints(sp)
             self.runlog.write_drift(dr)
         if len(sp):
             self._call_sinks("on_setpoints", sp)
             last = dr[-1]
-            std = rows[-1, _C_S:_C_S + 3]
+            std = rows[-1, C_S:C_S + 3]
             self._call_sinks("on_drift", {"seq": int(last["seq"]), "t_s": float(last["t_s"]),
                                           "T_C": float(last["T_C"]),
                                           "drift_nm": [float(v) for v in last["drift_nm"]],

@@ -39,6 +39,19 @@ def blocks_of(positions_nm: np.ndarray, block_samples: int = 256) -> Iterator[Bl
         yield p[k:k + block_samples]
 
 
+def resample(positions_nm: np.ndarray, dt_in_s: float, dt_out_s: float) -> np.ndarray:
+    """Linear resampling of (N, 3) positions [nm] from period ``dt_in_s`` to ``dt_out_s`` [s]
+    (the input unchanged when the periods agree or it has fewer than 2 samples)."""
+    p = np.asarray(positions_nm, dtype=np.float64)
+    if abs(dt_in_s - dt_out_s) <= 1e-12 * dt_out_s or len(p) < 2:
+        return p
+    t_end = (len(p) - 1) * dt_in_s
+    n = int(math.floor(t_end / dt_out_s + 1e-9)) + 1
+    t_out = np.arange(n) * dt_out_s
+    t_in = np.arange(len(p)) * dt_in_s
+    return np.column_stack([np.interp(t_out, t_in, p[:, k]) for k in range(3)])
+
+
 def collect(blocks: Iterable[Block]) -> np.ndarray:
     """Concatenate a block generator into one (N, 3) array."""
     parts = [np.asarray(b, dtype=np.float64).reshape(-1, 3) for b in blocks]
@@ -355,5 +368,4 @@ class ArraySource:
         self.dt_s = float(dt_s)
 
     def blocks_at(self, dt_s: float, block_samples: int = 256) -> Iterator[Block]:
-        from .loop import resample
         return blocks_of(resample(self.positions_nm, self.dt_s, dt_s), block_samples)
