@@ -149,6 +149,8 @@ class Controller:
         self._T_file: tuple[np.ndarray, np.ndarray] | None = None
         self.runlog: RunLogWriter | None = None
         self.runlog_path: Path | None = None
+        #: why the run log failed (the run was stopped), or None
+        self.runlog_error: str | None = None
         self._done = threading.Event()
         self._start_wall = 0.0
 
@@ -156,6 +158,11 @@ class Controller:
     @property
     def state(self) -> State:
         return self._state
+
+    @property
+    def trajectory_error(self) -> str | None:
+        """Why the trajectory source failed during the last run (the run ended safely), or None."""
+        return self._feed_error
 
     @property
     def running(self) -> bool:
@@ -295,6 +302,7 @@ class Controller:
             self._T_file = (np.asarray(data["t"], float), np.asarray(data["T"], float))
         # reset counters of a previous run
         self._request = None
+        self.runlog_error = None
         self._feed_stop = False
         self._feed_error = None
         self._done.clear()
@@ -398,7 +406,7 @@ class Controller:
             "slew_limited": s.slew_limited, "clamped": s.clamped, "nonfinite": s.nonfinite,
             "dropped_records": self._dropped, "last_error": self._last_error,
             "missed_recent": [(int(k), float(v)) for k, v in list(self._missed_log)[-8:]],
-            "T_C": self._T_C,
+            "T_C": self._T_C, "runlog_error": self.runlog_error,
         }
 
     # ------------------------------------------------------------------ internals
@@ -515,6 +523,7 @@ class Controller:
             while True:
                 alive = self._thread is not None and self._thread.is_alive()
                 r = self._dispatch_records(r)
+                self._check_runlog()
                 self._dispatch_events()
                 if time.monotonic() >= next_status:
                     next_status = time.monotonic() + self.status_interval_s
@@ -532,6 +541,21 @@ class Controller:
                                          "detail": self.stats()})
                 self.runlog.close()
             self._done.set()
+
+    def _check_runlog(self) -> None:
+        """Dispatcher: a run log that cannot be written stops the run (ramp to the safe value
+        at ``safety.ramp_V_per_s``, whatever ``on_finish`` says): no setpoint is sent that no
+        record will show, beyond that ramp."""
+        err = self.runlog.error if self.runlog is not None else None
+        if err is None or self.runlog_error is not None:
+            return
+        self.runlog_error = str(err)
+        self._errors += 1
+        self._last_error = self.runlog_error
+        self._event("runlog-error", self.runlog_error)
+        if self._request != "estop":
+            self._request = "runlog-error"
+        self._feed_stop = True
 
     def _dispatch_records(self, r: int) -> int:
         w = self._w

@@ -109,8 +109,8 @@ class LoopMachine:
         self.now_s = 0.0                                # start of this tick (perf_counter)
         self.next_t_s = 0.0                             # this tick's deadline (perf_counter)
         self.T_C = 0.0
-        self._tick_of_mode = {Mode.RUN: self._tick_run, Mode.SETTLE: self._tick_settle,
-                              Mode.FINISH: self._tick_finish}
+        self.spin_s = cfg.loop.spin_s
+        self.resync_s = cfg.loop.resync_periods * self.period_s
 
     # ------------------------------------------------------------------ main loop
     def run(self) -> None:
@@ -124,13 +124,21 @@ class LoopMachine:
             self._wait_for_deadline()
             ctl._tick += 1
             self.T_C = ctl._T_C if self.T_file is None else self._T_from_file()
-            self._take_request()
+            if ctl._request is not None:
+                self._take_request()
             if ctl._state is FAULT:
                 if not self._tick_fault():
                     break
                 continue
+            mode = self.mode
             try:
-                if not self._tick_of_mode[self.mode]():
+                if mode is Mode.RUN:
+                    go_on = self._tick_run()
+                elif mode is Mode.SETTLE:
+                    go_on = self._tick_settle()
+                else:
+                    go_on = self._tick_finish()
+                if not go_on:
                     break
             except FAULT_ERRORS as err:
                 if not self._on_link_error(err):
@@ -149,7 +157,7 @@ class LoopMachine:
         next_t = self.next_t_s + period
         now = perf()
         rem = next_t - now
-        spin = ctl.config.loop.spin_s
+        spin = self.spin_s
         if rem > spin:
             time.sleep(rem - spin)
         while perf() < next_t:
@@ -164,7 +172,7 @@ class LoopMachine:
             if late > 0.5 * period:
                 ctl._missed += 1
                 ctl._missed_log.append((ctl._tick, late))
-        if late > ctl.config.loop.resync_periods * period:
+        if late > self.resync_s:
             ctl._overruns += 1
             next_t = now
         self.now_s = now
@@ -187,8 +195,10 @@ class LoopMachine:
             self.next_attempt_s = time.perf_counter() + self.reconnect_interval_s
 
     def _take_request(self) -> None:
-        """A stop or estop request (any thread) switches to :attr:`Mode.FINISH`; an estop
-        during a stop's ramp raises the ramp rate to the slew limit."""
+        """A request (any thread) switches to :attr:`Mode.FINISH`: ``stop`` (ramp or hold as
+        ``safety.on_finish`` says), ``estop`` (ramp at the slew limit), ``runlog-error``
+        (ramp to the safe value: the run log cannot be written). An estop during another
+        request's ramp raises the ramp rate to the slew limit."""
         ctl = self.ctl
         req = ctl._request
         slew = self.safety.slew_V_per_s
@@ -198,6 +208,10 @@ class LoopMachine:
                 self.finish_rate_V_per_s = slew
                 self.finish_hold = False
                 ctl._event("estop")
+            elif req == "runlog-error":
+                self.finish_rate_V_per_s = self.ramp_rate_V_per_s
+                self.finish_hold = False
+                ctl._event("safe-stop", "the run log cannot be written: ramping to the safe value")
             else:
                 self.finish_rate_V_per_s = self.ramp_rate_V_per_s
                 self.finish_hold = self.on_finish == "hold"

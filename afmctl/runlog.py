@@ -11,7 +11,10 @@ File format (``*.afmlog``, little-endian)
     crc = crc32(payload, start=crc32(u8 kind, u32 n_records))
 
 ``kind`` 1 = setpoints (numpy records of :data:`SETPOINT_DTYPE`), 2 = drift
-(:data:`DRIFT_DTYPE`), 3 = events (UTF-8 JSON array of objects). Chunks are appended
+(:data:`DRIFT_DTYPE`), 3 = events (UTF-8 JSON array of objects), 4 = end (UTF-8 JSON
+``{"setpoints": n}``, written last by :meth:`RunLogWriter.close`: a log without it was not
+closed — the process was killed or a write failed — and is reported incomplete by
+``RunLogReader.complete``; readers skip kinds they do not know). Chunks are appended
 whole by one writer thread and the file is flushed (and by default fsync'ed) at least every
 ``flush_interval_s`` (≤ 0.1 s). A crash can tear only the last chunk; the reader stops at
 the first chunk that is short or fails its CRC and reports where (``RunLogReader.torn``),
@@ -47,7 +50,7 @@ MAGIC = b"AFMLOG01"
 CHUNK_MAGIC = b"CHNK"
 _HEAD = struct.Struct("<II")          # meta_len, crc
 _CHUNK = struct.Struct("<4sB3sIII")    # magic, kind, pad, payload_len, n_records, crc
-KIND_SETPOINTS, KIND_DRIFT, KIND_EVENTS = 1, 2, 3
+KIND_SETPOINTS, KIND_DRIFT, KIND_EVENTS, KIND_END = 1, 2, 3, 4
 MAX_CHUNK_BYTES = 64 * 1024 * 1024
 
 SETPOINT_DTYPE = np.dtype([("seq", "<u8"), ("t_s", "<f8"), ("target_nm", "<f8", (3,)),
@@ -72,13 +75,24 @@ def encode_chunk(kind: int, payload: bytes, n_records: int) -> bytes:
                        chunk_crc(kind, n_records, payload)) + payload
 
 
+class RunLogWriteError(AfmctlError):
+    """The run log could not be written (disk full, its directory vanished, ...)."""
+
+
 class RunLogWriter:
     """Append records from any thread; a writer thread writes chunks and flushes.
 
     ``write_setpoints`` / ``write_drift`` take structured arrays of the module dtypes (copied
     into the queue as is), ``write_event`` a JSON-able dict. :attr:`flushed` counts the
     setpoint records known to be on disk (flushed). Use as a context manager or call
-    :meth:`close` (flushes everything first).
+    :meth:`close` (flushes everything, then writes the end chunk).
+
+    A failed write (an OSError of the file, or the file no longer at :attr:`path` because
+    its directory vanished) sets :attr:`error` (a :class:`RunLogWriteError` naming the file
+    and the cause); from then on nothing more is written — the file keeps every chunk
+    flushed before the error, readable, and no end chunk — and records handed over are
+    dropped. A log whose file vanished is copied back to :attr:`path` (its directory
+    recreated) when that is possible. The controller polls :attr:`error` and stops the run.
     """
 
     def __init__(self, path: str | Path, meta: dict[str, Any] | None = None, *,
@@ -87,7 +101,6 @@ class RunLogWriter:
         if not (0 < flush_interval_s <= 0.1):
             raise AfmctlError(f"runlog.flush_interval_s: {flush_interval_s!r} must be in (0, 0.1] s")
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         self.flush_interval_s = float(flush_interval_s)
         self.fsync = fsync
         self.realtime_priority = realtime_priority
@@ -97,30 +110,36 @@ class RunLogWriter:
         m["setpoint_dtype"] = SETPOINT_DTYPE.descr
         m["drift_dtype"] = DRIFT_DTYPE.descr
         try:
-            self._f = open(self.path, "xb")
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            # unbuffered (every byte written is on the file or the write raised) and readable
+            # (a vanished file is copied back)
+            self._f = open(self.path, "xb+", buffering=0)
+            self._write_all(encode_header(m))
+            st = os.fstat(self._f.fileno())
         except OSError as err:
-            raise AfmctlError(f"runlog: cannot create {self.path} ({err.strerror})") from None
-        self._f.write(encode_header(m))
-        self._f.flush()
+            raise AfmctlError(f"runlog: cannot create {self.path} ({err.strerror or err})") from None
+        self._inode = (st.st_dev, st.st_ino)
+        self._bytes_ok = self._f.tell()        # bytes known to be whole chunks on disk
         self._q: queue.SimpleQueue = queue.SimpleQueue()
         self._closed = False
         self.flushed = 0          # setpoint records flushed
         self.written = 0          # setpoint records handed to write()
-        self.error: BaseException | None = None
+        self.error: RunLogWriteError | None = None
         self._thread = threading.Thread(target=self._run, name="afmctl-runlog", daemon=True)
         self._thread.start()
 
     # ---------------------------------------------------------------- producers
     def write_setpoints(self, records: np.ndarray) -> None:
-        if len(records):
+        if len(records) and self.error is None:
             self._q.put((KIND_SETPOINTS, np.ascontiguousarray(records, dtype=SETPOINT_DTYPE)))
 
     def write_drift(self, records: np.ndarray) -> None:
-        if len(records):
+        if len(records) and self.error is None:
             self._q.put((KIND_DRIFT, np.ascontiguousarray(records, dtype=DRIFT_DTYPE)))
 
     def write_event(self, event: dict[str, Any]) -> None:
-        self._q.put((KIND_EVENTS, event))
+        if self.error is None:
+            self._q.put((KIND_EVENTS, event))
 
     # ---------------------------------------------------------------- writer thread
     def _run(self) -> None:
@@ -133,31 +152,71 @@ class RunLogWriter:
         next_flush = time.monotonic() + self.flush_interval_s
         stop = False
         while not stop:
-            timeout = max(0.0, next_flush - time.monotonic())
-            try:
-                item = self._q.get(timeout=timeout)
-                if item is None:
-                    stop = True
-                else:
-                    pending.append(item)
-                # drain what is there without waiting
-                while True:
-                    item = self._q.get_nowait()
-                    if item is None:
-                        stop = True
-                        break
-                    pending.append(item)
-            except queue.Empty:
-                pass
+            stop = self._collect(pending, max(0.0, next_flush - time.monotonic()))
             if stop or time.monotonic() >= next_flush:
-                try:
-                    self._write(pending)
-                except BaseException as err:  # pragma: no cover - disk full etc.
-                    self.error = err
-                    log.error("run log %s: %s", self.path, err)
+                if self.error is None:
+                    self._write_guarded(pending)
                 pending = []
                 next_flush = time.monotonic() + self.flush_interval_s
-        self._f.close()
+        if self.error is None:
+            self._write_guarded([(KIND_END, None)])
+        try:
+            self._f.close()
+        except OSError:   # data that could not be flushed: the error is already recorded
+            pass
+
+    def _collect(self, pending: list[tuple[int, Any]], timeout_s: float) -> bool:
+        """Move queued items into ``pending`` (waiting up to ``timeout_s``); True at close."""
+        try:
+            item = self._q.get(timeout=timeout_s)
+            while True:
+                if item is None:
+                    return True
+                pending.append(item)
+                item = self._q.get_nowait()
+        except queue.Empty:
+            return False
+
+    def _write_guarded(self, items: list[tuple[int, Any]]) -> None:
+        """Write ``items``; on failure record :attr:`error` and write nothing more."""
+        try:
+            self._write(items)
+            self._check_still_there()
+        except OSError as err:
+            self._fail(f"run log {self.path}: write failed ({err.strerror or err}); "
+                       f"{self.flushed} setpoint records before it are kept")
+        except RunLogWriteError as err:
+            self._fail(str(err))
+
+    def _fail(self, message: str) -> None:
+        self.error = RunLogWriteError(message)
+        log.error("%s", message)
+        try:   # cut a torn tail so that the file ends at its last whole chunk
+            os.ftruncate(self._f.fileno(), self._bytes_ok)
+        except (OSError, ValueError):
+            pass
+
+    def _check_still_there(self) -> None:
+        """The file must still be :attr:`path` (a removed directory leaves writes succeeding
+        into an unlinked file); if it vanished, copy what was written back to the path."""
+        try:
+            st = os.stat(self.path)
+            if (st.st_dev, st.st_ino) == self._inode:
+                return
+        except OSError:
+            pass
+        where = "its records could not be saved"
+        try:
+            data = os.pread(self._f.fileno(), self._bytes_ok, 0)
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            with open(self.path, "wb") as f:
+                f.write(data)
+                f.flush()
+                os.fsync(f.fileno())
+            where = f"{self.flushed} setpoint records before it were copied back to {self.path}"
+        except OSError as err:
+            where += f" ({err.strerror or err})"
+        raise RunLogWriteError(f"run log {self.path}: the file or its directory vanished; {where}")
 
     def _write(self, items: list[tuple[int, Any]]) -> None:
         if not items:
@@ -175,6 +234,8 @@ class RunLogWriter:
             if kind == KIND_EVENTS:
                 payload = json.dumps(group, default=str).encode("utf-8")
                 out += encode_chunk(kind, payload, len(group))
+            elif kind == KIND_END:
+                out += encode_chunk(kind, json.dumps({"setpoints": self.flushed}).encode("utf-8"), 1)
             else:
                 arr = np.concatenate(group) if len(group) > 1 else group[0]
                 step = max(1, MAX_CHUNK_BYTES // arr.dtype.itemsize)
@@ -184,14 +245,23 @@ class RunLogWriter:
                 if kind == KIND_SETPOINTS:
                     n_sp += len(arr)
             i = j
-        self._f.write(out)
-        self._f.flush()
+        self._write_all(out)
         if self.fsync:
             os.fsync(self._f.fileno())
+        self._bytes_ok += len(out)
         self.flushed += n_sp
 
+    def _write_all(self, data: bytes | bytearray) -> None:
+        """Write all of ``data`` to the unbuffered file (a short write is continued)."""
+        view = memoryview(data)
+        while len(view):
+            n = self._f.write(view)
+            if not n:
+                raise OSError(28, "no space left on device (write made no progress)")
+            view = view[n:]
+
     def close(self) -> None:
-        """Flush everything queued and close the file (idempotent)."""
+        """Flush everything queued, write the end chunk and close the file (idempotent)."""
         if self._closed:
             return
         self._closed = True
@@ -211,7 +281,8 @@ class RunLogReader:
     ``setpoints()`` → structured array of :data:`SETPOINT_DTYPE`, ``drift()`` → of
     :data:`DRIFT_DTYPE`, ``events()`` → list of dicts, ``meta()`` → the header dict.
     ``torn`` is True when reading stopped at a short or corrupt chunk (at byte
-    ``valid_bytes``).
+    ``valid_bytes``); ``closed`` when the writer's end chunk was read; ``complete`` when
+    closed and not torn (a killed writer leaves a log that is not torn, yet not complete).
     """
 
     def __init__(self, path: str | Path) -> None:
@@ -239,6 +310,7 @@ class RunLogReader:
         parts: dict[int, list[np.ndarray]] = {KIND_SETPOINTS: [], KIND_DRIFT: []}
         self._events: list[dict[str, Any]] = []
         self.torn = False
+        self.closed = False     # the writer's end chunk was read
         self.n_chunks = 0
         while pos < len(data):
             if pos + _CHUNK.size > len(data):
@@ -266,12 +338,19 @@ class RunLogReader:
                     self.torn = True   # a chunk that is not what a writer writes: stop here
                     break
                 self._events.extend(evs)
+            elif kind == KIND_END:
+                self.closed = True
             # unknown kinds are skipped (forward compatible)
             pos = start + plen
             self.n_chunks += 1
         self.valid_bytes = pos
         self._sp = np.concatenate(parts[KIND_SETPOINTS]) if parts[KIND_SETPOINTS] else np.zeros(0, SETPOINT_DTYPE)
         self._dr = np.concatenate(parts[KIND_DRIFT]) if parts[KIND_DRIFT] else np.zeros(0, DRIFT_DTYPE)
+
+    @property
+    def complete(self) -> bool:
+        """Whether the log was closed by its writer and reads whole to its end."""
+        return self.closed and not self.torn
 
     def meta(self) -> dict[str, Any]:
         return dict(self._meta)
@@ -289,7 +368,8 @@ class RunLogReader:
         """Counts, duration, voltage ranges and the states visited."""
         sp = self._sp
         out: dict[str, Any] = {"path": str(self.path), "samples": int(len(sp)), "drift_records": int(len(self._dr)),
-                               "events": len(self._events), "torn": self.torn}
+                               "events": len(self._events), "torn": self.torn,
+                               "complete": self.complete}
         if len(sp):
             out["seq_first"] = int(sp["seq"][0])
             out["seq_last"] = int(sp["seq"][-1])

@@ -265,29 +265,42 @@ def spiral(dt_s: float, *, cx_nm: float = 500.0, cy_nm: float = 500.0, z_nm: flo
 def from_file(path: str | Path, dt_s: float, block_samples: int = 4096) -> Iterator[Block]:
     """Positions from a CSV (header with columns ``t,x,y,z``; s, nm) or an NPY array (N, 4)
     of the same columns, linearly resampled to ``dt_s`` (NPY is memory-mapped and read a
-    block at a time when already sampled at ``dt_s``)."""
+    block at a time when already sampled at ``dt_s``).
+
+    The file is opened and its columns checked here (a missing or malformed file raises
+    :class:`AfmctlError` naming it before any sample is played); positions are checked
+    block by block as they are generated."""
     p = Path(path)
     if p.suffix.lower() == ".npy":
-        try:
-            arr = np.load(p, mmap_mode="r", allow_pickle=False)
-        except (OSError, ValueError) as err:
-            raise AfmctlError(f"{p}: cannot read NPY trajectory ({err})") from None
-        if arr.ndim != 2 or arr.shape[1] != 4 or len(arr) < 1:
-            raise AfmctlError(f"{p}: NPY trajectory must have shape (N, 4) with columns t,x,y,z (s, nm); "
-                              f"got {arr.shape}")
-        if arr.dtype.kind not in "fiu":
-            raise AfmctlError(f"{p}: NPY trajectory must hold real numbers (float or int); got dtype {arr.dtype}")
-        t = np.asarray(arr[:, 0], dtype=np.float64)
-        xyz_src = arr
-        cols = (1, 2, 3)
+        t, xyz_src = _open_npy(p)
     else:
         from .datafiles import read_csv
         data = read_csv(p, ("t", "x", "y", "z"))
         t = data["t"]
         xyz_src = np.column_stack([t, data["x"], data["y"], data["z"]])
-        cols = (1, 2, 3)
     if not np.all(np.isfinite(t)) or (len(t) > 1 and not np.all(np.diff(t) > 0)):
         raise AfmctlError(f"{p}: column t must be finite and strictly increasing [s]")
+    return _file_blocks(p, t, xyz_src, dt_s, block_samples)
+
+
+def _open_npy(p: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Memory-map an NPY trajectory (N, 4) t,x,y,z; returns (t [s], the array)."""
+    try:
+        arr = np.load(p, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError) as err:
+        raise AfmctlError(f"{p}: cannot read NPY trajectory ({err})") from None
+    if arr.ndim != 2 or arr.shape[1] != 4 or len(arr) < 1:
+        raise AfmctlError(f"{p}: NPY trajectory must have shape (N, 4) with columns t,x,y,z (s, nm); "
+                          f"got {arr.shape}")
+    if arr.dtype.kind not in "fiu":
+        raise AfmctlError(f"{p}: NPY trajectory must hold real numbers (float or int); got dtype {arr.dtype}")
+    return np.asarray(arr[:, 0], dtype=np.float64), arr
+
+
+def _file_blocks(p: Path, t: np.ndarray, xyz_src: np.ndarray, dt_s: float,
+                 block_samples: int) -> Iterator[Block]:
+    """Blocks of a checked file trajectory: as stored when sampled at ``dt_s``, else resampled."""
+    cols = (1, 2, 3)
     if len(t) > 1 and np.allclose(np.diff(t), dt_s, rtol=1e-6, atol=0):
         for k in range(0, len(t), block_samples):
             blk = np.asarray(xyz_src[k:k + block_samples][:, cols], dtype=np.float64)

@@ -189,3 +189,28 @@ def test_well_formed_chunks_with_wrong_content_read_as_torn_prefix(tmp_path, cap
     assert main(["log", "show", str(p)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "header must be a JSON object" in err
+
+
+def test_killed_run_log_is_not_reported_complete(tmp_path, capsys):
+    """kill -9 leaves whole chunks (not torn) but no end record: `afmctl log show` must not
+    call that log complete."""
+    log_path = tmp_path / "killed.afmlog"
+    proc = subprocess.Popen([sys.executable, "-c", KILL_CHILD, str(log_path)], stdout=subprocess.PIPE, text=True)
+    try:
+        flushed = 0
+        t0 = time.monotonic()
+        while flushed < 200 and time.monotonic() - t0 < 30:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            flushed = int(line)
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        proc.stdout.close()
+    assert flushed >= 200, "child did not get going"
+    r = RunLogReader(log_path)
+    assert not r.closed and not r.complete and not r.summary()["complete"]
+    assert main(["log", "show", str(log_path)]) == 0
+    out = capsys.readouterr().out
+    assert "integrity INCOMPLETE" in out and "integrity complete" not in out

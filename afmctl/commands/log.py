@@ -76,7 +76,13 @@ def run(args: argparse.Namespace) -> int:
             print(f"timing    lateness p50 {us('lateness_p50_s')} us  p99 {us('lateness_p99_s')} us  "
                   f"max {us('lateness_max_s')} us  missed {st.get('missed_deadlines', '?')}  "
                   f"errors {st.get('errors', '?')}")
-        print(f"integrity {'TORN at byte ' + str(reader.valid_bytes) + ' (crash?)' if reader.torn else 'complete'}")
+        if reader.torn:
+            integrity = f"TORN at byte {reader.valid_bytes} (crash?)"
+        elif not reader.closed:
+            integrity = "INCOMPLETE: no end record (the writer was killed, or a write failed)"
+        else:
+            integrity = "complete"
+        print(f"integrity {integrity}")
     if args.events:
         for e in reader.events():
             if e.get("event") == "stats":

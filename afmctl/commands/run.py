@@ -21,6 +21,17 @@ Examples:
 
 Environment: AFMCTL_<SECTION>__<KEY>=value overrides the file (e.g. AFMCTL_LOOP__RATE_HZ=500).
 
+Exit status:
+  0  the run ended cleanly (end of the trajectory, --seconds, Ctrl-C or SIGTERM)
+  1  the run ended in a fault (amplifier link lost or a setpoint refused); the device holds
+     its output
+  2  bad input: configuration, arguments (--seconds), a trajectory file that is missing or
+     has a bad sample (one line names the file and the field; nothing or only a ramp to
+     the safe value was sent)
+  3  the run log could not be written (disk full, its directory removed): the output was
+     ramped to the safe value and the run stopped; the log keeps every record written
+     before the error
+
 A configuration (every key: `afmctl schema`; units in the names: _V, _nm, _s, _Hz):
 
 {example}"""
@@ -37,11 +48,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--config", required=True, metavar="FILE.toml", help="configuration file (TOML)")
     p.add_argument("--log", metavar="FILE.afmlog", help="run log path (default: runlog.dir/<scanner>-<time>.afmlog)")
     p.add_argument("--port", metavar="URL", help="override amplifier.port")
-    p.add_argument("--seconds", type=float, metavar="S", help="stop after S seconds (default: end of trajectory)")
+    p.add_argument("--seconds", type=float, metavar="S",
+                   help=f"stop after S seconds, 0 < S <= {MAX_SECONDS:g} (default: end of trajectory)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)
 
+
+#: longest --seconds [s] (about 115 days)
+MAX_SECONDS = 1e7
+#: exit status (see HELP)
+EXIT_OK, EXIT_FAULT, EXIT_BAD_INPUT, EXIT_RUNLOG = 0, 1, 2, 3
 
 #: three-axis (one-axis for mdt694b/nv200) setpoints per second a link carries at 115200
 #: baud, streaming without waiting for replies (docs: PROTOCOLS.md)
@@ -73,8 +90,9 @@ def _summary(ctl, config, scanner) -> dict:
            "overruns": st["overruns"], "errors": st["errors"], "faults": st["faults"],
            "reconnects": st["reconnects"], "watchdog_trips": st["watchdog_trips"],
            "slew_limited": st["slew_limited"], "last_error": st["last_error"],
-           "runlog": str(ctl.runlog_path) if ctl.runlog_path else None}
-    if scanner is not None and ctl.runlog_path is not None:
+           "runlog": str(ctl.runlog_path) if ctl.runlog_path else None,
+           "runlog_error": ctl.runlog_error, "trajectory_error": ctl.trajectory_error}
+    if scanner is not None and ctl.runlog_path is not None and ctl.runlog_error is None:
         from ..simlink import tracking_error
         reader = RunLogReader(ctl.runlog_path)
         ev = reader.events()
@@ -86,17 +104,94 @@ def _summary(ctl, config, scanner) -> dict:
     return out
 
 
-def run(args: argparse.Namespace) -> int:
-    import contextlib
-    import json
+def _check_seconds(seconds: float | None) -> None:
+    import math
+
+    from ..errors import AfmctlError
+    if seconds is not None and not (math.isfinite(seconds) and 0.0 < seconds <= MAX_SECONDS):
+        raise AfmctlError(f"--seconds {seconds:g}: outside the allowed range 0 < S <= {MAX_SECONDS:g} s")
+
+
+def _install_signals(stack, ctl, stops: dict) -> None:
+    """Ctrl-C / SIGTERM: first a stop (ramp to the safe value), then an emergency stop."""
     import signal
     import sys
     import threading
+
+    def on_signal(signum, frame) -> None:  # noqa: ARG001
+        stops["n"] += 1
+        if stops["n"] == 1:
+            print("afmctl: stopping (ramping to the safe value); again for an emergency stop",
+                  file=sys.stderr)
+            ctl.stop()
+        else:
+            ctl.estop()
+
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            old = signal.signal(sig, on_signal)
+            stack.callback(signal.signal, sig, old)
+
+
+def _wait_for_run(ctl, args: argparse.Namespace, stops: dict) -> None:
+    """Wait for the run to end; stop it after --seconds; a progress line every 2 s."""
+    import sys
     import time
+    t0 = time.monotonic()
+    next_report = t0 + 2.0
+    while not ctl.wait(0.05):
+        now = time.monotonic()
+        if args.seconds is not None and now - t0 >= args.seconds and stops["n"] == 0:
+            stops["n"] = 1
+            ctl.stop()
+        if not args.quiet and now >= next_report:
+            next_report = now + 2.0
+            s = ctl.stats()
+            print(f"afmctl: {s['state']:8s} samples {s['samples']:>9d}  p99 lateness "
+                  f"{s['lateness_p99_s'] * 1e6:7.1f} us  missed {s['missed_deadlines']}", file=sys.stderr)
+
+
+def _print_summary(summary: dict) -> None:
+    print(f"state             {summary['state']}")
+    print(f"samples           {summary['samples']} at {summary['rate_Hz']:g} Hz")
+    print(f"lateness          p50 {summary['lateness_p50_s'] * 1e6:.1f} us  p99 "
+          f"{summary['lateness_p99_s'] * 1e6:.1f} us  max {summary['lateness_max_s'] * 1e6:.1f} us")
+    print(f"missed deadlines  {summary['missed_deadlines']} (> half a period late); overruns {summary['overruns']}")
+    print(f"errors            {summary['errors']} (faults {summary['faults']}, reconnects {summary['reconnects']}, "
+          f"watchdog trips {summary['watchdog_trips']})")
+    if summary.get("last_error"):
+        print(f"last error        {summary['last_error']}")
+    if summary.get("tracking"):
+        t = summary["tracking"]
+        print("tracking error    max |e| " + ", ".join(f"{a} {v:.2f}" for a, v in zip(t["axes"], t["max_abs_nm"]))
+              + " nm;  rms " + ", ".join(f"{a} {v:.2f}" for a, v in zip(t["axes"], t["rms_nm"])) + " nm")
+    print(f"run log           {summary['runlog']}")
+
+
+def _exit_status(ctl, summary: dict) -> int:
+    """The exit status of a finished run (see HELP); the reason goes to stderr as one line."""
+    import sys
+
+    from ..loop import State
+    if ctl.runlog_error is not None:
+        print(f"afmctl: error: {ctl.runlog_error}; the run was stopped (ramped to the safe value)",
+              file=sys.stderr)
+        return EXIT_RUNLOG
+    if ctl.trajectory_error is not None:
+        print(f"afmctl: error: trajectory: {ctl.trajectory_error}; the run was stopped", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    return EXIT_OK if summary["state"] == State.STOPPED.value else EXIT_FAULT
+
+
+def run(args: argparse.Namespace) -> int:
+    import contextlib
+    import json
+    import sys
 
     from ..config import load_config
-    from ..loop import Controller, State
+    from ..loop import Controller
 
+    _check_seconds(args.seconds)
     config = load_config(args.config, overrides={"amplifier": {"port": args.port}} if args.port else None)
     scanner = None
     warning = link_warning(config)
@@ -116,57 +211,18 @@ def run(args: argparse.Namespace) -> int:
             from ..zenoh_api import ZenohBridge
             bridge = ZenohBridge(ctl, config.zenoh, scanner_name=config.scanner.name)
             stack.callback(bridge.close)
-
         stops = {"n": 0}
-
-        def on_signal(signum, frame) -> None:  # noqa: ARG001
-            stops["n"] += 1
-            if stops["n"] == 1:
-                print("afmctl: stopping (ramping to the safe value); again for an emergency stop",
-                      file=sys.stderr)
-                ctl.stop()
-            else:
-                ctl.estop()
-
-        old = {}
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                old[sig] = signal.signal(sig, on_signal)
-                stack.callback(signal.signal, sig, old[sig])
+        _install_signals(stack, ctl, stops)
         ctl.start(config.trajectory, runlog_path=args.log)
         if not args.quiet:
             print(f"afmctl: running {config.trajectory.kind} on {config.amplifier.driver} "
                   f"{'(simulated) ' if scanner is not None else ''}at {config.loop.rate_Hz:g} Hz; "
                   f"run log {ctl.runlog_path}", file=sys.stderr)
-        t0 = time.monotonic()
-        next_report = t0 + 2.0
-        while not ctl.wait(0.05):
-            now = time.monotonic()
-            if args.seconds is not None and now - t0 >= args.seconds and stops["n"] == 0:
-                stops["n"] = 1
-                ctl.stop()
-            if not args.quiet and now >= next_report:
-                next_report = now + 2.0
-                s = ctl.stats()
-                print(f"afmctl: {s['state']:8s} samples {s['samples']:>9d}  p99 lateness "
-                      f"{s['lateness_p99_s'] * 1e6:7.1f} us  missed {s['missed_deadlines']}", file=sys.stderr)
+        _wait_for_run(ctl, args, stops)
         ctl.close()
         summary = _summary(ctl, config, scanner)
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
-        print(f"state             {summary['state']}")
-        print(f"samples           {summary['samples']} at {summary['rate_Hz']:g} Hz")
-        print(f"lateness          p50 {summary['lateness_p50_s'] * 1e6:.1f} us  p99 "
-              f"{summary['lateness_p99_s'] * 1e6:.1f} us  max {summary['lateness_max_s'] * 1e6:.1f} us")
-        print(f"missed deadlines  {summary['missed_deadlines']} (> half a period late); overruns {summary['overruns']}")
-        print(f"errors            {summary['errors']} (faults {summary['faults']}, reconnects {summary['reconnects']}, "
-              f"watchdog trips {summary['watchdog_trips']})")
-        if summary.get("last_error"):
-            print(f"last error        {summary['last_error']}")
-        if summary.get("tracking"):
-            t = summary["tracking"]
-            print("tracking error    max |e| " + ", ".join(f"{a} {v:.2f}" for a, v in zip(t["axes"], t["max_abs_nm"]))
-                  + " nm;  rms " + ", ".join(f"{a} {v:.2f}" for a, v in zip(t["axes"], t["rms_nm"])) + " nm")
-        print(f"run log           {summary['runlog']}")
-    return 0 if summary["state"] == State.STOPPED.value else 1
+        _print_summary(summary)
+    return _exit_status(ctl, summary)
