@@ -96,6 +96,19 @@ def _flat(rows: np.ndarray) -> list[float]:
     return rows.ravel().tolist()
 
 
+def helper_priority(loop_priority: int | None) -> None:
+    """Make the calling thread SCHED_FIFO one step below a real-time loop thread (priority
+    ``loop_priority``; None: leave it). Every thread of the loop's process that takes the
+    interpreter lock now and then (feeder, dispatcher, run log, the zenoh pipe threads) runs
+    so, because an ordinary thread preempted by other processes while holding the lock makes
+    the loop wait for it (priority inversion)."""
+    if loop_priority is not None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(1, loop_priority - 1)))
+        except (AttributeError, OSError):
+            pass
+
+
 class Controller:
     """Fixed-rate feedforward controller; see the module docstring.
 
@@ -434,15 +447,8 @@ class Controller:
                              "state": self._state.value, "event": event, "detail": detail})
 
     def _helper_priority(self) -> None:
-        """Helper threads (feeder, dispatcher) hold the GIL now and then; with a real-time
-        loop they run SCHED_FIFO one step below it, so that ordinary processes cannot
-        preempt them while the loop waits for the GIL (priority inversion)."""
-        prio = self.config.loop.realtime_priority
-        if prio is not None:
-            try:
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(1, prio - 1)))
-            except (AttributeError, OSError):
-                pass
+        """Run the calling helper thread (feeder, dispatcher) as :func:`helper_priority` says."""
+        helper_priority(self.config.loop.realtime_priority)
 
     def _feed(self, it: Iterator) -> None:
         self._helper_priority()

@@ -19,6 +19,7 @@ docs/BENCHMARKS.md (``--no-write`` to only print it).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import platform
 import statistics
@@ -41,7 +42,10 @@ def _pi_models(d: Path) -> dict[str, Path]:
 
 
 def run_once(rate: float, seconds: float, amp_kind: str, tmp: Path, models: dict[str, Path],
-             rt: int | None = None) -> dict:
+             rt: int | None = None, zenoh: str = "off") -> dict:
+    """One timed run; ``zenoh``: ``off``, ``inproc`` (ZenohBridge in this process) or
+    ``child`` (the bridge in a child process, afmctl.zenoh_process) — with a subscriber in
+    another process receiving every setpoint batch."""
     from afmctl.config import load_config
     from afmctl.loop import Controller
     from afmctl.simlink import RecordingAmplifier, open_driver
@@ -89,22 +93,58 @@ line_rate_Hz = {line_rate}
         server = serve_can(channel)
         server.__enter__()
         amp = open_driver(cfg, cfg.amplifier.port)
+    received = None
     try:
         ctl = Controller(cfg, amp)
-        ctl.start(cfg.trajectory)
-        ctl.wait(seconds * 3 + 30)
-        ctl.close()
+        with _zenoh_side(ctl, cfg, zenoh) as counter:
+            ctl.start(cfg.trajectory)
+            ctl.wait(seconds * 3 + 30)
+            ctl.close()
+        received = counter.get("result")
     finally:
         amp.close()
         if server is not None:
             server.__exit__(None, None, None)
     st = ctl.stats()
+    if received is not None and (received["samples"] != st["samples"] or received["gaps"]):
+        raise RuntimeError(f"the subscriber did not receive every batch: {received} of {st['samples']} samples")
     period = 1.0 / rate
-    return {"p50_us": st["lateness_p50_s"] * 1e6, "p99_us": st["lateness_p99_s"] * 1e6,
+    return {"zenoh": zenoh, "received": received, "p50_us": st["lateness_p50_s"] * 1e6, "p99_us": st["lateness_p99_s"] * 1e6,
             "max_us": st["lateness_max_s"] * 1e6, "missed": st["missed_deadlines"],
             "work_p50_us": st["work_p50_s"] * 1e6, "work_p99_us": st["work_p99_s"] * 1e6,
             "ticks": st["ticks"], "samples": st["samples"], "half_period_us": period / 2 * 1e6,
             "overruns": st["overruns"], "slew_limited": st["slew_limited"]}
+
+
+@contextlib.contextmanager
+def _zenoh_side(ctl, cfg, mode: str):
+    """The zenoh bridge of ``mode`` and a subscriber process counting every setpoint batch;
+    yields a dict that gets ``result`` (the subscriber's counts) on exit."""
+    import subprocess
+    out: dict = {}
+    if mode == "off":
+        yield out
+        return
+    from afmctl.zenoh_config import loopback_pair
+    srv, cli = loopback_pair()
+    if mode == "inproc":
+        from afmctl.zenoh_api import ZenohBridge
+        bridge = ZenohBridge(ctl, srv, "bench")
+    else:
+        from afmctl.zenoh_process import ZenohBridgeProcess
+        bridge = ZenohBridgeProcess(ctl, srv, "bench")
+    sub = subprocess.Popen([sys.executable, str(ROOT / "benchmarks" / "zenoh_counter.py"), cli.model_dump_json(),
+                            "bench"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        if sub.stdout.readline().strip() != "ready":
+            raise RuntimeError("zenoh_counter.py did not start")
+        time.sleep(1.0)                      # the subscription reaches the bridge
+        yield out
+    finally:
+        bridge.close()
+        text, _ = sub.communicate("", timeout=60)
+        v = text.split()
+        out["result"] = {"batches": int(v[1]), "samples": int(v[3]), "gaps": int(v[5])}
 
 
 def bare_loop(rate: float, seconds: float, spin_s: float = 2e-4, rt: int | None = None) -> dict:
@@ -161,6 +201,60 @@ def write_section(text: str, name: str = "loop") -> None:
     _write_section(name, text)
 
 
+def _each(runs: list[dict], key: str) -> str:
+    return ", ".join(f"{r[key]:.0f}" for r in runs)
+
+
+def zenoh_compare(args: argparse.Namespace) -> int:
+    """Lateness with zenoh off / in process / in a child process, interleaved per repetition."""
+    modes = [m.strip() for m in args.zenoh.split(",") if m.strip()]
+    bad = [m for m in modes if m not in ("off", "inproc", "child")]
+    if bad or not modes:
+        print(f"bench_loop.py: --zenoh {args.zenoh!r}: modes must be off, inproc or child", file=sys.stderr)
+        return 2
+    runs: dict[str, list[dict]] = {m: [] for m in modes}
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        models = _pi_models(tmp)
+        for k in range(args.reps):
+            for m in modes:
+                r = run_once(args.rate, args.seconds, args.amp, tmp, models, args.rt, zenoh=m)
+                runs[m].append(r)
+                print(f"rep {k + 1} zenoh {m:6s}: p50 {r['p50_us']:.1f} us  p99 {r['p99_us']:.1f} us  "
+                      f"max {r['max_us']:.1f} us  missed {r['missed']} of {r['ticks']}; work p50 "
+                      f"{r['work_p50_us']:.1f} us; subscriber {r['received']}", flush=True)
+    med = {m: {k: statistics.median(r[k] for r in runs[m]) for k in ("p50_us", "p99_us", "max_us", "missed",
+                                                                     "work_p50_us")} for m in modes}
+    base = med.get("off", {}).get("p99_us")
+    cmd = (f".venv/bin/python benchmarks/bench_loop.py --zenoh {','.join(modes)} --seconds {args.seconds:g} "
+           f"--rate {args.rate:g} --reps {args.reps} --amp {args.amp} --rt {args.rt or 0}")
+    load = os.getloadavg()[0]
+    rows = "\n".join(
+        f"| {m} | {med[m]['p50_us']:.1f} µs | {med[m]['p99_us']:.1f} µs | "
+        f"{(med[m]['p99_us'] / base) if base else float('nan'):.2f} | {med[m]['max_us']:.0f} µs | "
+        f"{med[m]['missed']:g} | {med[m]['work_p50_us']:.1f} µs | "
+        f"{_each(runs[m], 'p99_us')} |" for m in modes)
+    text = f"""## Control loop timing with the zenoh API
+
+Command: `{cmd}` — medians of {args.reps} repetitions, the modes interleaved in each
+repetition (same machine state for each); {platform.python_implementation()} {platform.python_version()},
+{os.cpu_count()} CPUs shared with other work, load average {load:.1f} at the end, {time.strftime('%Y-%m-%d')}.
+The bench:loop chain at {args.rate:g} Hz; with zenoh the bridge publishes every setpoint batch, drift
+estimate and status, and a subscriber in another process (benchmarks/zenoh_counter.py) receives every
+setpoint batch (checked: no gap, every sample). *off*: no bridge; *inproc*: `ZenohBridge` in the loop's
+process; *child*: `afmctl.zenoh_process.ZenohBridgeProcess` (what `afmctl run` uses), the bridge in
+its own process fed through a pipe. Target (#14): p99 with zenoh ≤ 1.2 × off and ≤ 150 µs.
+
+| zenoh | lateness p50 | lateness p99 | p99 / off | max | missed | work p50 | p99 of each run [µs] |
+|---|---|---|---|---|---|---|---|
+{rows}
+"""
+    print(text)
+    if not args.no_write:
+        write_section(text, "loop-zenoh")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=60.0, help="duration of each run [s] (default 60)")
@@ -171,8 +265,15 @@ def main(argv: list[str] | None = None) -> int:
                     help="loop.realtime_priority: SCHED_FIFO priority of the loop thread (default 10; needs "
                          "root or CAP_SYS_NICE, otherwise normal scheduling); 0 = normal scheduling")
     ap.add_argument("--no-write", action="store_true", help="do not update docs/BENCHMARKS.md")
+    ap.add_argument("--zenoh", metavar="MODES", default=None,
+                    help="compare zenoh modes side by side instead, comma-separated of off, inproc (the bridge "
+                         "in the loop's process), child (the bridge in its own process), e.g. off,inproc,child: "
+                         "each repetition runs every mode in turn with a subscriber process receiving every "
+                         "setpoint batch; medians and ratios to off go to the bench:loop-zenoh section")
     args = ap.parse_args(argv)
     args.rt = args.rt or None
+    if args.zenoh:
+        return zenoh_compare(args)
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         models = _pi_models(tmp)

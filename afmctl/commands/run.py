@@ -6,7 +6,8 @@ import argparse
 HELP = """\
 Run the feedforward controller: read the configuration (TOML, see `afmctl schema` and
 examples/), open the amplifier (or serve a simulated amplifier + scanner in this process
-with [simulation] enabled = true), start the zenoh API if [zenoh] enabled = true, and
+with [simulation] enabled = true), start the zenoh API if [zenoh] enabled = true (in a
+child process, so that it cannot delay the loop), and
 stream the configured trajectory through drift prediction, the inverse models and the
 safety layer to the amplifier at loop.rate_Hz. Every setpoint is written to a crash-safe
 run log (runlog.dir; read it with `afmctl log show`).
@@ -207,9 +208,9 @@ def run(args: argparse.Namespace) -> int:
             stack.callback(amp.close)
         ctl = Controller(config, amp, scanner=scanner)
         stack.callback(ctl.close)
-        if config.zenoh.enabled:
-            from ..zenoh_api import ZenohBridge
-            bridge = ZenohBridge(ctl, config.zenoh, scanner_name=config.scanner.name)
+        if config.zenoh.enabled:   # in its own process: the loop's timing does not depend on it
+            from ..zenoh_process import ZenohBridgeProcess
+            bridge = ZenohBridgeProcess(ctl, config.zenoh, scanner_name=config.scanner.name)
             stack.callback(bridge.close)
         stops = {"n": 0}
         _install_signals(stack, ctl, stops)
