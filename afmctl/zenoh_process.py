@@ -7,12 +7,13 @@ Every key, payload, ACL/TLS setting and reply is the bridge's own: the child run
 class. Between the two processes:
 
 * **records out** — the controller's dispatcher calls this object's ``on_setpoints`` /
-  ``on_drift`` / ``on_status`` (never the loop thread); they put the batch on a bounded
-  outbox and return at once. A sender thread writes the outbox to a pipe (the write
-  releases the interpreter lock while the child is busy). When a slow subscriber backs the
-  child up until the outbox is full (:data:`OUTBOX_ITEMS`), batches for zenoh are dropped and
-  counted (``stats()["bridge"]["dropped_to_child"]`` on status): the loop, the dispatcher and the
-  run log never wait for zenoh.
+  ``on_drift`` / ``on_status`` (never the loop thread); each pickles its record into a
+  length-prefixed frame and writes what a non-blocking pipe takes at once — no extra
+  thread in this process, so no extra hand-over of the interpreter lock. What the pipe
+  does not take waits in a bounded outbox for the next call; when a slow subscriber backs
+  the child up until the outbox is full (:data:`OUTBOX_BYTES`), records for zenoh are
+  dropped and counted (``stats.bridge.dropped_to_child`` on status): the loop, the
+  dispatcher and the run log never wait for zenoh.
 * **calls in** — the child's bridge talks to a :class:`ControllerProxy` whose methods
   (``submit_segment``, ``set_temperature``, ``start``, ``stop``, ``estop``,
   ``submit_drift_measurement``, ``stats``, ``state``) are forwarded over a second pipe and
@@ -28,9 +29,12 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
-import queue
+import os
+import pickle
 import signal
+import struct
 import threading
+import time
 from typing import Any
 
 import numpy as np
@@ -40,13 +44,19 @@ from .runlog import SETPOINT_DTYPE
 
 log = logging.getLogger(__name__)
 
-#: batches/estimates/status reports waiting for the child (about 10 s at the dispatcher's
-#: 20 ms interval); beyond that they are dropped for zenoh and counted
-OUTBOX_ITEMS = 1500
+#: bytes of records waiting for the child beyond the pipe's own buffer (about 10 s of 1 kHz
+#: setpoints); records that do not fit are dropped for zenoh and counted
+OUTBOX_BYTES = 2 * 1024 * 1024
+_FRAME = struct.Struct("!I")   # length of the pickled record that follows
 #: controller methods the child may call
 REMOTE_METHODS = frozenset({"submit_segment", "set_temperature", "start", "stop", "estop",
                             "submit_drift_measurement", "stats", "state"})
 _CLOSE = ("close", None)
+
+
+def _frame(item: tuple) -> bytes:
+    body = pickle.dumps(item, protocol=pickle.HIGHEST_PROTOCOL)
+    return _FRAME.pack(len(body)) + body
 
 
 class RemoteError(AfmctlError):
@@ -72,13 +82,14 @@ class ZenohBridgeProcess:
         data_in.close()
         rpc_child.close()
         self._wait_ready(start_timeout_s)
-        self._outbox: queue.Queue = queue.Queue(maxsize=OUTBOX_ITEMS)
+        self._fd = self._data_out.fileno()
+        os.set_blocking(self._fd, False)
+        self._outbox = bytearray()        # whole frames not yet taken by the pipe
         self.dropped = 0
+        self._child_gone = False
         self._closed = False
         self._lock = threading.Lock()
-        self._sender = threading.Thread(target=self._send_loop, name="afmctl-zenoh-send", daemon=True)
         self._server = threading.Thread(target=self._serve, name="afmctl-zenoh-rpc", daemon=True)
-        self._sender.start()
         self._server.start()
         controller.add_sink(self)
 
@@ -106,31 +117,35 @@ class ZenohBridgeProcess:
         self._post(("drift", estimate))
 
     def on_status(self, status: dict) -> None:
-        self._post(("status", status))
+        self._post(("status", {**status, "dropped_to_child": self.dropped}))
 
     def _post(self, item: tuple) -> None:
-        if self._closed:
-            return
-        try:
-            self._outbox.put_nowait(item)
-        except queue.Full:
-            self.dropped += 1
-            if self.dropped == 1:
-                log.warning("zenoh bridge process is behind; dropping batches for zenoh (the run log keeps all)")
+        """Dispatcher thread: frame the record and write what the pipe takes now (never
+        blocks); keep the rest for the next call, or drop the record when the outbox is full."""
+        frame = _frame(item)
+        with self._lock:
+            if self._closed or self._child_gone:
+                return
+            if len(self._outbox) + len(frame) > OUTBOX_BYTES:
+                self.dropped += 1
+                if self.dropped == 1:
+                    log.warning("zenoh bridge process is behind; dropping records for zenoh (the run log keeps all)")
+            else:
+                self._outbox += frame
+            self._write_some()
 
-    def _send_loop(self) -> None:
-        """Sender thread: outbox → pipe (blocks only this thread when the child is behind)."""
-        self._thread_priority()
-        while True:
-            item = self._outbox.get()
-            if item[0] == "status":
-                item = ("status", {**item[1], "dropped_to_child": self.dropped})
+    def _write_some(self) -> None:
+        """Write the outbox to the non-blocking pipe until it is empty or the pipe is full."""
+        while self._outbox:
             try:
-                self._data_out.send(item)
-            except (OSError, ValueError):   # the child is gone
+                n = os.write(self._fd, self._outbox)
+            except BlockingIOError:
                 return
-            if item is _CLOSE:
+            except OSError:            # the child is gone
+                self._child_gone = True
+                self._outbox.clear()
                 return
+            del self._outbox[:n]
 
     def _thread_priority(self) -> None:
         """The pipe threads take the interpreter lock: with a real-time loop they run just
@@ -178,8 +193,7 @@ class ZenohBridgeProcess:
         remove = getattr(self.controller, "remove_sink", None)
         if callable(remove):
             remove(self)
-        self._outbox.put(_CLOSE)
-        self._sender.join(timeout_s)
+        self._drain(_frame(_CLOSE), timeout_s)
         self._proc.join(timeout_s)
         if self._proc.is_alive():
             log.warning("zenoh bridge process did not exit; terminating it")
@@ -188,6 +202,16 @@ class ZenohBridgeProcess:
         self._data_out.close()
         self._rpc.close()
         self._server.join(timeout_s)
+
+    def _drain(self, last: bytes, timeout_s: float) -> None:
+        """At close: write the outbox and ``last`` (waiting up to ``timeout_s`` for the child)."""
+        t_end = time.monotonic() + timeout_s
+        with self._lock:
+            self._outbox += last
+            while self._outbox and not self._child_gone and time.monotonic() < t_end:
+                self._write_some()
+                if self._outbox:
+                    time.sleep(0.005)
 
     def __enter__(self) -> "ZenohBridgeProcess":
         return self
@@ -267,19 +291,36 @@ def _child_main(settings: Any, scanner_name: str, config: Any, data_in: Any, rpc
         bridge.close()
 
 
+def _read_exact(fd: int, n: int) -> bytes | None:
+    """``n`` bytes from the blocking pipe ``fd``; None at end of file."""
+    parts = []
+    while n:
+        chunk = os.read(fd, n)
+        if not chunk:
+            return None
+        parts.append(chunk)
+        n -= len(chunk)
+    return b"".join(parts)
+
+
 def _feed_bridge(bridge: Any, data_in: Any) -> None:
     """Hand the parent's records to the bridge's sink methods until close or EOF."""
+    fd = data_in.fileno()
     while True:
         try:
-            kind, body = data_in.recv()
-        except (EOFError, OSError):
+            head = _read_exact(fd, _FRAME.size)
+            body = _read_exact(fd, _FRAME.unpack(head)[0]) if head is not None else None
+        except OSError:
             return
+        if body is None:
+            return
+        kind, item = pickle.loads(body)
         if kind == "close":
             return
         if kind == "sp":
-            bridge.on_setpoints(np.frombuffer(body, dtype=SETPOINT_DTYPE))
+            bridge.on_setpoints(np.frombuffer(item, dtype=SETPOINT_DTYPE))
         elif kind == "drift":
-            bridge.on_drift(body)
+            bridge.on_drift(item)
         elif kind == "status":
-            bridge.counters["dropped_to_child"] = body.pop("dropped_to_child", 0)
-            bridge.on_status(body)
+            bridge.counters["dropped_to_child"] = item.pop("dropped_to_child", 0)
+            bridge.on_status(item)
