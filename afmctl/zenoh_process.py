@@ -21,6 +21,10 @@ class. Between the two processes:
   bridge makes from its worker thread, off the loop thread. An error raised by the
   controller comes back with its message (one line naming the field and the range).
 
+* **log records** — the child's records (from the level of this process's
+  ``afmctl.zenoh_api`` logger up) come back over a third pipe and go to this process's
+  loggers of the same name.
+
 A bridge that cannot start (e.g. the listen port is taken) raises :class:`AfmctlError` here
 with the child's message. Ctrl-C is left to this process (the child ignores SIGINT); the
 child exits when this process closes the bridge or dies.
@@ -75,12 +79,18 @@ class ZenohBridgeProcess:
         self.scanner_name = scanner_name
         data_in, self._data_out = ctx.Pipe(duplex=False)
         self._rpc, rpc_child = ctx.Pipe(duplex=True)
+        self._logs, logs_child = ctx.Pipe(duplex=False)
         config = getattr(controller, "config", None)
+        log_level = logging.getLogger("afmctl.zenoh_api").getEffectiveLevel()
         self._proc = ctx.Process(target=_child_main, name=f"afmctl-zenoh-{scanner_name}", daemon=True,
-                                 args=(settings, scanner_name, config, data_in, rpc_child, bridge_options))
+                                 args=(settings, scanner_name, config, data_in, rpc_child, bridge_options,
+                                       logs_child, log_level))
         self._proc.start()
         data_in.close()
         rpc_child.close()
+        logs_child.close()
+        self._log_thread = threading.Thread(target=self._relay_logs, name="afmctl-zenoh-log", daemon=True)
+        self._log_thread.start()
         self._wait_ready(start_timeout_s)
         self._fd = self._data_out.fileno()
         os.set_blocking(self._fd, False)
@@ -100,6 +110,7 @@ class ZenohBridgeProcess:
             if self._rpc.poll(timeout_s):
                 reply = self._rpc.recv()
         except (EOFError, OSError):
+            self._proc.join(5.0)
             reply = ("error", f"zenoh: the bridge process ended at start (exit code {self._proc.exitcode})")
         if reply[0] != "ready":
             self._proc.join(5.0)
@@ -107,6 +118,7 @@ class ZenohBridgeProcess:
                 self._proc.terminate()
             self._rpc.close()
             self._data_out.close()
+            self._log_thread.join(5.0)
             raise AfmctlError(reply[1])
 
     # ------------------------------------------------------------------ controller sink (dispatcher thread)
@@ -179,6 +191,19 @@ class ZenohBridgeProcess:
             except (OSError, ValueError):
                 return
 
+    def _relay_logs(self) -> None:
+        """Log thread: the child's log records go to this process's loggers of the same name."""
+        self._thread_priority()
+        while True:
+            try:
+                record = self._logs.recv()
+            except (EOFError, OSError):
+                break
+            logger = logging.getLogger(record.name)
+            if logger.isEnabledFor(record.levelno):
+                logger.handle(record)
+        self._logs.close()
+
     # ------------------------------------------------------------------ lifecycle
     @property
     def pid(self) -> int | None:
@@ -202,6 +227,7 @@ class ZenohBridgeProcess:
         self._data_out.close()
         self._rpc.close()
         self._server.join(timeout_s)
+        self._log_thread.join(timeout_s)
 
     def _drain(self, last: bytes, timeout_s: float) -> None:
         """At close: write the outbox and ``last`` (waiting up to ``timeout_s`` for the child)."""
@@ -272,11 +298,28 @@ class ControllerProxy:
         self._call("submit_drift_measurement", measured_drift_nm, std_nm, t_s)
 
 
+class _PipeLogQueue:
+    """The queue of a :class:`logging.handlers.QueueHandler`: records go over a pipe."""
+
+    def __init__(self, conn: Any) -> None:
+        self.conn = conn
+
+    def put_nowait(self, record: logging.LogRecord) -> None:
+        try:
+            self.conn.send(record)
+        except (OSError, ValueError):   # the parent is gone
+            pass
+
+
 def _child_main(settings: Any, scanner_name: str, config: Any, data_in: Any, rpc: Any,
-                options: dict[str, Any]) -> None:
-    """The child process: the bridge on a proxy, fed from ``data_in`` until close or EOF."""
+                options: dict[str, Any], logs: Any, log_level: int) -> None:
+    """The child process: the bridge on a proxy, fed from ``data_in`` until close or EOF;
+    its log records go to the parent (``logs``) from ``log_level`` up."""
+    import logging.handlers
     signal.signal(signal.SIGINT, signal.SIG_IGN)     # Ctrl-C is the service's to handle
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
+    root = logging.getLogger()
+    root.setLevel(log_level)
+    root.addHandler(logging.handlers.QueueHandler(_PipeLogQueue(logs)))  # type: ignore[arg-type]
     from .zenoh_api import ZenohBridge
     proxy = ControllerProxy(rpc, config)
     try:
