@@ -142,8 +142,8 @@ def test_can_simulator_answers_dbc_frames():
     import can
     import cantools
 
-    from afmctl.sim_backend.amplifiers.can_amp import find_dbc
-    db = cantools.database.load_file(str(find_dbc()))
+    from afmctl.sim_backend.amplifiers.can_amp import load_database
+    db = load_database()
     channel = f"raw-{uuid.uuid4().hex[:8]}"
     sink = RecordingSink()
     with serve_can(channel, sink) as sim, can.Bus(interface="virtual", channel=channel) as bus:
