@@ -213,6 +213,9 @@ class Amplifier(AmplifierInterface):
     #: wait for pipelined replies before closing (False where that needs a round trip
     #: the device may never answer, e.g. CAN)
     sync_on_close: bool = True
+    #: resolution of the output the device reports [V] (0: it reports the setpoint
+    #: exactly). A read-back is a measured value: the step check from it allows half this.
+    readback_resolution_V: float = 0.0
 
     def __init__(self, transport: Any, *, host_limits: HostLimits = None, max_step_V: float | None = None,
                  reconnect_timeout_s: float = 5.0, backoff_s: tuple[float, float] = (0.05, 1.0),
@@ -230,6 +233,8 @@ class Amplifier(AmplifierInterface):
         self._limits: dict[str, VoltageLimits] = {}
         self._device_limits: dict[str, VoltageLimits] = {}
         self._last: dict[str, float] = {}
+        #: axes whose :attr:`last_output` is a read-back (known to ± resolution / 2)
+        self._measured: set[str] = set()
         self._identity: dict[str, object] = {}
         if connect:
             self.connect()
@@ -279,6 +284,9 @@ class Amplifier(AmplifierInterface):
         """Backend-specific entries of :meth:`info`."""
         return {}
 
+    def _on_close(self) -> None:
+        """Last words to a connected device before the link closes (default: none)."""
+
     # ---- limits ----
     @property
     def limits(self) -> Mapping[str, VoltageLimits]:
@@ -311,7 +319,8 @@ class Amplifier(AmplifierInterface):
         if self.max_step_V is not None:
             for a, v in values.items():
                 prev = self._last.get(a)
-                if prev is not None and abs(v - prev) > self.max_step_V:
+                tol = self.readback_resolution_V / 2 if a in self._measured else 0.0
+                if prev is not None and abs(v - prev) > self.max_step_V + tol:
                     raise LimitError(f"axis {a}: step {prev:g} V -> {v:g} V exceeds max_step_V={self.max_step_V:g} V")
         return {a: values[a] for a in self.axes if a in values}
 
@@ -356,6 +365,7 @@ class Amplifier(AmplifierInterface):
         self._limits = intersect_limits(device, normalize_host_limits(self._host_limits_arg, tuple(device)))
         self._identity = identity
         self._last = self._read_voltages()
+        self._measured = set(self._last)
 
     # ---- life ----
     def connect(self) -> None:
@@ -411,6 +421,8 @@ class Amplifier(AmplifierInterface):
                     self._sync()
                 except AmplifierError as err:
                     log.warning("%s: on close: %s", self.name, err)
+            if self._state is ConnectionState.CONNECTED:
+                self._on_close()
             self.transport.close()
             self._state = ConnectionState.CLOSED
 
@@ -425,6 +437,7 @@ class Amplifier(AmplifierInterface):
             self._guard()
             full = self._io(self._write_setpoint, values)
             self._last.update(full if full is not None else values)
+            self._measured.difference_update(values)
 
     def get_voltages(self) -> dict[str, float]:
         """Read back the output voltages [V] as the device reports them (a measured value
@@ -434,6 +447,7 @@ class Amplifier(AmplifierInterface):
             self._io(self._sync)
             values = self._io(self._read_voltages)
             self._last.update(values)
+            self._measured.update(values)
             return values
 
     def flush(self) -> None:
@@ -467,6 +481,7 @@ class Amplifier(AmplifierInterface):
             "axes": list(self.axes),
             "device_limits_V": {a: [lim.min_V, lim.max_V] for a, lim in self._device_limits.items()},
             "limits_V": {a: [lim.min_V, lim.max_V] for a, lim in self._limits.items()},
+            "readback_resolution_V": self.readback_resolution_V,
             **self._info_extra(),
             **self._identity,
         }
