@@ -141,6 +141,9 @@ class NV200(SerialAmplifier):
             try:
                 self._sync()
                 self.transport.write(b"".join(codec.encode(f"{k},{v}") for k, v in self.changed_settings.items()))
+                now = {k: int(self._read(k)) for k in self.changed_settings}  # read back: applied?
+                if now != self.changed_settings:
+                    raise ProtocolError(f"settings read back as {now} after restoring")
                 log.info("nv200 on %s: restored %s", self.transport.url, self.changed_settings)
             except AmplifierError as err:
                 log.warning("nv200 on %s: could not restore %s: %s", self.transport.url, self.changed_settings, err)
