@@ -9,8 +9,6 @@ See PROTOCOLS.md.
 from __future__ import annotations
 
 from .codec_common import format_inside, parse_number
-
-__all__ = ["parse_number"]  # re-exported for the driver
 from .errors import ProtocolError
 
 TERMINATOR = b"\r\n"
