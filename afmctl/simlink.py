@@ -3,7 +3,7 @@
 A simulated amplifier of the configured driver (MDT693B/694B, GCS, NV200 on a pty; the
 CAN amplifier on a python-can ``virtual`` channel) is served in this process with a
 :class:`afmctl.sim_backend.scanner.Scanner` as its load, and the *real* driver is opened on it
-through :func:`afmctl.drivers.registry.open_amplifier` — the same code path as with hardware.
+through :func:`afmctl.hardware.open_driver` — the same code path as with hardware.
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from .errors import AfmctlError
-from afmctl.drivers.base import Amplifier
+from afmctl.drivers.base import AmplifierInterface
 
 log = logging.getLogger(__name__)
 
@@ -41,19 +41,6 @@ def load_scanner_config(path: Path | None):
         raise AfmctlError(format_validation_error(err, str(path), ScannerConfig)) from None
 
 
-def open_driver(config, port: str):
-    """Open the configured driver on ``port`` (drivers.registry)."""
-    from afmctl.drivers.registry import open_amplifier
-    options = dict(config.amplifier.options)
-    if "host_limits" not in options and config.amplifier.limits_V:
-        options["host_limits"] = {a: (lim.min_V, lim.max_V) for a, lim in config.amplifier.limits_V.items()
-                                  if a in config.scanner.axes}
-    try:
-        return open_amplifier(config.amplifier.driver, port, **options)
-    except TypeError as err:  # an option the driver does not take
-        raise AfmctlError(f"amplifier.options: {err} (driver {config.amplifier.driver})") from None
-
-
 @contextlib.contextmanager
 def simulated_amplifier(config) -> Iterator[tuple[Any, Any]]:
     """Serve a simulated amplifier + scanner in this process; yields ``(amplifier,
@@ -71,6 +58,7 @@ def simulated_amplifier(config) -> Iterator[tuple[Any, Any]]:
         else:
             server = stack.enter_context(testing.serve_pty(driver, sink=scanner, baud=config.simulation.baud))
             port = server.port
+        from .hardware import open_driver
         amp = open_driver(config, port)
         stack.callback(amp.close)
         yield amp, scanner
@@ -148,8 +136,8 @@ class SendClock:
         return self.last
 
 
-class RecordingAmplifier(Amplifier):
-    """An in-memory :class:`afmctl.drivers.base.Amplifier` that records and checks every value it
+class RecordingAmplifier(AmplifierInterface):
+    """An in-memory :class:`afmctl.drivers.base.AmplifierInterface` that records and checks every value it
     receives — a dry-run target and the test double of the safety properties.
 
     ``limits_V``: ``{axis: (min_V, max_V)}`` it reports as its limits. ``check_limits_V`` /

@@ -48,7 +48,8 @@ def run_once(rate: float, seconds: float, amp_kind: str, tmp: Path, models: dict
     another process receiving every setpoint batch."""
     from afmctl.config import load_config
     from afmctl.loop import Controller
-    from afmctl.simlink import RecordingAmplifier, open_driver
+    from afmctl.hardware import open_driver
+    from afmctl.simlink import RecordingAmplifier
     comp = "".join(f'[compensation.{a}]\nmodel = "{p}"\n' for a, p in models.items())
     line_rate = 2.0
     lines = max(1, int(round(seconds * line_rate)))

@@ -1,30 +1,31 @@
 """Sans-I/O codec for afmctl's CAN amplifier frames, defined in ``afm_amplifier.dbc``
-(package data next to this module) and encoded/decoded through cantools.
+(package data of :mod:`afmctl.drivers`, found through :mod:`importlib.resources`) and
+encoded/decoded through cantools. Frame ids and scales are read from the DBC by message
+and signal name (:func:`frame_id`, :func:`volts_per_bit`); nothing here repeats them.
 
 Frames (all little-endian, see docs/DRIVERS.md):
 
-==============  =====  =======  ==========================================================
-frame           id     sender   signals
-==============  =====  =======  ==========================================================
-SETPOINT_XYZ    0x110  host     X_V, Y_V, Z_V (16 bit, 0.0025 V/bit, 0-163.8375 V), SEQ, FLAGS
-HEARTBEAT       0x111  host     COUNTER, REQ_STATE (0 keep/1 enable/2 disable), REQ_STATUS, REQ_INFO
-STATUS          0x190  amp      applied X_V, Y_V, Z_V, LAST_SEQ, STATE, ERROR_CODE
-ERROR           0x191  amp      CODE, DETAIL, SEQ
-LIMITS          0x192  amp      MIN_V, X_MAX_V, Y_MAX_V, Z_MAX_V
-==============  =====  =======  ==========================================================
+==============  =======  ==========================================================
+frame           sender   signals
+==============  =======  ==========================================================
+SETPOINT_XYZ    host     X_V, Y_V, Z_V (16 bit voltages), SEQ, FLAGS
+HEARTBEAT       host     COUNTER, REQ_STATE (0 keep/1 enable/2 disable), REQ_STATUS, REQ_INFO
+STATUS          amp      applied X_V, Y_V, Z_V, LAST_SEQ, STATE, ERROR_CODE
+ERROR           amp      CODE, DETAIL, SEQ
+LIMITS          amp      MIN_V, X_MAX_V, Y_MAX_V, Z_MAX_V
+==============  =======  ==========================================================
 """
 from __future__ import annotations
 
 import functools
 import math
 from collections.abc import Mapping, Sequence
-from pathlib import Path
+from importlib import resources
 
 from .errors import LimitError, ProtocolError
 
-DBC_PATH = Path(__file__).with_name("afm_amplifier.dbc")
-SETPOINT_ID, HEARTBEAT_ID, STATUS_ID, ERROR_ID, LIMITS_ID = 0x110, 0x111, 0x190, 0x191, 0x192
-V_PER_BIT = 0.0025
+DBC_RESOURCE = "afm_amplifier.dbc"
+SETPOINT, HEARTBEAT, STATUS, ERROR, LIMITS = "SETPOINT_XYZ", "HEARTBEAT", "STATUS", "ERROR", "LIMITS"
 FLAG_REQ_STATUS = 0x01
 ERRORS = {1: "value outside the amplifier range", 2: "sequence gap (setpoints lost or reordered)",
           3: "outputs disabled", 4: "hardware fault"}
@@ -33,39 +34,59 @@ STATES = {0: "disabled", 1: "enabled", 2: "fault"}
 
 @functools.lru_cache(maxsize=1)
 def database():
+    """The cantools database of ``afm_amplifier.dbc`` (loaded on first use)."""
     import cantools
-    return cantools.database.load_file(str(DBC_PATH))
+    text = resources.files(__package__).joinpath(DBC_RESOURCE).read_text(encoding="utf-8")
+    return cantools.database.load_string(text, database_format="dbc")
 
 
-@functools.lru_cache(maxsize=8)
-def message(frame_id: int):
-    return database().get_message_by_frame_id(frame_id)
+@functools.lru_cache(maxsize=16)
+def message(name_or_id: str | int):
+    """The DBC message named ``name_or_id`` (or with that frame id); KeyError if none."""
+    db = database()
+    if isinstance(name_or_id, str):
+        return db.get_message_by_name(name_or_id)
+    return db.get_message_by_frame_id(name_or_id)
+
+
+@functools.lru_cache(maxsize=16)
+def frame_id(name: str) -> int:
+    """Frame id of the DBC message ``name`` (e.g. ``frame_id("STATUS")``)."""
+    return int(message(name).frame_id)
+
+
+@functools.lru_cache(maxsize=1)
+def volts_per_bit() -> float:
+    """Scale of the setpoint voltage signals [V per bit], from the DBC."""
+    return float(message(SETPOINT).get_signal_by_name("X_V").scale)
 
 
 def quantize_inside(value_V: float, lo_V: float, hi_V: float) -> float:
-    """The nearest multiple of 0.0025 V inside [lo_V, hi_V] (never rounds across a limit)."""
+    """The nearest multiple of the DBC's voltage step (0.0025 V) inside [lo_V, hi_V]
+    (never rounds across a limit)."""
+    step_V = volts_per_bit()
     if not math.isfinite(value_V):
         raise LimitError(f"{value_V!r} V is not a finite voltage")
     value_V = min(max(value_V, lo_V), hi_V)  # also keeps huge values from overflowing
-    raw = round(value_V / V_PER_BIT)
-    if raw * V_PER_BIT > hi_V:
-        raw = math.floor(hi_V / V_PER_BIT)
-        while raw * V_PER_BIT > hi_V:
+    raw = round(value_V / step_V)
+    if raw * step_V > hi_V:
+        raw = math.floor(hi_V / step_V)
+        while raw * step_V > hi_V:
             raw -= 1
-    if raw * V_PER_BIT < lo_V:
-        raw = math.ceil(lo_V / V_PER_BIT)
-        while raw * V_PER_BIT < lo_V:
+    if raw * step_V < lo_V:
+        raw = math.ceil(lo_V / step_V)
+        while raw * step_V < lo_V:
             raw += 1
-    v = raw * V_PER_BIT
+    v = raw * step_V
     if not lo_V <= v <= hi_V:
-        raise LimitError(f"no 0.0025 V step lies in [{lo_V:g}, {hi_V:g}] V")
+        raise LimitError(f"no {step_V:g} V step lies in [{lo_V:g}, {hi_V:g}] V")
     return v
 
 
 @functools.lru_cache(maxsize=1)
 def setpoint_range_V() -> tuple[float, float]:
     """The voltage range the DBC declares for the SETPOINT_XYZ signals [V]."""
-    sig = message(SETPOINT_ID).get_signal_by_name("X_V")
+    sig = message(SETPOINT).get_signal_by_name("X_V")
     return float(sig.minimum), float(sig.maximum)
 
 
@@ -78,21 +99,23 @@ def encode_setpoint(values_V: Sequence[float], seq: int, lows_V: Sequence[float]
     lo, hi = setpoint_range_V()
     if not (lo <= x <= hi and lo <= y <= hi and lo <= z <= hi):
         raise LimitError(f"setpoint ({x}, {y}, {z}) V does not fit the CAN frame's range [{lo:g}, {hi:g}] V")
-    return message(SETPOINT_ID).encode({"X_V": x, "Y_V": y, "Z_V": z, "SEQ": seq & 0xFF, "FLAGS": flags & 0xFF},
+    return message(SETPOINT).encode({"X_V": x, "Y_V": y, "Z_V": z, "SEQ": seq & 0xFF, "FLAGS": flags & 0xFF},
                                        strict=False)
 
 
 def encode_heartbeat(counter: int, req_state: int = 0, req_status: bool = False, req_info: bool = False) -> bytes:
-    return message(HEARTBEAT_ID).encode({"COUNTER": counter & 0xFF, "REQ_STATE": req_state,
+    return message(HEARTBEAT).encode({"COUNTER": counter & 0xFF, "REQ_STATE": req_state,
                                          "REQ_STATUS": int(req_status), "REQ_INFO": int(req_info)})
 
 
-def decode(frame_id: int, data: bytes) -> dict[str, float]:
-    """Any frame of the DBC → its signals; wrong length or unknown id → ProtocolError."""
+def decode(name_or_id: str | int, data: bytes) -> dict[str, float]:
+    """Any frame of the DBC (by message name or frame id) → its signals; wrong length or
+    unknown id → ProtocolError."""
     try:
-        msg = message(frame_id)
+        msg = message(name_or_id)
     except KeyError:
-        raise ProtocolError(f"unknown CAN frame id 0x{frame_id:X}", data=bytes(data)) from None
+        what = f"0x{name_or_id:X}" if isinstance(name_or_id, int) else repr(name_or_id)
+        raise ProtocolError(f"unknown CAN frame {what}", data=bytes(data)) from None
     if len(data) != msg.length:
         raise ProtocolError(f"{msg.name}: {len(data)} data bytes, expected {msg.length}", data=bytes(data))
     try:

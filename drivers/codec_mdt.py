@@ -105,6 +105,12 @@ def parse_lines(command: bytes, reply: bytes) -> list[str]:
             if ln.strip()]
 
 
+def is_id_reply(reply: bytes) -> bool:
+    """True for the reply to ``ID?`` (it names the model, ``MDT69...``), the known reply the
+    driver resynchronises on at connect."""
+    return b"MDT69" in reply.upper() and CMD_NOT_DEFINED not in reply.upper()
+
+
 # --- device side, used by tests and documentation (the simulator has its own parser) ---
 
 def decode_set(line: bytes) -> dict[str, float]:

@@ -58,6 +58,23 @@ def frame_fields(reply: bytes) -> list[bytes]:
     return body.split(b",")
 
 
+def last_line(reply: bytes) -> bytes:
+    """The last non-empty line of a frame, without XON (a frame may start with text the
+    unit sent without XON, e.g. its device type in answer to a bare line end)."""
+    lines = [ln.strip() for ln in reply.replace(XON, b"").replace(b"\r", b"\n").split(b"\n")]
+    lines = [ln for ln in lines if ln]
+    return lines[-1] if lines else b""
+
+
+def device_type(reply: bytes) -> str:
+    """The device type (``NV200/D_NET``) if the frame holds the unit's answer to a bare line end."""
+    for ln in reply.replace(XON, b"").replace(b"\r", b"\n").split(b"\n"):
+        text = ln.strip(b" \x01\x00<>").decode("ascii", "replace")
+        if text.upper().startswith("NV200"):
+            return text
+    return ""
+
+
 def is_error(reply: bytes) -> bool:
     return reply.lstrip(b"\r\n ").startswith(b"error")
 

@@ -24,12 +24,9 @@ class AmplifierError(Exception):
         self.data = data
 
 
-class ConnectionError_(AmplifierError):
-    """The link could not be opened or was lost (port vanished, bus down)."""
-
-
-# Public alias without the trailing underscore (the builtin name stays usable).
-AmplifierConnectionError = ConnectionError_
+class AmplifierConnectionError(AmplifierError):
+    """The link could not be opened or was lost (port vanished, bus down). Named so that
+    it does not shadow the builtin ``ConnectionError``."""
 
 
 class AmplifierTimeout(AmplifierError):

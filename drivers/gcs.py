@@ -5,6 +5,8 @@ Streaming: ``SVA`` has no reply, so setpoints are written back to back; every
 ``check_every`` setpoints the driver appends ``ERR?`` to the same write and reads that
 reply when it has arrived (at most one check outstanding) — an error latched by the
 device is raised as :class:`~afmctl.drivers.errors.ProtocolError` with its GCS code.
+Connect resynchronises on the reply to ``*IDN?`` (no fixed quiet window), so replies that
+arrive 100 ms late are fine.
 """
 from __future__ import annotations
 
@@ -50,10 +52,11 @@ class GCSAmplifier(SerialAmplifier):
         codec.check_error_reply(self._query("ERR?"))
 
     def _handshake(self):
-        self.transport.discard_input()
-        self.transport.settle(codec.TERMINATOR)
-        codec.parse_error_code(self._query("ERR?"))  # read and clear an old latched error
-        idn = self._query("*IDN?").decode("ascii", "replace").strip()
+        # resynchronise on *IDN? (its reply holds commas, no other reply here does), then
+        # read and clear an error latched before we came
+        idn = self.transport.resync(codec.TERMINATOR, codec.encode("*IDN?"), codec.split_reply,
+                                    lambda frame: b"," in frame).decode("ascii", "replace").strip()
+        codec.parse_error_code(self._query("ERR?"))
         ids = codec.parse_axes(self._query("SAI?"))
         if len(ids) < len(self._axes):
             raise ProtocolError(f"controller has {len(ids)} axes, {len(self._axes)} needed", data=",".join(ids).encode())

@@ -5,6 +5,12 @@ setpoints without waiting and counts the prompts as they come back, keeping at m
 ``max_in_flight`` commands unanswered (bounded latency, full link rate). A
 ``CMD_NOT_DEFINED`` reply to any pipelined command raises
 :class:`~afmctl.drivers.errors.ProtocolError` at the next call.
+
+Connect resynchronises on a known reply (``ID?`` names the model) instead of waiting for a
+quiet line, so a link whose replies arrive 100 ms late (USB-serial latency timers,
+serial-over-IP) connects, and a late ``CMD_NOT_DEFINED>`` for the bare line end is
+skipped. The unit's read-back (``XVOLTAGE?``) is its *measured* output at 0.1 V
+resolution (:attr:`MDT693B.readback_resolution_V`), not the setpoint echoed back.
 """
 from __future__ import annotations
 
@@ -26,6 +32,8 @@ class MDT693B(SerialAmplifier):
 
     name = "mdt693b"
     _axes: tuple[str, ...] = ("x", "y", "z")
+    #: resolution of the measured output the unit reports [V]
+    readback_resolution_V = 0.1
 
     def __init__(self, transport: SerialTransport, *, max_in_flight: int = 32, **options) -> None:
         if max_in_flight < 1:
@@ -52,14 +60,10 @@ class MDT693B(SerialAmplifier):
         return cmd, self.transport.read_frame(self._split)
 
     def _handshake(self):
-        t = self.transport
-        t.discard_input()
-        t.settle(codec.TERMINATOR)
-        cmd, reply = self._query("ECHO=0")
-        self._prompts = reply[-1:]  # '>' (or '*' on older firmware) from now on
-        codec.reply_body(cmd, reply, self._prompts)
-        cmd, reply = self._query("ID?")
-        ident = " | ".join(codec.parse_lines(cmd, reply))
+        probe = codec.encode("ECHO=0") + codec.encode("ID?")
+        reply = self.transport.resync(codec.TERMINATOR, probe, self._split, codec.is_id_reply)
+        self._prompts = reply[-1:]  # '>' (or '*' in compatibility mode) from now on
+        ident = " | ".join(codec.parse_lines(codec.encode("ID?"), reply))
         cmd, reply = self._query("VLIMIT?")
         vlimit = codec.parse_value(cmd, reply)
         limits = {}

@@ -1,58 +1,126 @@
 """piezosystem jena NV200 in open-loop voltage mode over serial.
 
-At connect: ``cl,0`` (open loop), ``modsrc,0`` (setpoint from the serial link), voltage
-range from ``avmin``/``avmax``. Setpoints ``set,<V>`` are written back to back; error
-frames (``error,<n>``) that arrive are raised as
-:class:`~afmctl.drivers.errors.ProtocolError` with the device code at the next call; a read
-(``set``) serves as the synchronisation point of :meth:`flush`.
+Connect: the driver resynchronises on the reply to ``avmin`` (whatever the unit answered
+to the bare line end before it — its device type — and however late), reads the voltage
+range (``avmin``/``avmax``) and the status word ``stat``. Settings the unit stores in the
+actuator's memory are not written silently: ``cl`` (loop mode) and ``modsrc`` (setpoint
+source) are read, and only if they are not 0 (open loop, setpoint from the serial link)
+they are set to 0, with a warning naming the old values; they are written back at
+:meth:`close` when ``restore_settings=True`` (default False, because restoring closed
+loop or the analog input moves the actuator after we let go).
+
+Read-back: ``meas`` is the piezo voltage only on an actuator without a position sensor;
+with one (``stat`` bits 1–2 name the sensor) it is the position in µm or mrad. The driver
+then reads the output voltage the way the unit provides it, through the data recorder
+(channel A recording the piezo voltage, ``recsrc,0,2``; one sample, ``recrun,1`` then
+``recout,0,0,1``); the recorder settings are volatile. Setpoints ``set,<V>`` are written back to back;
+error frames (``error,<n>``) are raised as :class:`~afmctl.drivers.errors.ProtocolError`
+with the device code at the next call; a read (``set``) is the synchronisation point of
+:meth:`flush`.
 """
 from __future__ import annotations
 
+import logging
+from typing import Any
+
 from . import codec_nv200 as codec
 from .base import VoltageLimits
-from .errors import ProtocolError
+from .errors import AmplifierError, ProtocolError
 from .serial_amp import SerialAmplifier
 from .transport import SerialTransport
 
+log = logging.getLogger(__name__)
+
 #: frames other than the awaited reply or an error tolerated while waiting for a reply
 _MAX_SKIPPED = 64
+#: ``stat`` bits 1-2: position sensor type
+SENSORS = {0: "none", 1: "strain gauge", 2: "capacitive", 3: "LVDT"}
+#: stored settings the driver needs at 0 while it drives the unit (open loop, serial setpoint)
+_STORED = ("cl", "modsrc")
+#: data recorder source code of the piezo voltage
+_RECSRC_PIEZO_VOLTAGE = 2
+
+
+def sensor_of(status_word: int) -> str:
+    """Position sensor named by bits 1-2 of the ``stat`` word."""
+    return SENSORS[(int(status_word) >> 1) & 0b11]
 
 
 class NV200(SerialAmplifier):
-    """``NV200(transport, host_limits=None, max_step_V=None, ...)``; one axis ``x``."""
+    """``NV200(transport, host_limits=None, max_step_V=None, restore_settings=False, ...)``;
+    one axis ``x``; voltages in V."""
 
     name = "nv200"
 
-    def __init__(self, transport: SerialTransport, **options) -> None:
+    def __init__(self, transport: SerialTransport, *, restore_settings: bool = False, **options: Any) -> None:
+        self.restore_settings = bool(restore_settings)
+        self.sensor = "none"
+        #: stored settings changed at connect: name -> value found
+        self.changed_settings: dict[str, int] = {}
         super().__init__(transport, **options)
 
     @property
     def axes(self) -> tuple[str, ...]:
         return ("x",)
 
-    def _read(self, command: str) -> float:
+    def _reply_to(self, command: str) -> bytes:
+        """Write a read command and return its reply frame (skipping unrelated frames)."""
         self.transport.write(codec.encode(command))
+        name = command.split(",")[0].encode()
         for _ in range(_MAX_SKIPPED):
             reply = self.transport.read_frame(codec.split_reply)
             if codec.is_error(reply):
                 raise codec.error_from(reply)
-            if codec.frame_fields(reply)[0] == command.encode():
-                return codec.parse_value(command, reply)
+            if codec.frame_fields(reply)[0] == name:
+                return reply
         raise ProtocolError(f"no reply to {command!r} among {_MAX_SKIPPED} frames", data=reply)
 
+    def _read(self, command: str) -> float:
+        return codec.parse_value(command, self._reply_to(command))
+
     def _handshake(self):
-        self.transport.discard_input()
-        self.transport.settle(codec.TERMINATOR)
-        self.transport.write(codec.encode("cl,0") + codec.encode("modsrc,0"))
-        lo = self._read("avmin")
+        self.changed_settings = {}
+        reply = self.transport.resync(codec.TERMINATOR, codec.encode("avmin"), codec.split_reply,
+                                      lambda f: codec.last_line(f).startswith(b"avmin,"))
+        device_type = codec.device_type(reply)
+        lo = codec.parse_value("avmin", codec.last_line(reply) + codec.XON)
         hi = self._read("avmax")
         if not lo <= hi:
             raise ProtocolError(f"device voltage range is empty: [{lo}, {hi}] V")
         stat = int(self._read("stat"))
-        return {"x": VoltageLimits(lo, hi)}, {"status_word": stat}
+        self.sensor = sensor_of(stat)
+        self._take_control()
+        if self.sensor != "none":
+            self.transport.write(b"".join(codec.encode(c) for c in (
+                "recast,0", f"recsrc,0,{_RECSRC_PIEZO_VOLTAGE}", "recstr,1", "reclen,1")))
+        identity = {"status_word": stat, "sensor": self.sensor, "changed_settings": dict(self.changed_settings)}
+        if device_type:
+            identity["device_type"] = device_type
+        return {"x": VoltageLimits(lo, hi)}, identity
+
+    def _take_control(self) -> None:
+        """Set ``cl`` and ``modsrc`` to 0 only where they are not, and say so."""
+        for name in _STORED:
+            value = int(self._read(name))
+            if value != 0:
+                self.changed_settings[name] = value
+                self.transport.write(codec.encode(f"{name},0"))
+        if self.changed_settings:
+            log.warning("nv200 on %s: stored settings %s changed to 0 (open loop, setpoint from the "
+                        "serial link); %s", self.transport.url,
+                        ", ".join(f"{k} was {v}" for k, v in self.changed_settings.items()),
+                        "restored at close" if self.restore_settings else
+                        "left so after close (restore_settings=True restores them)")
 
     def _read_voltages(self) -> dict[str, float]:
-        return {"x": self._read("meas")}
+        if self.sensor == "none":
+            return {"x": self._read("meas")}  # without a sensor meas is the piezo voltage
+        self.transport.write(codec.encode("recrun,1"))
+        fields = codec.frame_fields(self._reply_to("recout,0,0,1"))
+        if len(fields) != 4:
+            raise ProtocolError("reply to 'recout,0,0,1' does not hold channel, index and value",
+                                data=b",".join(fields))
+        return {"x": codec.parse_number(fields[3], "recout", b",".join(fields))}
 
     def _drain(self) -> None:
         for reply in self.transport.take_frames(codec.split_reply):
@@ -67,3 +135,15 @@ class NV200(SerialAmplifier):
 
     def _sync(self) -> None:
         self._read("set")
+
+    def _on_close(self) -> None:
+        if self.restore_settings and self.changed_settings:
+            try:
+                self._sync()
+                self.transport.write(b"".join(codec.encode(f"{k},{v}") for k, v in self.changed_settings.items()))
+                now = {k: int(self._read(k)) for k in self.changed_settings}  # read back: applied?
+                if now != self.changed_settings:
+                    raise ProtocolError(f"settings read back as {now} after restoring")
+                log.info("nv200 on %s: restored %s", self.transport.url, self.changed_settings)
+            except AmplifierError as err:
+                log.warning("nv200 on %s: could not restore %s: %s", self.transport.url, self.changed_settings, err)

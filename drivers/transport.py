@@ -12,7 +12,7 @@ import logging
 import time
 from collections.abc import Callable
 
-from .errors import AmplifierConnectionError, AmplifierTimeout
+from .errors import AmplifierConnectionError, AmplifierTimeout, ProtocolError
 
 log = logging.getLogger(__name__)
 
@@ -135,20 +135,40 @@ class SerialTransport:
             raise AmplifierConnectionError(f"{self.url}: {err}") from None
         self._buf.clear()
 
-    def settle(self, terminator: bytes, quiet_s: float = 0.02) -> None:
-        """Start from a clean line: send ``terminator`` (ends any partial command the
-        device still holds from a lost link), then discard input until the link has been
-        quiet for ``quiet_s`` [s] (at most ``timeout_s``)."""
-        self.write(terminator)
-        deadline = max(time.monotonic(), self._wire_free_at) + self.timeout_s
-        last = time.monotonic()
-        while True:
-            now = time.monotonic()
-            if now - last >= quiet_s and now >= self._wire_free_at or now >= deadline:
+    def resync(self, terminator: bytes, probe: bytes, split: Callable[[bytearray], int],
+               accept: Callable[[bytes], bool], timeout_s: float | None = None,
+               max_frames: int = 64) -> bytes:
+        """Start from a clean line, however late the device answers: drop what has
+        arrived, send ``terminator`` (ends any partial command the device still holds from
+        a lost link) and ``probe`` (one or more command lines with a known reply), then
+        read frames, discarding every one (a late answer to the bare terminator, a reply
+        still in flight from before) until ``accept(frame)`` is true; return that frame.
+        Waits at most ``timeout_s`` [s] (default: twice the read timeout) for it, so a
+        link whose replies arrive 100 ms late still connects; no fixed quiet window.
+        Silence raises AmplifierTimeout; other frames but never the known one, ProtocolError."""
+        self.discard_input()
+        self.write(terminator + probe)
+        wait = 2 * self.timeout_s if timeout_s is None else timeout_s
+        deadline = max(time.monotonic(), self._wire_free_at) + wait
+        skipped: list[bytes] = []
+        while len(skipped) <= max_frames:
+            left = deadline - time.monotonic()
+            if left <= 0:
                 break
-            if self._read_some(block=True):
-                last = time.monotonic()
-        self._buf.clear()
+            try:
+                frame = self.read_frame(split, timeout_s=left)
+            except AmplifierTimeout:
+                break
+            if accept(frame):
+                if skipped:
+                    log.debug("%s: resynchronised after %d stale frame(s): %r", self.url, len(skipped), skipped[-3:])
+                return frame
+            skipped.append(frame)
+        if skipped:  # it talks, but never the known reply: not the protocol we speak
+            raise ProtocolError(f"{self.url} answered {len(skipped)} frame(s) but never the reply to "
+                                f"{probe!r} within {wait:g} s", data=b"".join(skipped)[-200:])
+        raise AmplifierTimeout(f"no reply to {probe!r} from {self.url} within {wait:g} s",
+                               data=bytes(self._buf[-200:]))
 
     def take_frames(self, split: Callable[[bytearray], int]) -> list[bytes]:
         """Without blocking: read what has arrived and return every complete frame.

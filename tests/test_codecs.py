@@ -7,6 +7,7 @@ bytes — never a hang and never a wrong value. Where a simulator exists, its ow
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
 from hypothesis import given, settings
@@ -81,7 +82,8 @@ def test_mdt_replies_of_the_simulator_parse():
     r = sim.feed(b"ECHO=0\r")
     codec_mdt.parse_ack(b"ECHO=0\r", r)
     sim.feed(b"XYZVOLTAGE=1.5,2.25,3\r")
-    assert codec_mdt.parse_values(b"XYZVOLTAGE?\r", sim.feed(b"XYZVOLTAGE?\r"), 3) == [1.5, 2.25, 3.0]
+    got = codec_mdt.parse_values(b"XYZVOLTAGE?\r", sim.feed(b"XYZVOLTAGE?\r"), 3)
+    assert got == pytest.approx([1.5, 2.25, 3.0], abs=0.05)  # measured at 0.1 V resolution
     assert codec_mdt.parse_value(b"VLIMIT?\r", sim.feed(b"VLIMIT?\r")) == 150.0
     assert codec_mdt.parse_lines(b"ID?\r", sim.feed(b"ID?\r"))[0] == "Model MDT693B"
 
@@ -260,7 +262,7 @@ def test_nv200_garbage_never_gives_a_wrong_value(garbage):
 def test_can_setpoint_round_trip(values, seq):
     data = codec_can.encode_setpoint(values, seq, [0.0] * 3, [150.0] * 3)
     assert len(data) == 8
-    sig = codec_can.decode(codec_can.SETPOINT_ID, data)
+    sig = codec_can.decode(codec_can.SETPOINT, data)
     assert sig["SEQ"] == seq % 256
     for k, v in zip(("X_V", "Y_V", "Z_V"), values):
         assert sig[k] == pytest.approx(v, abs=0.00125 + 1e-9)
@@ -281,15 +283,15 @@ def test_can_quantize_inside(v, lo, width):
 
 def test_can_decode_rejects_wrong_length_and_unknown_ids():
     with pytest.raises(ProtocolError) as info:
-        codec_can.decode(codec_can.STATUS_ID, b"\x00\x01")
+        codec_can.decode(codec_can.STATUS, b"\x00\x01")
     assert info.value.data == b"\x00\x01"
     with pytest.raises(ProtocolError):
         codec_can.decode(0x7FF, b"")
 
 
 def test_can_error_frame_maps_to_protocol_error():
-    data = codec_can.message(codec_can.ERROR_ID).encode({"CODE": 2, "DETAIL": 7, "SEQ": 9})
-    err = codec_can.error_from(codec_can.decode(codec_can.ERROR_ID, data), data)
+    data = codec_can.message(codec_can.ERROR).encode({"CODE": 2, "DETAIL": 7, "SEQ": 9})
+    err = codec_can.error_from(codec_can.decode(codec_can.ERROR, data), data)
     assert err.code == 2 and "sequence" in err.text and err.data == data
 
 
@@ -334,3 +336,16 @@ def test_nv200_truncated_replies_are_refused(milli, data):
     with pytest.raises(ProtocolError) as info:
         codec_nv200.parse_value("meas", prefix)
     assert info.value.data == prefix
+
+
+def test_can_frame_ids_and_scale_come_from_the_dbc_by_name():
+    """Driver codec and simulator read ids and the voltage step from one DBC by message name."""
+    import cantools
+
+    from afmctl.sim_backend.amplifiers.can_amp import load_database
+    ref = cantools.database.load_file(str(Path(codec_can.__file__).with_name(codec_can.DBC_RESOURCE)))
+    sim_db = load_database()
+    for name in ("SETPOINT_XYZ", "HEARTBEAT", "STATUS", "ERROR", "LIMITS"):
+        assert codec_can.frame_id(name) == ref.get_message_by_name(name).frame_id
+        assert sim_db.get_message_by_name(name).frame_id == ref.get_message_by_name(name).frame_id
+    assert codec_can.volts_per_bit() == ref.get_message_by_name("SETPOINT_XYZ").get_signal_by_name("X_V").scale

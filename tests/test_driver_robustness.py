@@ -190,7 +190,8 @@ def test_concurrent_callers_are_serialised(protocol):
                 t.join(30)
             assert not errors
             got = amp.get_voltages()
-            assert got["x"] == pytest.approx(11.49) and got["y"] == pytest.approx(21.49)
+            tol = amp.readback_resolution_V / 2 + 1e-9  # MDT: its measured output at 0.1 V
+            assert got["x"] == pytest.approx(11.49, abs=tol) and got["y"] == pytest.approx(21.49, abs=tol)
         finally:
             amp.close()
 
@@ -252,7 +253,7 @@ def test_mdt_raw_sends_one_query_line_only():
     with serve_pty("mdt693b") as server:
         amp = open_amplifier("mdt693b", server.port, timeout_s=0.3)
         try:
-            assert amp.raw("SERIAL?") == "[SIM00001]"
+            assert amp.raw("SERIAL?") == "SIM00001"
             commands = server.device.commands
             for sneaky in ("XVOLTAGE=200\rID?", "XVOLTAGE=200\nID?", "XVOLTAGE=200?", "SYSMAX=160?", "ID"):
                 with pytest.raises(ProtocolError, match="one query line"):

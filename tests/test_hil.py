@@ -161,7 +161,7 @@ def test_every_setpoint_reaches_the_pty_amplifier_in_order(tmp_path):
     from afmctl.sim_backend.amplifiers.base import RecordingSink
     from afmctl.sim_backend.testing import serve_pty
 
-    from afmctl.simlink import open_driver
+    from afmctl.hardware import open_driver
     sink = RecordingSink()
     with serve_pty("mdt693b", sink=sink) as server:
         cfg = load_config(text=_config_text(tmp_path, driver="mdt693b", rate=250, port=server.port, lines=2))
@@ -189,7 +189,7 @@ def test_amplifier_vanishes_mid_scan_real_pty(tmp_path):
     from afmctl.sim_backend.amplifiers.base import RecordingSink
     from afmctl.sim_backend.testing import serve_pty
 
-    from afmctl.simlink import open_driver
+    from afmctl.hardware import open_driver
     sink = RecordingSink()
     with serve_pty("mdt693b", sink=sink) as server:
         text = _config_text(tmp_path, driver="mdt693b", rate=250, port=server.port, lines=4,
@@ -239,7 +239,8 @@ def test_can_in_process_tip_follows_target(tmp_path, pi_models):
     from afmctl.sim_backend.scanner import Scanner, default_scanner_config
     from afmctl.sim_backend.testing import serve_can
 
-    from afmctl.simlink import open_driver, tracking_error
+    from afmctl.hardware import open_driver
+    from afmctl.simlink import tracking_error
 
     class Tap:
         """Forwards to the scanner and records the tip position at each output change."""

@@ -38,29 +38,49 @@ def test_mdt_documented_replies(mdt):
     server, port = mdt
     assert ask(port, b"ECHO=0\r") == b"ECHO=0\r>"          # echo on at power-up, then off
     assert ask(port, b"XVOLTAGE=12.5\r") == b">"
-    assert ask(port, b"xvoltage?\r") == b"[ 12.50]\r>"      # case-insensitive, bracketed
+    assert ask(port, b"xvoltage?\r") == b"[ 12.5]\r>"       # case-insensitive, measured at 0.1 V
     assert ask(port, b"XYZVOLTAGE=[1,2,3]\n") == b">"       # LF and brackets accepted
     assert ask(port, b"XYZVOLTAGE=4,5,6\r\n") == b">"       # CRLF: no extra prompt
-    assert ask(port, b"XYZVOLTAGE?\r") == b"[  4.00,  5.00,  6.00]\r>"
+    assert ask(port, b"XYZVOLTAGE?\r") == b"[  4.0,  5.0,  6.0]\r>"
     assert ask(port, b"FOO?\r") == b"CMD_NOT_DEFINED>"
     assert ask(port, b"XVOLTAGE=abc\r") == b"CMD_NOT_DEFINED>"
-    assert ask(port, b"XMAX?\r") == b"[150.50]\r>"
-    assert ask(port, b"VLIMIT?\r") == b"[ 150]\r>"
+    assert ask(port, b"XMAX?\r") == b"150.50\r>"                # bare number
+    assert ask(port, b"VLIMIT?\r") == b"[150]\r>"
     reply = ask(port, b"ID?\r")
-    assert reply.startswith(b"Model MDT693B\r") and reply.endswith(b"\r\r>")
+    assert b"Model MDT693B\r" in reply and b"Firmware Version: " in reply and reply.endswith(b"\r\n>")
+    assert ask(port, b"ECHO?\r") == b"Echo Off\r>"
+    assert ask(port, b"\n\r") == b"CMD_NOT_DEFINED>"               # an empty line is answered once
     assert server.sink.last == {"x": 4.0, "y": 5.0, "z": 6.0}
+
+
+def test_mdt_readback_is_measured_at_0_1_V_and_compatibility_mode(mdt):
+    server, port = mdt
+    ask(port, b"ECHO=0\r")
+    assert ask(port, b"XVOLTAGE=12.37\r") == b">"
+    assert ask(port, b"XVOLTAGE?\r") == b"[ 12.4]\r>"       # not the setpoint 12.37
+    assert server.sink.last["x"] == 12.37                    # the output itself is exact
+    assert ask(port, b"cm=1\n\r") == b">"                     # answered in the old mode
+    assert ask(port, b"cm?\n\r", b"*") == b"Compatibility Mode On\r*"
+    assert ask(port, b"YV20.0\n\r", b"*") == b"*"
+    assert ask(port, b"YR\n\r", b"*") == b"[ 20.0]\r*"
+    assert ask(port, b"ZH100.0\n\r", b"*") == b"*"
+    assert ask(port, b"ZH?\n\r", b"*") == b"100.00\r*"
+    assert ask(port, b"%\n\r", b"*") == b"[150]\r*"
+    assert ask(port, b"XVOLTAGE?\r", b"*") == b"[ 12.4]\r*"  # long commands still work
+    assert ask(port, b"cm=0\r", b"*") == b"*"
+    assert ask(port, b"FOO\r") == b"CMD_NOT_DEFINED>"
 
 
 def test_mdt_clamps_to_its_limits(mdt):
     server, port = mdt
     ask(port, b"ECHO=0\r")
     assert ask(port, b"YVOLTAGE=200\r") == b">"
-    assert ask(port, b"YVOLTAGE?\r") == b"[150.00]\r>"      # VLIMIT 150 wins over XMAX 150.5
+    assert ask(port, b"YVOLTAGE?\r") == b"[150.0]\r>"      # VLIMIT 150 wins over XMAX 150.5
     assert ask(port, b"ZVOLTAGE=-5\r") == b">"
-    assert ask(port, b"ZVOLTAGE?\r") == b"[  0.00]\r>"
+    assert ask(port, b"ZVOLTAGE?\r") == b"[  0.0]\r>"
     assert ask(port, b"XMAX=100\r") == b">"
     ask(port, b"XVOLTAGE=120\r")
-    assert ask(port, b"XVOLTAGE?\r") == b"[100.00]\r>"
+    assert ask(port, b"XVOLTAGE?\r") == b"[100.0]\r>"
     assert server.device.requested_max_V == 200.0 and server.device.requested_min_V == -5.0
 
 
@@ -86,7 +106,7 @@ def test_silence_disappear_and_return_keep_the_path_and_the_output(mdt):
     server.silence()
     assert ask(port, b"XVOLTAGE?\r", timeout_s=0.2) == b""
     server.resume()
-    assert ask(port, b"XVOLTAGE?\r") == b"[ 33.00]\r>"
+    assert ask(port, b"XVOLTAGE?\r") == b"[ 33.0]\r>"
     server.disappear()
     assert not os.path.exists(server.port)
     with pytest.raises(serial.SerialException):
@@ -97,7 +117,7 @@ def test_silence_disappear_and_return_keep_the_path_and_the_output(mdt):
     server.reappear()
     port2 = serial.serial_for_url(server.port, timeout=0.05, write_timeout=1.0)
     try:
-        assert ask(port2, b"XVOLTAGE?\r") == b"[ 33.00]\r>"
+        assert ask(port2, b"XVOLTAGE?\r") == b"[ 33.0]\r>"
     finally:
         port2.close()
 
@@ -133,7 +153,25 @@ def test_nv200_raw_protocol():
             assert ask(port, b"meas,1\r\n", b"\x11") == b"error,6\r\n\x11"
             assert ask(port, b"bogus\r\n", b"\x11") == b"error,2\r\n\x11"
             assert ask(port, b"avmin\r\n", b"\x11") == b"avmin,-20.000\r\n\x11"
+            assert ask(port, b"\r\n", b"\n") == b"NV200/D_NET\r\n"     # device type, no XON
+            assert ask(port, b"sr\r\n", b"\x11") == b"sr,2000.000\r\n\x11"
+            assert ask(port, b"desc\r\n", b"\x11") == b"desc,PSH15\r\n\x11"
+            assert ask(port, b"stat\r\n", b"\x11") == b"stat,1\r\n\x11"   # no sensor bits
             assert server.sink.last == {"x": 12.5}
+        finally:
+            port.close()
+
+
+def test_nv200_with_sensor_reports_position_and_piezo_voltage_through_the_recorder():
+    with serve_pty("nv200", sensor="strain gauge") as server:
+        port = serial.serial_for_url(server.port, timeout=0.05, write_timeout=1.0)
+        try:
+            port.write(b"cl,0\r\nmodsrc,0\r\nset,55\r\n")
+            assert ask(port, b"stat\r\n", b"\x11") == b"stat,3\r\n\x11"   # bits 1-2: strain gauge
+            assert ask(port, b"meas\r\n", b"\x11") == b"meas,50.000\r\n\x11"  # µm: (55+20)/150*100
+            port.write(b"recast,0\r\nrecsrc,0,2\r\nrecstr,1\r\nreclen,1\r\nrecrun,1\r\n")
+            assert ask(port, b"recout,0,0,1\r\n", b"\x11") == b"recout,0,0,55.000\r\n\x11"
+            assert server.device.stored_writes == [("cl", 0), ("modsrc", 0)]
         finally:
             port.close()
 
@@ -142,8 +180,8 @@ def test_can_simulator_answers_dbc_frames():
     import can
     import cantools
 
-    from afmctl.sim_backend.amplifiers.can_amp import find_dbc
-    db = cantools.database.load_file(str(find_dbc()))
+    from afmctl.sim_backend.amplifiers.can_amp import load_database
+    db = load_database()
     channel = f"raw-{uuid.uuid4().hex[:8]}"
     sink = RecordingSink()
     with serve_can(channel, sink) as sim, can.Bus(interface="virtual", channel=channel) as bus:
@@ -187,7 +225,7 @@ def test_adapter_latency_is_modelled_on_replies():
         try:
             ask(port, b"ECHO=0\r")
             t0 = time.monotonic()
-            assert ask(port, b"XVOLTAGE?\r") == b"[  0.00]\r>"
+            assert ask(port, b"XVOLTAGE?\r") == b"[  0.0]\r>"
             assert time.monotonic() - t0 >= 0.05
         finally:
             port.close()

@@ -65,7 +65,7 @@ def test_sim_prints_the_pty_serves_mdt693b_and_stops_on_sigterm():
         with serial.serial_for_url(path, timeout=0.05, write_timeout=1.0) as port:
             assert _ask(port, b"ECHO=0\r") == b"ECHO=0\r>"
             assert _ask(port, b"XVOLTAGE=12.5\r") == b">"
-            assert _ask(port, b"XVOLTAGE?\r") == b"[ 12.50]\r>"
+            assert _ask(port, b"XVOLTAGE?\r") == b"[ 12.5]\r>"   # measured output, 0.1 V
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=20) == 0
 

@@ -203,7 +203,7 @@ def run(args: argparse.Namespace) -> int:
             from ..simlink import simulated_amplifier
             amp, scanner = stack.enter_context(simulated_amplifier(config))
         else:
-            from ..simlink import open_driver
+            from ..hardware import open_driver
             amp = open_driver(config, config.amplifier.port)
             stack.callback(amp.close)
         ctl = Controller(config, amp, scanner=scanner)

@@ -107,6 +107,7 @@ class SimDevice:
         self.commands = 0
         self._inject: object | None = None
         self._rx = bytearray()
+        self._pair_end: int | None = None
 
     def inject_error(self, code: object = None) -> None:
         """Make the next command fail with a device error (protocol-specific ``code``)."""
@@ -131,6 +132,7 @@ class SimDevice:
     def line_break(self) -> None:
         """The link dropped: a partial command line in the input buffer is discarded."""
         self._rx.clear()
+        self._pair_end = None
 
     #: bytes that end a command line (any of them)
     line_ends: bytes = b"\r\n"
@@ -139,10 +141,16 @@ class SimDevice:
 
     def feed(self, data: bytes) -> bytes:
         """Bytes from the host in, reply bytes out (may be empty): every complete line
-        (empty ones ignored, a trailing CR stripped) goes to :meth:`reply`."""
+        (a trailing CR stripped) goes to :meth:`reply`, an empty one to
+        :meth:`empty_line`. Where both CR and LF end a line, the pairs CR LF and LF CR
+        are one line end (also when split across two reads)."""
         self._rx += data
         out = bytearray()
         while True:
+            if self._rx and self._pair_end is not None:
+                if self._rx[0] == self._pair_end:
+                    del self._rx[0]  # second half of a CR LF / LF CR pair
+                self._pair_end = None
             ends = [k for k in (self._rx.find(bytes((e,))) for e in self.line_ends) if k >= 0]
             if not ends:
                 if len(self._rx) > self.max_line:  # no real device buffers a line this long
@@ -150,10 +158,16 @@ class SimDevice:
                     out += self.overflow()
                 return bytes(out)
             i = min(ends)
+            end = self._rx[i]
+            if len(self.line_ends) > 1 and end in b"\r\n":
+                self._pair_end = (b"\n" if end == 13 else b"\r")[0]
             line = bytes(self._rx[:i]).rstrip(b"\r")
             del self._rx[: i + 1]
-            if line.strip():
-                out += self.reply(line)
+            out += self.reply(line) if line.strip() else self.empty_line()
+
+    def empty_line(self) -> bytes:
+        """Reply to an empty command line (default: none)."""
+        return b""
 
     def reply(self, line: bytes) -> bytes:
         """The bytes sent back for one command line (default: :meth:`command`)."""

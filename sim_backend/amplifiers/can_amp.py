@@ -1,8 +1,8 @@
 """Simulated CAN amplifier answering the frames of ``drivers/afm_amplifier.dbc``.
 
-sim_backend must not import :mod:`afmctl.drivers`, so the DBC file is located with
-``importlib.util.find_spec("afmctl.drivers")`` (which does not import it) and loaded with
-cantools; ``dbc_path`` overrides it.
+sim_backend must not import :mod:`afmctl.drivers` code, so the DBC is read as package
+data with :mod:`importlib.resources` and loaded with cantools; frame ids and signals are
+looked up by message name (``dbc_path`` overrides the file).
 
 Behaviour: outputs are enabled at power-up. A SETPOINT_XYZ inside the range is applied;
 outside it answers ERROR code 1 (nothing applied); while disabled ERROR code 3. SEQ must
@@ -13,34 +13,33 @@ starts at 255, so a host continues at 0.
 """
 from __future__ import annotations
 
-import importlib.util
 import logging
 import math
 import threading
 import time
 from collections.abc import Callable
+from importlib import resources
 from pathlib import Path
 
 from .base import Sink, elapsed_clock
 
 log = logging.getLogger(__name__)
 
-SETPOINT_ID, HEARTBEAT_ID, STATUS_ID, ERROR_ID, LIMITS_ID = 0x110, 0x111, 0x190, 0x191, 0x192
-V_PER_BIT = 0.0025
+#: the DBC's messages this amplifier receives and sends
+_MESSAGES = ("SETPOINT_XYZ", "HEARTBEAT", "STATUS", "ERROR", "LIMITS")
 
 
-def find_dbc() -> Path:
-    """Path of ``afm_amplifier.dbc`` shipped in the drivers package (not imported)."""
-    spec = importlib.util.find_spec("afmctl.drivers")
-    if spec is not None and spec.submodule_search_locations:
-        for loc in spec.submodule_search_locations:
-            p = Path(loc) / "afm_amplifier.dbc"
-            if p.exists():
-                return p
-    p = Path(__file__).resolve().parents[2] / "drivers" / "afm_amplifier.dbc"
-    if p.exists():
-        return p
-    raise FileNotFoundError("afm_amplifier.dbc not found (is the drivers package installed?)")
+def read_dbc_text() -> str:
+    """Text of ``afm_amplifier.dbc``, the package data of ``afmctl.drivers``."""
+    return resources.files("afmctl.drivers").joinpath("afm_amplifier.dbc").read_text(encoding="utf-8")
+
+
+def load_database(dbc_path: str | Path | None = None):
+    """The cantools database of the amplifier frames (``dbc_path`` or the shipped DBC)."""
+    import cantools
+    if dbc_path is not None:
+        return cantools.database.load_file(str(dbc_path))
+    return cantools.database.load_string(read_dbc_text(), database_format="dbc")
 
 
 class SimCANAmplifier:
@@ -59,16 +58,16 @@ class SimCANAmplifier:
     def __init__(self, channel: str = "afm0", sink: Sink | None = None, *, interface: str = "virtual",
                  now: Callable[[], float] | None = None, min_V: float = 0.0, max_V: float = 150.0,
                  dbc_path: str | Path | None = None, record_seq: bool = False, **bus_options: object) -> None:
-        import cantools
         self.channel = channel
         self.interface = interface
         self.sink = sink
         self.now = now or elapsed_clock()
         self.min_V = float(min_V)
         self.max_V = {a: float(max_V) for a in self.axes}
-        self.db = cantools.database.load_file(str(dbc_path or find_dbc()))
-        self._msg = {fid: self.db.get_message_by_frame_id(fid)
-                     for fid in (SETPOINT_ID, HEARTBEAT_ID, STATUS_ID, ERROR_ID, LIMITS_ID)}
+        self.db = load_database(dbc_path)
+        self._msg = {name: self.db.get_message_by_name(name) for name in _MESSAGES}
+        #: frame id -> message name, for the frames this amplifier receives
+        self._rx = {self._msg[n].frame_id: n for n in ("SETPOINT_XYZ", "HEARTBEAT")}
         self._bus_options = bus_options
         self.outputs = {a: 0.0 for a in self.axes}
         self.enabled = True
@@ -140,36 +139,38 @@ class SimCANAmplifier:
         self._inject = 4 if code is None else int(code)
 
     # -- protocol --
-    def _send(self, fid: int, signals: dict) -> None:
+    def _send(self, name: str, signals: dict) -> None:
         import can
         bus = self._bus
         if bus is None:
             return
-        data = self._msg[fid].encode(signals)
-        bus.send(can.Message(arbitration_id=fid, data=data, is_extended_id=False))
+        msg = self._msg[name]
+        bus.send(can.Message(arbitration_id=msg.frame_id, data=msg.encode(signals), is_extended_id=False))
 
     def _error(self, code: int, detail: int, seq: int) -> None:
         self.last_error = code
-        self._send(ERROR_ID, {"CODE": code, "DETAIL": detail & 0xFFFF, "SEQ": seq & 0xFF})
+        self._send("ERROR", {"CODE": code, "DETAIL": detail & 0xFFFF, "SEQ": seq & 0xFF})
 
     def send_status(self) -> None:
-        self._send(STATUS_ID, {"X_V": self.outputs["x"], "Y_V": self.outputs["y"], "Z_V": self.outputs["z"],
+        self._send("STATUS", {"X_V": self.outputs["x"], "Y_V": self.outputs["y"], "Z_V": self.outputs["z"],
                                "LAST_SEQ": self.last_seq, "STATE": 1 if self.enabled else 0,
                                "ERROR_CODE": min(self.last_error, 15)})
 
     def send_limits(self) -> None:
-        self._send(LIMITS_ID, {"MIN_V": self.min_V, "X_MAX_V": self.max_V["x"], "Y_MAX_V": self.max_V["y"],
+        self._send("LIMITS", {"MIN_V": self.min_V, "X_MAX_V": self.max_V["x"], "Y_MAX_V": self.max_V["y"],
                                "Z_MAX_V": self.max_V["z"]})
 
     def handle(self, fid: int, data: bytes) -> None:
         """One received frame (called from the notifier thread)."""
         if self._silent:
             return
-        if fid == SETPOINT_ID and len(data) == 8:
-            sig = self._msg[fid].decode(data, decode_choices=False)
+        name = self._rx.get(fid)
+        if name is None or len(data) != self._msg[name].length:
+            return
+        sig = self._msg[name].decode(data, decode_choices=False)
+        if name == "SETPOINT_XYZ":
             self._setpoint(sig)
-        elif fid == HEARTBEAT_ID and len(data) == 2:
-            sig = self._msg[fid].decode(data, decode_choices=False)
+        else:
             if sig["REQ_STATE"] == 1:
                 self.enabled = True
             elif sig["REQ_STATE"] == 2:

@@ -1,10 +1,17 @@
-"""Simulated PI GCS controller (open-loop subset of an E-727), byte-exact to PROTOCOLS.md.
+"""Simulated PI GCS 2 controller (an E-727 in its open-loop subset), from the GCS command
+set as PI's manuals and PIPython use it.
 
 Axes ``1 2 3`` drive outputs x, y, z; voltage channels ``1 2 3`` belong to the same axes.
 At power-up the servo is ON (so ``SVA`` gives error 303 until ``SVO <axis> 0``). An
 ``SVA`` with any bad argument applies nothing and latches the error. The first error
 latched stays until ``ERR?`` reads and clears it. Commands are case-insensitive; lines end
-at LF (a CR before it is ignored).
+at LF (a CR before it is ignored). ``*IDN?`` names the model ``E-727`` (the serial-number
+field says it is simulated), ``CSV?`` answers 2 (GCS 2), ``HLP?`` lists the commands.
+
+Position: ``POS?`` is the position the sensor reads, here linear over the voltage range
+onto the travel ``TMN?``..``TMX?`` [µm]. ``MOV`` needs the servo on (error 5 otherwise,
+7 outside the travel); with the servo on it sets the target and the simulator puts the
+output voltage where that position lies (an ideal servo).
 """
 from __future__ import annotations
 
@@ -13,6 +20,9 @@ from collections.abc import Callable
 from .base import SimDevice, Sink
 
 _AXIS = {"1": "x", "2": "y", "3": "z"}
+IDN = b"(c)2024 Physik Instrumente (PI) GmbH & Co. KG, E-727, SIM-afmctl, 01.00.00.00\n"
+_HELP = ("*IDN?", "CSV?", "ERR?", "HLP?", "SAI?", "SVO", "SVO?", "SVA", "SVA?", "VOL?", "VMA", "VMA?",
+         "VMI", "VMI?", "POS?", "MOV", "MOV?", "ONT?", "TMN?", "TMX?")
 
 
 def _num(tok: str) -> float | None:
@@ -36,6 +46,8 @@ class SimGCS(SimDevice):
         self.vmi = {k: vmin_V for k in _AXIS}
         self.vma = {k: vmax_V for k in _AXIS}
         self.error = 0
+        self.travel_um = (0.0, 100.0)
+        self.target = {k: 0.0 for k in _AXIS}
 
     def _latch(self, code: int) -> bytes:
         if self.error == 0:
@@ -67,12 +79,18 @@ class SimGCS(SimDevice):
             code, self.error = self.error, 0
             return f"{code}\n".encode()
         if cmd == "*IDN?":
-            return b"(c)2024 Physik Instrumente (PI) GmbH & Co. KG, E-727 (simulated by afmctl), 0, 1.0\n"
+            return IDN
+        if cmd == "CSV?":
+            return b"2\n"
+        if cmd == "HLP?":
+            return b" \n".join(c.encode() for c in _HELP) + b"\n"
+        if cmd == "MOV":
+            return self._move(args)
         if cmd == "SAI?":
             return b" \n".join(k.encode() for k in _AXIS) + b"\n"
         if cmd in ("SVO", "SVA", "VMA", "VMI"):
             return self._set(cmd, args)
-        if cmd in ("SVO?", "SVA?", "VOL?", "VMA?", "VMI?"):
+        if cmd in ("SVO?", "SVA?", "VOL?", "VMA?", "VMI?", "POS?", "MOV?", "ONT?", "TMN?", "TMX?"):
             keys = args or list(_AXIS)
             if any(k not in _AXIS for k in keys):
                 return self._latch(15)
@@ -80,9 +98,42 @@ class SimGCS(SimDevice):
                      "SVA?": {k: f"{self.outputs[a]:.4f}" for k, a in _AXIS.items()},
                      "VOL?": {k: f"{self.outputs[a]:.4f}" for k, a in _AXIS.items()},
                      "VMA?": {k: f"{v:.4f}" for k, v in self.vma.items()},
-                     "VMI?": {k: f"{v:.4f}" for k, v in self.vmi.items()}}[cmd]
+                     "VMI?": {k: f"{v:.4f}" for k, v in self.vmi.items()},
+                     "POS?": {k: f"{self.position_um(k):.4f}" for k in _AXIS},
+                     "MOV?": {k: f"{v:.4f}" for k, v in self.target.items()},
+                     "ONT?": {k: 1 for k in _AXIS},
+                     "TMN?": {k: f"{self.travel_um[0]:.4f}" for k in _AXIS},
+                     "TMX?": {k: f"{self.travel_um[1]:.4f}" for k in _AXIS}}[cmd]
             return self._items([(k, str(table[k])) for k in keys])
         return self._latch(2)
+
+    def position_um(self, key: str) -> float:
+        """Sensor position of axis ``key`` [µm]: linear over VMI..VMA onto the travel."""
+        lo, hi = self.vmi[key], self.vma[key]
+        frac = (self.outputs[_AXIS[key]] - lo) / (hi - lo) if hi > lo else 0.0
+        return self.travel_um[0] + frac * (self.travel_um[1] - self.travel_um[0])
+
+    def _move(self, args: list[str]) -> bytes:
+        if not args or len(args) % 2:
+            return self._latch(1)
+        moves = {}
+        for key, tok in zip(args[::2], args[1::2]):
+            v = _num(tok)
+            if key not in _AXIS:
+                return self._latch(15)
+            if v is None:
+                return self._latch(1)
+            if not self.servo[key]:
+                return self._latch(5)   # PI: move not allowed with servo off
+            if not self.travel_um[0] <= v <= self.travel_um[1]:
+                return self._latch(7)   # PI: position out of limits
+            moves[key] = v
+        t0, t1 = self.travel_um
+        for key, v in moves.items():
+            self.target[key] = v
+        self._apply({_AXIS[k]: self.vmi[k] + (v - t0) / (t1 - t0) * (self.vma[k] - self.vmi[k])
+                     for k, v in moves.items()})
+        return b""
 
     def _set(self, cmd: str, args: list[str]) -> bytes:
         if not args or len(args) % 2:

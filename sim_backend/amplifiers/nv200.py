@@ -1,10 +1,22 @@
-"""Simulated piezosystem jena NV200 (open-loop voltage subset), byte-exact to PROTOCOLS.md.
+"""Simulated piezosystem jena NV200/D NET (open-loop voltage subset plus what the vendor's
+client library reads at connect), from the NV200 command set as the vendor's
+documentation and library describe it.
 
-Choices where the protocol notes are unconfirmed: a successful write sends no reply; a
-read ``cmd`` is answered ``cmd,value\\r\\n`` + XON; errors ``error,<n>\\r\\n`` + XON. Lines
-end at CR, LF or CRLF. At power-up ``modsrc`` is 1 (analog input), so ``set`` changes the
-output only after ``modsrc,0``. ``set`` outside ``avmin..avmax`` gives ``error,4`` and
-changes nothing. Output voltages are reported by ``meas`` (open loop).
+Wire format: commands end at CR, LF or CRLF; a read ``cmd`` is answered ``cmd,value\\r\\n``
++ XON, an error ``error,<n>\\r\\n`` + XON; a successful write sends nothing. A bare line end
+is answered with the device type ``NV200/D_NET`` and CR LF (no XON), as the vendor's
+library expects when it identifies the unit.
+
+Parameters: ``set``, ``meas``, ``avmin``/``avmax`` [V], ``posmin``/``posmax`` (travel in
+µm), ``stat`` (bit 0 actuator present, bits 1-2 sensor type, bit 3 closed loop), ``cl``,
+``modsrc`` (1 at power-up: the setpoint follows the analog input until ``modsrc,0``),
+``sr`` (slew rate in %/ms, 2000 = off), ``temp``, ``desc``, ``acserno``, ``acmeasure``,
+``unitol``/``unitcl``, and the data recorder (``recsrc``, ``recast``, ``recstr``,
+``reclen``, ``recrun``, ``recout``) enough to read the piezo voltage.
+
+``meas`` is the piezo voltage without a sensor (``sensor="none"``) and the position in
+µm with one (linear over the voltage range); ``set`` outside ``avmin..avmax`` gives
+``error,4`` and changes nothing.
 """
 from __future__ import annotations
 
@@ -13,36 +25,71 @@ from collections.abc import Callable
 from .base import SimDevice, Sink
 
 XON = b"\x11"
-_READ_ONLY = {"meas", "avmin", "avmax", "stat"}
-_PARAMS = {"set", "meas", "avmin", "avmax", "stat", "cl", "modsrc", "sr"}
+DEVICE_TYPE = b"NV200/D_NET"
+SENSOR_BITS = {"none": 0, "strain gauge": 1, "capacitive": 2, "LVDT": 3}
+_READ_ONLY = {"meas", "avmin", "avmax", "stat", "temp", "desc", "acserno", "acmeasure", "posmin", "posmax",
+              "unitol", "unitcl"}
+_INT = {"cl", "modsrc", "stat", "acmeasure", "recast", "recstr", "reclen", "recrun"}
+_RANGES = {"cl": (0, 1), "modsrc": (0, 3), "recast": (0, 2), "recstr": (1, 65535), "reclen": (0, 6144),
+           "recrun": (0, 1), "sr": (0.0000008, 2000.0)}
 
 
 class SimNV200(SimDevice):
-    """``SimNV200(sink=None, now=None, avmin_V=-20.0, avmax_V=130.0)``; axis ``x``.
-    ``inject_error(code)`` answers the next command with ``error,<code>`` (default 4)."""
+    """``SimNV200(sink=None, now=None, avmin_V=-20.0, avmax_V=130.0, sensor="none",
+    posmax_um=100.0)``; axis ``x``. ``inject_error(code)`` answers the next command with
+    ``error,<code>`` (default 4)."""
 
     protocol = "nv200"
     axes = ("x",)
 
     def __init__(self, sink: Sink | None = None, *, now: Callable[[], float] | None = None,
-                 avmin_V: float = -20.0, avmax_V: float = 130.0) -> None:
+                 avmin_V: float = -20.0, avmax_V: float = 130.0, sensor: str = "none",
+                 posmax_um: float = 100.0) -> None:
         super().__init__(sink, now=now)
-        self.params: dict[str, float] = {"set": 0.0, "cl": 0, "modsrc": 1, "sr": 100.0,
-                                         "avmin": avmin_V, "avmax": avmax_V}
+        if sensor not in SENSOR_BITS:
+            raise ValueError(f"sensor must be one of {', '.join(SENSOR_BITS)}")
+        self.sensor = sensor
+        self.params: dict[str, float] = {"set": 0.0, "cl": 0, "modsrc": 1, "sr": 2000.0,
+                                         "avmin": avmin_V, "avmax": avmax_V, "posmin": 0.0,
+                                         "posmax": posmax_um if sensor != "none" else avmax_V,
+                                         "temp": 31.5, "recast": 0, "recstr": 1, "reclen": 6144, "recrun": 0}
+        self.text = {"desc": "TRITOR100SG" if sensor != "none" else "PSH15", "acserno": "SIM00001",
+                     "unitol": "V", "unitcl": "um" if sensor != "none" else "V"}
+        self.recsrc = {0: 0, 1: 1}
+        self.recorded: dict[int, list[float]] = {0: [], 1: []}
+        #: every write of a setting the unit stores in the actuator's memory: (name, value)
+        self.stored_writes: list[tuple[str, int]] = []
 
-    def _reply(self, name: str, value: float) -> bytes:
-        text = f"{int(value)}" if name in ("cl", "modsrc", "stat") else f"{value:.3f}"
+    # -- the unit's quantities --
+    def position_um(self) -> float:
+        lo, hi = self.params["avmin"], self.params["avmax"]
+        frac = (self.outputs["x"] - lo) / (hi - lo) if hi > lo else 0.0
+        return self.params["posmin"] + frac * (self.params["posmax"] - self.params["posmin"])
+
+    def status_word(self) -> int:
+        return 1 | (SENSOR_BITS[self.sensor] << 1) | (8 if self.params["cl"] else 0)
+
+    def _source_value(self, src: int) -> float:
+        return {0: self.position_um() if self.sensor != "none" else self.outputs["x"],
+                1: self.params["set"], 2: self.outputs["x"]}.get(src, 0.0)
+
+    # -- wire --
+    def _reply(self, name: str, value: object) -> bytes:
+        if isinstance(value, str):
+            text = value
+        else:
+            text = f"{int(value)}" if name in _INT else f"{value:.3f}"
         return f"{name},{text}\r\n".encode() + XON
 
     @staticmethod
     def _error(code: int) -> bytes:
         return f"error,{code}\r\n".encode() + XON
 
-    def status_word(self) -> int:
-        return 1 | (8 if self.params["cl"] else 0)
-
     def overflow(self) -> bytes:
         return self._error(1)
+
+    def empty_line(self) -> bytes:
+        return DEVICE_TYPE + b"\r\n"
 
     def command(self, line: bytes) -> bytes:
         self.commands += 1
@@ -50,26 +97,38 @@ class SimNV200(SimDevice):
         if injected is not None:
             return self._error(4 if injected is True else int(injected))  # type: ignore[arg-type]
         try:
-            fields = line.decode("ascii").strip().split(",")
+            fields = [f.strip() for f in line.decode("ascii").strip().split(",")]
         except UnicodeDecodeError:
             return self._error(1)
-        name, args = fields[0].strip().lower(), fields[1:]
-        if name not in _PARAMS:
+        name, args = fields[0].lower(), fields[1:]
+        if name in ("recsrc", "recout", "recoutf"):
+            return self._recorder(name, args)
+        if name not in self.params and name not in self.text and name not in _READ_ONLY:
             return self._error(2)
         if not args:
-            if name == "meas":
-                return self._reply(name, self.outputs["x"])
-            if name == "stat":
-                return self._reply(name, self.status_word())
-            return self._reply(name, self.params[name])
-        if name in _READ_ONLY:
+            return self._read(name)
+        if name in _READ_ONLY or name in self.text:
             return self._error(6)
         if len(args) > 1:
             return self._error(5)
-        if not args[0].strip():
+        return self._write(name, args[0])
+
+    def _read(self, name: str) -> bytes:
+        if name == "meas":
+            return self._reply(name, self._source_value(0))
+        if name == "stat":
+            return self._reply(name, self.status_word())
+        if name == "acmeasure":
+            return self._reply(name, SENSOR_BITS[self.sensor])
+        if name in self.text:
+            return self._reply(name, self.text[name])
+        return self._reply(name, self.params[name])
+
+    def _write(self, name: str, arg: str) -> bytes:
+        if not arg:
             return self._error(3)
         try:
-            v = float(args[0])
+            v = float(arg)
         except ValueError:
             return self._error(1)
         if v != v or abs(v) == float("inf"):
@@ -82,13 +141,38 @@ class SimNV200(SimDevice):
             if self.params["modsrc"] == 0:
                 self._apply({"x": v})
             return b""
+        lo, hi = _RANGES.get(name, (-float("inf"), float("inf")))
+        if (name in _INT and v != int(v)) or not lo <= v <= hi:
+            return self._error(4)
+        self.params[name] = int(v) if name in _INT else v
         if name in ("cl", "modsrc"):
-            if v != int(v) or not 0 <= v <= (1 if name == "cl" else 3):
-                return self._error(4)
-            self.params[name] = int(v)
-            return b""
-        if name == "sr":
-            if not 0 < v <= 100:
-                return self._error(4)
-        self.params[name] = v
+            self.stored_writes.append((name, int(v)))
+        if name == "recrun" and v == 1:
+            self.recorded = {ch: [self._source_value(src)] for ch, src in self.recsrc.items()}
         return b""
+
+    def _recorder(self, name: str, args: list[str]) -> bytes:
+        try:
+            nums = [int(a) for a in args]
+        except ValueError:
+            return self._error(1)
+        if not nums or nums[0] not in (0, 1):
+            return self._error(3 if not nums else 4)
+        ch = nums[0]
+        if name == "recsrc":
+            if len(nums) == 1:
+                return f"recsrc,{ch},{self.recsrc[ch]}\r\n".encode() + XON
+            if len(nums) != 2 or not 0 <= nums[1] <= 7:
+                return self._error(4)
+            self.recsrc[ch] = nums[1]
+            return b""
+        data = self.recorded.get(ch, [])
+        if name == "recoutf":
+            return (f"recoutf,{ch}," + ",".join(f"{v:.3f}" for v in data) + "\r\n").encode() + XON
+        if len(nums) != 3:
+            return self._error(3)
+        idx, n = nums[1], nums[2]
+        values = data[idx:idx + max(n, 1)]
+        if not values:
+            return self._error(4)
+        return (f"recout,{ch},{idx}," + ",".join(f"{v:.3f}" for v in values) + "\r\n").encode() + XON

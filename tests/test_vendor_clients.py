@@ -1,0 +1,220 @@
+"""Back to back with the vendors' own client libraries (python-can's lesson): PIPython,
+the ``nv200`` library and the ``mdt69x`` MDT69xB client drive our simulated amplifiers over
+real ptys; and the reverse — our drivers against simulators that answer the way those
+libraries expect real units to (a sensored NV200, replies 50 ms late).
+
+The ``nv200`` library needs Python >= 3.12: the test builds (once) a venv ``.venv-nv200``
+beside the project with the interpreter named by ``AFMCTL_PYTHON312`` or found as
+``python3.12``, and runs ``tests/vendor/nv200_client.py`` in it as a subprocess; without
+such an interpreter it is skipped and says why.
+"""
+from __future__ import annotations
+
+import contextlib
+import glob
+import importlib.util
+import json
+import logging
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from afmctl.drivers.registry import open_amplifier
+from afmctl.sim_backend.testing import serve_pty
+
+ROOT = Path(__file__).resolve().parents[1]
+NV200_VENV = ROOT / ".venv-nv200"
+NV200_REQUIREMENT = "nv200>=1.6,<2"
+
+
+# ----------------------------------------------------------------- PIPython → SimGCS
+@contextlib.contextmanager
+def _pipython(port: str):
+    """PIPython's GCSDevice on its pure-Python serial gateway (no PI DLL on Linux)."""
+    from pipython import GCSDevice
+    from pipython.pidevice.interfaces.piserial import PISerial
+    gateway = PISerial(port=port, baudrate=115200)
+    try:
+        with GCSDevice(gateway=gateway) as dev:  # its exit unregisters the gateway callback
+            yield dev
+    finally:
+        gateway.close()
+
+
+def test_pipython_connects_fast_and_identifies_a_gcs2_e727():
+    with serve_pty("gcs") as server:
+        t0 = time.monotonic()
+        with _pipython(server.port) as pi:
+            idn = pi.qIDN()
+            elapsed = time.monotonic() - t0
+            assert elapsed < 1.0, f"PIPython needed {elapsed:.2f} s to connect and identify"
+            assert pi.devname == "E-727" and "Physik Instrumente" in idn
+            assert pi.qCSV() == 2.0
+            assert pi.axes == ["1", "2", "3"]
+            assert pi.HasqVOL() and pi.HasSVA()  # capability table known for the model: no HLP? round trip
+
+
+def test_pipython_open_loop_get_set_limits_and_errors():
+    from pipython import GCSError
+    with serve_pty("gcs") as server:
+        with _pipython(server.port) as pi:
+            assert pi.qSVO() == {"1": True, "2": True, "3": True}       # servo on at power-up
+            with pytest.raises(GCSError) as info:
+                pi.SVA("1", 10.0)
+            assert info.value.val == 303                                # not in open loop
+            pi.SVO(pi.axes, [False, False, False])
+            with pytest.raises(GCSError) as info:
+                pi.MOV("1", 5.0)
+            assert info.value.val == 5                                  # MOV with servo off
+            pi.SVA(["1", "2"], [10.0, 20.5])
+            assert pi.qSVA()["1"] == pytest.approx(10.0) and pi.qVOL()[2] == pytest.approx(20.5)
+            assert pi.qVMI() == {1: 0.0, 2: 0.0, 3: 0.0} and pi.qVMA()[3] == pytest.approx(120.0)
+            assert pi.qTMN()["1"] == 0.0 and pi.qTMX()["1"] == 100.0
+            assert pi.qPOS()["1"] == pytest.approx(10.0 / 120.0 * 100.0, abs=1e-3)
+            with pytest.raises(GCSError) as info:
+                pi.SVA("1", 500.0)
+            assert info.value.val == 302                                # outside VMI..VMA
+            assert pi.qERR() == 0
+            assert server.sink.last["x"] == 10.0 and server.sink.last["y"] == 20.5
+
+
+# ------------------------------------------------------------ mdt69x → SimMDT693B
+def test_mdt69x_client_gets_sets_and_reads_limits_on_all_three_axes():
+    import mdt69x
+    with serve_pty("mdt693b") as server:
+        c = mdt69x.Controller(server.port)  # probes with an empty line, then cm=1 (MDT693A mode)
+        try:
+            assert c.get_compatibility() == c.COMPATIBILITY_ON
+            assert c.get_switch_limit() == 150.0
+            for k, ax in enumerate("xyz"):
+                assert getattr(c, f"set_{ax}_voltage")(10.0 + k) == c.SUCCESS
+                assert getattr(c, f"get_{ax}_voltage")() == pytest.approx(10.0 + k, abs=0.05)
+                assert getattr(c, f"get_{ax}_voltage_min")() == 0.0
+                assert getattr(c, f"get_{ax}_voltage_max")() == 150.5
+                assert getattr(c, f"set_{ax}_voltage_max")(100.0) == c.SUCCESS
+                assert getattr(c, f"get_{ax}_voltage_max")() == 100.0
+                getattr(c, f"set_{ax}_voltage")(120.0)                  # clamped by the new limit
+                assert getattr(c, f"get_{ax}_voltage")() == pytest.approx(100.0, abs=0.05)
+            assert server.sink.last == {"x": 100.0, "y": 100.0, "z": 100.0}
+        finally:
+            c.close()
+
+
+def test_our_driver_after_a_client_left_the_unit_in_compatibility_mode():
+    import mdt69x
+    with serve_pty("mdt693b") as server:
+        mdt69x.Controller(server.port).close()
+        assert server.device.compat
+        with open_amplifier("mdt693b", server.port) as amp:
+            amp.set_voltages({"x": 12.0, "y": 13.0, "z": 14.0})
+            assert amp.get_voltages() == pytest.approx({"x": 12.0, "y": 13.0, "z": 14.0}, abs=0.05)
+            assert amp.info()["prompt"] == "*"
+
+
+# ----------------------------------------------------------------- nv200 → SimNV200
+def _python312() -> str | None:
+    for cand in (os.environ.get("AFMCTL_PYTHON312"), shutil.which("python3.12"),
+                 *sorted(glob.glob("/root/.pyenv/versions/3.12*/bin/python3.12"))):
+        if cand and Path(cand).exists():
+            return cand
+    return None
+
+
+@pytest.fixture(scope="session")
+def nv200_python() -> str:
+    if sys.version_info >= (3, 12) and importlib.util.find_spec("nv200") is not None:
+        return sys.executable  # installed with the test extra
+    py = NV200_VENV / "bin" / "python"
+    if py.exists() and subprocess.run([str(py), "-c", "import nv200"], capture_output=True).returncode == 0:
+        return str(py)
+    base = _python312()
+    if base is None:
+        pytest.skip("the nv200 library needs Python >= 3.12: no python3.12 found "
+                    "(set AFMCTL_PYTHON312 to one)")
+    subprocess.run([base, "-m", "venv", str(NV200_VENV)], check=True, timeout=300)
+    res = subprocess.run([str(py), "-m", "pip", "install", "-q", NV200_REQUIREMENT],
+                         capture_output=True, text=True, timeout=900)
+    if res.returncode != 0:
+        pytest.skip(f"could not install {NV200_REQUIREMENT} into {NV200_VENV}: {res.stderr.strip()[-300:]}")
+    return str(py)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sensor", ["none", "strain gauge"])
+def test_nv200_library_connects_sets_and_reads(nv200_python, sensor):
+    client = ROOT / "tests" / "vendor" / "nv200_client.py"
+    with serve_pty("nv200", sensor=sensor) as server:
+        res = subprocess.run([nv200_python, str(client), server.port, "52"], capture_output=True,
+                             text=True, timeout=120)
+        assert res.returncode == 0, res.stderr[-2000:]
+        out = json.loads(res.stdout.strip().splitlines()[-1])
+        assert out["voltage_range_V"] == [-20.0, 130.0]
+        assert out["setpoint"] == 52.0
+        assert out["piezo_voltage_V"] == 52.0                      # the recorder's piezo voltage
+        assert out["temperature_C"] > 0 and out["actuator"]
+        if sensor == "none":
+            assert out["meas"] == 52.0 and out["status_word"] & 0b110 == 0
+        else:                                                      # meas is the position [µm]
+            assert out["meas"] == pytest.approx((52 + 20) / 150 * 100, abs=1e-3)
+            assert out["status_word"] & 0b110 == 0b010 and out["position_unit"] == "um"
+        assert server.sink.last == {"x": 52.0}
+
+
+# ------------------------------------------------------- our drivers, the reverse way
+@pytest.mark.parametrize("sensor", ["strain gauge", "capacitive"])
+def test_sensored_nv200_get_voltages_returns_volts(sensor):
+    with serve_pty("nv200", sensor=sensor) as server:
+        server.device.params["modsrc"] = 0        # nothing for the driver to change
+        server.device.outputs["x"] = 0.0
+        with open_amplifier("nv200", server.port) as amp:
+            assert amp.info()["sensor"] == sensor
+            assert amp.last_output == {"x": 0.0}  # the output, not the position (13.3 µm here)
+            amp.set_voltages({"x": 52.0})
+            assert amp.get_voltages() == {"x": 52.0}
+            assert server.device.stored_writes == []  # cl and modsrc were 0: nothing written
+
+
+def test_nv200_stored_settings_are_changed_only_when_needed_said_and_restored_on_request(caplog):
+    with serve_pty("nv200") as server:
+        server.device.params["cl"] = 1            # closed loop, analog input (power-up default)
+        with caplog.at_level(logging.WARNING, logger="afmctl.drivers.nv200"):
+            amp = open_amplifier("nv200", server.port, restore_settings=True)
+        assert "cl was 1" in caplog.text and "modsrc was 1" in caplog.text
+        assert amp.info()["changed_settings"] == {"cl": 1, "modsrc": 1}
+        amp.set_voltages({"x": 5.0})
+        amp.close()
+        assert server.device.stored_writes == [("cl", 0), ("modsrc", 0), ("cl", 1), ("modsrc", 1)]
+    with serve_pty("nv200") as server:
+        with open_amplifier("nv200", server.port) as amp:  # default: leave them, and say so
+            amp.set_voltages({"x": 5.0})
+        assert server.device.stored_writes == [("modsrc", 0)]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("driver", ["mdt693b", "gcs", "nv200"])
+def test_connect_twenty_times_out_of_twenty_with_replies_50_ms_late(driver):
+    ok = 0
+    with serve_pty(driver, latency_s=0.05) as server:
+        for _ in range(20):
+            with open_amplifier(driver, server.port, timeout_s=0.5) as amp:
+                amp.get_voltages()
+                ok += 1
+    assert ok == 20
+
+
+@pytest.mark.parametrize("latency_s", [0.016, 0.12])   # a USB adapter's latency timer; serial over IP
+@pytest.mark.parametrize("driver", ["mdt693b", "gcs", "nv200"])
+def test_connect_with_late_replies(driver, latency_s):
+    with serve_pty(driver, latency_s=latency_s) as server:
+        with open_amplifier(driver, server.port, timeout_s=0.5) as amp:
+            amp.set_voltages({"x": 10.0})
+            assert amp.get_voltages()["x"] == pytest.approx(10.0, abs=amp.readback_resolution_V / 2 + 1e-9)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(pytest.main([__file__, "-q"]))
