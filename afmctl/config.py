@@ -24,6 +24,8 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
+from afmctl.compensators.models import first_validation_error, plain_repr
+
 from .errors import AfmctlError
 from .zenoh_config import ZenohSettings
 
@@ -531,16 +533,15 @@ def format_validation_error(err: ValidationError, where: str = "config", model: 
     :class:`Config`, whose values may come from an ``AFMCTL_*`` variable: then the
     variable is named instead of the file). ``prefix``: prepended to the field name (the
     section of ``model`` in the file, e.g. ``"loop."``)."""
-    first = err.errors()[0]
+    first, name = first_validation_error(err, prefix)
     loc = tuple(first["loc"])
-    name = prefix + ".".join(str(p) for p in loc) or "(root)"
     msg = first["msg"]
     env = _env_name(loc) if loc and model is None else None
     if env is not None:
         where = f"environment {env}"
     value = ""
     if first["type"] not in ("extra_forbidden", "missing") and not isinstance(first.get("input"), (dict, list)):
-        value = f" = {first.get('input')!r}"
+        value = f" = {plain_repr(first.get('input'))}"
     rng = _allowed_range(model if model is not None else Config, loc) if loc else ""
     if rng and first["type"] in ("greater_than", "greater_than_equal", "less_than", "less_than_equal",
                                  "float_parsing", "int_parsing", "float_type", "int_type", "finite_number",

@@ -33,6 +33,8 @@ from typing import Annotated, Any, Literal, Union
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
+from afmctl.compensators.models import first_validation_error
+
 from .errors import AfmctlError
 
 #: version of every payload schema in this module
@@ -257,8 +259,7 @@ def _loads(payload: bytes, max_bytes: int) -> Any:
 
 
 def _validation_message(err: ValidationError) -> str:
-    first = err.errors()[0]
-    loc = ".".join(str(p) for p in first["loc"] if p not in ("segment", "line", "raster")) or "(root)"
+    first, loc = first_validation_error(err, skip=("segment", "line", "raster"))
     msg = first["msg"]
     if loc == "schema":
         msg = f"{msg} (this service speaks schema {SCHEMA_VERSION})"

@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 
+import pytest
 import serial
 
 from afmctl.sim_backend.testing import no_leaks
@@ -101,7 +102,7 @@ def test_sim_bad_scanner_override_names_the_field(tmp_path):
 
 
 def test_sim_service_advances_the_plant_on_the_wall_clock_and_calls_on_tick():
-    from afmctl.commands.sim import SimService, load_settings
+    from afmctl.simservice import SimService, load_settings
     ticks = []
     settings = load_settings(None)
     settings.sim.tick_s = 0.02
@@ -124,16 +125,14 @@ def test_sim_service_advances_the_plant_on_the_wall_clock_and_calls_on_tick():
     assert not os.path.exists(service.port)             # cleaned up
 
 
-def test_make_scanner_uses_the_real_scanner_and_falls_back_only_when_it_is_missing(monkeypatch, caplog):
-    from afmctl.commands.sim import make_scanner
-    from afmctl.sim_backend.amplifiers import RecordingSink
+def test_make_scanner_uses_the_real_scanner_and_names_a_bad_field():
+    from afmctl.errors import AfmctlError
+    from afmctl.simservice import make_scanner
     from afmctl.sim_backend.scanner import Scanner
     sink, description = make_scanner({})
     assert isinstance(sink, Scanner) and description.startswith("scanner ")
-    monkeypatch.setitem(sys.modules, "afmctl.sim_backend.scanner", None)  # as if the module were not installed
-    sink, description = make_scanner({})
-    assert isinstance(sink, RecordingSink) and "no scanner" in description
-    assert "recording sink" in caplog.text
+    with pytest.raises(AfmctlError, match=r"^field scanner\.dt_s: "):
+        make_scanner({"dt_s": -1.0})
 
 
 def test_sim_bad_arguments_are_one_line_errors(tmp_path, capsys):
