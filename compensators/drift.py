@@ -53,7 +53,7 @@ import json
 import logging
 import math
 from pathlib import Path
-from typing import Annotated, Literal, Union
+from typing import Annotated, Any, Literal, Union
 
 import numba
 import numpy as np
@@ -244,6 +244,28 @@ class DriftParams(BaseModel):
     def load(cls, path: str | Path) -> "DriftParams":
         """Read a JSON file written by :meth:`save` (or by hand)."""
         return cls.from_dict(read_json_file(path, "drift parameter file"), where=str(path))
+
+    @classmethod
+    def from_spec(cls, spec: str | Path, overrides: dict[str, Any] | None = None,
+                  where: str = "params") -> "DriftParams":
+        """The one drift-parameter loader: a named set (:meth:`names`) or a JSON file, with
+        field ``overrides`` merged in. Errors are one-line :class:`ModelError` naming ``where``
+        (the option or config field) and the file."""
+        spec = str(spec)
+        if spec in cls.names():
+            if not overrides:
+                return cls.named(spec)
+            data, origin = cls.named(spec).model_dump(), where
+        elif Path(spec).exists():
+            data, origin = read_json_file(spec, "drift parameter file"), spec
+        else:
+            raise ModelError(f"{where}: {spec!r} is neither a file nor a named set "
+                             f"({', '.join(cls.names())})")
+        if overrides:
+            if not isinstance(data, dict):
+                raise ModelError(f"{origin}: expected a JSON object with kind 'drift'")
+            data = {**data, **overrides}
+        return cls.from_dict(data, where=origin)
 
     def save(self, path: str | Path) -> None:
         Path(path).write_text(json.dumps(self.model_dump(mode="json"), indent=2) + "\n", encoding="utf-8")

@@ -117,14 +117,8 @@ def _no_action(parser: argparse.ArgumentParser) -> int:
 
 def load_params(spec: str):
     """A named set or a JSON file (``ModelError`` otherwise)."""
-    from afmctl.compensators.base import ModelError
     from afmctl.compensators.drift import DriftParams
-    if spec in DriftParams.names():
-        return DriftParams.named(spec)
-    p = Path(spec)
-    if not p.exists():
-        raise ModelError(f"--params: {spec!r} is neither a file nor a named set ({', '.join(DriftParams.names())})")
-    return DriftParams.load(p)
+    return DriftParams.from_spec(spec, where="--params")
 
 
 def run_params(args: argparse.Namespace) -> int:
