@@ -25,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from afmctl.compensators.models import first_validation_error, plain_repr
+from afmctl.compensators.temperature import T_MAX_C, T_MIN_C
 
 from .errors import AfmctlError
 from .zenoh_config import ZenohSettings
@@ -169,7 +170,7 @@ class TemperatureSection(_Strict):
 
     source: Literal["constant", "file", "external"] = Field(
         "constant", description="constant value, a CSV file (t,T in s, °C) or external (zenoh/set_temperature)")
-    T_C: float = Field(22.0, ge=-50, le=150, description="constant / initial temperature [°C]")
+    T_C: float = Field(22.0, ge=T_MIN_C, le=T_MAX_C, description="constant / initial temperature [°C]")
     file: Path | None = Field(None, description="CSV with columns t,T (s, °C) for source = file")
 
     @model_validator(mode="after")

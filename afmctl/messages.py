@@ -34,6 +34,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 from afmctl.compensators.models import first_validation_error
+from afmctl.compensators.temperature import T_MAX_C, T_MIN_C
 
 from .errors import AfmctlError
 
@@ -46,7 +47,6 @@ POSITION_LIMIT_NM = 1.0e6
 #: sample period bounds [s]
 DT_MIN_S, DT_MAX_S = 1.0e-6, 1.0
 #: accepted ambient temperatures [°C]
-T_MIN_C, T_MAX_C = -50.0, 150.0
 #: default cap on samples one trajectory message may carry or generate
 MAX_SEGMENT_SAMPLES = 1_000_000
 
