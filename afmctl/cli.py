@@ -44,13 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="more log output (-v info, -vv debug)")
     sub = parser.add_subparsers(dest="verb", metavar="COMMAND")
     for verb in VERBS:
-        try:
-            module = importlib.import_module(f"afmctl.commands.{verb}")
-        except ModuleNotFoundError as err:
-            if err.name == f"afmctl.commands.{verb}":
-                continue  # verb not built yet
-            raise
-        module.register(sub)
+        importlib.import_module(f"afmctl.commands.{verb}").register(sub)
     return parser
 
 

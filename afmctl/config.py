@@ -16,7 +16,6 @@ nanometres, ``_s`` seconds, ``_Hz`` hertz, ``_C`` degrees Celsius.
 """
 from __future__ import annotations
 
-import json
 import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -32,10 +31,6 @@ from .zenoh_config import ZenohSettings
 
 AXES = ("x", "y", "z")
 Axis = Literal["x", "y", "z"]
-
-#: driver names accepted in ``amplifier.driver`` (drivers.registry names)
-DRIVERS = ("mdt693b", "mdt694b", "gcs", "nv200", "can")
-
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid")
@@ -632,7 +627,3 @@ def load_config(path: str | Path | None = None, *, text: str | None = None,
 def json_schema() -> dict[str, Any]:
     """The JSON schema of :class:`Config` (``afmctl schema``)."""
     return Config.model_json_schema()
-
-
-def dump_toml_like(cfg: Config) -> str:  # pragma: no cover - debugging aid
-    return json.dumps(cfg.model_dump(mode="json"), indent=2)

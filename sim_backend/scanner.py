@@ -82,13 +82,7 @@ class _Drift:
         self._params = None
         self._warned_dt = False
         if cfg.kind == "params":
-            try:
-                from afmctl.compensators.drift import DriftParams  # interface item 2
-            except ImportError as err:  # pragma: no cover - only without compensators.drift
-                log.warning("afmctl.compensators.drift unavailable (%s); using the first-order expansion drift model", err)
-                self.cfg = cfg = cfg.model_copy(update={"kind": "expansion"})
-                self.reset(T0_C)
-                return
+            from afmctl.compensators.drift import DriftParams
             if cfg.params is not None:
                 self._params = DriftParams.from_dict(cfg.params, where="drift.params")
             else:
