@@ -23,7 +23,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
-from afmctl.compensators.models import first_validation_error, plain_repr
+from afmctl.compensators.models import first_validation_error, plain_repr, read_text_file
 from afmctl.compensators.temperature import T_MAX_C, T_MIN_C
 
 from .errors import AfmctlError
@@ -588,6 +588,19 @@ def _deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def parse_toml(text: str, where: str) -> dict[str, Any]:
+    """``tomllib.loads`` with one-line :class:`AfmctlError` naming ``where`` for bad syntax,
+    integers of more than 4300 digits and nesting too deep to parse."""
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise AfmctlError(f"{where}: not valid TOML ({err})") from None
+    except ValueError:
+        raise AfmctlError(f"{where}: a number in it is too long (at most 4300 digits)") from None
+    except RecursionError:
+        raise AfmctlError(f"{where}: nested too deeply") from None
+
+
 def load_config(path: str | Path | None = None, *, text: str | None = None,
                 overrides: dict[str, Any] | None = None) -> Config:
     """Read a TOML configuration file (or ``text``), merge ``overrides`` (nested dict, e.g.
@@ -598,17 +611,11 @@ def load_config(path: str | Path | None = None, *, text: str | None = None,
     where = str(path) if path is not None else "config"
     if text is None:
         p = Path(path)  # type: ignore[arg-type]
-        try:
-            text = p.read_text(encoding="utf-8")
-        except OSError as err:
-            raise AfmctlError(f"{p}: cannot read configuration ({err.strerror})") from None
+        text = read_text_file(p, "configuration", AfmctlError)
         base = p.resolve().parent
     else:
         base = Path.cwd()
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as err:
-        raise AfmctlError(f"{where}: not valid TOML ({err})") from None
+    data = parse_toml(text, where)
     cfg = config_from_dict(_deep_merge(data, overrides or {}), where, base)
     if overrides:  # command line beats the environment as well: re-validate those sections
         try:

@@ -149,13 +149,17 @@ def load_drift_params(name_or_file: str, overrides: dict[str, Any] | None = None
 
 def build_pipeline(config) -> CompensationPipeline:
     """The pipeline described by an :class:`afmctl.config.Config`."""
+    from afmctl.compensators.base import ModelError
     from afmctl.compensators.models import load_model
     dt = config.dt_s
     inverses: list[StreamingOperator] = []
     for axis in ("x", "y", "z"):
         spec = config.compensation.axis(axis)
         if spec.model is not None:
-            model = load_model(spec.model)
+            try:
+                model = load_model(spec.model)
+            except ModelError as err:
+                raise ModelError(f"compensation.{axis}.model: {err}") from None
             inverses.append(model.inverse(dt))
             log.info("axis %s: inverse %s model from %s", axis, model.kind, spec.model)
         else:

@@ -9,7 +9,6 @@ import collections
 import logging
 import math
 import threading
-import tomllib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal
@@ -17,8 +16,9 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from afmctl.compensators.models import validation_error_line
+from afmctl.compensators.models import read_text_file, validation_error_line
 
+from .config import format_validation_error, parse_toml
 from .errors import AfmctlError
 from .zenoh_config import ZenohSettings
 
@@ -55,13 +55,11 @@ def load_settings(path: Path | None):
     """The ``afmctl sim`` settings from a TOML file (or defaults); errors name the field."""
     data: dict[str, Any] = {}
     if path is not None:
-        try:
-            data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
-        except OSError as err:
-            raise AfmctlError(f"{path}: cannot read ({err.strerror})") from None
-        except tomllib.TOMLDecodeError as err:
-            raise AfmctlError(f"{path}: not valid TOML ({err})") from None
-    return SimSettings.model_validate(data)
+        data = parse_toml(read_text_file(path, "simulator settings", AfmctlError), str(path))
+    try:
+        return SimSettings.model_validate(data)
+    except ValidationError as err:
+        raise AfmctlError(format_validation_error(err, str(path or "defaults"), SimSettings)) from None
 
 
 def _merge(base: dict, over: dict) -> dict:

@@ -99,17 +99,41 @@ def plain_repr(value: Any) -> str:
     return repr(value)
 
 
-def read_json_file(path: str | Path, what: str = "model file") -> Any:
-    """Decode a JSON file; :class:`ModelError` naming the file for I/O and syntax errors."""
+def read_text_file(path: str | Path, what: str, error: type[Exception] = ModelError) -> str:
+    """The text of a UTF-8 file (a leading byte-order mark, as spreadsheets write, is dropped).
+    Unreadable, UTF-16 or binary files raise ``error`` with one line naming the file: the one
+    place where afmctl turns a user's file into text (model, drift-parameter, configuration and
+    simulator settings files)."""
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        raw = p.read_bytes()
     except OSError as err:
-        raise ModelError(f"{p}: cannot read {what} ({err.strerror})") from None
+        raise error(f"{p}: cannot read {what} ({err.strerror or err})") from None
+    if raw.startswith((b"\xff\xfe", b"\xfe\xff")):
+        raise error(f"{p}: {what} is UTF-16 text; save it as UTF-8")
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        raise error(f"{p}: {what} is not UTF-8 text (byte 0x{raw[err.start]:02x} at offset {err.start}); "
+                    "is it a binary file?") from None
+    if "\x00" in text:
+        raise error(f"{p}: {what} contains NUL bytes; is it a binary file?")
+    return text
+
+
+def read_json_file(path: str | Path, what: str = "model file") -> Any:
+    """Decode a JSON file; :class:`ModelError` naming the file for I/O, encoding and syntax
+    errors (also numbers of more than 4300 digits and nesting too deep to decode)."""
+    p = Path(path)
+    text = read_text_file(p, what)
     try:
         return json.loads(text)
     except json.JSONDecodeError as err:
         raise ModelError(f"{p}: not valid JSON (line {err.lineno}: {err.msg})") from None
+    except ValueError:
+        raise ModelError(f"{p}: a number in the {what} is too long (at most 4300 digits)") from None
+    except RecursionError:
+        raise ModelError(f"{p}: the {what} is nested too deeply") from None
 
 
 def model_from_dict(data: Any, where: str = "model") -> HysteresisModel:
@@ -119,7 +143,10 @@ def model_from_dict(data: Any, where: str = "model") -> HysteresisModel:
     kind = data.get("kind")
     if not isinstance(kind, str):
         raise ModelError(f"{where}: missing field 'kind' (one of {', '.join(sorted(KINDS))})")
-    cls = model_class(kind)
+    try:
+        cls = model_class(kind)
+    except ModelError as err:
+        raise ModelError(f"{where}: {err}") from None
     try:
         return cls.model_validate(data)
     except ValidationError as err:

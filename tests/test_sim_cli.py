@@ -88,7 +88,7 @@ def test_sim_bad_config_is_a_one_line_error(tmp_path):
     r = subprocess.run([sys.executable, "-m", "afmctl", "sim", "--config", str(cfg)], capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 2
-    assert r.stderr.startswith("afmctl: error: field amplifier.protocol")
+    assert r.stderr.startswith(f"afmctl: error: {cfg}: field amplifier.protocol = 'foo'")
     assert "Traceback" not in r.stderr
 
 
