@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, ValidationError, field_validator
 
 from .base import ModelError, StreamingOperator
 
@@ -41,8 +41,23 @@ class HysteresisModel(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=False)
 
     kind: str
+    u_range_V: tuple[FiniteFloat, FiniteFloat] | None = Field(
+        default=None, description="input voltage range the model was identified on (lo, hi) [V]; "
+                                  "absent in files written before it was recorded")
     #: which model kinds are time-dependent (need a uniform sample period)
     time_dependent: ClassVar[bool] = False
+
+    @field_validator("u_range_V")
+    @classmethod
+    def _check_u_range(cls, v: tuple[float, float] | None) -> tuple[float, float] | None:
+        if v is not None and not v[0] < v[1]:
+            raise ValueError(f"({v[0]:g}, {v[1]:g}) V; need lo < hi")
+        return v
+
+    def voltage_range_V(self) -> tuple[float, float] | None:
+        """The input voltages (lo, hi) [V] this model is known to describe: the range it was
+        identified on, or None when the file does not say."""
+        return self.u_range_V
 
     def forward(self, dt_s: float | None = None) -> StreamingOperator:  # pragma: no cover
         raise NotImplementedError

@@ -195,6 +195,11 @@ class PreisachModel(HysteresisModel):
             raise ModelError("density: returned non-finite values")
         return cls.from_cell_masses(np.maximum(w, 0.0), u_min_V, u_max_V, offset_nm, **fields)
 
+    def voltage_range_V(self) -> tuple[float, float] | None:
+        """The identified input range [V], else the grid ``u_min_V…u_max_V`` (inputs outside
+        it are clamped by the operators anyway)."""
+        return self.u_range_V or (float(self.u_min_V), float(self.u_max_V))
+
     # ----------------------------------------------------------------- operators
     def forward(self, dt_s: float | None = None) -> "PreisachOperator":
         """Streaming operator u [V] → y [nm] (eq. 8). ``dt_s`` is ignored."""

@@ -81,17 +81,17 @@ def check_temperature_series(t_s: np.ndarray, T_C: np.ndarray, where: str = "tem
     for name, arr in (("t", t), ("T", T)):
         bad = np.flatnonzero(~np.isfinite(arr))
         if bad.size:
-            raise ModelError(f"{where}: column {name}: row {int(bad[0]) + 1} is {arr[bad[0]]!r}; values must be finite")
+            raise ModelError(f"{where}: column {name}: row {int(bad[0]) + 1} is {float(arr[bad[0]])!r}; values must be finite")
     out = np.flatnonzero((T < T_MIN_C) | (T > T_MAX_C))
     if out.size:
-        raise ModelError(f"{where}: column T: row {int(out[0]) + 1} is {T[out[0]]!r} °C; "
+        raise ModelError(f"{where}: column T: row {int(out[0]) + 1} is {float(T[out[0]])!r} °C; "
                          f"allowed {T_MIN_C:g}..{T_MAX_C:g} °C")
     d = np.diff(t)
     bad = np.flatnonzero(d <= 0)
     if bad.size:
         i = int(bad[0])
-        raise ModelError(f"{where}: column t: time must be strictly increasing; row {i + 2} ({t[i + 1]!r} s) "
-                         f"follows {t[i]!r} s")
+        raise ModelError(f"{where}: column t: time must be strictly increasing; row {i + 2} ({float(t[i + 1])!r} s) "
+                         f"follows {float(t[i])!r} s")
     if max_gap_s is not None and d.size:
         big = np.flatnonzero(d > max_gap_s)
         if big.size:
