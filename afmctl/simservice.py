@@ -24,6 +24,9 @@ from .zenoh_config import ZenohSettings
 
 log = logging.getLogger(__name__)
 
+#: how often a ``--record`` file is flushed while the simulator runs [s]
+RECORD_FLUSH_S = 0.5
+
 
 class AmplifierSection(BaseModel):
     """``[amplifier]``: the protocol the simulated amplifier speaks on its pty."""
@@ -135,10 +138,14 @@ class SimService:
     def _loop(self) -> None:
         tick = self.settings.sim.tick_s
         advance = getattr(self.scanner, "advance", None)
+        next_flush = self.clock() + RECORD_FLUSH_S
         while not self._stop.wait(tick):
             t = self.clock()
             if advance is not None:
                 advance(t)
+            if self.recorder is not None and t >= next_flush:
+                self.recorder.flush()             # the record grows while the simulator runs
+                next_flush = t + RECORD_FLUSH_S
             if self.on_tick is not None:
                 pos = None
                 if hasattr(self.scanner, "snapshot"):

@@ -276,3 +276,4 @@ def test_checker_finds_a_long_function(tmp_path):
     body = "".join(f"        x{i} = {i}\n" for i in range(100))
     root = _tree(tmp_path, {"afmctl/long.py": f"class C:\n    def m(self):\n{body}"})
     assert long_functions(root) == {"afmctl.long:C.m": 101}
+

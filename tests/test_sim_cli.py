@@ -142,3 +142,21 @@ def test_sim_bad_arguments_are_one_line_errors(tmp_path, capsys):
         assert main(["sim", *args]) == 2
         err = capsys.readouterr().err
         assert err.startswith("afmctl: error: ") and err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_sim_record_file_grows_while_the_simulator_runs(tmp_path):
+    """--record is flushed every RECORD_FLUSH_S while running, not only at stop."""
+    from afmctl.simservice import RECORD_FLUSH_S, SimService, load_settings
+    from afmctl.testing import wait_until
+    record = tmp_path / "rec.csv"
+    service = SimService(load_settings(None), record=record)
+    with no_leaks(), service:
+        with serial.serial_for_url(service.port, timeout=0.05, write_timeout=1.0) as port:
+            _ask(port, b"ECHO=0\r")
+            assert _ask(port, b"XVOLTAGE=12.5\r") == b">"
+
+        def rows():
+            return record.read_text().splitlines()
+        wait_until(lambda: len(rows()) >= 2, 10 * RECORD_FLUSH_S + 5.0, 0.05)
+        assert rows()[0] == "t_s,x_V,y_V,z_V" and rows()[-1].split(",")[1] == "12.5"
+        assert service._thread is not None and service._thread.is_alive()   # still running
