@@ -29,5 +29,5 @@ def test_make_config_merges_defaults_toml_and_sections(tmp_path):
 
 
 def test_make_config_rejects_like_a_file():
-    with pytest.raises(AfmctlError, match=r"^make_config: field loop\.rate_Hz = 1e\+09"):
+    with pytest.raises(AfmctlError, match=r"^make_config: field loop\.rate_Hz = 1000000000\.0: .*allowed: 1 <= value <= 20000"):
         make_config(loop={"rate_Hz": 1e9})
