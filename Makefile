@@ -7,10 +7,14 @@ STAMP := $(VENV)/.installed
 
 .PHONY: demo test test-fast bench clean
 
+# First run: say what is happening, show pip's progress, then compile numba's kernels into
+# their cache once, with a progress bar (python -m afmctl.kernels), instead of a silent first demo.
 $(STAMP): pyproject.toml
+	@echo "afmctl: setting up $(VENV): installing afmctl and its dependencies, then compiling its numba kernels (first time only, a few minutes)"
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e ".[test]"
+	$(BIN)/python -m pip install --progress-bar on -e ".[test]"
+	$(BIN)/python -m afmctl.kernels
 	touch $(STAMP)
 
 demo: $(STAMP)
