@@ -83,7 +83,7 @@ MAX_DELAY_SAMPLES = 10_000_000
 class SecondOrder(BaseModel):
     """Second-order factor ``1/(1 + 2ζ·Tw·s + (Tw·s)²)`` (eq. A7)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)   # every number finite
 
     Tw_s: float = Field(gt=0, le=1e9, description="time constant Tw [s]")
     zeta: float = Field(gt=0, le=1e12, description="damping ratio ζ (dimensionless)")
@@ -101,7 +101,7 @@ class TransferPath(BaseModel):
     time constants must be positive (stable). The transfer function must be proper.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)   # every number finite
 
     form: Literal["tf"] = "tf"
     K: float = Field(0.0, description="gain K (output unit per source unit [per s per integrator])")
@@ -140,7 +140,7 @@ class StateSpacePath(BaseModel):
     the identified innovation gain, kept for the record; prediction uses ``e = 0``.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)   # every number finite
 
     form: Literal["ss"] = "ss"
     A: list[list[float]]
@@ -176,7 +176,7 @@ class DriftPaths(BaseModel):
     extensions (the paper treats the z voltage as independent and gives no function).
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)   # every number finite
 
     xT: Path_ | None = None
     yT: Path_ | None = None
@@ -205,7 +205,7 @@ class DriftParams(BaseModel):
     ``params.predictor(dt_s)`` builds a :class:`DriftPredictor`.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)   # every number finite
 
     kind: Literal["drift"] = "drift"
     name: str = "custom"
