@@ -1,4 +1,4 @@
-"""Simulated PI GCS controller (open-loop subset of an E-727), byte-exact to PROTOCOLS.md.
+"""Simulated PI GCS controller (open-loop subset of an E-727), byte-exact to docs/PROTOCOLS.md.
 
 Axes ``1 2 3`` drive outputs x, y, z; voltage channels ``1 2 3`` belong to the same axes.
 At power-up the servo is ON (so ``SVA`` gives error 303 until ``SVO <axis> 0``). An

@@ -1,4 +1,4 @@
-"""Simulated Thorlabs MDT693B / MDT694B, byte-exact to PROTOCOLS.md.
+"""Simulated Thorlabs MDT693B / MDT694B, byte-exact to docs/PROTOCOLS.md.
 
 Choices where the protocol notes are unconfirmed: commands end at CR or LF (CRLF works;
 empty lines are ignored); every query reply is bracketed and followed by ``\\r`` and the

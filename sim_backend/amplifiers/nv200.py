@@ -1,4 +1,4 @@
-"""Simulated piezosystem jena NV200 (open-loop voltage subset), byte-exact to PROTOCOLS.md.
+"""Simulated piezosystem jena NV200 (open-loop voltage subset), byte-exact to docs/PROTOCOLS.md.
 
 Choices where the protocol notes are unconfirmed: a successful write sends no reply; a
 read ``cmd`` is answered ``cmd,value\\r\\n`` + XON; errors ``error,<n>\\r\\n`` + XON. Lines
