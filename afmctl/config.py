@@ -16,14 +16,13 @@ nanometres, ``_s`` seconds, ``_Hz`` hertz, ``_C`` degrees Celsius.
 """
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
-from afmctl.compensators.models import first_validation_error, plain_repr, read_text_file
+from afmctl.compensators.models import decode_text, first_validation_error, plain_repr, read_text_file
 from afmctl.compensators.temperature import T_MAX_C, T_MIN_C
 
 from .errors import AfmctlError
@@ -589,16 +588,9 @@ def _deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
 
 
 def parse_toml(text: str, where: str) -> dict[str, Any]:
-    """``tomllib.loads`` with one-line :class:`AfmctlError` naming ``where`` for bad syntax,
-    integers of more than 4300 digits and nesting too deep to parse."""
-    try:
-        return tomllib.loads(text)
-    except tomllib.TOMLDecodeError as err:
-        raise AfmctlError(f"{where}: not valid TOML ({err})") from None
-    except ValueError:
-        raise AfmctlError(f"{where}: a number in it is too long (at most 4300 digits)") from None
-    except RecursionError:
-        raise AfmctlError(f"{where}: nested too deeply") from None
+    """TOML ``text``; one-line :class:`AfmctlError` naming ``where`` when it cannot be decoded
+    (:func:`afmctl.compensators.models.decode_text`)."""
+    return decode_text(text, "TOML", where, AfmctlError)
 
 
 def load_config(path: str | Path | None = None, *, text: str | None = None,

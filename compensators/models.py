@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import tomllib
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -136,19 +137,27 @@ def read_text_file(path: str | Path, what: str, error: type[Exception] = ModelEr
     return text
 
 
+def decode_text(text: str, fmt: str, where: str, error: type[Exception] = ModelError) -> Any:
+    """``text`` decoded as ``fmt`` (``"JSON"`` or ``"TOML"``); bad syntax, integers of more
+    than 4300 digits and nesting too deep to decode raise ``error`` with one line naming
+    ``where`` (the file)."""
+    loads = {"JSON": json.loads, "TOML": tomllib.loads}[fmt]
+    try:
+        return loads(text)
+    except RecursionError:
+        raise error(f"{where}: nested too deeply to decode as {fmt}") from None
+    except ValueError as err:          # JSONDecodeError and TOMLDecodeError are ValueErrors too
+        if isinstance(err, json.JSONDecodeError):
+            raise error(f"{where}: not valid JSON (line {err.lineno}: {err.msg})") from None
+        if isinstance(err, tomllib.TOMLDecodeError):
+            raise error(f"{where}: not valid TOML ({err})") from None
+        raise error(f"{where}: a number in it is too long (at most 4300 digits)") from None
+
+
 def read_json_file(path: str | Path, what: str = "model file") -> Any:
     """Decode a JSON file; :class:`ModelError` naming the file for I/O, encoding and syntax
-    errors (also numbers of more than 4300 digits and nesting too deep to decode)."""
-    p = Path(path)
-    text = read_text_file(p, what)
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as err:
-        raise ModelError(f"{p}: not valid JSON (line {err.lineno}: {err.msg})") from None
-    except ValueError:
-        raise ModelError(f"{p}: a number in the {what} is too long (at most 4300 digits)") from None
-    except RecursionError:
-        raise ModelError(f"{p}: the {what} is nested too deeply") from None
+    errors (:func:`read_text_file`, :func:`decode_text`)."""
+    return decode_text(read_text_file(path, what), "JSON", str(path))
 
 
 def model_from_dict(data: Any, where: str = "model") -> HysteresisModel:
