@@ -5,12 +5,16 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench clean
+.PHONY: demo test test-fast bench clean
 
+# First run: say what is happening, show pip's progress, then compile numba's kernels into
+# their cache once, with a progress bar (python -m afmctl.kernels), instead of a silent first demo.
 $(STAMP): pyproject.toml
+	@echo "afmctl: setting up $(VENV): installing afmctl and its dependencies, then compiling its numba kernels (first time only, a few minutes)"
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e ".[test]"
+	$(BIN)/python -m pip install --progress-bar on -e ".[test]"
+	$(BIN)/python -m afmctl.kernels
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -18,6 +22,10 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
+
+# The inner loop: everything but the end-to-end tests marked `slow` (under a minute).
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not slow"
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py

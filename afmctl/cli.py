@@ -44,13 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="more log output (-v info, -vv debug)")
     sub = parser.add_subparsers(dest="verb", metavar="COMMAND")
     for verb in VERBS:
-        try:
-            module = importlib.import_module(f"afmctl.commands.{verb}")
-        except ModuleNotFoundError as err:
-            if err.name == f"afmctl.commands.{verb}":
-                continue  # verb not built yet
-            raise
-        module.register(sub)
+        importlib.import_module(f"afmctl.commands.{verb}").register(sub)
     return parser
 
 
@@ -66,9 +60,8 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 def _one_line(err: BaseException) -> str:
     from pydantic import ValidationError
     if isinstance(err, ValidationError):
-        first = err.errors()[0]
-        loc = ".".join(str(p) for p in first["loc"]) or "(root)"
-        return f"field {loc}: {first['msg']}"
+        from afmctl.compensators.models import validation_error_line
+        return validation_error_line(err)
     return " ".join(str(err).split("\n"))
 
 

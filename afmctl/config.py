@@ -16,23 +16,20 @@ nanometres, ``_s`` seconds, ``_Hz`` hertz, ``_C`` degrees Celsius.
 """
 from __future__ import annotations
 
-import json
-import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
+from afmctl.compensators.models import decode_text, first_validation_error, plain_repr, read_text_file
+from afmctl.compensators.temperature import T_MAX_C, T_MIN_C
+
 from .errors import AfmctlError
 from .zenoh_config import ZenohSettings
 
 AXES = ("x", "y", "z")
 Axis = Literal["x", "y", "z"]
-
-#: driver names accepted in ``amplifier.driver`` (drivers.registry names)
-DRIVERS = ("mdt693b", "mdt694b", "gcs", "nv200", "can")
-
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid")
@@ -167,7 +164,7 @@ class TemperatureSection(_Strict):
 
     source: Literal["constant", "file", "external"] = Field(
         "constant", description="constant value, a CSV file (t,T in s, °C) or external (zenoh/set_temperature)")
-    T_C: float = Field(22.0, ge=-50, le=150, description="constant / initial temperature [°C]")
+    T_C: float = Field(22.0, ge=T_MIN_C, le=T_MAX_C, description="constant / initial temperature [°C]")
     file: Path | None = Field(None, description="CSV with columns t,T (s, °C) for source = file")
 
     @model_validator(mode="after")
@@ -531,16 +528,15 @@ def format_validation_error(err: ValidationError, where: str = "config", model: 
     :class:`Config`, whose values may come from an ``AFMCTL_*`` variable: then the
     variable is named instead of the file). ``prefix``: prepended to the field name (the
     section of ``model`` in the file, e.g. ``"loop."``)."""
-    first = err.errors()[0]
+    first, name = first_validation_error(err, prefix)
     loc = tuple(first["loc"])
-    name = prefix + ".".join(str(p) for p in loc) or "(root)"
     msg = first["msg"]
     env = _env_name(loc) if loc and model is None else None
     if env is not None:
         where = f"environment {env}"
     value = ""
     if first["type"] not in ("extra_forbidden", "missing") and not isinstance(first.get("input"), (dict, list)):
-        value = f" = {first.get('input')!r}"
+        value = f" = {plain_repr(first.get('input'))}"
     rng = _allowed_range(model if model is not None else Config, loc) if loc else ""
     if rng and first["type"] in ("greater_than", "greater_than_equal", "less_than", "less_than_equal",
                                  "float_parsing", "int_parsing", "float_type", "int_type", "finite_number",
@@ -591,6 +587,12 @@ def _deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def parse_toml(text: str, where: str) -> dict[str, Any]:
+    """TOML ``text``; one-line :class:`AfmctlError` naming ``where`` when it cannot be decoded
+    (:func:`afmctl.compensators.models.decode_text`)."""
+    return decode_text(text, "TOML", where, AfmctlError)
+
+
 def load_config(path: str | Path | None = None, *, text: str | None = None,
                 overrides: dict[str, Any] | None = None) -> Config:
     """Read a TOML configuration file (or ``text``), merge ``overrides`` (nested dict, e.g.
@@ -601,17 +603,11 @@ def load_config(path: str | Path | None = None, *, text: str | None = None,
     where = str(path) if path is not None else "config"
     if text is None:
         p = Path(path)  # type: ignore[arg-type]
-        try:
-            text = p.read_text(encoding="utf-8")
-        except OSError as err:
-            raise AfmctlError(f"{p}: cannot read configuration ({err.strerror})") from None
+        text = read_text_file(p, "configuration", AfmctlError)
         base = p.resolve().parent
     else:
         base = Path.cwd()
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as err:
-        raise AfmctlError(f"{where}: not valid TOML ({err})") from None
+    data = parse_toml(text, where)
     cfg = config_from_dict(_deep_merge(data, overrides or {}), where, base)
     if overrides:  # command line beats the environment as well: re-validate those sections
         try:
@@ -630,7 +626,3 @@ def load_config(path: str | Path | None = None, *, text: str | None = None,
 def json_schema() -> dict[str, Any]:
     """The JSON schema of :class:`Config` (``afmctl schema``)."""
     return Config.model_json_schema()
-
-
-def dump_toml_like(cfg: Config) -> str:  # pragma: no cover - debugging aid
-    return json.dumps(cfg.model_dump(mode="json"), indent=2)

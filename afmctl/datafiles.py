@@ -1,4 +1,4 @@
-"""CSV data files of the command line (see ARCHITECTURE.md, "Files").
+"""CSV data files of the command line (see docs/ARCHITECTURE.md, "Files").
 
 * data:    ``t,u,y``      (s, V, nm)
 * target:  ``t,y``        (s, nm)

@@ -133,11 +133,8 @@ def step_setup(ctx: DemoContext) -> None:
     o = ctx.options
     ctx.scanner_config = default_scanner_config().model_copy(update={"seed": o.seed})
     if o.drift:
-        try:
-            from afmctl.compensators.drift import DriftParams
-            ctx.drift_params = DriftParams.named("physical_tube").scaled(o.drift_gain)
-        except ImportError as err:  # pragma: no cover - drift lands with [DRIFT]
-            ctx.note(f"drift scenario skipped: compensators.drift not available ({err})")
+        from afmctl.compensators.drift import DriftParams
+        ctx.drift_params = DriftParams.named("physical_tube").scaled(o.drift_gain)
     try:
         o.out.mkdir(parents=True, exist_ok=True)
     except OSError as err:

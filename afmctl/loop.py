@@ -59,6 +59,8 @@ from typing import Any
 
 import numpy as np
 
+from afmctl.compensators.temperature import T_MAX_C, T_MIN_C
+
 from . import loop_stats
 from .errors import AfmctlError, error_line
 from .loop_machine import (C_COR, C_D, C_S, C_SEQ, C_T, C_TGT, C_TICK, C_U, END_OF_TRAJECTORY, N_COLS,
@@ -196,8 +198,8 @@ class Controller:
             T = float(T_C)
         except (TypeError, ValueError):
             raise AfmctlError(f"temperature: T_C {T_C!r} is not a number") from None
-        if not (math.isfinite(T) and -50.0 <= T <= 150.0):
-            raise AfmctlError(f"temperature: T_C {T_C!r} outside the allowed range -50..150 °C")
+        if not (math.isfinite(T) and T_MIN_C <= T <= T_MAX_C):
+            raise AfmctlError(f"temperature: T_C {T_C!r} outside the allowed range {T_MIN_C:g}..{T_MAX_C:g} °C")
         self._T_C = T
 
     def submit_drift_measurement(self, measured_drift_nm: Any, std_nm: float, t_s: float | None = None) -> None:

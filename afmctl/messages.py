@@ -33,6 +33,9 @@ from typing import Annotated, Any, Literal, Union
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
+from afmctl.compensators.models import first_validation_error
+from afmctl.compensators.temperature import T_MAX_C, T_MIN_C
+
 from .errors import AfmctlError
 
 #: version of every payload schema in this module
@@ -44,7 +47,6 @@ POSITION_LIMIT_NM = 1.0e6
 #: sample period bounds [s]
 DT_MIN_S, DT_MAX_S = 1.0e-6, 1.0
 #: accepted ambient temperatures [°C]
-T_MIN_C, T_MAX_C = -50.0, 150.0
 #: default cap on samples one trajectory message may carry or generate
 MAX_SEGMENT_SAMPLES = 1_000_000
 
@@ -257,8 +259,7 @@ def _loads(payload: bytes, max_bytes: int) -> Any:
 
 
 def _validation_message(err: ValidationError) -> str:
-    first = err.errors()[0]
-    loc = ".".join(str(p) for p in first["loc"] if p not in ("segment", "line", "raster")) or "(root)"
+    first, loc = first_validation_error(err, skip=("segment", "line", "raster"))
     msg = first["msg"]
     if loc == "schema":
         msg = f"{msg} (this service speaks schema {SCHEMA_VERSION})"

@@ -15,11 +15,9 @@ The result goes to :class:`afmctl.safety.SafetyLayer`, never straight to an ampl
 """
 from __future__ import annotations
 
-import json
 import logging
 import math
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -144,39 +142,24 @@ class CompensationPipeline:
 
 def load_drift_params(name_or_file: str, overrides: dict[str, Any] | None = None):
     """A :class:`afmctl.compensators.drift.DriftParams` from a named set or a JSON file, with
-    field overrides."""
+    field overrides (:meth:`~afmctl.compensators.drift.DriftParams.from_spec`)."""
     from afmctl.compensators.drift import DriftParams
-
-    from .errors import AfmctlError
-    if name_or_file.endswith(".json"):
-        try:
-            data = json.loads(Path(name_or_file).read_text(encoding="utf-8"))
-        except (OSError, json.JSONDecodeError) as err:
-            raise AfmctlError(f"compensation.drift.params: cannot read {name_or_file} ({err})") from None
-    else:
-        try:
-            data = DriftParams.named(name_or_file).model_dump()
-        except Exception as err:
-            raise AfmctlError(f"compensation.drift.params: {err}") from None
-    if overrides:
-        data = {**data, **overrides}
-    from pydantic import ValidationError
-    try:
-        return DriftParams.model_validate(data)
-    except ValidationError as err:
-        from .config import format_validation_error
-        raise AfmctlError(format_validation_error(err, "compensation.drift", DriftParams)) from None
+    return DriftParams.from_spec(name_or_file, overrides, where="compensation.drift.params")
 
 
 def build_pipeline(config) -> CompensationPipeline:
     """The pipeline described by an :class:`afmctl.config.Config`."""
+    from afmctl.compensators.base import ModelError
     from afmctl.compensators.models import load_model
     dt = config.dt_s
     inverses: list[StreamingOperator] = []
     for axis in ("x", "y", "z"):
         spec = config.compensation.axis(axis)
         if spec.model is not None:
-            model = load_model(spec.model)
+            try:
+                model = load_model(spec.model)
+            except ModelError as err:
+                raise ModelError(f"compensation.{axis}.model: {err}") from None
             inverses.append(model.inverse(dt))
             log.info("axis %s: inverse %s model from %s", axis, model.kind, spec.model)
         else:

@@ -30,10 +30,16 @@ from .errors import AfmctlError
 log = logging.getLogger(__name__)
 
 AXES = ("x", "y", "z")
+#: the two per-sample quantities a run report shows [% of the target range]
+DRIFT_CORRECTION = "drift correction"     # corrected target - target: what the drift compensation added
+TRACKING_ERROR = "tracking error"         # simulated tip position - target
+#: what each quantity is, for the command line
+QUANTITIES = {DRIFT_CORRECTION: "corrected target - target, the drift compensation applied",
+              TRACKING_ERROR: "tip position - target, the voltages replayed through the simulated scanner"}
 #: colours per compensator name in every demo figure
 _COLOURS = {"none": "tab:red", "pi": "tab:blue", "epi": "tab:green", "preisach": "tab:purple",
             "bouc-wen": "tab:orange", "creep": "tab:brown", "preisach+creep": "black",
-            "correction": "tab:blue", "simulated error": "tab:red"}
+            DRIFT_CORRECTION: "tab:blue", TRACKING_ERROR: "tab:red"}
 _SPARE = ("tab:cyan", "tab:olive", "tab:pink", "tab:gray")
 
 
@@ -239,10 +245,15 @@ def _demo_drift(ctx: Any, path: Path) -> Path:
 
 
 # --------------------------------------------------------------------------- run logs
-def run_report(run: str | Path, out: str | Path, *, simulate: bool = False) -> tuple[list[Path], dict[str, Any]]:
-    """Plots and a summary for one run log; see the module docstring."""
+def run_report(run: str | Path, out: str | Path, *, simulate: bool | None = None
+               ) -> tuple[list[Path], dict[str, Any]]:
+    """Plots and a summary for one run log; see the module docstring. ``simulate``: replay
+    the voltages through the simulated scanner for the tracking error; None (default) does
+    so when the run drove the simulator (its tracking error is then known)."""
     from .runlog import RunLogReader
     reader = RunLogReader(run)
+    if simulate is None:
+        simulate = bool(((reader.meta().get("config") or {}).get("simulation") or {}).get("enabled"))
     sp = reader.setpoints()
     dr = reader.drift()
     out = Path(out)
@@ -288,10 +299,10 @@ def run_report(run: str | Path, out: str | Path, *, simulate: bool = False) -> t
     sel = _tracking_samples(sp, reader.events())
     span = float(max(np.ptp(sp["target_nm"][sel, i]) for i in active)) or 1.0
     errors: dict[str, np.ndarray] = {
-        "correction": (sp["corrected_nm"] - sp["target_nm"])[sel][:, active] / span * 100.0}
+        DRIFT_CORRECTION: (sp["corrected_nm"] - sp["target_nm"])[sel][:, active] / span * 100.0}
     if simulate:
         pos = _simulate(sp, reader.meta())
-        errors["simulated error"] = (pos - sp["target_nm"])[sel][:, active] / span * 100.0
+        errors[TRACKING_ERROR] = (pos - sp["target_nm"])[sel][:, active] / span * 100.0
     summary["error_samples"] = int(np.count_nonzero(sel))
     fig, ax = plt.subplots(figsize=(6.5, 4.0))
     plot_error_histograms(ax, {k: v for k, v in errors.items()}, "per-sample errors (all active axes)")

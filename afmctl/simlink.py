@@ -8,7 +8,6 @@ through :func:`afmctl.hardware.open_driver` — the same code path as with hardw
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import math
 import time
@@ -29,10 +28,12 @@ def load_scanner_config(path: Path | None):
     from afmctl.sim_backend.scanner import ScannerConfig, default_scanner_config
     if path is None:
         return default_scanner_config()
+    from afmctl.compensators.base import ModelError
+    from afmctl.compensators.models import read_json_file
     try:
-        data = json.loads(Path(path).read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError) as err:
-        raise AfmctlError(f"simulation.scanner: cannot read {path} ({err})") from None
+        data = read_json_file(path, "scanner file")
+    except ModelError as err:
+        raise AfmctlError(f"simulation.scanner: {err}") from None
     from pydantic import ValidationError
     try:
         return ScannerConfig.model_validate(data)

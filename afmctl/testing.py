@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from pathlib import Path
+from typing import Any
 
 
 def wait_for(cond: Callable[[], object], timeout_s: float = 10.0, interval_s: float = 0.01) -> bool:
@@ -31,11 +33,27 @@ def assert_no_threads_left(prefix: str = "afmctl-", timeout_s: float = 2.0) -> N
         raise AssertionError(f"threads left running: {left}")
 
 
-def wait_until(cond: Callable[[], object], timeout_s: float = 5.0, interval_s: float = 0.005) -> None:
-    """Like :func:`wait_for`, but raise ``AssertionError("condition not reached")`` when
-    ``cond()`` is still false after ``timeout_s`` seconds."""
+def wait_until(cond: Callable[[], object], timeout_s: float = 5.0, interval_s: float = 0.005,
+               what: str | None = None) -> None:
+    """Like :func:`wait_for`, but raise ``AssertionError`` naming what was awaited (``what``,
+    else the condition's name, or a lambda's source line) when ``cond()`` is still false
+    after ``timeout_s`` seconds."""
     if not wait_for(cond, timeout_s, interval_s):
-        raise AssertionError("condition not reached")
+        raise AssertionError(f"timed out after {timeout_s:g} s waiting for {what or describe(cond)}")
+
+
+def describe(cond: Callable[[], object]) -> str:
+    """A readable name for a condition: its qualified name, or for a lambda its source."""
+    name = getattr(cond, "__qualname__", None) or repr(cond)
+    if "<lambda>" in name:
+        import inspect
+        try:
+            source = " ".join(inspect.getsource(cond).split())
+        except (OSError, TypeError):
+            return name
+        start = source.find("lambda")
+        return source[start:] if start >= 0 else source
+    return name
 
 
 def bridge_on_free_port(controller, scanner_name: str = "s1", server=None, *, attempts: int = 3,
@@ -55,3 +73,18 @@ def bridge_on_free_port(controller, scanner_name: str = "s1", server=None, *, at
             if attempt == attempts - 1:
                 raise
     raise ValueError(f"attempts: {attempts} must be at least 1")
+
+
+def make_config(runlog_dir: str | Path | None = None, toml: str = "", **sections: dict[str, Any]):
+    """An :class:`afmctl.config.Config` for tests, instead of TOML templates per test file: the
+    in-process simulator (``simulation.enabled``), a run log in ``runlog_dir`` (no fsync,
+    flushed every 20 ms; ``runlog.enabled = false`` when ``runlog_dir`` is None), then
+    ``toml`` (text, e.g. ``"[compensation.drift]\\nenabled = true\\n"``) and ``sections``
+    (``loop={"rate_Hz": 1000}``) merged in, later ones winning. Validated like a file, so a bad
+    value raises the same one-line :class:`afmctl.errors.AfmctlError`."""
+    from .config import _deep_merge, config_from_dict, parse_toml
+    runlog: dict[str, Any] = ({"enabled": False} if runlog_dir is None else
+                              {"dir": str(runlog_dir), "fsync": False, "flush_interval_s": 0.02})
+    data: dict[str, Any] = {"simulation": {"enabled": True}, "runlog": runlog}
+    data = _deep_merge(data, parse_toml(toml, "make_config(toml=...)"))
+    return config_from_dict(_deep_merge(data, sections), "make_config")

@@ -12,7 +12,8 @@ import numpy as np
 
 from .errors import AfmctlError
 
-CELL_W, CELL_H, ADVANCE = 4.0, 6.0, 5.5
+#: glyph cell height and the advance from one glyph to the next, in cell units (cells are 4 wide)
+CELL_H, ADVANCE = 6.0, 5.5
 
 _O = [(0, 1), (1, 0), (3, 0), (4, 1), (4, 5), (3, 6), (1, 6), (0, 5), (0, 1)]
 

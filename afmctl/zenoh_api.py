@@ -530,9 +530,8 @@ def position_range_from_config(config: Any, margin: float = 0.1) -> dict[str, tu
 def _one_line(err: BaseException) -> str:
     from pydantic import ValidationError
     if isinstance(err, ValidationError):
-        first = err.errors()[0]
-        loc = ".".join(str(p) for p in first["loc"]) or "(root)"
-        return f"field {loc}: {first['msg']}"
+        from afmctl.compensators.models import validation_error_line
+        return validation_error_line(err)
     return " ".join(str(err).split()) or type(err).__name__
 
 

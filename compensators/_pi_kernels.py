@@ -88,12 +88,6 @@ def pi_step(x, r, w, state, in_off, out_off):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def pi_peek(x, r, w, state, in_off, out_off):  # pragma: no cover - compiled
-    """Like :func:`pi_step` but leaves ``state`` unchanged."""
-    return _peek_sum(x - in_off, r, w, state, out_off)
-
-
-@njit(cache=True, nogil=True)
 def pi_step_packed(x, P, in_off, out_off):  # pragma: no cover - compiled
     """:func:`pi_step` with ``P = [r; w; state]`` in one (3, n) array: one array argument
     makes the call from Python cheaper (the per-sample step of a streaming operator)."""
@@ -102,7 +96,7 @@ def pi_step_packed(x, P, in_off, out_off):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True)
 def pi_peek_packed(x, P, in_off, out_off):  # pragma: no cover - compiled
-    """:func:`pi_peek` on the packed ``P = [r; w; state]``."""
+    """Like :func:`pi_step_packed` but leaves ``state`` unchanged."""
     return _peek_sum(x - in_off, P[0], P[1], P[2], out_off)
 
 

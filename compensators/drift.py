@@ -53,7 +53,7 @@ import json
 import logging
 import math
 from pathlib import Path
-from typing import Annotated, Literal, Union
+from typing import Annotated, Any, Literal, Union
 
 import numba
 import numpy as np
@@ -83,7 +83,7 @@ MAX_DELAY_SAMPLES = 10_000_000
 class SecondOrder(BaseModel):
     """Second-order factor ``1/(1 + 2ζ·Tw·s + (Tw·s)²)`` (eq. A7)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)   # every number finite
 
     Tw_s: float = Field(gt=0, le=1e9, description="time constant Tw [s]")
     zeta: float = Field(gt=0, le=1e12, description="damping ratio ζ (dimensionless)")
@@ -101,7 +101,7 @@ class TransferPath(BaseModel):
     time constants must be positive (stable). The transfer function must be proper.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)   # every number finite
 
     form: Literal["tf"] = "tf"
     K: float = Field(0.0, description="gain K (output unit per source unit [per s per integrator])")
@@ -140,7 +140,7 @@ class StateSpacePath(BaseModel):
     the identified innovation gain, kept for the record; prediction uses ``e = 0``.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)   # every number finite
 
     form: Literal["ss"] = "ss"
     A: list[list[float]]
@@ -176,7 +176,7 @@ class DriftPaths(BaseModel):
     extensions (the paper treats the z voltage as independent and gives no function).
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)   # every number finite
 
     xT: Path_ | None = None
     yT: Path_ | None = None
@@ -205,7 +205,7 @@ class DriftParams(BaseModel):
     ``params.predictor(dt_s)`` builds a :class:`DriftPredictor`.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)   # every number finite
 
     kind: Literal["drift"] = "drift"
     name: str = "custom"
@@ -244,6 +244,28 @@ class DriftParams(BaseModel):
     def load(cls, path: str | Path) -> "DriftParams":
         """Read a JSON file written by :meth:`save` (or by hand)."""
         return cls.from_dict(read_json_file(path, "drift parameter file"), where=str(path))
+
+    @classmethod
+    def from_spec(cls, spec: str | Path, overrides: dict[str, Any] | None = None,
+                  where: str = "params") -> "DriftParams":
+        """The one drift-parameter loader: a named set (:meth:`names`) or a JSON file, with
+        field ``overrides`` merged in. Errors are one-line :class:`ModelError` naming ``where``
+        (the option or config field) and the file."""
+        spec = str(spec)
+        if spec in cls.names():
+            if not overrides:
+                return cls.named(spec)
+            data, origin = cls.named(spec).model_dump(), where
+        elif Path(spec).exists():
+            data, origin = read_json_file(spec, "drift parameter file"), spec
+        else:
+            raise ModelError(f"{where}: {spec!r} is neither a file nor a named set "
+                             f"({', '.join(cls.names())})")
+        if overrides:
+            if not isinstance(data, dict):
+                raise ModelError(f"{origin}: expected a JSON object with kind 'drift'")
+            data = {**data, **overrides}
+        return cls.from_dict(data, where=origin)
 
     def save(self, path: str | Path) -> None:
         Path(path).write_text(json.dumps(self.model_dump(mode="json"), indent=2) + "\n", encoding="utf-8")

@@ -123,6 +123,8 @@ class CreepEpisodes:
         else:
             self.sc = 0.0
 
+    # Plain-Python twin of ``_pi_kernels._fade``: this class is the reference the compiled
+    # creep path is tested against bit for bit, so the copy stays (same operations, same order).
     @staticmethod
     def _fade(dist: float, width: float) -> float:
         if dist <= 0.0:

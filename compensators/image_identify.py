@@ -102,11 +102,6 @@ def feature_points(height_nm: np.ndarray, a: float = 1.0, c: float = 0.0, drop_e
     return np.asarray(out)
 
 
-def local_periods_px(height_nm: np.ndarray, a: float = 1.0, c: float = 0.0) -> np.ndarray:
-    """Distances between consecutive feature points of one line [pixels]."""
-    return np.diff(feature_points(height_nm, a, c))
-
-
 # --------------------------------------------------------------------------- eq. 6
 def fit_polynomial(u_V: np.ndarray, y_nm: np.ndarray, order: int = 5) -> np.ndarray:
     """Eq. 6: least-squares polynomial θ = (ΦᵀΦ)⁻¹Φᵀy with Φ the Vandermonde matrix of the

@@ -58,6 +58,7 @@ from . import _preisach_kernels as _k
 from .base import ModelError, StreamingOperator
 from .input_checks import block_samples, finite_sample
 from .models import HysteresisModel
+from .preisach_grid import cell_masses_from_nodes, nodes_from_cell_masses
 
 log = logging.getLogger(__name__)
 
@@ -194,6 +195,11 @@ class PreisachModel(HysteresisModel):
             raise ModelError("density: returned non-finite values")
         return cls.from_cell_masses(np.maximum(w, 0.0), u_min_V, u_max_V, offset_nm, **fields)
 
+    def voltage_range_V(self) -> tuple[float, float] | None:
+        """The identified input range [V], else the grid ``u_min_V…u_max_V`` (inputs outside
+        it are clamped by the operators anyway)."""
+        return self.u_range_V or (float(self.u_min_V), float(self.u_max_V))
+
     # ----------------------------------------------------------------- operators
     def forward(self, dt_s: float | None = None) -> "PreisachOperator":
         """Streaming operator u [V] → y [nm] (eq. 8). ``dt_s`` is ignored."""
@@ -237,35 +243,6 @@ class PreisachModel(HysteresisModel):
 
 def _tri_list(G: np.ndarray) -> list[list[float]]:
     return [[float(x) for x in G[i, : i + 1]] for i in range(G.shape[0])]
-
-
-def nodes_from_cell_masses(w: np.ndarray) -> np.ndarray:
-    """Lower-triangular node Everett values E(v_a, v_b) = Σ_{b ≤ j ≤ i < a} w[i, j]."""
-    L = w.shape[0]
-    w = np.tril(w)
-    # C[a, j] = Σ_{i < a} w[i, j]; then E(a, b) = Σ_{j ≥ b, j < a} C[a, j]
-    C = np.zeros((L + 1, L))
-    C[1:] = np.cumsum(w, axis=0)
-    G = np.zeros((L + 1, L + 1))
-    # reverse cumulative over j
-    R = np.cumsum(C[:, ::-1], axis=1)[:, ::-1]  # R[a, b] = Σ_{j ≥ b} C[a, j]
-    G[:, :L] = R
-    G = np.tril(G, -1)
-    return G
-
-
-def cell_masses_from_nodes(G: np.ndarray) -> np.ndarray:
-    """Cell masses from lower-triangular node values (inverse of :func:`nodes_from_cell_masses`)."""
-    L = G.shape[0] - 1
-    Gl = np.tril(G, -1)
-    w = np.full((L, L), np.nan)
-    if L == 0:
-        return w
-    # w[i, j] = E(i+1, j) − E(i, j) − E(i+1, j+1) + E(i, j+1) (lower-tri values, 0 on/above diag)
-    d = Gl[1:, :-1] - Gl[:-1, :-1] - Gl[1:, 1:] + Gl[:-1, 1:]
-    il = np.tril_indices(L)
-    w[il] = d[il]
-    return w
 
 
 # --------------------------------------------------------------------- operators

@@ -35,6 +35,7 @@ import numpy as np
 
 from .base import ModelError, check_finite
 from .input_checks import number_option
+from .preisach_grid import cell_masses_from_nodes
 
 log = logging.getLogger(__name__)
 
@@ -219,7 +220,6 @@ def _node_cell_matrix(L: int) -> np.ndarray:
 def _project_nonneg(G: np.ndarray) -> np.ndarray:
     """Nearest nonnegative cell masses (least squares on the node values)."""
     from scipy.optimize import nnls
-    from .preisach import cell_masses_from_nodes
     L = G.shape[0] - 1
     w = cell_masses_from_nodes(G)
     ci = np.tril_indices(L)

@@ -18,8 +18,10 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from .base import ModelError
 
-#: plausible ambient temperatures [°C]; anything outside is a sensor or file error
-T_MIN_C, T_MAX_C = -100.0, 200.0
+#: The one allowed range of ambient temperatures [°C] (config files, zenoh temperature
+#: messages, the controller, the simulator and the drift predictor all check against it);
+#: anything outside is a sensor or file error.
+T_MIN_C, T_MAX_C = -50.0, 150.0
 
 
 class TemperatureProfile(BaseModel):
@@ -35,7 +37,7 @@ class TemperatureProfile(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     shape: Literal["constant", "ramp", "step", "sine"] = "constant"
-    T0_C: float = Field(20.0, ge=-100.0, le=200.0, description="initial temperature [°C]")
+    T0_C: float = Field(20.0, ge=T_MIN_C, le=T_MAX_C, description="initial temperature [°C]")
     delta_K: float = Field(0.0, ge=-100.0, le=100.0, description="change (ramp/step) or amplitude (sine) [K]")
     t_start_s: float = Field(0.0, ge=0.0, description="start of the change [s]")
     duration_s: float = Field(600.0, gt=0.0, description="ramp duration [s]")
@@ -68,7 +70,7 @@ class TemperatureProfile(BaseModel):
 def check_temperature_series(t_s: np.ndarray, T_C: np.ndarray, where: str = "temperature",
                              max_gap_s: float | None = None) -> None:
     """Raise :class:`ModelError` (one line naming the row, 1-based data rows) unless
-    ``t_s`` is finite and strictly increasing, ``T_C`` finite and within −100…200 °C,
+    ``t_s`` is finite and strictly increasing, ``T_C`` finite and within ``T_MIN_C``…``T_MAX_C`` (−50…150 °C),
     and no step is longer than ``max_gap_s``."""
     t = np.asarray(t_s, dtype=np.float64)
     T = np.asarray(T_C, dtype=np.float64)
@@ -79,17 +81,17 @@ def check_temperature_series(t_s: np.ndarray, T_C: np.ndarray, where: str = "tem
     for name, arr in (("t", t), ("T", T)):
         bad = np.flatnonzero(~np.isfinite(arr))
         if bad.size:
-            raise ModelError(f"{where}: column {name}: row {int(bad[0]) + 1} is {arr[bad[0]]!r}; values must be finite")
+            raise ModelError(f"{where}: column {name}: row {int(bad[0]) + 1} is {float(arr[bad[0]])!r}; values must be finite")
     out = np.flatnonzero((T < T_MIN_C) | (T > T_MAX_C))
     if out.size:
-        raise ModelError(f"{where}: column T: row {int(out[0]) + 1} is {T[out[0]]!r} °C; "
+        raise ModelError(f"{where}: column T: row {int(out[0]) + 1} is {float(T[out[0]])!r} °C; "
                          f"allowed {T_MIN_C:g}..{T_MAX_C:g} °C")
     d = np.diff(t)
     bad = np.flatnonzero(d <= 0)
     if bad.size:
         i = int(bad[0])
-        raise ModelError(f"{where}: column t: time must be strictly increasing; row {i + 2} ({t[i + 1]!r} s) "
-                         f"follows {t[i]!r} s")
+        raise ModelError(f"{where}: column t: time must be strictly increasing; row {i + 2} ({float(t[i + 1])!r} s) "
+                         f"follows {float(t[i])!r} s")
     if max_gap_s is not None and d.size:
         big = np.flatnonzero(d > max_gap_s)
         if big.size:

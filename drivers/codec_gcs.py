@@ -3,7 +3,7 @@
 Host → device: ``CMD arg val arg val...`` + LF. Set commands send no reply; errors latch
 and are read (and cleared) with ``ERR?``. A reply ends with an LF *not* preceded by a
 space; in multi-line replies every line but the last ends in ``" \\n"``. Query replies are
-``item=value`` lines, e.g. ``1=49.98``. See PROTOCOLS.md.
+``item=value`` lines, e.g. ``1=49.98``. See docs/PROTOCOLS.md.
 """
 from __future__ import annotations
 

@@ -4,7 +4,7 @@ Host → device: ASCII command + ``\\r``. Device → host: an optional echo of t
 the reply lines separated by ``\\r``, then the prompt ``>`` (older firmware ``*``).
 A set command is answered by the prompt alone; an unknown command by
 ``CMD_NOT_DEFINED>``. Query replies are bracketed, e.g. ``[ 24.80]`` or
-``[  0.24,  0.21,  0.22]``; brackets are optional when parsing. See PROTOCOLS.md.
+``[  0.24,  0.21,  0.22]``; brackets are optional when parsing. See docs/PROTOCOLS.md.
 
 Every function here is pure: bytes in, typed values out (or the reverse).
 """

@@ -4,7 +4,7 @@ Host → device: ``cmd`` (read) or ``cmd,value`` (write) + CR LF. Every device r
 with XON (0x11): ``cmd,value`` for a read, ``error,<n>`` for an error. Whether a
 successful write is acknowledged is *unconfirmed*: the simulator sends nothing, and the
 driver ignores any frame that is neither an error nor the reply it waits for.
-See PROTOCOLS.md.
+See docs/PROTOCOLS.md.
 """
 from __future__ import annotations
 

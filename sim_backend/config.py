@@ -14,6 +14,8 @@ from typing import Annotated, Any, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from afmctl.compensators.temperature import T_MAX_C, T_MIN_C
+
 AXES = ("x", "y", "z")
 
 
@@ -150,7 +152,7 @@ class ScannerConfig(_Strict):
     name: str = "sim0"
     dt_s: float = Field(1.0e-5, gt=0, le=1.0)
     seed: int = Field(0, ge=0, description="seed of the sensor/height noise (non-negative integer)")
-    ambient_T_C: float = Field(22.0, ge=-50, le=150)
+    ambient_T_C: float = Field(22.0, ge=T_MIN_C, le=T_MAX_C)
     x: AxisConfig = Field(default_factory=AxisConfig)
     y: AxisConfig = Field(default_factory=AxisConfig)
     z: AxisConfig = Field(default_factory=AxisConfig)

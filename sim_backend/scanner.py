@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from afmctl.compensators.base import ModelError
+from afmctl.compensators.temperature import T_MAX_C, T_MIN_C
 from . import _plant_kernels as K
 from .config import (
     AXES,
@@ -81,13 +82,7 @@ class _Drift:
         self._params = None
         self._warned_dt = False
         if cfg.kind == "params":
-            try:
-                from afmctl.compensators.drift import DriftParams  # interface item 2
-            except ImportError as err:  # pragma: no cover - only without compensators.drift
-                log.warning("afmctl.compensators.drift unavailable (%s); using the first-order expansion drift model", err)
-                self.cfg = cfg = cfg.model_copy(update={"kind": "expansion"})
-                self.reset(T0_C)
-                return
+            from afmctl.compensators.drift import DriftParams
             if cfg.params is not None:
                 self._params = DriftParams.from_dict(cfg.params, where="drift.params")
             else:
@@ -182,8 +177,8 @@ class Scanner:
     def set_ambient_temperature(self, T_C: float) -> None:
         """Ambient temperature [°C] held from now on (drives the thermal drift)."""
         T = float(T_C)
-        if not math.isfinite(T) or not -50.0 <= T <= 150.0:
-            raise ModelError(f"T_C: {T_C!r} out of range; allowed -50…150 °C")
+        if not math.isfinite(T) or not T_MIN_C <= T <= T_MAX_C:
+            raise ModelError(f"T_C: {T_C!r} out of range; allowed {T_MIN_C:g}…{T_MAX_C:g} °C")
         with self._lock:
             self._T_C = T
 

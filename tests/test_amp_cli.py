@@ -99,3 +99,37 @@ def test_stream_refuses_steps_above_max_step_before_sending(mdt, tmp_path, capsy
     err = capsys.readouterr().err
     assert "row 4" in err and "max-step" in err
     assert mdt.sink.count == 0
+
+
+def test_stream_keeps_the_time_column(mdt, tmp_path, capsys):
+    """A 0.5 s file of 26 rows (50 Hz) takes its 0.5 s, not as long as the link allows."""
+    n = 26
+    path = write_csv(tmp_path / "v.csv", "t,u", np.column_stack([10.0 + np.arange(n) * 0.02, np.linspace(1, 2, n)]))
+    assert main(["amp", "--driver", "mdt693b", "--port", mdt.port, "stream", "--file", path]) == 0
+    cap = capsys.readouterr()
+    elapsed = float(cap.out.split(" in ")[1].split(" s:")[0])
+    assert 0.5 <= elapsed < 2.0                     # never early; generous on a busy machine
+    assert "schedule 0.500 s" in cap.out and "warning" not in cap.err
+    assert len(mdt.sink.history) == n
+
+
+def test_stream_warns_when_the_rate_is_not_reached(mdt, tmp_path, capsys):
+    """1000 rows at 1 MHz cannot go over a 115200-baud pty: the run says so."""
+    n = 1000
+    path = write_csv(tmp_path / "v.csv", "t,u", np.column_stack([np.arange(n) * 1e-6, np.full(n, 3.0)]))
+    assert main(["amp", "--driver", "mdt693b", "--port", mdt.port, "stream", "--file", path]) == 0
+    err = capsys.readouterr().err
+    assert "warning: the t column of" in err and "was not kept" in err and err.count("\n") == 1
+    assert main(["amp", "--driver", "mdt693b", "--port", mdt.port, "stream", "--file", path, "--rate", "1e6"]) == 0
+    assert "warning: --rate 1e+06 Hz was not kept" in capsys.readouterr().err
+
+
+def test_stream_has_a_default_step_limit(mdt, tmp_path, capsys):
+    path = write_csv(tmp_path / "v.csv", "t,u", [[0, 1.0], [0.01, 2.0], [0.02, 40.0]])
+    assert main(["amp", "--driver", "mdt693b", "--port", mdt.port, "stream", "--file", path]) == 2
+    err = capsys.readouterr().err
+    assert "row 4" in err and "exceeds --max-step 10 V" in err and "nothing was sent" in err
+    assert mdt.sink.count == 0
+    assert main(["amp", "--driver", "mdt693b", "--port", mdt.port, "--max-step", "50", "stream",
+                 "--file", path]) == 0
+    assert mdt.device.outputs["x"] == 40.0

@@ -183,7 +183,7 @@ def test_wrong_kind_for_invert_and_other_errors(files, capsys, tmp_path):
     run_cli(["identify", "--model", "pi", "--data", files / "data.csv", "--out", tmp_path / "m.json"], capsys)
     rc, _, err = run_cli(["compensate", "--model", tmp_path / "m.json", "--target", files / "target.csv",
                           "--out", tmp_path / "v.csv", "--limits", "40", "60"], capsys)
-    assert rc == 2 and "outside --limits" in err
+    assert rc == 2 and "outside the limits 40..60 V (--limits" in err
     # non-uniform time for a time-dependent model
     _write(tmp_path / "nu.csv", "t,y\n0,1\n0.001,2\n0.005,3\n")
     epi = {"kind": "epi", "thresholds": [0, 1], "weights": [1, 1], "creep_a_nm": 1, "creep_b": 1,

@@ -17,29 +17,8 @@ from afmctl.loop import Controller, State
 from afmctl.pipeline import build_pipeline
 from afmctl.runlog import RunLogReader
 from afmctl.simlink import RecordingAmplifier
-from afmctl.testing import assert_no_threads_left, bridge_on_free_port
+from afmctl.testing import assert_no_threads_left, bridge_on_free_port, make_config
 from afmctl.testing import wait_until as wait_for
-
-BASE = """
-[simulation]
-enabled = true
-[loop]
-rate_Hz = 1000
-[safety]
-slew_V_per_s = 5000
-ramp_V_per_s = 500
-watchdog_s = 0.5
-[runlog]
-dir = "{dir}"
-fsync = false
-flush_interval_s = 0.02
-[compensation.drift]
-enabled = true
-params = "physical_tube"
-kalman = {kalman}
-kalman_bias_std0_nm = 5.0
-kalman_q_bias_nm2_per_s = 10.0
-"""
 
 
 @pytest.fixture(autouse=True)
@@ -49,7 +28,10 @@ def no_leaked_threads():
 
 
 def cfg_for(tmp_path, kalman: bool = True, extra: str = ""):
-    return load_config(text=BASE.format(dir=tmp_path, kalman=str(kalman).lower()) + extra)
+    return make_config(tmp_path, extra, loop={"rate_Hz": 1000},
+                       safety={"slew_V_per_s": 5000, "ramp_V_per_s": 500, "watchdog_s": 0.5},
+                       compensation={"drift": {"enabled": True, "params": "physical_tube", "kalman": kalman,
+                                               "kalman_bias_std0_nm": 5.0, "kalman_q_bias_nm2_per_s": 10.0}})
 
 
 class DriftSink:

@@ -28,7 +28,7 @@ def test_profile_validation_and_json():
         TemperatureProfile(duration_s=0.0)
     p = TemperatureProfile(shape="ramp", delta_K=2.0)
     assert TemperatureProfile.model_validate_json(p.model_dump_json()) == p
-    # a profile must stay within the temperatures the predictor accepts (-100..200 °C)
+    # a profile must stay within the temperatures the predictor accepts (-50..150 °C)
     for shape, T0, d in (("ramp", 150.0, 90.0), ("step", -50.0, -60.0), ("sine", -50.0, 60.0)):
         with pytest.raises(ValidationError, match="delta_K"):
             TemperatureProfile(shape=shape, T0_C=T0, delta_K=d)
@@ -47,7 +47,7 @@ def test_profile_drives_the_predictor():
     ([0.0, 1.0, 2.0], [20.0, np.inf, 20.0], "column T: row 2"),
     ([0.0, 2.0, 1.0], [20.0, 20.0, 20.0], "strictly increasing; row 3"),
     ([0.0, 1.0, 1.0], [20.0, 20.0, 20.0], "strictly increasing"),
-    ([0.0, 1.0], [20.0, 500.0], "-100..200"),
+    ([0.0, 1.0], [20.0, 500.0], "-50..150"),
     ([0.0, 1.0, 100.0], [20.0, 20.0, 20.0], "gap of 99 s"),
     ([], [], "no samples"),
 ])

@@ -8,30 +8,14 @@ import time
 import numpy as np
 import pytest
 
-from afmctl.config import load_config
 from afmctl.errors import AfmctlError
 from afmctl.loop import Controller, State
 from afmctl.pipeline import build_pipeline
 from afmctl.runlog import RunLogReader
 from afmctl.simlink import RecordingAmplifier
-from afmctl.testing import assert_no_threads_left
+from afmctl.testing import assert_no_threads_left, make_config
 from afmctl.testing import wait_until as wait_for
 
-BASE = """
-[simulation]
-enabled = true
-[loop]
-rate_Hz = {rate}
-[safety]
-slew_V_per_s = {slew}
-ramp_V_per_s = 500
-watchdog_s = 0.03
-reconnect_interval_s = 0.01
-[runlog]
-dir = "{dir}"
-fsync = false
-flush_interval_s = 0.02
-"""
 
 
 @pytest.fixture(autouse=True)
@@ -42,7 +26,9 @@ def no_leaked_threads():
 
 
 def cfg_for(tmp_path, extra: str = "", rate: float = 2000.0, slew: float = 5000.0):
-    return load_config(text=BASE.format(rate=rate, slew=slew, dir=tmp_path) + extra)
+    return make_config(tmp_path, extra, loop={"rate_Hz": rate},
+                       safety={"slew_V_per_s": slew, "ramp_V_per_s": 500, "watchdog_s": 0.03,
+                               "reconnect_interval_s": 0.01})
 
 
 class Sink:

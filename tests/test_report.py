@@ -45,10 +45,10 @@ def test_report_writes_plots_and_summary(tmp_path, capsys):
     assert summary["samples"] == 3000 and summary["seq_gaps"] == 0
     assert summary["states"] == ["running", "stopped"]
     assert summary["error_samples"] == 2800          # start ramp and final ramp left out
-    corr = summary["errors_pct_of_range"]["correction"]
+    corr = summary["errors_pct_of_range"]["drift correction"]
     # the largest correction is the drift at the last tracked sample: 20 nm/s · 2.899 s of an 8 µm range
     assert corr["max"] == pytest.approx(20 * 2.899 / 8000.0 * 100, rel=1e-3)
-    sim = summary["errors_pct_of_range"]["simulated error"]
+    sim = summary["errors_pct_of_range"]["tracking error"]
     assert sim["max"] > 1.0      # a linear map on the hysteretic default scanner: visibly wrong
     assert "setpoints" in capsys.readouterr().out
 

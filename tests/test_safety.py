@@ -13,7 +13,6 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from afmctl.config import load_config
 from afmctl.errors import AfmctlError
 from afmctl.loop import Controller, State
 from afmctl.safety import ReadbackError, SafetyLayer, Watchdog
@@ -115,19 +114,9 @@ def test_watchdog():
 
 # ----------------------------------------------------------------------------- whole loop
 def _cfg(extra: str = "", rate: float = 5000.0, slew: float = 2000.0):
-    return load_config(text=f"""
-[simulation]
-enabled = true
-[loop]
-rate_Hz = {rate}
-[runlog]
-enabled = false
-[safety]
-slew_V_per_s = {slew}
-ramp_V_per_s = 1000
-watchdog_s = 0.05
-{extra}
-""")
+    from afmctl.testing import make_config
+    return make_config(None, extra, loop={"rate_Hz": rate},
+                       safety={"slew_V_per_s": slew, "ramp_V_per_s": 1000, "watchdog_s": 0.05})
 
 
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -320,6 +309,7 @@ def test_faults_reconnects_stops_and_readbacks_never_make_an_unsafe_step(
     from afmctl.simlink import SendClock
     hi = min(lo + span, 150.0)
     cfg = _cfg(f"""
+[safety]
 reconnect_interval_s = 0.002
 max_reconnects = 3
 [safety.limits_V.x]

@@ -1,5 +1,5 @@
 """The simulated amplifiers, tested with raw bytes over their pty — no afmctl driver code.
-They must answer exactly as PROTOCOLS.md documents and be no faster than their baud."""
+They must answer exactly as docs/PROTOCOLS.md documents and be no faster than their baud."""
 from __future__ import annotations
 
 import os

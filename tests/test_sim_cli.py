@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 
+import pytest
 import serial
 
 from afmctl.sim_backend.testing import no_leaks
@@ -87,7 +88,7 @@ def test_sim_bad_config_is_a_one_line_error(tmp_path):
     r = subprocess.run([sys.executable, "-m", "afmctl", "sim", "--config", str(cfg)], capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 2
-    assert r.stderr.startswith("afmctl: error: field amplifier.protocol")
+    assert r.stderr.startswith(f"afmctl: error: {cfg}: field amplifier.protocol = 'foo'")
     assert "Traceback" not in r.stderr
 
 
@@ -101,7 +102,7 @@ def test_sim_bad_scanner_override_names_the_field(tmp_path):
 
 
 def test_sim_service_advances_the_plant_on_the_wall_clock_and_calls_on_tick():
-    from afmctl.commands.sim import SimService, load_settings
+    from afmctl.simservice import SimService, load_settings
     ticks = []
     settings = load_settings(None)
     settings.sim.tick_s = 0.02
@@ -124,16 +125,14 @@ def test_sim_service_advances_the_plant_on_the_wall_clock_and_calls_on_tick():
     assert not os.path.exists(service.port)             # cleaned up
 
 
-def test_make_scanner_uses_the_real_scanner_and_falls_back_only_when_it_is_missing(monkeypatch, caplog):
-    from afmctl.commands.sim import make_scanner
-    from afmctl.sim_backend.amplifiers import RecordingSink
+def test_make_scanner_uses_the_real_scanner_and_names_a_bad_field():
+    from afmctl.errors import AfmctlError
+    from afmctl.simservice import make_scanner
     from afmctl.sim_backend.scanner import Scanner
     sink, description = make_scanner({})
     assert isinstance(sink, Scanner) and description.startswith("scanner ")
-    monkeypatch.setitem(sys.modules, "afmctl.sim_backend.scanner", None)  # as if the module were not installed
-    sink, description = make_scanner({})
-    assert isinstance(sink, RecordingSink) and "no scanner" in description
-    assert "recording sink" in caplog.text
+    with pytest.raises(AfmctlError, match=r"^field scanner\.dt_s: "):
+        make_scanner({"dt_s": -1.0})
 
 
 def test_sim_bad_arguments_are_one_line_errors(tmp_path, capsys):
@@ -143,3 +142,21 @@ def test_sim_bad_arguments_are_one_line_errors(tmp_path, capsys):
         assert main(["sim", *args]) == 2
         err = capsys.readouterr().err
         assert err.startswith("afmctl: error: ") and err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_sim_record_file_grows_while_the_simulator_runs(tmp_path):
+    """--record is flushed every RECORD_FLUSH_S while running, not only at stop."""
+    from afmctl.simservice import RECORD_FLUSH_S, SimService, load_settings
+    from afmctl.testing import wait_until
+    record = tmp_path / "rec.csv"
+    service = SimService(load_settings(None), record=record)
+    with no_leaks(), service:
+        with serial.serial_for_url(service.port, timeout=0.05, write_timeout=1.0) as port:
+            _ask(port, b"ECHO=0\r")
+            assert _ask(port, b"XVOLTAGE=12.5\r") == b">"
+
+        def rows():
+            return record.read_text().splitlines()
+        wait_until(lambda: len(rows()) >= 2, 10 * RECORD_FLUSH_S + 5.0, 0.05)
+        assert rows()[0] == "t_s,x_V,y_V,z_V" and rows()[-1].split(",")[1] == "12.5"
+        assert service._thread is not None and service._thread.is_alive()   # still running

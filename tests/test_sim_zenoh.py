@@ -2,7 +2,7 @@
 
 End to end: ``afmctl sim`` as a subprocess listening on a free loopback port, a real zenoh
 session in the test connected to it (scouting off), raw MDT693B bytes on the pty; plus the
-decimating, never-blocking :class:`afmctl.commands.sim.TipPublisher` and the CLI errors.
+decimating, never-blocking :class:`afmctl.simservice.TipPublisher` and the CLI errors.
 """
 from __future__ import annotations
 
@@ -173,7 +173,7 @@ def test_sim_bad_zenoh_arguments_name_the_flag(args, field, capsys):
 def test_sim_settings_zenoh_section_is_off_by_default_and_checked(tmp_path):
     from pydantic import ValidationError
 
-    from afmctl.commands.sim import load_settings, scanner_name
+    from afmctl.simservice import load_settings, scanner_name
     settings = load_settings(None)
     assert settings.zenoh.enabled is False and settings.sim.publish_rate_Hz == 100.0
     assert scanner_name(settings) == "sim0"
@@ -206,7 +206,7 @@ class _Gate:
 
 
 def test_tip_publisher_never_blocks_drops_the_oldest_and_drains_on_close():
-    from afmctl.commands.sim import TipPublisher
+    from afmctl.simservice import TipPublisher
     gate = _Gate()
     tips = TipPublisher(gate, rate_Hz=64.0, queue_size=5).start()
     dt_s = 2.0 ** -10                              # ~1 kHz ticks; binary fractions keep t exact
@@ -235,7 +235,7 @@ def test_tip_publisher_never_blocks_drops_the_oldest_and_drains_on_close():
 
 
 def test_tip_publisher_decimates_on_simulated_time_and_survives_publish_errors():
-    from afmctl.commands.sim import TipPublisher
+    from afmctl.simservice import TipPublisher
     got: list[float] = []
 
     def flaky(t_s, position_nm):

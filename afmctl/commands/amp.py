@@ -8,6 +8,13 @@ import time
 
 log = logging.getLogger(__name__)
 
+#: --max-step for ``stream`` when none is given [V]
+DEFAULT_STREAM_STEP_V = 10.0
+#: a stream that ends later than its schedule by more than this fraction (plus
+#: STREAM_SLACK_S) is reported as not kept
+STREAM_LATE_FRACTION = 0.05
+STREAM_SLACK_S = 0.05
+
 HELP = "talk to a piezo amplifier: info, read back, set voltages, stream a file"
 
 DESCRIPTION = """\
@@ -24,9 +31,13 @@ Actions:
   info                      identity, limits, connection state
   get                       read back the applied output voltages
   set x=V [y=V z=V]         set some axes, then read back
-  stream --file VOLTS.csv   send every row in order, as fast as the link allows or at
-                            --rate HZ, and print the rate achieved. Columns t,u (one
-                            axis, chosen with --axis) or t,ux,uy,uz (s, V).
+  stream --file VOLTS.csv   send every row in order at the times of its t column (or
+                            at --rate HZ rows per second), print the rate achieved and
+                            warn when the link could not keep that timing. Columns t,u
+                            (one axis, chosen with --axis) or t,ux,uy,uz (s, V). Steps
+                            between rows (and from the present output to the first
+                            row) above --max-step (default 10 V when streaming) refuse
+                            the whole file before anything is sent.
 
 Examples:
   afmctl amp --driver mdt693b --port /dev/ttyUSB0 info
@@ -74,19 +85,21 @@ def register(subparsers) -> None:
     p.add_argument("--limit", type=_limit, action="append", default=[], metavar="[AXIS=]MIN:MAX",
                    help="host voltage limits in V, narrowing the device's; repeat per axis")
     p.add_argument("--max-step", type=float, default=None, metavar="V",
-                   help="refuse any step larger than this many volts from the last output")
+                   help="refuse any step larger than this many volts from the last output "
+                        f"(stream: default {DEFAULT_STREAM_STEP_V:g} V)")
     actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
     actions.add_parser("info", help="identity, limits, state")
     actions.add_parser("get", help="read back the applied voltages")
     s = actions.add_parser("set", help="set voltages, e.g. set x=10 y=20.5")
     s.add_argument("values", nargs="+", type=_assignment, metavar="AXIS=V")
     st = actions.add_parser("stream", help="stream a CSV of voltages (t,u or t,ux,uy,uz)",
-                            description="Send every row of VOLTS.csv in order. Columns t,u (one axis, "
-                                        "--axis) or t,ux,uy,uz; t in s is only checked for order.")
+                            description="Send every row of VOLTS.csv in order at the times of its t column "
+                                        "[s] (row i at t_i - t_0 after the start). Columns t,u (one axis, "
+                                        "--axis) or t,ux,uy,uz [V].")
     st.add_argument("--file", required=True, metavar="VOLTS.csv")
     st.add_argument("--axis", choices=["x", "y", "z"], default="x", help="axis of a t,u file (default x)")
     st.add_argument("--rate", type=float, default=None, metavar="HZ",
-                    help="setpoints per second (default: as fast as the link allows)")
+                    help="send HZ rows per second, ignoring the t column (default: the t column's timing)")
     p.set_defaults(func=run)
 
 
@@ -118,8 +131,12 @@ def run(args) -> int:
     host = _host_limits(args.limit)
     if host is not None:
         options["host_limits"] = host
+    if args.max_step is not None and not (args.max_step > 0 and math.isfinite(args.max_step)):
+        raise AfmctlError(f"--max-step: {args.max_step} V must be a positive number of volts")
     if args.max_step is not None:
         options["max_step_V"] = args.max_step
+    elif args.action == "stream":
+        options["max_step_V"] = DEFAULT_STREAM_STEP_V
     amp = open_amplifier(args.driver, args.port, baudrate=args.baud, timeout_s=args.timeout, **options)
     with amp:
         if args.action == "info":
@@ -135,16 +152,19 @@ def run(args) -> int:
     return 0
 
 
-def _load_stream(args) -> tuple[list[str], "object", list[str]]:
+def _load_stream(args) -> tuple[list[str], "object", list[str], "object"]:
+    """``(axes, volts (n, axes) [V], columns, send times from the start (n,) [s])``."""
     import numpy as np
 
     from ..datafiles import read_csv
     from ..errors import AfmctlError
     data = read_csv(args.file, ["t"], optional=["u", "ux", "uy", "uz"])
+    n = data["t"].shape[0]
+    times = np.arange(n) / args.rate if args.rate else data["t"] - data["t"][0]
     if all(c in data for c in ("ux", "uy", "uz")):
-        return ["x", "y", "z"], np.column_stack([data["ux"], data["uy"], data["uz"]]), ["ux", "uy", "uz"]
+        return ["x", "y", "z"], np.column_stack([data["ux"], data["uy"], data["uz"]]), ["ux", "uy", "uz"], times
     if "u" in data:
-        return [args.axis], data["u"][:, None], ["u"]
+        return [args.axis], data["u"][:, None], ["u"], times
     raise AfmctlError(f"{args.file}: needs columns t,u (one axis) or t,ux,uy,uz (three axes)")
 
 
@@ -152,7 +172,7 @@ def _check_file_limits(amp, loaded, path) -> None:
     import numpy as np
 
     from ..errors import AfmctlError
-    axes, values, columns = loaded
+    axes, values, columns, _ = loaded
     lim = amp.limits
     for k, (axis, col) in enumerate(zip(axes, columns)):
         if axis not in lim:
@@ -176,23 +196,31 @@ def _check_file_limits(amp, loaded, path) -> None:
 
 
 def _stream(amp, loaded, args) -> None:
+    """Send row i at ``times[i]`` [s] after the start (never earlier), then report the rate
+    achieved and warn (stderr) when the schedule was not kept."""
+    import sys
+
     from tqdm import tqdm
     _check_file_limits(amp, loaded, args.file)
-    axes, values, _ = loaded
+    axes, values, _, times = loaded
     n = values.shape[0]
-    period = 1.0 / args.rate if args.rate else 0.0
     t0 = time.perf_counter()
     with tqdm(total=n, unit="pt", desc="stream", disable=None, mininterval=0.5) as bar:
         for i in range(n):
-            if period:
-                wait = t0 + i * period - time.perf_counter()
-                if wait > 0:
-                    time.sleep(wait)
+            wait = t0 + times[i] - time.perf_counter()
+            if wait > 0:
+                time.sleep(wait)
             amp.set_voltages(dict(zip(axes, values[i].tolist())))
             if i % 256 == 255:
                 bar.update(256)
         bar.update(n - bar.n)
         amp.flush()
     elapsed = time.perf_counter() - t0
-    print(f"sent {n} setpoints ({len(axes)} axis/axes) in {elapsed:.3f} s: {n / elapsed:.1f} setpoints/s")
+    planned = float(times[-1])
+    print(f"sent {n} setpoints ({len(axes)} axis/axes) in {elapsed:.3f} s: {n / elapsed:.1f} setpoints/s "
+          f"(schedule {planned:.3f} s)")
+    if elapsed > planned * (1 + STREAM_LATE_FRACTION) + STREAM_SLACK_S:
+        wanted = f"--rate {args.rate:g} Hz" if args.rate else f"the t column of {args.file}"
+        print(f"afmctl amp stream: warning: {wanted} was not kept: the link reached {n / elapsed:.1f} "
+              f"setpoints/s and the file took {elapsed:.3f} s instead of {planned:.3f} s", file=sys.stderr)
     print("final: " + _fmt(amp.get_voltages()))

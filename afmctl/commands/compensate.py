@@ -21,8 +21,10 @@ Input:
                        uniformly spaced rows.
 Output:
   --out VOLTS.csv      columns t,u (s, V), one row per target row.
-  --limits LO HI       optional voltage range (V): any voltage outside it is an error
-                       unless --clip is given, which clips and reports how many samples.
+  --limits LO HI       voltage range (V): any voltage outside it is an error unless
+                       --clip is given, which clips and reports how many samples.
+                       Default: the range the model was identified on (a preisach
+                       model: its grid), else 0..150 V; the limits used are printed.
 
 The model's operator starts from the state stored in the model file (a scanner at rest)
 and runs through the whole file. A preisach model clamps targets it cannot reach to the
@@ -52,8 +54,6 @@ def run(args: argparse.Namespace) -> int:
     from afmctl.compensators.base import ModelError
     from afmctl.compensators.models import load_model
 
-    if args.clip and not args.limits:
-        raise AfmctlError("--clip: needs --limits LO HI")
     if args.limits and not (np.isfinite(args.limits).all() and args.limits[0] < args.limits[1]):
         raise AfmctlError(f"--limits: {args.limits[0]} {args.limits[1]}; need finite LO < HI (V)")
     model = load_model(args.model)
@@ -71,22 +71,35 @@ def run(args: argparse.Namespace) -> int:
     if not np.all(np.isfinite(u)):
         raise AfmctlError(f"{args.model}: the inverse produced non-finite voltages for {args.target}; "
                           "is the target inside the model's range?")
-    if args.limits:
-        lo, hi = args.limits
-        bad = (u < lo) | (u > hi)
-        if np.any(bad):
-            if not args.clip:
-                i = int(np.flatnonzero(bad)[0])
-                raise AfmctlError(f"{args.target}: row {i + 2} needs {u[i]:.6g} V, outside --limits {lo:g} {hi:g} V "
-                                  f"({int(bad.sum())} samples); add --clip to clip them")
-            print(f"clipped          : {int(bad.sum())} of {u.size} samples to [{lo:g}, {hi:g}] V")
-            u = np.clip(u, lo, hi)
+    lo, hi, source = _limits(args.limits, model)
+    print(f"limits           : {lo:g} .. {hi:g} V ({source})")
+    bad = (u < lo) | (u > hi)
+    if np.any(bad):
+        if not args.clip:
+            i = int(np.flatnonzero(bad)[0])
+            raise AfmctlError(f"{args.target}: row {i + 2} needs {u[i]:.6g} V, outside the limits {lo:g}..{hi:g} V "
+                              f"({source}; {int(bad.sum())} samples); give --limits LO HI, "
+                              "or add --clip to clip them")
+        print(f"clipped          : {int(bad.sum())} of {u.size} samples to [{lo:g}, {hi:g}] V")
+        u = np.clip(u, lo, hi)
     write_csv(args.out, {"t": t, "u": u})
     print(f"written          : {args.out} ({u.size} rows, u from {u.min():.6g} to {u.max():.6g} V)")
     return 0
 
 
 CHUNK = 200_000
+#: limits when neither --limits nor the model file gives a voltage range [V]
+FALLBACK_LIMITS_V = (0.0, 150.0)
+
+
+def _limits(given, model) -> tuple[float, float, str]:
+    """``(lo, hi, where from)`` [V]: --limits, else the model's voltage range, else 0..150 V."""
+    if given:
+        return float(given[0]), float(given[1]), "--limits"
+    known = model.voltage_range_V()
+    if known is not None:
+        return float(known[0]), float(known[1]), "the model's voltage range"
+    return (*FALLBACK_LIMITS_V, "the model file records no voltage range; give --limits")
 
 
 def _run_chunked(op, y):

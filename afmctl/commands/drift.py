@@ -117,14 +117,8 @@ def _no_action(parser: argparse.ArgumentParser) -> int:
 
 def load_params(spec: str):
     """A named set or a JSON file (``ModelError`` otherwise)."""
-    from afmctl.compensators.base import ModelError
     from afmctl.compensators.drift import DriftParams
-    if spec in DriftParams.names():
-        return DriftParams.named(spec)
-    p = Path(spec)
-    if not p.exists():
-        raise ModelError(f"--params: {spec!r} is neither a file nor a named set ({', '.join(DriftParams.names())})")
-    return DriftParams.load(p)
+    return DriftParams.from_spec(spec, where="--params")
 
 
 def run_params(args: argparse.Namespace) -> int:
@@ -168,7 +162,7 @@ def predict_file(t_s, T_C, params, *, dt_s=None, volts=None, max_gap_s=600.0, wh
     T = np.asarray(T_C, dtype=np.float64)
     check_temperature_series(t, T, where=where, max_gap_s=max_gap_s)
     if dt_s is not None and not (dt_s > 0 and np.isfinite(dt_s)):
-        raise ModelError(f"--dt: {dt_s!r} s; must be a positive number of seconds")
+        raise ModelError(f"--dt: {float(dt_s)!r} s; must be a positive number of seconds")
     n = t.shape[0]
     if n == 1:
         return np.zeros((1, 3))

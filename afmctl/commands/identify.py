@@ -123,6 +123,8 @@ def run(args: argparse.Namespace) -> int:
         raise ModelError(f"{args.data}: the fit failed ({err}); is the input excited over its range?") from None
     except ValueError as err:  # a --param value of the wrong type that a kind did not check itself
         raise AfmctlError(f"--param: a value is not accepted by kind {args.model!r} ({err})") from None
+    if model.u_range_V is None:        # compensate's default --limits
+        model.u_range_V = (float(np.min(u)), float(np.max(u)))
     y_fit = model.forward(dt).block(u)
     rms = float(np.sqrt(np.mean((y_fit - y) ** 2)))
     peak = float(np.max(np.abs(y_fit - y)))

@@ -11,9 +11,10 @@ Read a run log written by `afmctl run` and write into OUT:
 
   report_loops.png     voltage sent [V] vs target [nm] per axis (the compensator's loops)
   report_tracking.png  target, corrected target [nm] and voltages [V] over time [s]
-  report_errors.png    histograms of the correction applied (corrected - target) and, with
-                       --simulate, of the error the default simulated scanner would make
-                       with the logged voltages, in % of the target range
+  report_errors.png    histograms, in % of the target range, of the drift correction
+                       applied (corrected - target) and of the tracking error (tip -
+                       target) of the simulated scanner driven by the logged voltages:
+                       shown for runs on the simulator, and for any run with --simulate
   report_drift.png     drift estimate [nm] and temperature [°C] over time (if logged)
   report_summary.json  counts, duration, voltage ranges, states, error numbers
 
@@ -33,8 +34,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("run", type=Path, metavar="RUN", help="run log file (.afmlog)")
     p.add_argument("--out", type=Path, default=None, metavar="DIR",
                    help="output directory (default: RUN without suffix + '-report')")
-    p.add_argument("--simulate", action="store_true",
-                   help="replay the voltages through the default simulated scanner to estimate errors")
+    p.add_argument("--simulate", action="store_true", default=None,
+                   help="replay the voltages through the simulated scanner for the tracking error "
+                        "(default for runs that drove the simulator)")
     p.set_defaults(func=run)
 
 
@@ -44,8 +46,15 @@ def run(args: argparse.Namespace) -> int:
     files, summary = run_report(args.run, out, simulate=args.simulate)
     print(f"{summary['samples']} setpoints, {summary.get('duration_s', 0.0):.3f} s, states: "
           f"{' -> '.join(summary['states']) or '-'}")
-    for name, e in summary.get("errors_pct_of_range", {}).items():
-        print(f"{name}: max {e['max']:.3f} %, rms {e['rms']:.3f} % of range")
+    from ..report import QUANTITIES, TRACKING_ERROR
+    errors = summary.get("errors_pct_of_range", {})
+    span = summary.get("range_nm", 0.0)
+    for name, e in errors.items():
+        print(f"{name} ({QUANTITIES[name]}): max {e['max']:.3f} %, rms {e['rms']:.3f} % "
+              f"of the {span:.6g} nm target range")
+    if TRACKING_ERROR not in errors:
+        print(f"{TRACKING_ERROR}: not known (the run did not drive the simulator and the log holds no "
+              "tip positions; --simulate estimates it with the simulated scanner)")
     for f in files:
         print(f"wrote {f}")
     return 0

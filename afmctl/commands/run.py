@@ -62,7 +62,7 @@ MAX_SECONDS = 1e7
 EXIT_OK, EXIT_FAULT, EXIT_BAD_INPUT, EXIT_RUNLOG = 0, 1, 2, 3
 
 #: three-axis (one-axis for mdt694b/nv200) setpoints per second a link carries at 115200
-#: baud, streaming without waiting for replies (docs: PROTOCOLS.md)
+#: baud, streaming without waiting for replies (docs/PROTOCOLS.md)
 LINK_CEILING_PER_S = {"mdt693b": 380.0, "mdt694b": 770.0, "gcs": 600.0, "nv200": 960.0, "can": 7000.0}
 
 

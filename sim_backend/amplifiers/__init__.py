@@ -1,4 +1,4 @@
-"""Simulated piezo amplifiers that speak the real wire protocols (PROTOCOLS.md).
+"""Simulated piezo amplifiers that speak the real wire protocols (docs/PROTOCOLS.md).
 
 * sans-I/O state machines (bytes in → reply bytes out): :class:`SimMDT693B`
   (``channels=1`` or :func:`SimMDT694B` for the MDT694B), :class:`SimGCS`,

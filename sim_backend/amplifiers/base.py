@@ -45,7 +45,8 @@ class CsvRecorder:
     Columns ``t_s,x_V,y_V,z_V``: the time the amplifier applied the change [s] and the
     voltages [V] then held on every axis (axes never set read 0). One row per
     :meth:`apply`, in the order the amplifier applied them, so a test can check that every
-    setpoint arrived in order. Rows are buffered and flushed by :meth:`close`.
+    setpoint arrived in order. Rows are buffered; :meth:`flush` writes them out (``afmctl sim``
+    does every ``RECORD_FLUSH_S``), :meth:`close` too.
     """
 
     AXES = ("x", "y", "z")
@@ -74,6 +75,12 @@ class CsvRecorder:
         if inner is None:
             raise AttributeError(name)
         return getattr(inner, name)
+
+    def flush(self) -> None:
+        """Write the buffered rows to the file (a reader sees every row applied so far)."""
+        with self._lock:
+            if not self._file.closed:
+                self._file.flush()
 
     def close(self) -> None:
         with self._lock:
