@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from .base import ModelError, StreamingOperator
 
@@ -41,8 +41,14 @@ class HysteresisModel(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=False)
 
     kind: str
+    #: input–output delay [s]: the model's output answers the input ``delay_s`` earlier
+    #: (``y(t) = M[u](t − delay_s)``); estimated by ``afmctl identify`` from measured data
+    delay_s: float = Field(default=0.0, ge=0.0, le=1.0, allow_inf_nan=False,
+                           description="input–output delay [s], 0…1 s")
     #: which model kinds are time-dependent (need a uniform sample period)
     time_dependent: ClassVar[bool] = False
+    #: whether ``identify`` takes ``fit_from_index`` (a burn-in: earlier samples only set the memory)
+    fits_with_burn_in: ClassVar[bool] = False
 
     def forward(self, dt_s: float | None = None) -> StreamingOperator:  # pragma: no cover
         raise NotImplementedError

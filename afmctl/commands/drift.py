@@ -196,6 +196,8 @@ def predict_file(t_s, T_C, params, *, dt_s=None, volts=None, max_gap_s=600.0, wh
 
 
 def run_predict(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from ..datafiles import read_csv, write_csv
 
     params = load_params(args.params)
@@ -208,6 +210,9 @@ def run_predict(args: argparse.Namespace) -> int:
                      where=str(args.temperature))
     write_csv(args.out, {"t": cols["t"], "x": d[:, 0], "y": d[:, 1], "z": d[:, 2]})
     log.info("wrote %d rows to %s (params %s)", d.shape[0], args.out, params.name)
+    peak = np.max(np.abs(d), axis=0)
+    print(f"drift predict: {d.shape[0]} rows over {float(cols['t'][-1] - cols['t'][0]):.4g} s, params {params.name}; "
+          f"peak |x| {peak[0]:.4g} nm, |y| {peak[1]:.4g} nm, |z| {peak[2]:.4g} nm -> {args.out}")
     if args.plot:
         _plot(args.plot, cols["t"], cols["T"], d, params.name)
     return 0
