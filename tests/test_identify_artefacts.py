@@ -181,3 +181,24 @@ def test_excitation_check_names_what_is_missing(tmp_path, capsys):
     us = 75.0 + 75.0 * np.sin(2 * np.pi * 2.0 * ts)
     _, out = identify(tmp_path, capsys, ts, us, TRUE.forward().block(us), name="sine")
     assert "afmctl excite --kind static" in out
+
+
+def test_creep_with_holds_is_seen_and_not_taken_for_a_delay(tmp_path, capsys):
+    from plants import staircase
+
+    from afmctl.compensators.creep import LinearCreep
+
+    dt = 2e-3
+    t, u = staircase(dt, [40, 0, 150, 30, 120, 60, 90, 0, 150, 75, 20, 110], 1.5, ramp_s=0.1)
+    y = LinearCreep([0.5], [0.08], dt).block(TRUE.forward().block(u)) + 3000.0
+    model, out = identify(tmp_path, capsys, t, u, y)
+    assert "excite --kind creep" not in out            # holds of 1.5 s after steps
+    assert model.delay_s == 0.0 and "delay" not in out
+
+
+def test_drift_predict_prints_a_summary(tmp_path, capsys):
+    t = np.arange(200) * 1.0
+    write_csv(tmp_path / "T.csv", {"t": t, "T": 22.0 + 0.01 * t})
+    rc, out, err = run(["drift", "predict", "--temperature", tmp_path / "T.csv", "--out", tmp_path / "d.csv"], capsys)
+    assert rc == 0, err
+    assert out.count("\n") == 1 and "drift predict: 200 rows" in out and "d.csv" in out
