@@ -27,6 +27,16 @@ Model kinds (--model):
   creep     linear creep (bank of first-order lags), no hysteresis
   preisach  classical Preisach on an (alpha, beta) grid: asymmetric loops, exact inverse
   bouc-wen  Bouc-Wen differential model, nonlinear least squares
+  --from-images F…  instead of --data: grating images (see --from-images below); e.g.
+                    --from-images r150.gwy r140.gwy … --param gain_nm_per_V=80 --param period_nm=278
+Real recordings (--data):
+  --burn-in auto    samples until the input has passed both its extremes only set the model's
+                    memory (the state the recording started in is unknown); 'none' or SECONDS
+  --delay auto      the sensor's delay (whole samples, estimated; stored as delay_s); or SECONDS
+  spikes            isolated outliers of y are replaced by their running median (--keep-spikes)
+  units             u within ±1000 V, y within ±1 mm; y in µm is refused unless --y-unit um
+  excitation        the output says what the input cannot identify and what to record
+                    instead (afmctl excite --kind static|creep|dynamics)
 Options:
   --operators N     pi/epi: play operators (default 13, max 1000); creep: lags (default 4);
                     preisach: grid levels (default 32; nnls up to 64, for up to 512);
@@ -55,9 +65,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--model", required=True, metavar="KIND", help="model kind: pi, epi, creep, preisach, bouc-wen")
     p.add_argument("--data", metavar="DATA.csv", help="CSV with columns t,u,y (s, V, nm)")
-    p.add_argument("--from-images", metavar="SCANS.npz",
+    p.add_argument("--from-images", metavar="SCANS", nargs="+",
                    help="instead of --data: identify without a position sensor from AFM images of a "
-                        "calibration grating (npz of line images + voltage ramps, format in docs/SIM.md)")
+                        "calibration grating: one .npz of line images + voltage ramps (docs/SIM.md), or "
+                        "image files, one scan range each (.gwy, .gsf, .tif with trace and retrace; "
+                        "needs --param gain_nm_per_V=… --param period_nm=…, optional scan_u_min_V, skip_lines)")
     p.add_argument("--out", required=True, metavar="MODEL.json", help="where to write the fitted model")
     p.add_argument("--operators", type=int, default=None, metavar="N",
                    help="number of operators (PI plays, creep lags, ...); default depends on the kind")
@@ -114,10 +126,10 @@ def run(args: argparse.Namespace) -> int:
 
 def _run_from_images(args: argparse.Namespace) -> int:
     """``--from-images``: identification without a position sensor (docs/SIM.md)."""
-    from afmctl.sim_backend.image_scans import identify_from_scan_file
+    from afmctl.compensators.scan_files import identify_from_scan_files
 
-    model = identify_from_scan_file(args.from_images, args.model, n_operators=args.operators,
-                                    **parse_params(args.param))
+    model = identify_from_scan_files(args.from_images, args.model, n_operators=args.operators,
+                                     **parse_params(args.param))
     _save(model, args.out)
     print(model.summary())
     print(f"written          : {args.out}")
