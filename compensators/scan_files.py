@@ -47,6 +47,14 @@ class ScanImage:
     retrace_nm: np.ndarray | None
     scan_size_nm: float
     line_rate_Hz: float | None
+    #: extent along the slow axis [nm]; None: square pixels
+    scan_height_nm: float | None = None
+
+    def pixel_nm(self) -> tuple[float, float]:
+        """Pixel size ``(along y / rows, along x / columns)`` [nm]."""
+        lines, px = self.trace_nm.shape
+        pxx = self.scan_size_nm / px
+        return (self.scan_height_nm / lines if self.scan_height_nm else pxx), pxx
 
 
 def load_scans_npz(path: str | Path) -> dict[str, np.ndarray]:
@@ -130,7 +138,8 @@ def _read_gwy(p: Path) -> ScanImage:
     return ScanImage(str(p), np.asarray(tr.data, dtype=np.float64) * scale,
                      None if retrace is None else np.asarray(retrace.data, dtype=np.float64) * scale,
                      float(tr.xreal) * _si_to_nm(tr.si_unit_xy.unitstr if "si_unit_xy" in tr else "m"),
-                     _rate_from(dict(meta)))
+                     _rate_from(dict(meta)),
+                     float(tr.yreal) * _si_to_nm(tr.si_unit_xy.unitstr if "si_unit_xy" in tr else "m"))
 
 
 def _si_to_nm(unit: str) -> float:
@@ -152,7 +161,7 @@ def _read_gsf(p: Path) -> ScanImage:
         if sib.is_file():
             retrace = np.asarray(gsffile.read_gsf(sib)[0], dtype=np.float64) * z
     return ScanImage(str(p), np.asarray(data, dtype=np.float64) * z, retrace, float(meta["XReal"]) * xy,
-                     _rate_from(meta))
+                     _rate_from(meta), float(meta["YReal"]) * xy if "YReal" in meta else None)
 
 
 def _read_tiff(p: Path) -> ScanImage:
@@ -168,8 +177,9 @@ def _read_tiff(p: Path) -> ScanImage:
     z = _si_to_nm(str(meta.get("z_unit", "nm")))
     if pages and pages[0].ndim == 3:  # one page holding (channels, lines, pixels)
         pages = list(pages[0])
+    h = meta.get("scan_size_y_nm")
     return ScanImage(str(p), pages[0] * z, pages[1] * z if len(pages) > 1 else None,
-                     float(meta["scan_size_nm"]), _rate_from(meta))
+                     float(meta["scan_size_nm"]), _rate_from(meta), None if h is None else float(h))
 
 
 def scans_from_images(paths: list[str | Path], *, gain_nm_per_V: Any, period_nm: Any, scan_u_min_V: Any = 0.0,
