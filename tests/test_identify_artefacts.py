@@ -104,11 +104,20 @@ def test_delay_is_estimated_and_stored(tmp_path, capsys):
     assert fit_rms(out) < 1e-6 * np.ptp(y)
     _, out0 = identify(tmp_path, capsys, t, u, y, "--delay", "0", name="nodelay")
     assert fit_rms(out0) > 100 * fit_rms(out) + 1.0
-    # predict honours delay_s: the model's output is the delayed record
+    # predict honours delay_s: after the burn-in the model's output is the delayed record
+    from afmctl.datafiles import read_csv
+    from afmctl.identdata import burn_in_index
+
     write_csv(tmp_path / "v.csv", {"t": t, "u": u})
-    rc, _, err = run(["model", "predict", "--model", tmp_path / "m.json", "--voltages", tmp_path / "v.csv",
-                      "--out", tmp_path / "y.csv", "--warm-start", tmp_path / "v.csv"], capsys)
-    assert rc == 0, err
+    for warm in ([], ["--warm-start", tmp_path / "v.csv"]):
+        rc, out, err = run(["model", "predict", "--model", tmp_path / "m.json", "--voltages", tmp_path / "v.csv",
+                            "--out", tmp_path / "y.csv", *warm], capsys)
+        assert rc == 0, err
+        assert out.startswith(f"model predict: {t.size} rows")
+        yp = read_csv(tmp_path / "y.csv", ("t", "y"))
+        k = burn_in_index(u) + 3
+        np.testing.assert_array_equal(yp["t"], t)
+        assert np.max(np.abs(yp["y"][k:] - y[k:])) < 1e-6 * np.ptp(y)
 
 
 def test_spikes_are_removed(tmp_path, capsys):

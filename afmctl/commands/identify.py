@@ -20,15 +20,16 @@ Input:
                     Extra columns are ignored. Excite the scanner over the range you will
                     use: a decaying triangle (nested loops) for hysteresis models, and
                     holds/staircases of a few seconds for the creep-aware kinds (epi,
-                    creep), which also need uniformly spaced samples.
+                    creep; non-uniform samples are resampled for them).
+  --from-images F…  instead of --data: a .npz scan file (docs/SIM.md) or grating images,
+                    one .gwy/.gsf/.tif per scan range, e.g. --from-images r150.gwy r140.gwy …
+                    --param gain_nm_per_V=80 --param period_nm=278 (docs/REALDATA.md)
 Model kinds (--model):
   pi        Prandtl-Ishlinskii: play operators, constrained least squares (always invertible)
   epi       extended PI: PI + inflexion creep C(u,t) = (1-exp(-lambda t)) a b^u, needs dwells
   creep     linear creep (bank of first-order lags), no hysteresis
   preisach  classical Preisach on an (alpha, beta) grid: asymmetric loops, exact inverse
   bouc-wen  Bouc-Wen differential model, nonlinear least squares
-  --from-images F…  instead of --data: grating images (see --from-images below); e.g.
-                    --from-images r150.gwy r140.gwy … --param gain_nm_per_V=80 --param period_nm=278
 Real recordings (--data):
   --burn-in auto    samples until the input has passed both its extremes only set the model's
                     memory (the state the recording started in is unknown); 'none' or SECONDS
@@ -203,7 +204,8 @@ def _report(args: argparse.Namespace, c, model, first: int, y_fit) -> None:
     span = float(np.ptp(y[k:])) or 1.0
     print(model.summary())
     if model.delay_s:
-        print(f"delay            : {model.delay_s:.6g} s (delay_s)")
+        print(f"delay            : {model.delay_s:.6g} s (delay_s; used by model predict/validate — "
+              "compensate and run do not yet send the voltages that much earlier)")
     print(f"fit residual     : rms {rms:.4g} nm, max {peak:.4g} nm ({100 * peak / span:.3g} % of the {span:.4g} nm span)"
           + (f", from t = {float(c.t_s[c.fit_from]):.4g} s" if c.fit_from else ""))
     for note in c.notes:
