@@ -84,7 +84,7 @@ def test_each_format_reads_back_channels_size_and_rate(tmp_path, scans, fmt):
     np.testing.assert_allclose(arrays["u_trace_V"], scans.u_trace_V, rtol=1e-12)
 
 
-@pytest.mark.parametrize("fmt", ["gwy", "tiff"])
+@pytest.mark.parametrize("fmt", ["gsf", "gwy", "tiff"])
 def test_identify_from_image_files_equals_npz(tmp_path, scans, fmt, capsys):
     npz = scans.save_npz(tmp_path / "scans.npz")
     common = ["identify", "--model", "preisach", "--operators", "15"]

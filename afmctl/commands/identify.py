@@ -171,6 +171,10 @@ def _fit(cls, args: argparse.Namespace, c):
     except TypeError as err:  # an option the kind does not know
         raise AfmctlError(f"--param: not accepted by kind {args.model!r} ({err})") from None
     except ModelError as err:
+        if "fit_from_index" in str(err) and "fit_from_index" not in parse_params(args.param):
+            raise ModelError(f"{args.data}: after the burn-in ({float(c.t_s[k0] - c.t_s[0]):.4g} s, until the input "
+                             f"passed both extremes) too few samples remain ({err}); record more cycles or pass "
+                             "--burn-in none") from None
         raise ModelError(f"{args.data}: {err}") from None
     except np.linalg.LinAlgError as err:
         raise ModelError(f"{args.data}: the fit failed ({err}); is the input excited over its range?") from None
