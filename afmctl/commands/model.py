@@ -92,6 +92,8 @@ def run_show(args: argparse.Namespace) -> int:
     model = load_model(args.model)
     print(f"file             : {args.model}")
     print(model.summary())
+    if getattr(model, "delay_s", 0.0):
+        print(f"delay            : {model.delay_s:.6g} s (input-output delay; model predict/validate honour it)")
     return 0
 
 
