@@ -32,7 +32,7 @@ def read_csv(path: str | Path, columns: Sequence[str], *, min_rows: int = 1,
     """
     p = Path(path)
     try:
-        f = p.open(newline="", encoding="utf-8")
+        f = p.open(newline="", encoding="utf-8-sig")  # a spreadsheet's BOM is accepted
     except OSError as err:
         raise AfmctlError(f"{p}: cannot open ({err.strerror})") from None
     with f:

@@ -43,7 +43,7 @@ if str(ROOT) not in sys.path:
 
 from afmctl.compensators.drift import DriftParams, TransferPath  # noqa: E402
 from afmctl.compensators.drift_kalman import DriftKalman, KalmanParams  # noqa: E402
-from afmctl.compensators.phase_correlation import phase_correlation  # noqa: E402
+from afmctl.drift_images import FrameDriftMeter, ImageDriftFeeder  # noqa: E402
 from afmctl.compensators.temperature import TemperatureProfile  # noqa: E402
 
 
@@ -262,31 +262,34 @@ def run_scenario(setup: Setup | None = None, true_params: DriftParams | None = N
     px, py = setup.scan_nm / setup.pixels, setup.scan_nm / setup.lines
     pos = np.empty((n, 3))
     plant.start()
+    # the product's glue (afmctl.drift_images): frame f against frame 0 by phase correlation,
+    # plus the change of the mean correction applied during the frames (the image shows the
+    # residual drift), compared with the model's m_f − m_0 (the bias at frame 0 is taken as 0)
+    masks: list[np.ndarray] = []
+    submitted: list[list[float]] = []
+
+    def submit(z: np.ndarray, t_meas: float) -> None:
+        z = z.copy()
+        z[2] = float(np.mean(images[-1] - images[0])) + corr[masks[-1], 2].mean() - corr[masks[0], 2].mean()
+        model_rel = dw[masks[-1]].mean(axis=0) - dw[masks[0]].mean(axis=0)
+        kf.update(z, setup.meas_std_nm, model_drift_nm=model_rel, age_s=float(t_end - t_meas))
+        submitted.append(z.tolist())
+
+    feeder = ImageDriftFeeder(FrameDriftMeter((py, px), upsample=200, reference="first"), submit)
     for f, (a, b) in enumerate(bounds):
         corr[a:b] = dw[a:b] + _bias_path(kf, t[a:b] - t[a])
         kf.predict(dw[b - 1], dt_s=(b - a) * setup.dt_s)
         pos[a:b] = plant.cont(volts(r[a:b] - corr[a:b]), T[a:b])
         img = _image(sample, pos[:b], frame[:b], trace[:b], f, setup, rng)
         images.append(img)
+        masks.append(np.flatnonzero((frame[:b] == f) & trace[:b]))
+        t_end = float(t[b - 1])
+        feeder.feed(img, float(t[masks[-1]].mean()), corr[masks[-1], :2].mean(axis=0))
         if f == 0:
-            mask0 = np.flatnonzero((frame[:b] == 0) & trace[:b])
             continue
-        dy, dx, _ = phase_correlation(images[0], img, upsample=200)
-        # features appear shifted by −(residual drift); z: mean height change
-        resid = np.array([-dx * px, -dy * py, float(np.mean(img - images[0]))])
-        mask = np.zeros(b, dtype=bool)
-        mask[a:b] = trace[a:b]
-        # the reference (first) frame carries its own residual drift d_0 − c_0: the image
-        # difference measures (d_f − c_f) − (d_0 − c_0), so d_f − d_0 = diff + c_f − c_0,
-        # compared with the model's m_f − m_0 (the bias at the first frame is taken as 0)
-        measured = resid + corr[:b][mask].mean(axis=0) - corr[mask0].mean(axis=0)
-        model_rel = dw[:b][mask].mean(axis=0) - dw[mask0].mean(axis=0)
-        # the frame mean refers to the middle of the frame's trace samples
-        age = float(t[b - 1] - t[:b][mask].mean())
-        kf.update(measured, setup.meas_std_nm, model_drift_nm=model_rel, age_s=age)
-        true_mean = (pos[:b][mask] - r[:b][mask] + corr[:b][mask]).mean(axis=0) - \
-            (pos[mask0] - r[mask0] + corr[mask0]).mean(axis=0)
-        res.kalman_measurements.append({"frame": f, "t_s": float(t[b - 1]), "measured_nm": measured.tolist(),
+        mask, mask0 = masks[-1], masks[0]
+        true_mean = (pos[mask] - r[mask] + corr[mask]).mean(axis=0) - (pos[mask0] - r[mask0] + corr[mask0]).mean(axis=0)
+        res.kalman_measurements.append({"frame": f, "t_s": t_end, "measured_nm": submitted[-1],
                                         "true_mean_nm": true_mean.tolist(),
                                         "bias_nm": kf.bias_nm.tolist(), "std_nm": kf.std_nm.tolist()})
     res.errors[f"params {model_error:.0%} off + Kalman (1 meas./frame)"] = pos - r

@@ -68,6 +68,7 @@ class BoucWenModel(HysteresisModel):
     fit_residual_nm: float | None = Field(None, description="RMS fit residual on the data [nm]")
 
     time_dependent: ClassVar[bool] = False
+    fits_with_burn_in: ClassVar[bool] = True
 
     @model_validator(mode="after")
     def _check(self) -> "BoucWenModel":
@@ -117,7 +118,8 @@ class BoucWenModel(HysteresisModel):
         ``n_operators`` is ignored (Bouc–Wen has no operators). Options: ``n`` (fix the
         exponent instead of fitting it), ``max_rows`` (subsample the data for speed,
         default 20000 — the model is always simulated on every sample), ``u0_V`` (input at
-        which h = 0, default the first sample).
+        which h = 0, default the first sample), ``fit_from_index`` (samples before it
+        only drive the state: a burn-in).
         """
         return _identify(cls, t_s, u_V, y_nm, **options)
 
@@ -377,7 +379,7 @@ class BoucWenInverse(_BWBase):
 
 # ------------------------------------------------------------------------ identification
 def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n: float | None = None, max_rows: int = 20000,
-              u0_V: float | None = None) -> BoucWenModel:
+              u0_V: float | None = None, fit_from_index: int = 0) -> BoucWenModel:
     """Nonlinear least squares over p = [log d, log(A/d), log h_sat, c, (n), offset/ŷ] with
     β + γ = A/h_sat^n and γ = c·β; bounds keep the fit inside the admissible, reasonably
     non-stiff region (h_sat ≥ 0.5 % of the output range, −0.8 ≤ c ≤ 1, 1 ≤ n ≤ 4)."""
@@ -398,7 +400,8 @@ def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n: float | None = None, 
         raise ModelError(f"max_rows: must be an integer >= 20, got {max_rows!r}")
     u0 = float(u[0]) if u0_V is None else number_option("u0_V", u0_V)
     u = np.ascontiguousarray(u)
-    sel = np.unique(np.linspace(0, u.shape[0] - 1, min(max_rows, u.shape[0])).round().astype(np.int64))
+    k0 = number_option("fit_from_index", fit_from_index, lo=0, hi=u.shape[0] - 20, integer=True)
+    sel = np.unique(np.linspace(k0, u.shape[0] - 1, min(max_rows, u.shape[0] - k0)).round().astype(np.int64))
     travel = float(np.sum(np.abs(np.diff(np.r_[u0, u]))))
     slope, icpt = np.polyfit(u, y, 1)
     d0 = max(abs(float(slope)), 1e-12)
@@ -458,7 +461,7 @@ def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n: float | None = None, 
         model = cls(d_nm_per_V=d, A_nm_per_V=A, beta=beta, gamma=gamma, n=nn, offset_nm=off, u0_V=u0)
     except ValueError as err:
         raise ModelError(f"data: the fitted Bouc–Wen parameters are not admissible ({err})") from None
-    res = model.forward().block(u) - y
+    res = (model.forward().block(u) - y)[k0:]
     model.fit_residual_nm = float(np.sqrt(np.mean(res * res)))
     log.info("identify bouc-wen: %s", model.summary().replace("\n", "; "))
     return model

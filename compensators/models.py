@@ -45,8 +45,14 @@ class HysteresisModel(BaseModel):
     u_range_V: tuple[FiniteFloat, FiniteFloat] | None = Field(
         default=None, description="input voltage range the model was identified on (lo, hi) [V]; "
                                   "absent in files written before it was recorded")
+    #: input–output delay [s]: the model's output answers the input ``delay_s`` earlier
+    #: (``y(t) = M[u](t − delay_s)``); estimated by ``afmctl identify`` from measured data
+    delay_s: float = Field(default=0.0, ge=0.0, le=1.0, allow_inf_nan=False,
+                           description="input–output delay [s], 0…1 s")
     #: which model kinds are time-dependent (need a uniform sample period)
     time_dependent: ClassVar[bool] = False
+    #: whether ``identify`` takes ``fit_from_index`` (a burn-in: earlier samples only set the memory)
+    fits_with_burn_in: ClassVar[bool] = False
 
     @field_validator("u_range_V")
     @classmethod

@@ -38,7 +38,7 @@ V/nm — what ``afmctl model invert`` writes). Either file describes the same sc
 from __future__ import annotations
 
 import logging
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import Field, FiniteFloat, ValidationInfo, field_validator
@@ -293,6 +293,7 @@ class PIModel(PIFamilyModel):
     """Prandtl–Ishlinskii model file (``kind = "pi"``), rate-independent."""
 
     kind: Literal["pi"] = "pi"
+    fits_with_burn_in: ClassVar[bool] = True
 
     def forward(self, dt_s: float | None = None) -> PIOperator:
         """Operator u [V] → y [nm]."""
@@ -318,7 +319,8 @@ class PIModel(PIFamilyModel):
         ``S_k = Σ_{j≤k} w_j ≥ ε`` for every k (so ``w_0 ≥ ε`` too), which keeps the model
         invertible; ``ε = min_slope_fraction · (span y / span u)``, default fraction 1e-3.
         Options: ``thresholds``, ``min_slope_fraction``, ``max_rows`` (rows used in the
-        least-squares problem, default 200000; longer data are decimated evenly).
+        least-squares problem, default 200000; longer data are decimated evenly),
+        ``fit_from_index`` (samples before it only drive the play states: a burn-in).
         """
         u, y, r, x0 = prepare_pi_identification(t_s, u_V, y_nm, n_operators, options)
         w, off = fit_pi_weights(u, y, r, x0, **_fit_options(options))
@@ -371,7 +373,7 @@ def prepare_pi_identification(t_s: Any, u_V: Any, y_nm: Any, n_operators: int | 
 
 
 def _fit_options(options: dict) -> dict:
-    allowed = {"min_slope_fraction", "max_rows"}
+    allowed = {"min_slope_fraction", "max_rows", "fit_from_index"}
     unknown = set(options) - allowed
     if unknown:
         raise ModelError(f"options: unknown option(s) {', '.join(sorted(unknown))}; allowed: "
@@ -396,7 +398,8 @@ def play_matrix(u: np.ndarray, r: np.ndarray, x0: np.ndarray, stride: int = 1) -
 
 def fit_pi_weights(u: np.ndarray, y: np.ndarray, r: np.ndarray, x0: np.ndarray, *,
                    min_slope_fraction: float = 1e-3, max_rows: int = 200_000,
-                   extra: np.ndarray | None = None) -> tuple[np.ndarray, float] | tuple[np.ndarray, float, float]:
+                   extra: np.ndarray | None = None, fit_from_index: int = 0
+                   ) -> tuple[np.ndarray, float] | tuple[np.ndarray, float, float]:
     """Constrained least squares for PI weights and offset (see :meth:`PIModel.identify`).
 
     The problem is solved in the partial sums ``S_k`` (``w = D·S``), where the
@@ -406,6 +409,8 @@ def fit_pi_weights(u: np.ndarray, y: np.ndarray, r: np.ndarray, x0: np.ndarray, 
 
     ``extra`` (same length as ``u``) adds one more regressor with a coefficient ≥ 0 (the
     extended PI model's creep signal); then ``(w, offset, coefficient)`` is returned.
+    ``fit_from_index``: rows before this sample are simulated (they set the play states)
+    but left out of the least-squares problem (a burn-in for data with an unknown start).
     """
     from scipy.optimize import lsq_linear
 
@@ -414,8 +419,11 @@ def fit_pi_weights(u: np.ndarray, y: np.ndarray, r: np.ndarray, x0: np.ndarray, 
         raise ModelError(f"min_slope_fraction: {min_slope_fraction!r} must be in (0, 1)")
     max_rows = number_option("max_rows", max_rows, lo=2 * r.size + 2, integer=True)
     stride = max(1, int(np.ceil(u.size / max_rows)))
+    fit_from_index = number_option("fit_from_index", fit_from_index, lo=0, hi=u.size - 2 * r.size - 2, integer=True)
     X = play_matrix(u, r, x0, stride)
-    yy = y[::stride]
+    keep = np.arange(0, u.size, stride) >= fit_from_index
+    X = X[keep]
+    yy = y[::stride][keep]
     n = r.size
     ne = 0 if extra is None else 1
     # columns for the partial sums: a_j − a_{j+1}, last a_{n−1}; then the offset column
@@ -424,7 +432,7 @@ def fit_pi_weights(u: np.ndarray, y: np.ndarray, r: np.ndarray, x0: np.ndarray, 
     A[:, n - 1] = X[:, n - 1]
     A[:, n] = 1.0
     if extra is not None:
-        A[:, n + 1] = np.asarray(extra, dtype=np.float64)[::stride]
+        A[:, n + 1] = np.asarray(extra, dtype=np.float64)[::stride][keep]
     gain = float(np.ptp(yy)) / float(np.ptp(u)) if np.ptp(yy) > 0 else 1.0
     eps = float(min_slope_fraction) * abs(gain)
     # column scaling for conditioning

@@ -88,6 +88,7 @@ class PreisachModel(HysteresisModel):
     fit_max_residual_nm: float | None = Field(None, description="max |fit residual| [nm]")
 
     time_dependent: ClassVar[bool] = False
+    fits_with_burn_in: ClassVar[bool] = True
 
     @model_validator(mode="after")
     def _check(self) -> "PreisachModel":

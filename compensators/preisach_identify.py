@@ -62,9 +62,10 @@ def _check_data(t_s: Any, u_V: Any, y_nm: Any) -> tuple[np.ndarray, np.ndarray]:
 def identify_preisach(cls: type, t_s: Any, u_V: Any, y_nm: Any, n_operators: int | None = None, *,
                       u_min_V: float | None = None, u_max_V: float | None = None, method: str = "auto",
                       smoothing: float = 1e-4, max_rows: int = 200000, memory_depth: int | None = None,
-                      levels: int | None = None) -> Any:
+                      levels: int | None = None, fit_from_index: int = 0) -> Any:
     """Fit ``cls`` (a :class:`~afmctl.compensators.preisach.PreisachModel`) to the data; see the
-    module docstring. ``n_operators`` (or ``levels``) is the number of grid levels."""
+    module docstring. ``n_operators`` (or ``levels``) is the number of grid levels.
+    ``fit_from_index`` (nnls only): samples before it only set the memory (a burn-in)."""
     u, y = _check_data(t_s, u_V, y_nm)
     L = n_operators if n_operators is not None else (levels if levels is not None else 32)
     if isinstance(L, bool) or not isinstance(L, (int, np.integer)) or not 1 <= int(L) <= 512:
@@ -86,6 +87,9 @@ def identify_preisach(cls: type, t_s: Any, u_V: Any, y_nm: Any, n_operators: int
     if n_out:
         log.warning("identify: %d sample(s) of u_V outside %g…%g V are clamped to the grid", n_out, lo, hi)
         u = np.clip(u, lo, hi)
+    fit_from_index = number_option("fit_from_index", fit_from_index, lo=0, hi=u.size - 10, integer=True)
+    if fit_from_index and method == "auto":
+        method = "nnls"  # reversal curves from u_min are read from the start of the data
     cap = int(memory_depth) if memory_depth is not None else 2 * L + 2
     fields = {"memory_depth": memory_depth} if memory_depth is not None else {}
 
@@ -107,9 +111,9 @@ def identify_preisach(cls: type, t_s: Any, u_V: Any, y_nm: Any, n_operators: int
         w = _project_nonneg(G)
         model = cls.from_cell_masses(w, lo, hi, y0, fit_method="first-order reversal curves", **fields)
     else:
-        w, y0 = _nnls_fit(u, y, lo, hi, L, cap, smoothing, max_rows)
+        w, y0 = _nnls_fit(u, y, lo, hi, L, cap, smoothing, max_rows, fit_from_index)
         model = cls.from_cell_masses(w, lo, hi, y0, fit_method=f"nnls (smoothing {smoothing:g})", **fields)
-    r = model.forward().block(u) - y
+    r = (model.forward().block(u) - y)[fit_from_index:]
     model.fit_residual_nm = float(np.sqrt(np.mean(r * r)))
     model.fit_max_residual_nm = float(np.max(np.abs(r)))
     log.info("identify preisach: %s, %d levels, residual %.4g nm RMS", model.fit_method, L, model.fit_residual_nm)
@@ -288,14 +292,14 @@ def _smoothness(L: int) -> np.ndarray:
 
 
 def _nnls_fit(u: np.ndarray, y: np.ndarray, lo: float, hi: float, L: int, cap: int, smoothing: float,
-              max_rows: int) -> tuple[np.ndarray, float]:
+              max_rows: int, fit_from_index: int = 0) -> tuple[np.ndarray, float]:
     from scipy.linalg import cholesky, solve_triangular
     from scipy.optimize import nnls
-    n = u.shape[0]
+    n = u.shape[0] - fit_from_index
     if n > max_rows:
-        rows = np.unique(np.linspace(0, n - 1, max_rows).round().astype(np.int64))
+        rows = np.unique(np.linspace(0, n - 1, max_rows).round().astype(np.int64)) + fit_from_index
     else:
-        rows = np.arange(n, dtype=np.int64)
+        rows = np.arange(fit_from_index, u.shape[0], dtype=np.int64)
     nc = L * (L + 1) // 2
     AtA = np.zeros((nc, nc))
     Atb = np.zeros(nc)

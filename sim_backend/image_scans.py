@@ -3,16 +3,14 @@ Step 1): one line of a calibration grating scanned repeatedly with the UNCOMPENS
 scanner, a triangular voltage u_min → u_max → u_min per line, for several scan ranges.
 
 :func:`scan_grating_lines` returns a :class:`GratingScans` whose :meth:`GratingScans.arrays`
-is exactly the ``--from-images`` file of ``afmctl identify`` (see
-:mod:`afmctl.compensators.image_identify` and docs/SIM.md). The plant's true position is kept
+is exactly the ``--from-images`` file of ``afmctl identify`` (read by
+:mod:`afmctl.compensators.scan_files`; see :mod:`afmctl.compensators.image_identify` and docs/SIM.md). The plant's true position is kept
 apart in :attr:`GratingScans.truth` (for tests that compare with sensor-based
 identification); the image-based identification never reads it.
 """
 from __future__ import annotations
 
 import logging
-import zipfile
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -126,45 +124,6 @@ def scan_grating_lines(scanner: Any, sample: Any | None = None, *, axis: Literal
         truth = {"t_s": np.concatenate(t_all), "u_V": np.concatenate(u_all), "y_nm": np.concatenate(y_all)}
     log.info("identification scans on %s: %d ranges × %d lines × %d px", axis, R, lines_per_range, pixels)
     return GratingScans(period, ut, ut[:, ::-1].copy(), trace, retrace, skip_lines, axis, float(line_rate_Hz), truth)
-
-
-def load_scans_npz(path: str | Path) -> dict[str, np.ndarray]:
-    """Read a scan file written by :meth:`GratingScans.save_npz` (or by hand, same arrays);
-    :class:`ModelError` with the file name for anything unreadable or incomplete."""
-    from afmctl.compensators.image_identify import check_scans
-
-    p = Path(path)
-    try:
-        with np.load(p, allow_pickle=False) as f:
-            data = {k: f[k] for k in f.files}
-    except FileNotFoundError:
-        raise ModelError(f"{p}: no such scan file") from None
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as err:
-        # truncated or corrupted archives fail in zipfile/zlib, not with an OSError
-        raise ModelError(f"{p}: not a readable .npz scan file ({err})") from None
-    try:
-        check_scans(data)
-    except ModelError as err:
-        raise ModelError(f"{p}: {err}") from None
-    return data
-
-
-def identify_from_scan_file(path: str | Path, kind: str = "preisach", n_operators: int | None = None,
-                            **options: Any):
-    """``afmctl identify --from-images``: load the scan file and run the image-based
-    identification (:func:`afmctl.compensators.image_identify.identify_from_images`). Options
-    not known to the identification raise :class:`ModelError` naming them."""
-    from afmctl.compensators.image_identify import identify_from_images
-
-    data = load_scans_npz(path)
-    try:
-        return identify_from_images(data, kind=kind, n_operators=n_operators, **options)
-    except TypeError as err:
-        raise ModelError(f"{path}: option not accepted by the image-based identification of {kind!r} ({err})") from None
-    except ModelError as err:
-        raise ModelError(f"{path}: {err}") from None
-    except ValueError as err:  # incl. numpy.linalg.LinAlgError; e.g. an option value of the wrong type
-        raise ModelError(f"{path}: the image-based identification failed ({err})") from None
 
 
 def identify_axes_from_images(scanner: Any, axes: tuple[str, ...] = ("x", "y"), *, n_operators: int = DEFAULT_LEVELS,

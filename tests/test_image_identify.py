@@ -182,12 +182,12 @@ def test_compensated_grating_period_is_uniform(tmp_path):
 
 
 def test_scan_file_roundtrip_and_errors(tmp_path, x_scans):
-    from afmctl.sim_backend.image_scans import identify_from_scan_file, load_scans_npz
+    from afmctl.compensators.scan_files import identify_from_scan_files, load_scans_npz
 
     p = x_scans.save_npz(tmp_path / "scans.npz")
     data = load_scans_npz(p)
     np.testing.assert_array_equal(data["trace_nm"], x_scans.trace_nm)
-    model = identify_from_scan_file(p, "preisach", n_operators=15)
+    model = identify_from_scan_files([p], "preisach", n_operators=15)
     assert model.kind == "preisach" and model.u_max_V == 150.0
     with pytest.raises(ModelError, match="no such scan file"):
         load_scans_npz(tmp_path / "missing.npz")
@@ -207,7 +207,7 @@ def test_scan_file_roundtrip_and_errors(tmp_path, x_scans):
     with pytest.raises(ModelError, match="missing array"):
         load_scans_npz(tmp_path / "partial.npz")
     with pytest.raises(ModelError, match="option not accepted"):
-        identify_from_scan_file(p, "preisach", n_operators=15, colour="red")
+        identify_from_scan_files([p], "preisach", n_operators=15, colour="red")
 
 
 def test_cli_identify_from_images(tmp_path, x_scans, capsys):

@@ -42,6 +42,21 @@ def test_readme_offline_tour(tmp_path, capsys):
     assert md.check(lin, data / "target.csv") > 5 * max_pct
 
 
+def test_readme_real_data_tour(tmp_path, capsys):
+    """identify → validate on the held-out real recording, as the README shows it."""
+    import re
+    d = ROOT / "tests" / "data" / "smarthysteresis-pea"
+    assert main(["identify", "--model", "pi", "--operators", "12", "--data", str(d / "ident.csv"),
+                 "--out", str(tmp_path / "pea.json")]) == 0
+    capsys.readouterr()
+    assert main(["model", "validate", "--model", str(tmp_path / "pea.json"), "--data", str(d / "validate.csv"),
+                 "--warm-start", str(d / "ident.csv"), "--plot", str(tmp_path / "pea.png")]) == 0
+    row = next(ln for ln in capsys.readouterr().out.splitlines() if ln.split()[:1] == ["all"]).split()
+    quoted = re.search(r"held-out RMS ([\d.]+) nm, max (\d+) nm", (ROOT / "README.md").read_text(encoding="utf-8"))
+    assert float(row[3]) == pytest.approx(float(quoted.group(1)), abs=0.5)
+    assert float(row[4]) == pytest.approx(float(quoted.group(2)), abs=5.0)
+
+
 def test_readme_mentions_only_existing_files():
     text = (ROOT / "README.md").read_text(encoding="utf-8")
     import re

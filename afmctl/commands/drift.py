@@ -18,6 +18,28 @@ See docs/DRIFT.md.
   afmctl drift predict --temperature TEMP.csv --out DRIFT.csv
   afmctl drift params --params table_a1 --out my_scanner.json   (edit, then --params my_scanner.json)
   afmctl drift fit --temperature TEMP.csv --drift MEASURED.csv --out my_scanner.json
+  afmctl drift measure frame1.gwy frame2.gwy ... --out MEASURED.csv   (drift from images)
+"""
+
+MEASURE_DESCRIPTION = """\
+Measure the drift from successive AFM frames of the same area: each frame is
+phase-correlated with the previous one (sub-pixel, upsampled DFT), the shifts accumulate,
+and the tip's drift since the first frame is written (the sample is taken to stay put: if
+the tip drifts by +d, features appear at -d).
+
+Inputs:
+  IMG...                   two or more frames, in time order: .gwy, .gsf or .tif (trace
+                           channel; pixel size from the scan size in the file's metadata)
+  --frame-period-s S       time between frames (s); default: lines / line rate from the
+                           file's metadata
+Output:
+  --out DRIFT.csv          columns t,x,y,dx_px,dy_px (s, nm, nm, px, px): t of each frame
+                           from the first, the drift x,y since the first frame, and the
+                           content's shift against the previous frame. Feed it to
+                           'afmctl drift fit --drift DRIFT.csv'.
+
+Example:
+  afmctl drift measure scan_001.gwy scan_002.gwy scan_003.gwy --out drift_xy.csv
 """
 
 PREDICT_DESCRIPTION = """\
@@ -100,6 +122,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     pf.add_argument("--max-gap", type=float, default=600.0, metavar="SECONDS",
                     help="longest bridged step between temperature rows (default 600 s)")
     pf.set_defaults(func=run_fit)
+    pm = sub.add_parser("measure", help="drift between successive AFM frames of the same area (nm)",
+                        description=MEASURE_DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
+    pm.add_argument("images", nargs="+", metavar="IMG", help="frames in time order (.gwy, .gsf, .tif)")
+    pm.add_argument("--out", required=True, metavar="DRIFT.csv", help="output CSV t,x,y,dx_px,dy_px")
+    pm.add_argument("--frame-period-s", type=float, default=None, metavar="S",
+                    help="time between frames in s (default: lines / line rate from the metadata)")
+    pm.set_defaults(func=run_measure)
     pq = sub.add_parser("params", help="print or export a drift parameter set as JSON",
                         description="Print a drift parameter set (or write it with --out) to edit every "
                                     "coefficient. Example: afmctl drift params --params table_a1 --out a1.json")
@@ -190,6 +219,8 @@ def predict_file(t_s, T_C, params, *, dt_s=None, volts=None, max_gap_s=600.0, wh
 
 
 def run_predict(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from ..datafiles import read_csv, write_csv
 
     params = load_params(args.params)
@@ -202,8 +233,44 @@ def run_predict(args: argparse.Namespace) -> int:
                      where=str(args.temperature))
     write_csv(args.out, {"t": cols["t"], "x": d[:, 0], "y": d[:, 1], "z": d[:, 2]})
     log.info("wrote %d rows to %s (params %s)", d.shape[0], args.out, params.name)
+    peak = np.max(np.abs(d), axis=0)
+    print(f"drift predict: {d.shape[0]} rows over {float(cols['t'][-1] - cols['t'][0]):.4g} s, params {params.name}; "
+          f"peak |x| {peak[0]:.4g} nm, |y| {peak[1]:.4g} nm, |z| {peak[2]:.4g} nm -> {args.out}")
     if args.plot:
         _plot(args.plot, cols["t"], cols["T"], d, params.name)
+    return 0
+
+
+def run_measure(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from ..datafiles import write_csv
+    from ..drift_images import FrameDriftMeter
+    from ..errors import AfmctlError
+    from afmctl.compensators.scan_files import read_scan_image
+
+    if len(args.images) < 2:
+        raise AfmctlError("IMG: at least two frames are needed to measure a drift")
+    imgs = [read_scan_image(p) for p in args.images]
+    shapes = {im.trace_nm.shape for im in imgs}
+    if len(shapes) != 1:
+        raise AfmctlError(f"{args.images[0]}: all frames must have the same lines × pixels; got {sorted(shapes)}")
+    period = args.frame_period_s
+    if period is None:
+        if imgs[0].line_rate_Hz is None or not imgs[0].line_rate_Hz > 0:
+            raise AfmctlError(f"{args.images[0]}: no line rate in the metadata; give --frame-period-s")
+        period = imgs[0].trace_nm.shape[0] / imgs[0].line_rate_Hz
+    if not (np.isfinite(period) and 0 < period <= 1e6):
+        raise AfmctlError(f"--frame-period-s: {period!r} s is outside the allowed range (0, 1e6] s")
+    meter = FrameDriftMeter(imgs[0].pixel_nm())
+    for k, im in enumerate(imgs):
+        meter.add(im.trace_nm, k * period)
+    f = meter.frames
+    write_csv(args.out, {"t": np.array([d.t_s for d in f]), "x": np.array([d.drift_nm[0] for d in f]),
+                         "y": np.array([d.drift_nm[1] for d in f]), "dx_px": np.array([d.step_px[1] for d in f]),
+                         "dy_px": np.array([d.step_px[0] for d in f])})
+    print(f"drift measure: {len(f)} frames, {f[-1].t_s:.4g} s; drift since the first frame x {f[-1].drift_nm[0]:.4g} nm, "
+          f"y {f[-1].drift_nm[1]:.4g} nm (pixel {imgs[0].pixel_nm()[1]:.4g} × {imgs[0].pixel_nm()[0]:.4g} nm) -> {args.out}")
     return 0
 
 

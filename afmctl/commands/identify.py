@@ -20,13 +20,24 @@ Input:
                     Extra columns are ignored. Excite the scanner over the range you will
                     use: a decaying triangle (nested loops) for hysteresis models, and
                     holds/staircases of a few seconds for the creep-aware kinds (epi,
-                    creep), which also need uniformly spaced samples.
+                    creep; non-uniform samples are resampled for them).
+  --from-images F…  instead of --data: a .npz scan file (docs/SIM.md) or grating images,
+                    one .gwy/.gsf/.tif per scan range, e.g. --from-images r150.gwy r140.gwy …
+                    --param gain_nm_per_V=80 --param period_nm=278 (docs/REALDATA.md)
 Model kinds (--model):
   pi        Prandtl-Ishlinskii: play operators, constrained least squares (always invertible)
   epi       extended PI: PI + inflexion creep C(u,t) = (1-exp(-lambda t)) a b^u, needs dwells
   creep     linear creep (bank of first-order lags), no hysteresis
   preisach  classical Preisach on an (alpha, beta) grid: asymmetric loops, exact inverse
   bouc-wen  Bouc-Wen differential model, nonlinear least squares
+Real recordings (--data):
+  --burn-in auto    samples until the input has passed both its extremes only set the model's
+                    memory (the state the recording started in is unknown); 'none' or SECONDS
+  --delay auto      the sensor's delay (whole samples, estimated; stored as delay_s); or SECONDS
+  spikes            isolated outliers of y are replaced by their running median (--keep-spikes)
+  units             u within ±1000 V, y within ±1 mm; y in µm is refused unless --y-unit um
+  excitation        the output says what the input cannot identify and what to record
+                    instead (afmctl excite --kind static|creep|dynamics)
 Options:
   --operators N     pi/epi: play operators (default 13, max 1000); creep: lags (default 4);
                     preisach: grid levels (default 32; nnls up to 64, for up to 512);
@@ -55,15 +66,25 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--model", required=True, metavar="KIND", help="model kind: pi, epi, creep, preisach, bouc-wen")
     p.add_argument("--data", metavar="DATA.csv", help="CSV with columns t,u,y (s, V, nm)")
-    p.add_argument("--from-images", metavar="SCANS.npz",
+    p.add_argument("--from-images", metavar="SCANS", nargs="+",
                    help="instead of --data: identify without a position sensor from AFM images of a "
-                        "calibration grating (npz of line images + voltage ramps, format in docs/SIM.md)")
+                        "calibration grating: one .npz of line images + voltage ramps (docs/SIM.md), or "
+                        "image files, one scan range each (.gwy, .gsf, .tif with trace and retrace; "
+                        "needs --param gain_nm_per_V=… --param period_nm=…, optional scan_u_min_V, skip_lines)")
     p.add_argument("--out", required=True, metavar="MODEL.json", help="where to write the fitted model")
     p.add_argument("--operators", type=int, default=None, metavar="N",
                    help="number of operators (PI plays, creep lags, ...); default depends on the kind")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="model-specific option (repeatable); VALUE is parsed as JSON when possible")
     p.add_argument("--plot", metavar="FIT.png", help="also draw the data and the model's output")
+    p.add_argument("--y-unit", default="nm", metavar="nm|um", help="unit of the data's y column (default nm)")
+    p.add_argument("--burn-in", default="auto", metavar="auto|none|SECONDS",
+                   help="samples that only set the model's memory (default auto: until the input has "
+                        "passed both its extremes, when the record does not start at its lowest voltage)")
+    p.add_argument("--delay", default="auto", metavar="auto|SECONDS",
+                   help="input-output delay of the sensor (default auto: estimated, whole samples)")
+    p.add_argument("--keep-spikes", action="store_true",
+                   help="do not replace isolated outliers of y (Hampel filter) before fitting")
     p.set_defaults(func=run)
 
 
@@ -85,61 +106,122 @@ def parse_params(items: list[str]) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from ..datafiles import read_csv, uniform_period
     from ..errors import AfmctlError
-    from afmctl.compensators.base import ModelError
-    from afmctl.compensators.models import model_class, save_model
+    from afmctl.compensators.models import model_class
 
     cls = model_class(args.model)
-    if getattr(args, "from_images", None) is not None:  # image-based identification, docs/SIM.md
-        from afmctl.sim_backend.image_scans import identify_from_scan_file
-
-        model = identify_from_scan_file(args.from_images, args.model, n_operators=args.operators,
-                                        **parse_params(args.param))
-        try:
-            save_model(model, args.out)
-        except OSError as err:
-            raise AfmctlError(f"--out: cannot write {args.out} ({err.strerror})") from None
-        print(model.summary())
-        print(f"written          : {args.out}")
-        return 0
+    if getattr(args, "from_images", None) is not None:
+        if args.data is not None:
+            raise AfmctlError("--data: give either --data DATA.csv or --from-images SCANS, not both")
+        return _run_from_images(args)
     if args.data is None:
         raise AfmctlError("--data: required; give a CSV with columns t,u,y (s, V, nm)")
     if args.operators is not None and args.operators < 1:
         raise AfmctlError(f"--operators: {args.operators} must be ≥ 1")
-    params = parse_params(args.param)
+    c = _read_conditioned(args, uniform=getattr(cls, "time_dependent", False))
+    model, first, y_fit = _fit(cls, args, c)
+    _save(model, args.out)
+    _report(args, c, model, first, y_fit)
+    return 0
+
+
+def _run_from_images(args: argparse.Namespace) -> int:
+    """``--from-images``: identification without a position sensor (docs/SIM.md)."""
+    from afmctl.compensators.scan_files import identify_from_scan_files
+
+    model = identify_from_scan_files(args.from_images, args.model, n_operators=args.operators,
+                                     **parse_params(args.param))
+    _save(model, args.out)
+    print(model.summary())
+    print(f"written          : {args.out}")
+    return 0
+
+
+def _read_conditioned(args: argparse.Namespace, uniform: bool):
+    from ..datafiles import read_csv
+    from ..errors import AfmctlError
+    from ..identdata import Y_UNITS, condition
+
+    if args.y_unit not in Y_UNITS:
+        raise AfmctlError(f"--y-unit: {args.y_unit!r} is not known; allowed: nm, um")
     data = read_csv(args.data, ("t", "u", "y"), min_rows=2)
-    t, u, y = data["t"], data["u"], data["y"]
-    dt = uniform_period(t, str(args.data)) if getattr(cls, "time_dependent", False) else None
+    return condition(data["t"], data["u"], data["y"] * Y_UNITS[args.y_unit], str(args.data),
+                     burn_in=args.burn_in, delay=args.delay, despike=not args.keep_spikes, uniform=uniform)
+
+
+def _fit(cls, args: argparse.Namespace, c):
+    """Fit the kind to conditioned data; returns ``(model, first, y_fit)``: the model's output
+    from sample ``first`` on. Kinds that take ``fit_from_index`` simulate the burn-in
+    (``first = 0``); others are fitted after it (``first`` = the burn-in)."""
+    import numpy as np
+
+    from ..errors import AfmctlError
+    from ..identdata import delayed
+    from ..prediction import predict_nm
+    from afmctl.compensators.base import ModelError
+
+    params = parse_params(args.param)
+    t, u, y, k0 = c.t_s, delayed(c.t_s, c.u_V, c.delay_s), c.y_nm, c.fit_from
+    if k0 and getattr(cls, "fits_with_burn_in", False):
+        params.setdefault("fit_from_index", k0)
+    elif k0:
+        t, u, y, k0 = t[k0:], u[k0:], y[k0:], 0
     try:
         model = cls.identify(t, u, y, n_operators=args.operators, **params)
     except TypeError as err:  # an option the kind does not know
         raise AfmctlError(f"--param: not accepted by kind {args.model!r} ({err})") from None
     except ModelError as err:
+        if "fit_from_index" in str(err) and "fit_from_index" not in parse_params(args.param):
+            raise ModelError(f"{args.data}: after the burn-in ({float(c.t_s[k0] - c.t_s[0]):.4g} s, until the input "
+                             f"passed both extremes) too few samples remain ({err}); record more cycles or pass "
+                             "--burn-in none") from None
         raise ModelError(f"{args.data}: {err}") from None
     except np.linalg.LinAlgError as err:
         raise ModelError(f"{args.data}: the fit failed ({err}); is the input excited over its range?") from None
     except ValueError as err:  # a --param value of the wrong type that a kind did not check itself
         raise AfmctlError(f"--param: a value is not accepted by kind {args.model!r} ({err})") from None
+    model.delay_s = c.delay_s
     if model.u_range_V is None:        # compensate's default --limits
-        model.u_range_V = (float(np.min(u)), float(np.max(u)))
-    y_fit = model.forward(dt).block(u)
-    rms = float(np.sqrt(np.mean((y_fit - y) ** 2)))
-    peak = float(np.max(np.abs(y_fit - y)))
-    span = float(np.ptp(y)) or 1.0
+        model.u_range_V = (float(c.u_V.min()), float(c.u_V.max()))
+    first = c.u_V.size - t.size
+    return model, first, predict_nm(model, t, c.u_V[first:], str(args.data))
+
+
+def _save(model, path: str) -> None:
+    from ..errors import AfmctlError
+    from afmctl.compensators.models import save_model
+
     try:
-        save_model(model, args.out)
+        save_model(model, path)
     except OSError as err:
-        raise AfmctlError(f"--out: cannot write {args.out} ({err.strerror})") from None
+        raise AfmctlError(f"--out: cannot write {path} ({err.strerror})") from None
+
+
+def _report(args: argparse.Namespace, c, model, first: int, y_fit) -> None:
+    """Summary, residual after the burn-in, data notes and the excitation check."""
+    import numpy as np
+
+    from ..identdata import excitation_notes
+
+    t, u, y = c.t_s[first:], c.u_V[first:], c.y_nm[first:]
+    k = c.fit_from - first
+    res = (y_fit - y)[k:]
+    rms, peak = float(np.sqrt(np.mean(res ** 2))), float(np.max(np.abs(res)))
+    span = float(np.ptp(y[k:])) or 1.0
     print(model.summary())
-    print(f"fit residual     : rms {rms:.4g} nm, max {peak:.4g} nm ({100 * peak / span:.3g} % of the {span:.4g} nm span)")
+    if model.delay_s:
+        print(f"delay            : {model.delay_s:.6g} s (delay_s; used by model predict/validate — "
+              "compensate and run do not yet send the voltages that much earlier)")
+    print(f"fit residual     : rms {rms:.4g} nm, max {peak:.4g} nm ({100 * peak / span:.3g} % of the {span:.4g} nm span)"
+          + (f", from t = {float(c.t_s[c.fit_from]):.4g} s" if c.fit_from else ""))
+    for note in c.notes:
+        print(f"data             : {note}")
+    for note in excitation_notes(c.t_s, c.u_V):
+        print(f"excitation       : {note}")
     print(f"written          : {args.out}")
     if args.plot:
-        _plot(args.plot, t, u, y, y_fit, args.model)
+        _plot(args.plot, t[k:], u[k:], y[k:], y_fit[k:], args.model)
         print(f"plot             : {args.plot}")
-    return 0
 
 
 def _plot(path: str, t, u, y, y_fit, kind: str) -> None:

@@ -53,6 +53,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help=f"stop after S seconds, 0 < S <= {MAX_SECONDS:g} (default: end of trajectory)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.add_argument("--drift-images", metavar="DIR",
+                   help="watch DIR for new AFM frames of one area (.gwy/.gsf/.tif) while scanning and feed "
+                        "their drift (phase correlation) to the Kalman filter (compensation.drift.kalman = true)")
+    p.add_argument("--drift-image-std-nm", type=float, default=0.5, metavar="NM",
+                   help="1-sigma of a frame's drift measurement (default 0.5 nm)")
+    p.add_argument("--drift-frame-period-s", type=float, default=None, metavar="S",
+                   help="time to scan one frame (default: lines / line rate from the frame's metadata)")
     p.set_defaults(func=run)
 
 
@@ -212,6 +219,11 @@ def run(args: argparse.Namespace) -> int:
             from ..zenoh_process import ZenohBridgeProcess
             bridge = ZenohBridgeProcess(ctl, config.zenoh, scanner_name=config.scanner.name)
             stack.callback(bridge.close)
+        if args.drift_images:
+            from ..drift_watch import DriftImageWatcher
+            watcher = DriftImageWatcher(ctl, args.drift_images, args.drift_image_std_nm, args.drift_frame_period_s)
+            stack.callback(watcher.close)
+
         stops = {"n": 0}
         _install_signals(stack, ctl, stops)
         ctl.start(config.trajectory, runlog_path=args.log)

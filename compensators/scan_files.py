@@ -1,0 +1,232 @@
+"""Scan files for image-based identification (``afmctl identify --from-images``) and for drift
+measurement (``afmctl drift measure``).
+
+Two kinds of input:
+
+* the simulator's ``.npz`` layout (arrays of :data:`~afmctl.compensators.image_identify.REQUIRED_ARRAYS`,
+  written by ``afmctl.sim_backend.image_scans``), read by :func:`load_scans_npz`;
+* AFM image files, one scan range per file, read with the formats' own libraries:
+  Gwyddion ``.gwy`` (gwyfile), Gwyddion Simple Field ``.gsf`` (gsffile), TIFF ``.tif/.tiff``
+  (tifffile). Trace and retrace channels, the scan size [nm] and the line rate [Hz] come
+  from the file's metadata (see :func:`read_scan_image`). Asylum ``.ibw`` and Bruker
+  Nanoscope files are not read yet.
+
+An image file does not record the voltages of its pixels: the scan's lowest voltage
+``scan_u_min_V`` and the nominal gain ``gain_nm_per_V`` (with which the instrument turned
+voltages into its scan size) give pixel i of a line of P pixels the voltage
+``u_min + i·(scan_size / gain)/(P − 1)``, the ramp of the simulator's scans.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import re
+import zipfile
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .base import ModelError
+from .input_checks import number_option
+
+log = logging.getLogger(__name__)
+
+IMAGE_SUFFIXES = (".gwy", ".gsf", ".tif", ".tiff")
+_RATE_KEYS = re.compile(r"(line|scan)[ _]?rate", re.IGNORECASE)
+
+
+@dataclass
+class ScanImage:
+    """One AFM image: heights [nm] as (lines, pixels); retrace may be absent."""
+
+    path: str
+    trace_nm: np.ndarray
+    retrace_nm: np.ndarray | None
+    scan_size_nm: float
+    line_rate_Hz: float | None
+    #: extent along the slow axis [nm]; None: square pixels
+    scan_height_nm: float | None = None
+
+    def pixel_nm(self) -> tuple[float, float]:
+        """Pixel size ``(along y / rows, along x / columns)`` [nm]."""
+        lines, px = self.trace_nm.shape
+        pxx = self.scan_size_nm / px
+        return (self.scan_height_nm / lines if self.scan_height_nm else pxx), pxx
+
+
+def load_scans_npz(path: str | Path) -> dict[str, np.ndarray]:
+    """Read a simulator scan file (``GratingScans.save_npz`` or the same arrays by hand);
+    :class:`ModelError` with the file name for anything unreadable or incomplete."""
+    from .image_identify import check_scans
+
+    p = Path(path)
+    try:
+        with np.load(p, allow_pickle=False) as f:
+            data = {k: f[k] for k in f.files}
+    except FileNotFoundError:
+        raise ModelError(f"{p}: no such scan file") from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as err:
+        # truncated or corrupted archives fail in zipfile/zlib, not with an OSError
+        raise ModelError(f"{p}: not a readable .npz scan file ({err})") from None
+    try:
+        check_scans(data)
+    except ModelError as err:
+        raise ModelError(f"{p}: {err}") from None
+    return data
+
+
+def read_scan_image(path: str | Path) -> ScanImage:
+    """Read one AFM image file by its suffix (:data:`IMAGE_SUFFIXES`)."""
+    p = Path(path)
+    suffix = p.suffix.lower()
+    readers = {".gwy": _read_gwy, ".gsf": _read_gsf, ".tif": _read_tiff, ".tiff": _read_tiff}
+    if suffix not in readers:
+        raise ModelError(f"{p}: unknown image format {suffix!r}; allowed: {', '.join(IMAGE_SUFFIXES)}, .npz")
+    if not p.is_file():
+        raise ModelError(f"{p}: no such image file")
+    try:
+        img = readers[suffix](p)
+    except ModelError as err:
+        raise ModelError(f"{p}: {err}") from None
+    except Exception as err:  # noqa: BLE001 - a format library's own error on a damaged file
+        raise ModelError(f"{p}: not a readable {suffix} file ({type(err).__name__}: {err})") from None
+    for name, arr in (("trace", img.trace_nm), ("retrace", img.retrace_nm)):
+        if arr is not None and (arr.ndim != 2 or arr.shape[1] < 8 or not np.all(np.isfinite(arr))):
+            raise ModelError(f"{p}: {name} channel: expected finite heights of shape (lines, pixels ≥ 8), "
+                             f"got {arr.shape}")
+    if not (np.isfinite(img.scan_size_nm) and img.scan_size_nm > 0):
+        raise ModelError(f"{p}: scan size: {img.scan_size_nm!r} nm; must be a positive number")
+    return img
+
+
+def _channel_role(title: str) -> str | None:
+    t = title.lower()
+    if "retrace" in t or "backward" in t or t.endswith("(bwd)"):
+        return "retrace"
+    if "trace" in t or "forward" in t or "height" in t or "topography" in t:
+        return "trace"
+    return None
+
+
+def _rate_from(meta: dict[str, Any]) -> float | None:
+    for key, value in meta.items():
+        if _RATE_KEYS.search(str(key)):
+            m = re.search(r"[-+]?\d+(\.\d*)?([eE][-+]?\d+)?", str(value))
+            if m:
+                return float(m.group(0))
+    return None
+
+
+def _read_gwy(p: Path) -> ScanImage:
+    import gwyfile
+
+    obj = gwyfile.load(str(p))
+    fields = {}
+    for key, title in gwyfile.util.find_datafields(obj):
+        role = _channel_role(str(title))
+        if role and role not in fields:
+            fields[role] = (key, obj[f"/{key}/data"])
+    if "trace" not in fields:
+        raise ModelError("no trace channel (a channel titled '… trace', 'forward' or 'height')")
+    key, tr = fields["trace"]
+    meta = obj.get(f"/{key}/meta", {}) or {}
+    scale = _si_to_nm(tr.si_unit_z.unitstr if "si_unit_z" in tr else "m")
+    retrace = fields.get("retrace", (None, None))[1]
+    return ScanImage(str(p), np.asarray(tr.data, dtype=np.float64) * scale,
+                     None if retrace is None else np.asarray(retrace.data, dtype=np.float64) * scale,
+                     float(tr.xreal) * _si_to_nm(tr.si_unit_xy.unitstr if "si_unit_xy" in tr else "m"),
+                     _rate_from(dict(meta)),
+                     float(tr.yreal) * _si_to_nm(tr.si_unit_xy.unitstr if "si_unit_xy" in tr else "m"))
+
+
+def _si_to_nm(unit: str) -> float:
+    table = {"m": 1e9, "mm": 1e6, "um": 1e3, "µm": 1e3, "nm": 1.0, "pm": 1e-3, "": 1e9}
+    if unit not in table:
+        raise ModelError(f"unit {unit!r}: a length unit is needed (m, µm, nm)")
+    return table[unit]
+
+
+def _read_gsf(p: Path) -> ScanImage:
+    import gsffile
+
+    data, meta = gsffile.read_gsf(p)
+    xy = _si_to_nm(str(meta.get("XYUnits", "m")))
+    z = _si_to_nm(str(meta.get("ZUnits", "m")))
+    retrace = None
+    if "retrace" not in p.name.lower() and "trace" in p.name.lower():
+        sib = p.with_name(re.sub("trace", "retrace", p.name, count=1, flags=re.IGNORECASE))
+        if sib.is_file():
+            retrace = np.asarray(gsffile.read_gsf(sib)[0], dtype=np.float64) * z
+    return ScanImage(str(p), np.asarray(data, dtype=np.float64) * z, retrace, float(meta["XReal"]) * xy,
+                     _rate_from(meta), float(meta["YReal"]) * xy if "YReal" in meta else None)
+
+
+def _read_tiff(p: Path) -> ScanImage:
+    """Pages: trace, then retrace; heights and the scan size per the JSON description that
+    tifffile writes (``scan_size_nm``, ``line_rate_Hz``, ``z_unit``)."""
+    import tifffile
+
+    with tifffile.TiffFile(p) as tif:
+        pages = [np.asarray(pg.asarray(), dtype=np.float64) for pg in tif.pages]
+        meta = tif.shaped_metadata[0] if tif.shaped_metadata else {}
+    if "scan_size_nm" not in meta:
+        raise ModelError("no 'scan_size_nm' in the TIFF description (tifffile JSON metadata)")
+    z = _si_to_nm(str(meta.get("z_unit", "nm")))
+    if pages and pages[0].ndim == 3:  # one page holding (channels, lines, pixels)
+        pages = list(pages[0])
+    h = meta.get("scan_size_y_nm")
+    return ScanImage(str(p), pages[0] * z, pages[1] * z if len(pages) > 1 else None,
+                     float(meta["scan_size_nm"]), _rate_from(meta), None if h is None else float(h))
+
+
+def scans_from_images(paths: list[str | Path], *, gain_nm_per_V: Any, period_nm: Any, scan_u_min_V: Any = 0.0,
+                      skip_lines: Any = 1) -> dict[str, Any]:
+    """Image files (one scan range each) → the arrays of the ``.npz`` scan layout."""
+    gain = number_option("gain_nm_per_V", gain_nm_per_V, lo=1e-6, hi=1e6)
+    period = number_option("period_nm", period_nm, lo=1e-3, hi=1e7)
+    lo = number_option("scan_u_min_V", scan_u_min_V, lo=-1000.0, hi=1000.0)
+    images = [read_scan_image(p) for p in paths]
+    px = {im.trace_nm.shape for im in images}
+    if len(px) != 1:
+        raise ModelError(f"{paths[0]}: all images must have the same lines × pixels; got {sorted(px)}")
+    ramps = []
+    for im in images:
+        if im.retrace_nm is None or im.retrace_nm.shape != im.trace_nm.shape:
+            raise ModelError(f"{im.path}: no retrace channel of the trace's shape; both are needed")
+        ramps.append(np.linspace(lo, lo + im.scan_size_nm / gain, im.trace_nm.shape[1]))
+    ut = np.array(ramps)
+    rates = [im.line_rate_Hz for im in images if im.line_rate_Hz is not None]
+    return {"period_nm": np.float64(period), "u_trace_V": ut, "u_retrace_V": ut[:, ::-1].copy(),
+            "trace_nm": np.array([im.trace_nm for im in images]),
+            "retrace_nm": np.array([im.retrace_nm[:, ::-1] for im in images]),
+            "skip_lines": np.int64(number_option("skip_lines", skip_lines, lo=0, integer=True)),
+            "line_rate_Hz": np.float64(rates[0] if rates else np.nan)}
+
+
+def identify_from_scan_files(paths: list[str | Path], kind: str = "preisach", n_operators: int | None = None,
+                             **options: Any):
+    """``afmctl identify --from-images``: one ``.npz`` scan file, or image files (one scan
+    range each; options ``gain_nm_per_V``, ``period_nm``, ``scan_u_min_V``, ``skip_lines``)."""
+    from .image_identify import identify_from_images
+
+    where = str(paths[0])
+    if len(paths) == 1 and str(paths[0]).lower().endswith(".npz"):
+        data = load_scans_npz(paths[0])
+    else:
+        keys = ("gain_nm_per_V", "period_nm", "scan_u_min_V", "skip_lines")
+        missing = [k for k in keys[:2] if k not in options]
+        if missing:
+            raise ModelError(f"{where}: image files need --param {missing[0]}=… (nominal gain nm/V of the scan "
+                             "size, grating period nm)")
+        data = scans_from_images(list(paths), **{k: options.pop(k) for k in keys if k in options})
+    try:
+        return identify_from_images(data, kind=kind, n_operators=n_operators, **options)
+    except TypeError as err:
+        raise ModelError(f"{where}: option not accepted by the image-based identification of {kind!r} ({err})") from None
+    except ModelError as err:
+        raise ModelError(f"{where}: {err}") from None
+    except ValueError as err:  # incl. numpy.linalg.LinAlgError; e.g. an option value of the wrong type
+        raise ModelError(f"{where}: the image-based identification failed ({err})") from None
