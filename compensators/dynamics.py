@@ -59,7 +59,7 @@ class LinearDynamicsModel(HysteresisModel):
     delay_s: FiniteFloat = Field(0.0, ge=0.0, le=1.0, description="pure delay [s]")
     initial_nm: FiniteFloat = Field(0.0, description="input and output at rest before the first sample [nm]")
     bandwidth_Hz: FiniteFloat | None = Field(None, gt=0, description="band limit of the inverse [Hz]; "
-                                             "null = twice the fastest pole")
+                                             "null = 1.5 × the slowest pole")
     regularisation: FiniteFloat = Field(1e-3, ge=0, le=10, description="Tikhonov λ of the inverse")
     fit_info: dict[str, float | str] | None = Field(None, description="identification summary")
 
@@ -108,13 +108,15 @@ class LinearDynamicsModel(HysteresisModel):
         return discretise(self.zeros(), self.poles(), self.delay_s, float(dt_s))
 
     def inverse_bandwidth_Hz(self, dt_s: float) -> float:
-        """Band limit of the inverse [Hz]: ``bandwidth_Hz`` or twice the fastest pole, at
-        most 45 % of the sample rate."""
+        """Band limit of the inverse [Hz]: ``bandwidth_Hz`` or 1.5 × the slowest pole (just
+        above the first structural mode: above it the inverse's gain grows as f², and the
+        sharp corners of a raster would need more voltage and slew than an amplifier has),
+        at most 45 % of the sample rate."""
         if self.bandwidth_Hz is not None:
             bw = float(self.bandwidth_Hz)
         else:
             p = self.poles()
-            bw = 2 * float(np.max(np.abs(p))) / (2 * math.pi) if p.size else 0.45 / dt_s
+            bw = 1.5 * float(np.min(np.abs(p))) / (2 * math.pi) if p.size else 0.45 / dt_s
         return min(bw, 0.45 / dt_s)
 
     # ------------------------------------------------------------------ operators
@@ -165,6 +167,15 @@ class LinearDynamicsModel(HysteresisModel):
         return cls(poles_rad_per_s=[(float(p.real), float(p.imag)) for p in fit.poles],
                    zeros_rad_per_s=[(float(z.real), float(z.imag)) for z in fit.zeros],
                    delay_s=fit.delay_s, initial_nm=float(np.asarray(y_nm, dtype=float)[0]), fit_info=fit.info)
+
+    def predict_linear(self, u: np.ndarray, y_nm: np.ndarray, dt_s: float) -> np.ndarray:
+        """What the fitted linear model says ``y`` [nm] was for input ``u``: the first
+        output sample plus the static gain of ``fit_info`` times the dynamics' response to
+        the input's change (for the residual that ``afmctl identify`` prints)."""
+        u = block_samples("u", u)
+        gain = float((self.fit_info or {}).get("static_gain_y_per_u", 1.0))
+        g = self.forward(dt_s, initial_nm=float(u[0])).block(u) if u.size else u
+        return float(np.asarray(y_nm, dtype=float)[0]) + gain * (g - float(u[0]))
 
     def summary(self) -> str:
         lines = ["model            : linear dynamics, unit DC gain, with delay (kind dynamics)",

@@ -4,8 +4,9 @@
    (:func:`scipy.signal.csd`, :func:`scipy.signal.welch`, :func:`scipy.signal.coherence`).
 2. Keep the bins the input excites (power above 1e-6 of its peak) whose coherence is at
    least ``min_coherence``, between ``f_min_Hz`` and ``f_max_Hz``.
-3. Fit, with :func:`scipy.optimize.least_squares` on the relative complex error
-   ``√coh·(G(f)/Ĝ(f) − 1)``, the structure
+3. Fit, with :func:`scipy.optimize.least_squares` on the complex log error
+   ``√coh·log(G(f)/Ĝ(f))`` (log-magnitude and phase difference, no unwrapping), the
+   structure
 
        G(s) = K · Π_i ω_i²/(s² + 2ζ_iω_i s + ω_i²) · Π_j p_j/(s + p_j) · e^{−sτ}
 
@@ -16,7 +17,9 @@
 
 The measured response of sampled, zero-order-held data carries the hold's half-sample
 delay; the model's own discretisation adds it again, so it is taken off the fitted delay
-(``delay_s = max(0, τ − dt/2)``).
+(``delay_s = max(0, τ − dt/2)``). The fit lets ``τ`` go down to ``−2·dt`` so that data
+whose output is sampled at the end of each hold interval (a simulator that answers in the
+same sample) still fits; such a lead is reported in ``fit_info`` and not kept.
 """
 from __future__ import annotations
 
@@ -59,6 +62,35 @@ def uniform_dt(t_s: np.ndarray) -> float:
     if dt <= 0 or np.max(np.abs(d - dt)) > 1e-3 * dt:
         raise ModelError("t_s: dynamics identification needs strictly increasing, uniformly sampled time")
     return dt
+
+
+def small_signal_segment(u: np.ndarray, y: np.ndarray, t: np.ndarray, segment: Any
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The part of the record to fit: ``segment="all"`` everything; ``"auto"`` the longest
+    run of samples whose input moves, but within 5 % of the input's span over 0.1 s
+    windows (the small-signal part of an ``afmctl excite --kind all`` recording; large
+    sweeps would show the hysteresis, dwells carry no information)."""
+    if segment == "all":
+        return u, y, t
+    if segment != "auto":
+        raise ModelError(f"segment: {segment!r}; allowed: auto, all")
+    from scipy.ndimage import maximum_filter1d, minimum_filter1d
+
+    dt = float(t[1] - t[0])
+    w = max(3, int(round(0.1 / dt)))
+    local = maximum_filter1d(u, w) - minimum_filter1d(u, w)
+    span = float(np.ptp(u))
+    ok = (local > 0) & (local <= 0.05 * span) if span > 0 else np.zeros(u.size, bool)
+    if not np.any(ok) or np.all(ok):
+        return u, y, t
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(np.int8), [0]])))
+    starts, stops = edges[::2], edges[1::2]
+    k = int(np.argmax(stops - starts))
+    a, b = int(starts[k]), int(stops[k])
+    if b - a < 256:
+        return u, y, t
+    log.info("dynamics: fitting the small-signal part %.6g … %.6g s", t[a], t[b - 1])
+    return u[a:b], y[a:b], t[a:b]
 
 
 def measure_frf(u: np.ndarray, y: np.ndarray, dt_s: float, nperseg: int, f_min_Hz: float, f_max_Hz: float,
@@ -104,38 +136,43 @@ def model_response(x: np.ndarray, f_Hz: np.ndarray, n_modes: int, n_lags: int) -
     return g
 
 
-def _initial(frf: FRF, n_modes: int, n_lags: int, lag_Hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _initial(frf: FRF, n_modes: int, n_lags: int, lag_Hz: float, dt_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     from scipy.signal import find_peaks
 
-    K0 = float(np.median(np.abs(frf.G[: max(3, frf.f_Hz.size // 50)])))
-    mag = np.abs(frf.G) / K0
-    peaks, props = find_peaks(mag, prominence=0.05)
+    mag = np.abs(frf.G)
+    peaks, props = find_peaks(mag / np.median(mag), prominence=0.05)
     order = peaks[np.argsort(props["prominences"])[::-1]][:n_modes] if peaks.size else np.zeros(0, int)
     f_lo, f_hi = float(frf.f_Hz[0]), float(frf.f_Hz[-1])
+    below = frf.f_Hz < 0.2 * (float(np.min(frf.f_Hz[order])) if order.size else f_hi)
+    K0 = float(np.median(mag[below] if np.count_nonzero(below) >= 3 else mag[:3]))
     fm = sorted(frf.f_Hz[order].tolist())
+    # ζ from the peak height: |G(f_n)| ≈ K/(2ζ)
+    zeta0 = sorted([float(np.clip(K0 / (2 * mag[i]), 2e-3, 0.5)) for i in order], key=lambda z: 0)
+    zeta0 = [z for _, z in sorted(zip(frf.f_Hz[order].tolist(), zeta0))]
     while len(fm) < n_modes:
         fm.append(f_hi * (len(fm) + 1) / (n_modes + 1))
-    x0 = [math.log(K0)] + [math.log(f) for f in fm] + [0.05] * n_modes + [math.log(lag_Hz)] * n_lags + [0.0]
-    lb = [-np.inf] + [math.log(f_lo)] * n_modes + [1e-3] * n_modes + [math.log(f_lo)] * n_lags + [0.0]
+        zeta0.append(0.05)
+    x0 = [math.log(K0)] + [math.log(f) for f in fm] + zeta0 + [math.log(lag_Hz)] * n_lags + [0.0]
+    lb = [-np.inf] + [math.log(f_lo)] * n_modes + [1e-3] * n_modes + [math.log(f_lo)] * n_lags + [-2 * dt_s]
     ub = [np.inf] + [math.log(10 * f_hi)] * n_modes + [0.99] * n_modes + [math.log(100 * f_hi)] * n_lags + [10 / f_hi]
     return np.array(x0), np.array(lb), np.array(ub)
 
 
-def fit_frf(frf: FRF, n_modes: int, n_lags: int) -> tuple[np.ndarray, float]:
+def fit_frf(frf: FRF, n_modes: int, n_lags: int, dt_s: float) -> tuple[np.ndarray, float]:
     """Least-squares fit of the structure to ``frf`` from a few starting lags; returns the
-    best parameter vector and its RMS relative complex error."""
+    best parameter vector and its RMS complex log error (≈ relative error)."""
     from scipy.optimize import least_squares
 
     w = np.sqrt(frf.coherence)
 
     def resid(x: np.ndarray) -> np.ndarray:
-        r = w * (model_response(x, frf.f_Hz, n_modes, n_lags) / frf.G - 1.0)
+        r = w * np.log(model_response(x, frf.f_Hz, n_modes, n_lags) / frf.G)
         return np.concatenate([r.real, r.imag])
 
     best = None
     f_hi = float(frf.f_Hz[-1])
     for lag_Hz in ([0.3 * f_hi, f_hi, 3 * f_hi] if n_lags else [f_hi]):
-        x0, lb, ub = _initial(frf, n_modes, n_lags, lag_Hz)
+        x0, lb, ub = _initial(frf, n_modes, n_lags, lag_Hz, dt_s)
         x0 = np.clip(x0, lb + 1e-12, ub - 1e-12)
         sol = least_squares(resid, x0, bounds=(lb, ub), x_scale="jac", max_nfev=2000)
         if best is None or sol.cost < best.cost:
@@ -145,7 +182,8 @@ def fit_frf(frf: FRF, n_modes: int, n_lags: int) -> tuple[np.ndarray, float]:
 
 
 def fit_dynamics(t_s: np.ndarray, u: np.ndarray, y_nm: np.ndarray, **options: Any) -> DynamicsFit:
-    """Identify the dynamics; options (all optional): ``n_modes`` (1), ``n_lags`` (1),
+    """Identify the dynamics; options (all optional): ``segment`` ("auto": the small-signal
+    part, see :func:`small_signal_segment`; "all"), ``n_modes`` (1), ``n_lags`` (1),
     ``nperseg`` (samples per Welch segment, default the largest power of two ≤ N/4),
     ``f_min_Hz``, ``f_max_Hz`` (default 40 % of the sample rate), ``min_coherence`` (0.9)."""
     t = check_finite("t_s", t_s).ravel()
@@ -155,6 +193,9 @@ def fit_dynamics(t_s: np.ndarray, u: np.ndarray, y_nm: np.ndarray, **options: An
         raise ModelError("data: need equal-length columns t, u, y with at least 256 samples")
     dt = uniform_dt(t)
     fs = 1.0 / dt
+    if options.pop("n_operators", None) is not None:
+        raise ModelError("--operators: not used by the dynamics model; use --param n_modes=N / n_lags=N")
+    u, y, t = small_signal_segment(u, y, t, options.pop("segment", "auto"))
     n_modes = int(number_option("n_modes", options.pop("n_modes", 1), lo=0, hi=6, integer=True))
     n_lags = int(number_option("n_lags", options.pop("n_lags", 1), lo=0, hi=4, integer=True))
     nps = 1 << int(math.floor(math.log2(max(16, t.size // 4))))
@@ -163,10 +204,10 @@ def fit_dynamics(t_s: np.ndarray, u: np.ndarray, y_nm: np.ndarray, **options: An
     f_min = number_option("f_min_Hz", options.pop("f_min_Hz", 0.0), lo=0, hi=f_max)
     min_coh = number_option("min_coherence", options.pop("min_coherence", 0.9), lo=0, hi=1)
     if options:
-        raise ModelError(f"options: unknown option(s) {', '.join(sorted(options))}; allowed: n_modes, n_lags, "
+        raise ModelError(f"options: unknown option(s) {', '.join(sorted(options))}; allowed: segment, n_modes, n_lags, "
                          "nperseg, f_min_Hz, f_max_Hz, min_coherence")
     frf = measure_frf(u, y, dt, nperseg, f_min, f_max, min_coh)
-    x, rms = fit_frf(frf, n_modes, n_lags)
+    x, rms = fit_frf(frf, n_modes, n_lags, dt)
     K, fm, zeta, fl, tau = _unpack(x, n_modes, n_lags)
     poles = []
     for f0, z in zip(fm, zeta):
@@ -175,9 +216,10 @@ def fit_dynamics(t_s: np.ndarray, u: np.ndarray, y_nm: np.ndarray, **options: An
         poles += [complex(re, im), complex(re, -im)]
     poles += [complex(-2 * math.pi * f0, 0.0) for f0 in fl]
     info: dict[str, float | str] = {
-        "static_gain_y_per_u": K, "fit_rms_relative": rms, "f_min_Hz": float(frf.f_Hz[0]),
+        "static_gain_y_per_u": K, "fit_rms_log": rms, "f_min_Hz": float(frf.f_Hz[0]),
         "f_max_Hz": float(frf.f_Hz[-1]), "bins": float(frf.f_Hz.size), "sample_rate_Hz": fs,
+        "fitted_delay_s": tau,
     }
-    log.info("dynamics fit: %d modes, %d lags, delay %.3g µs, RMS relative error %.3g over %d bins",
+    log.info("dynamics fit: %d modes, %d lags, delay %.3g µs, RMS log error %.3g over %d bins",
              n_modes, n_lags, tau * 1e6, rms, frf.f_Hz.size)
     return DynamicsFit(np.array(poles), np.zeros(0, complex), max(0.0, tau - 0.5 * dt), info)
