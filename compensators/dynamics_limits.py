@@ -56,15 +56,17 @@ def _max_slew(u: np.ndarray, dt_s: float) -> float:
 
 def rate_limit(u: np.ndarray, lo: float, hi: float, max_step: float) -> tuple[np.ndarray, int, int]:
     """Clip to [lo, hi], then limit each sample's change to ``max_step`` (causal);
-    returns (voltages, samples clipped, samples rate-limited)."""
+    returns (voltages, samples clipped, samples rate-limited). A limited step is made
+    1e-9 shorter than ``max_step`` so that rounding never lets it exceed the limit."""
     c = np.clip(u, lo, hi)
     clipped = int(np.count_nonzero(c != u))
     out = c.copy()
     limited = 0
+    step = max_step * (1 - 1e-9)
     for k in range(1, out.size):
         d = out[k] - out[k - 1]
         if abs(d) > max_step:
-            out[k] = out[k - 1] + math.copysign(max_step, d)
+            out[k] = out[k - 1] + math.copysign(step, d)
             limited += 1
     return out, clipped, limited
 
