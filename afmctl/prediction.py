@@ -31,7 +31,8 @@ def predict_nm(model, t_s: np.ndarray, u_V: np.ndarray, where: str,
         return predict_nm(model, t_all, u_all, where)[warm[0].size:]
     dt = uniform_period(t_s, where) if getattr(model, "time_dependent", False) else (
         float(np.median(np.diff(t_s))) if t_s.size > 1 else None)
-    u_in = delayed(t_s, u_V, float(getattr(model, "delay_s", 0.0)))
+    shift_s = 0.0 if getattr(model, "has_own_delay", False) else float(getattr(model, "delay_s", 0.0))
+    u_in = delayed(t_s, u_V, shift_s)
     return np.asarray(model.forward(dt).block(np.ascontiguousarray(u_in, dtype=np.float64)))
 
 

@@ -33,6 +33,7 @@ KINDS: dict[str, str] = {
     "creep": "afmctl.compensators.creep:LinearCreepModel",
     "preisach": "afmctl.compensators.preisach:PreisachModel",
     "bouc-wen": "afmctl.compensators.bouc_wen:BoucWenModel",
+    "dynamics": "afmctl.compensators.dynamics:LinearDynamicsModel",
 }
 
 
@@ -51,6 +52,9 @@ class HysteresisModel(BaseModel):
                            description="input–output delay [s], 0…1 s")
     #: which model kinds are time-dependent (need a uniform sample period)
     time_dependent: ClassVar[bool] = False
+    #: whether the kind models the input–output delay itself (then ``delay_s`` is its own
+    #: fitted parameter, not a shift applied around it)
+    has_own_delay: ClassVar[bool] = False
     #: whether ``identify`` takes ``fit_from_index`` (a burn-in: earlier samples only set the memory)
     fits_with_burn_in: ClassVar[bool] = False
 

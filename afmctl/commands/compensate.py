@@ -25,6 +25,16 @@ Output:
                        --clip is given, which clips and reports how many samples.
                        Default: the range the model was identified on (a preisach
                        model: its grid), else 0..150 V; the limits used are printed.
+  --dynamics DYN.json  also invert the scanner's linear dynamics (a 'dynamics' model from
+                       'afmctl identify --model dynamics'): the target first goes through
+                       the stable non-causal inverse of the dynamics over the whole file
+                       (delay and resonance compensated, no latency), then through
+                       --model's inverse. Needs uniformly spaced rows; the path should
+                       start and end at rest. With --slew-V-per-s (and --limits) the
+                       inverse's band limit is lowered until the voltages fit (the
+                       turnarounds get rounder); what is still out of reach is clipped
+                       and rate-limited, and reported.
+  --slew-V-per-s S     the amplifier's slew limit [V/s] (with --dynamics)
 
 The model's operator starts from the state stored in the model file (a scanner at rest)
 and runs through the whole file. A preisach model clamps targets it cannot reach to the
@@ -43,6 +53,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, metavar="VOLTS.csv", help="output CSV with columns t,u (s, V)")
     p.add_argument("--limits", nargs=2, type=float, metavar=("LO", "HI"), help="allowed voltage range [V]")
     p.add_argument("--clip", action="store_true", help="clip to --limits instead of failing")
+    p.add_argument("--dynamics", metavar="DYN.json", help="dynamics model to invert first (offline stable inverse)")
+    p.add_argument("--slew-V-per-s", type=float, metavar="S", help="slew limit [V/s] for --dynamics")
     p.set_defaults(func=run)
 
 
@@ -54,18 +66,24 @@ def run(args: argparse.Namespace) -> int:
     from afmctl.compensators.base import ModelError
     from afmctl.compensators.models import load_model
 
+    if args.slew_V_per_s is not None and args.dynamics is None:
+        raise AfmctlError("--slew-V-per-s: only used with --dynamics DYN.json")
     if args.limits and not (np.isfinite(args.limits).all() and args.limits[0] < args.limits[1]):
         raise AfmctlError(f"--limits: {args.limits[0]} {args.limits[1]}; need finite LO < HI (V)")
     model = load_model(args.model)
     data = read_csv(args.target, ("t", "y"), min_rows=1)
     t, y = data["t"], data["y"]
-    dt = uniform_period(t, str(args.target)) if getattr(model, "time_dependent", False) else None
+    timed = getattr(model, "time_dependent", False) or args.dynamics is not None
+    dt = uniform_period(t, str(args.target)) if timed else None
     try:
         inverse = model.inverse(dt)
     except ModelError as err:  # e.g. a Bouc–Wen model that is not invertible
         raise ModelError(f"{args.model}: {err}") from None
     try:
-        u = _run_chunked(inverse, y)
+        if args.dynamics is not None:
+            u = _with_dynamics(args, model, y, dt)
+        else:
+            u = _run_chunked(inverse, y)
     except ModelError as err:
         raise ModelError(f"{args.target}: {err}") from None
     if not np.all(np.isfinite(u)):
@@ -100,6 +118,27 @@ def _limits(given, model) -> tuple[float, float, str]:
     if known is not None:
         return float(known[0]), float(known[1]), "the model's voltage range"
     return (*FALLBACK_LIMITS_V, "the model file records no voltage range; give --limits")
+
+
+def _with_dynamics(args, model, y, dt):
+    """Dynamics inverse (offline, within --limits/--slew-V-per-s), then ``model``'s inverse."""
+    import math
+
+    from ..errors import AfmctlError
+    from afmctl.compensators.dynamics_limits import invert_within_limits
+    from afmctl.compensators.models import load_model
+
+    dyn = load_model(args.dynamics, expect=("dynamics",))
+    slew = args.slew_V_per_s
+    if slew is not None and not (math.isfinite(slew) and slew > 0):
+        raise AfmctlError(f"--slew-V-per-s: {slew}; need a finite rate > 0 V/s")
+    lo, hi, _ = _limits(args.limits, model)
+    res = invert_within_limits(dyn, y, dt, lambda: model.inverse(dt), lo, hi, slew)
+    print(f"dynamics         : {res.report()}")
+    if res.clipped and not args.clip:
+        raise AfmctlError(f"{args.target}: {res.clipped} samples need voltages outside the limits {lo:g}..{hi:g} V "
+                          "even with the lowest band limit; add --clip to clip them")
+    return res.u_V
 
 
 def _run_chunked(op, y):

@@ -30,6 +30,9 @@ Model kinds (--model):
   creep     linear creep (bank of first-order lags), no hysteresis
   preisach  classical Preisach on an (alpha, beta) grid: asymmetric loops, exact inverse
   bouc-wen  Bouc-Wen differential model, nonlinear least squares
+  dynamics  linear dynamics (amplifier bandwidth, structural modes, delay), unit DC gain,
+            from a small-signal recording ('afmctl excite --kind dynamics'): frequency
+            response (Welch) fitted by modes + lags + delay; the gain is printed
 Real recordings (--data):
   --burn-in auto    samples until the input has passed both its extremes only set the model's
                     memory (the state the recording started in is unknown); 'none' or SECONDS
@@ -49,6 +52,8 @@ Options:
                     preisach: u_min_V, u_max_V (grid range, default the data range),
                       method=auto|for|nnls, smoothing (1e-4), max_rows, memory_depth
                     bouc-wen: n (fix the exponent), max_rows (20000), u0_V
+                    dynamics: n_modes (1), n_lags (1), segment=auto|all, nperseg,
+                      f_min_Hz, f_max_Hz, min_coherence (0.9)
                     e.g. --param min_slope_fraction=1e-3 --param 'thresholds=[0,10,20,30]'
 Output:
   --out MODEL.json  the fitted model (a 'kind' field plus its parameters); a summary and
@@ -64,7 +69,7 @@ Examples:
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("identify", help=HELP, description=DESCRIPTION,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--model", required=True, metavar="KIND", help="model kind: pi, epi, creep, preisach, bouc-wen")
+    p.add_argument("--model", required=True, metavar="KIND", help="model kind: pi, epi, creep, preisach, bouc-wen, dynamics")
     p.add_argument("--data", metavar="DATA.csv", help="CSV with columns t,u,y (s, V, nm)")
     p.add_argument("--from-images", metavar="SCANS", nargs="+",
                    help="instead of --data: identify without a position sensor from AFM images of a "
@@ -118,6 +123,8 @@ def run(args: argparse.Namespace) -> int:
         raise AfmctlError("--data: required; give a CSV with columns t,u,y (s, V, nm)")
     if args.operators is not None and args.operators < 1:
         raise AfmctlError(f"--operators: {args.operators} must be ≥ 1")
+    if cls.has_own_delay and args.delay == "auto":  # the kind fits its delay itself
+        args.delay = "0"
     c = _read_conditioned(args, uniform=getattr(cls, "time_dependent", False))
     model, first, y_fit = _fit(cls, args, c)
     _save(model, args.out)
@@ -180,10 +187,14 @@ def _fit(cls, args: argparse.Namespace, c):
         raise ModelError(f"{args.data}: the fit failed ({err}); is the input excited over its range?") from None
     except ValueError as err:  # a --param value of the wrong type that a kind did not check itself
         raise AfmctlError(f"--param: a value is not accepted by kind {args.model!r} ({err})") from None
-    model.delay_s = c.delay_s
+    if not cls.has_own_delay:
+        model.delay_s = c.delay_s
     if model.u_range_V is None:        # compensate's default --limits
         model.u_range_V = (float(c.u_V.min()), float(c.u_V.max()))
     first = c.u_V.size - t.size
+    predict = getattr(model, "predict_linear", None)  # dynamics: nm → nm, needs the fitted gain
+    if predict is not None:
+        return model, first, predict(u, y, float(np.median(np.diff(t))))
     return model, first, predict_nm(model, t, c.u_V[first:], str(args.data))
 
 
