@@ -32,6 +32,8 @@ KINDS: dict[str, str] = {
     "creep": "afmctl.compensators.creep:LinearCreepModel",
     "preisach": "afmctl.compensators.preisach:PreisachModel",
     "bouc-wen": "afmctl.compensators.bouc_wen:BoucWenModel",
+    "chain": "afmctl.compensators.chain:ChainModel",
+    "scanner": "afmctl.compensators.scanner_model:ScannerModel",
 }
 
 
