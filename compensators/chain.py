@@ -21,6 +21,7 @@ last, from the static chain's output to the measured output.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -115,7 +116,6 @@ class ChainModel(HysteresisModel):
         for m in self.stages():
             lines += ["  " + line for line in m.summary().splitlines()]
         if self.selection:
-            from .selection import format_table
             lines += ["selection (held-out prediction error):"] + ["  " + ln for ln in format_table(self.selection).splitlines()]
         return "\n".join(lines)
 
@@ -157,3 +157,17 @@ def _fit_static(hcls: Any, t: np.ndarray, u: np.ndarray, y: np.ndarray, dt: floa
         creep = creep_cls.identify(t, h, y, **CREEP_OPTIONS)
         target = creep.inverse(dt).block(y)
     return hyst, creep
+
+
+def format_table(table: Sequence[dict[str, Any]]) -> str:
+    """The selection table as text, best first (what ``identify --model auto`` prints;
+    rows from :func:`afmctl.compensators.selection.score_candidate`)."""
+    lines = [f"{'candidate':<18} {'held-out max':>14} {'held-out rms':>14} {'train rms':>11}",
+             f"{'':<18} {'[nm] (%)':>14} {'[nm] (%)':>14} {'[nm]':>11}"]
+    for row in table:
+        if "error" in row:
+            lines.append(f"{row['structure']:<18} failed: {row['error']}")
+            continue
+        lines.append(f"{row['structure']:<18} {row['heldout_max_nm']:>7.4g} ({row['heldout_max_pct']:.3g}) "
+                     f"{row['heldout_rms_nm']:>7.4g} ({row['heldout_rms_pct']:.3g}) {row['train_rms_nm']:>11.4g}")
+    return "\n".join(lines)

@@ -16,7 +16,7 @@ from __future__ import annotations
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import Field, SerializeAsAny, field_validator, model_validator
+from pydantic import Field, SerializeAsAny, ValidationInfo, field_validator, model_validator
 
 from .base import ModelError, StreamingOperator
 from .models import HysteresisModel, model_from_dict
@@ -48,20 +48,31 @@ class ScannerModel(HysteresisModel):
             out[axis] = m
         return out
 
-    @model_validator(mode="after")
-    def _check_coupling(self) -> "ScannerModel":
-        C = np.asarray(self.coupling, dtype=float)
+    @field_validator("coupling")
+    @classmethod
+    def _coupling(cls, v: list[list[float]]) -> list[list[float]]:
+        C = np.asarray(v, dtype=float)
         if C.shape != (3, 3) or not np.all(np.isfinite(C)):
-            raise ValueError("coupling: need a 3×3 matrix of finite numbers")
+            raise ValueError("need a 3×3 matrix of finite numbers")
         if np.linalg.cond(C) > 1e6:
-            raise ValueError("coupling: the matrix is singular (condition number > 1e6)")
-        inv = np.linalg.inv(C)
+            raise ValueError("the matrix is singular (condition number > 1e6)")
+        return v
+
+    @field_validator("coupling_inverse")
+    @classmethod
+    def _inverse(cls, v: list[list[float]] | None, info: ValidationInfo) -> list[list[float]] | None:
+        if v is None or "coupling" not in info.data:
+            return v
+        given = np.asarray(v, dtype=float)
+        C = np.asarray(info.data["coupling"], dtype=float)
+        if given.shape != (3, 3) or not np.allclose(given @ C, np.eye(3), atol=1e-6):
+            raise ValueError("is not the inverse of coupling (tolerance 1e-6)")
+        return v
+
+    @model_validator(mode="after")
+    def _fill_inverse(self) -> "ScannerModel":
         if self.coupling_inverse is None:
-            self.coupling_inverse = inv.tolist()
-        else:
-            given = np.asarray(self.coupling_inverse, dtype=float)
-            if given.shape != (3, 3) or not np.allclose(given @ C, np.eye(3), atol=1e-6):
-                raise ValueError("coupling_inverse: is not the inverse of coupling (tolerance 1e-6)")
+            self.coupling_inverse = np.linalg.inv(np.asarray(self.coupling, dtype=float)).tolist()
         return self
 
     def axis(self, name: str) -> HysteresisModel | None:

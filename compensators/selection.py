@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from .base import ModelError, check_finite
-from .chain import ChainModel, parse_structure
+from .chain import ChainModel, format_table, parse_structure
 
 log = logging.getLogger(__name__)
 
@@ -105,16 +105,3 @@ def select_model(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates:
     best = _fit(table[0]["structure"], t, u, y, options or {})
     best.selection = table
     return best, table
-
-
-def format_table(table: Sequence[dict[str, Any]]) -> str:
-    """The selection table as text, best first (what ``identify --model auto`` prints)."""
-    lines = [f"{'candidate':<18} {'held-out max':>14} {'held-out rms':>14} {'train rms':>11}",
-             f"{'':<18} {'[nm] (%)':>14} {'[nm] (%)':>14} {'[nm]':>11}"]
-    for row in table:
-        if "error" in row:
-            lines.append(f"{row['structure']:<18} failed: {row['error']}")
-            continue
-        lines.append(f"{row['structure']:<18} {row['heldout_max_nm']:>7.4g} ({row['heldout_max_pct']:.3g}) "
-                     f"{row['heldout_rms_nm']:>7.4g} ({row['heldout_rms_pct']:.3g}) {row['train_rms_nm']:>11.4g}")
-    return "\n".join(lines)

@@ -14,8 +14,11 @@ Compute the voltages that make the scanner follow a target path, using the inver
 fitted model (hysteresis and, for epi/creep models, creep).
 
 Input:
-  --model MODEL.json   a model file written by 'afmctl identify' (any kind; a PI file
-                       written by 'afmctl model invert' works too)
+  --model MODEL.json   a model file written by 'afmctl identify' (any kind, a chain such
+                       as preisach+creep included; a PI file written by 'afmctl model
+                       invert' works too), or a scanner model (kind scanner) with --axis
+  --axis x|y|z         which axis of a scanner model to use (its coupling matrix is not
+                       applied: one axis at a time)
   --target TARGET.csv  header row and columns t,y: time (s, strictly increasing) and the
                        desired displacement (nm). Time-dependent kinds (epi, creep) need
                        uniformly spaced rows.
@@ -39,6 +42,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--model", required=True, metavar="MODEL.json", help="model JSON file (any kind)")
     p.add_argument("--target", required=True, metavar="TARGET.csv", help="CSV with columns t,y (s, nm)")
     p.add_argument("--out", required=True, metavar="VOLTS.csv", help="output CSV with columns t,u (s, V)")
+    p.add_argument("--axis", choices=("x", "y", "z"), help="axis of a scanner model file (kind scanner)")
     p.add_argument("--limits", nargs=2, type=float, metavar=("LO", "HI"), help="allowed voltage range [V]")
     p.add_argument("--clip", action="store_true", help="clip to --limits instead of failing")
     p.set_defaults(func=run)
@@ -56,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
         raise AfmctlError("--clip: needs --limits LO HI")
     if args.limits and not (np.isfinite(args.limits).all() and args.limits[0] < args.limits[1]):
         raise AfmctlError(f"--limits: {args.limits[0]} {args.limits[1]}; need finite LO < HI (V)")
-    model = load_model(args.model)
+    model = _axis_model(load_model(args.model), args)
     data = read_csv(args.target, ("t", "y"), min_rows=1)
     t, y = data["t"], data["y"]
     dt = uniform_period(t, str(args.target)) if getattr(model, "time_dependent", False) else None
@@ -84,6 +88,22 @@ def run(args: argparse.Namespace) -> int:
     write_csv(args.out, {"t": t, "u": u})
     print(f"written          : {args.out} ({u.size} rows, u from {u.min():.6g} to {u.max():.6g} V)")
     return 0
+
+
+def _axis_model(model, args: argparse.Namespace):
+    """The model itself, or axis ``--axis`` of a scanner model (one line naming the file
+    when that axis or the option is missing)."""
+    from ..errors import AfmctlError
+    if model.kind != "scanner":
+        if args.axis:
+            raise AfmctlError(f"--axis: {args.model} is a single-axis model (kind {model.kind}); drop --axis")
+        return model
+    if not args.axis:
+        raise AfmctlError(f"--axis: {args.model} is a scanner model; choose the axis with --axis x|y|z")
+    axis_model = model.axis(args.axis)
+    if axis_model is None:
+        raise AfmctlError(f"--axis: {args.model} has no model for axis {args.axis}")
+    return axis_model
 
 
 CHUNK = 200_000

@@ -27,6 +27,14 @@ Model kinds (--model):
   creep     linear creep (bank of first-order lags), no hysteresis
   preisach  classical Preisach on an (alpha, beta) grid: asymmetric loops, exact inverse
   bouc-wen  Bouc-Wen differential model, nonlinear least squares
+  KIND+creep[+dynamics]
+            a chain (kind chain): hysteresis KIND (pi, epi, preisach, bouc-wen), then
+            linear creep, then linear dynamics, identified jointly (Hammerstein);
+            needs uniformly spaced samples
+  auto      fit every candidate chain on the first 70 % of the data, score each by its
+            prediction error on the last 30 % (held out), print the table and keep
+            the best (re-fitted on all the data); the table is stored in the model
+            file. Excite the full voltage range in the first 70 %.
 Options:
   --operators N     pi/epi: play operators (default 13, max 1000); creep: lags (default 4);
                     preisach: grid levels (default 32; nnls up to 64, for up to 512);
@@ -53,7 +61,8 @@ Examples:
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("identify", help=HELP, description=DESCRIPTION,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--model", required=True, metavar="KIND", help="model kind: pi, epi, creep, preisach, bouc-wen")
+    p.add_argument("--model", required=True, metavar="KIND",
+                   help="model kind: pi, epi, creep, preisach, bouc-wen, a chain KIND+creep[+dynamics], or auto")
     p.add_argument("--data", metavar="DATA.csv", help="CSV with columns t,u,y (s, V, nm)")
     p.add_argument("--from-images", metavar="SCANS.npz",
                    help="instead of --data: identify without a position sensor from AFM images of a "
@@ -92,6 +101,9 @@ def run(args: argparse.Namespace) -> int:
     from afmctl.compensators.base import ModelError
     from afmctl.compensators.models import model_class, save_model
 
+    if args.model == "auto" or "+" in args.model:
+        from .identify_chain import run_chain
+        return run_chain(args)
     cls = model_class(args.model)
     if getattr(args, "from_images", None) is not None:  # image-based identification, docs/SIM.md
         from afmctl.sim_backend.image_scans import identify_from_scan_file

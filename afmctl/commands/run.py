@@ -112,6 +112,8 @@ def run(args: argparse.Namespace) -> int:
             stack.callback(amp.close)
         ctl = Controller(config, amp, scanner=scanner)
         stack.callback(ctl.close)
+        # always, --quiet included: which axes are compensated, by which model, from which file
+        print(f"afmctl: compensation {ctl.pipeline.describe()}", file=sys.stderr)
         if config.zenoh.enabled:
             from ..zenoh_api import ZenohBridge
             bridge = ZenohBridge(ctl, config.zenoh, scanner_name=config.scanner.name)
