@@ -12,14 +12,16 @@ A pipeline of small steps (each one a function of a shared :class:`DemoContext`)
    first-order reversal curves 0 → α_k → 0 V with short dwells at the turns, and a decaying
    sine; simulated at 10 kHz and averaged to 1 kHz (a sensor's output rate);
 3. **identify** — each compensator kind (``pi``, ``epi``, ``preisach``, ``bouc-wen``, and
-   ``preisach+creep`` = Preisach followed by the linear ``creep`` model, fitted
-   alternately) with its own ``identify()`` classmethod on that data; the x/y
-   cross-coupling is estimated from the same runs (least squares of the passive axis on
-   the driven one); kinds not available or failing are *skipped with a message*;
+   the chain ``preisach+creep``, :class:`afmctl.compensators.chain.ChainModel`) as
+   ``afmctl identify`` fits it; the x/y cross-coupling is estimated from the same runs
+   (least squares of the passive axis on the driven one); per kind, one scanner model
+   file ``OUT/models/scanner_<kind>.json`` (:mod:`afmctl.compensators.scanner_model`);
+   kinds not available or failing are *skipped with a message*;
 4. **scan** — the 1.667 µm-period calibration grating (:class:`afmctl.sim_backend.samples.Grating2D`)
    raster-scanned at ``size``×``size`` pixels over ``scan_nm`` square, once uncompensated
    (linear calibration: what a plain AFM does) and once per identified compensator
-   (decoupling → drift prediction subtracted → inverse model per axis); then the best
+   through :class:`afmctl.pipeline.CompensationPipeline` (drift prediction subtracted →
+   decoupling → inverse model per axis); then the best
    compensator once more without the drift prediction (what drift correction is worth);
 5. **report** — images, hysteresis loops, error histograms, drift over time (PNG) and
    ``metrics.json``: ``max_error_pct`` and ``rms_error_pct`` keyed by compensator,
@@ -109,6 +111,17 @@ class DemoContext:
     def note(self, text: str) -> None:
         log.info(text)
         self.messages.append(text)
+
+    def scan_T(self) -> Callable[[np.ndarray], np.ndarray] | None:
+        """Ambient temperature [°C] as a function of the time since the scan start [s]
+        (the drift scenario: a linear rise by ``warming_K`` over the scan); None without
+        the drift scenario."""
+        o = self.options
+        if self.drift_params is None:
+            return None
+        T0 = float(self.scanner_config.ambient_T_C)
+        total = o.size / o.line_rate_Hz
+        return lambda t: T0 + o.warming_K * np.clip(np.asarray(t) / total, 0.0, 1.0)
 
 
 @dataclass
@@ -205,52 +218,38 @@ def step_excite(ctx: DemoContext) -> None:
     ctx.note(f"cross-coupling estimated: x←y {C[0, 1]:.4f}, y←x {C[1, 0]:.4f}")
 
 
-class CreepChainModel:
-    """A hysteresis model followed by linear creep (the plant's structure): forward
-    ``u → hysteresis → creep → y``, inverse ``y → creep⁻¹ → hysteresis⁻¹ → u``; built from
-    two model files (``compensators``), no model math here."""
-
-    def __init__(self, hysteresis: Any, creep: Any) -> None:
-        self.hysteresis = hysteresis
-        self.creep = creep
-
-    def forward(self, dt_s: float | None = None) -> Any:
-        from afmctl.compensators.base import Chain
-        return Chain(self.hysteresis.forward(dt_s), self.creep.forward(dt_s))
-
-    def inverse(self, dt_s: float | None = None) -> Any:
-        from afmctl.compensators.base import Chain
-        return Chain(self.creep.inverse(dt_s), self.hysteresis.inverse(dt_s))
-
-
-def identify_with_creep(cls: Any, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, rounds: int = 2) -> CreepChainModel:
-    """Alternate: fit the hysteresis model on the creep-corrected output, then the creep
-    model (kind ``creep``, unit gain expected) from the hysteresis output to the measured
-    output."""
+def identify_axis(kind: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray) -> Any:
+    """One axis's model of ``kind``: a single kind (``pi``, ``preisach``, …) or a chain
+    (``preisach+creep``, …; :class:`afmctl.compensators.chain.ChainModel`) — what
+    ``afmctl identify --model KIND`` fits."""
     from afmctl.compensators.models import model_class
-    creep_cls = model_class("creep")
-    dt = float(t_s[1] - t_s[0])
-    x = y_nm
-    hyst = creep = None
-    for _ in range(rounds):
-        hyst = cls.identify(t_s, u_V, x)
-        h = hyst.forward(dt).block(np.ascontiguousarray(u_V))
-        creep = creep_cls.identify(t_s, h, y_nm, n_operators=5, tau_min_s=0.01, tau_max_s=100.0)
-        x = creep.inverse(dt).block(np.ascontiguousarray(y_nm))
-    return CreepChainModel(hyst, creep)
+    if "+" in kind:
+        from afmctl.compensators.chain import ChainModel
+        return ChainModel.identify(t_s, u_V, y_nm, structure=kind)
+    return model_class(kind).identify(t_s, u_V, y_nm)
+
+
+def _check_kind(kind: str) -> None:
+    """Raise for a kind (or chain) this installation does not know."""
+    from afmctl.compensators.models import model_class
+    if "+" in kind:
+        from afmctl.compensators.chain import parse_structure
+        base, stages = parse_structure(kind)
+        for k in (base, *stages):
+            model_class(k)
+    else:
+        model_class(kind)
 
 
 def make_identify_step(kind: str) -> Step:
-    base, _, extra = kind.partition("+")
-
+    """Identify ``kind`` on x and y, combine with the coupling into a scanner model file
+    (``OUT/models/scanner_<kind>.json``, loadable by ``afmctl run`` as
+    ``[compensation] scanner_model``)."""
     def run(ctx: DemoContext) -> None:
-        from afmctl.compensators.models import model_class
+        from afmctl.compensators.models import save_model
+        from afmctl.compensators.scanner_model import ScannerModel
         try:
-            cls = model_class(base)
-            if extra:
-                if extra != "creep":
-                    raise AfmctlError(f"compensator {kind!r}: only '<kind>+creep' chains are known")
-                model_class("creep")
+            _check_kind(kind)
         except ImportError as err:
             ctx.skipped[kind] = f"not available in this installation ({err})"
             return
@@ -261,10 +260,7 @@ def make_identify_step(kind: str) -> Step:
         for axis in LATERAL:
             e = ctx.excitation[axis]
             try:
-                if extra:
-                    models[axis] = identify_with_creep(cls, e["t_s"], e["u_V"], e["y_nm"])
-                else:
-                    models[axis] = cls.identify(e["t_s"], e["u_V"], e["y_nm"])
+                models[axis] = identify_axis(kind, e["t_s"], e["u_V"], e["y_nm"])
                 models[axis].inverse(1e-4).reset()   # can it be inverted at all?
             except NotImplementedError:
                 ctx.skipped[kind] = "identify() not implemented yet"
@@ -273,17 +269,14 @@ def make_identify_step(kind: str) -> Step:
                 ctx.skipped[kind] = f"{axis} axis: {' '.join(str(err).split())}"
                 log.warning("demo: %s skipped: %s", kind, ctx.skipped[kind])
                 return
-        ctx.models[kind] = models
+        scanner = ScannerModel(axes={"x": models["x"], "y": models["y"], "z": None}, coupling=ctx.coupling.tolist())
+        folder = ctx.options.out / "models"
+        folder.mkdir(exist_ok=True)
+        path = folder / f"scanner_{kind}.json"
+        save_model(scanner, path)
+        ctx.files.append(path)
+        ctx.models[kind] = scanner
     return Step(f"identify {kind}", run)
-
-
-def _scan_T(ctx: DemoContext) -> Callable[[np.ndarray], np.ndarray] | None:
-    o = ctx.options
-    if ctx.drift_params is None:
-        return None
-    T0 = float(ctx.scanner_config.ambient_T_C)
-    total = o.size / o.line_rate_Hz
-    return lambda t: T0 + o.warming_K * np.clip(np.asarray(t) / total, 0.0, 1.0)
 
 
 def _scan(ctx: DemoContext, name: str, compensator: Any, drift: bool = True) -> Any:
@@ -294,7 +287,7 @@ def _scan(ctx: DemoContext, name: str, compensator: Any, drift: bool = True) -> 
     return raster_image(scanner, Grating2D(period_nm=1667.0), scan_size_nm=o.scan_nm, pixels=o.size,
                         line_rate_Hz=o.line_rate_Hz, origin_nm=(o.origin_nm, o.origin_nm),
                         samples_per_pixel=o.samples_per_pixel, compensator=compensator,
-                        T_C=_scan_T(ctx) if drift else None, settle_lines=1, keep_signals=(name == "none"))
+                        T_C=ctx.scan_T() if drift else None, settle_lines=1, keep_signals=(name == "none"))
 
 
 def _errors(image: Any) -> np.ndarray:
@@ -316,52 +309,63 @@ def step_scan_uncompensated(ctx: DemoContext) -> None:
         ctx.true_drift_nm = img.signals["position_nm"] - pos0
 
 
-class FeedforwardCompensator:
-    """Targets (N, 3) nm → voltages (N, 3) V for one scan: decouple x/y, subtract the drift
-    predicted from the ambient temperature, invert the identified model per lateral axis
-    (z: linear calibration). Built per scan from fresh (reset) operators."""
+class PipelineCompensator:
+    """Targets (N, 3) nm → voltages (N, 3) V for one scan through the product's
+    :class:`afmctl.pipeline.CompensationPipeline` (drift prediction subtracted, x/y
+    decoupled with the scanner model's ``C⁻¹``, each axis's inverse model; z and axes
+    without a model: the linear calibration). The heat input of the drift predictor is
+    the nominal voltage of each target (offline, :meth:`CompensationPipeline.block`)."""
 
-    def __init__(self, models: dict[str, Any], coupling: np.ndarray, dt_s: float, gain_nm_per_V: np.ndarray,
-                 drift_params: Any = None, T_of_t: Callable[[np.ndarray], np.ndarray] | None = None,
-                 t0_s: float = 0.0) -> None:
-        self.models = models
-        self.inv_coupling = np.linalg.inv(coupling)
+    def __init__(self, pipeline: Any, dt_s: float, gain_nm_per_V: np.ndarray,
+                 T_of_t: Callable[[np.ndarray], np.ndarray] | None = None, t0_s: float = 0.0,
+                 T_const_C: float = 22.0) -> None:
+        self.pipeline = pipeline
         self.dt_s = dt_s
         self.gain = gain_nm_per_V
-        self.drift_params = drift_params
         self.T_of_t = T_of_t
         self.t0_s = t0_s
+        self.T_const_C = T_const_C
         self.drift_pred_nm: np.ndarray | None = None
 
     def __call__(self, targets: np.ndarray) -> np.ndarray:
-        r = np.array(targets, dtype=np.float64)
-        if self.drift_params is not None and self.T_of_t is not None:
+        r = np.asarray(targets, dtype=np.float64)
+        if self.T_of_t is not None:
             t = self.t0_s + np.arange(r.shape[0]) * self.dt_s
             T = self.T_of_t(np.maximum(t, 0.0))
-            u_guess = np.clip(r / self.gain, 0.0, 150.0)          # heat input: nominal voltages
-            d = self.drift_params.predictor(self.dt_s).block(T, u_guess)
-            self.drift_pred_nm = d
-            r = r - d
-        disp = r @ self.inv_coupling.T                                # wanted axis displacements
-        u = disp / self.gain
-        for i, axis in enumerate(LATERAL):
-            model = self.models.get(axis)
-            if model is not None:
-                u[:, i] = model.inverse(self.dt_s).block(np.ascontiguousarray(disp[:, i]))
+        else:
+            T = np.full(r.shape[0], self.T_const_C)
+        self.pipeline.reset()
+        d, _, u = self.pipeline.block(r, T, np.clip(r / self.gain, 0.0, 150.0))
+        self.drift_pred_nm = d if self.pipeline.drift is not None else None
         return u
 
 
-def _compensator(ctx: DemoContext, kind: str, drift: bool = True) -> FeedforwardCompensator:
-    """The feedforward compensator of ``kind`` for one scan (with or without the drift
-    prediction); its time origin is the scan's, after the one settling line."""
+def scan_pipeline(ctx: DemoContext, kind: str, dt_s: float, drift: bool) -> Any:
+    """The product's pipeline for the scanner model of ``kind`` (``none``: the linear
+    calibration only) at sample period ``dt_s`` [s]."""
+    from .pipeline import CompensationPipeline, LinearAxis
+    gain = _new_scanner(ctx, drift=False).nominal_gain_nm_per_V()
+    scanner = ctx.models.get(kind)
+    inverses = []
+    for i, axis in enumerate(("x", "y", "z")):
+        m = scanner.axis(axis) if scanner is not None else None
+        inverses.append(m.inverse(dt_s) if m is not None else LinearAxis(float(gain[i])))
+    predictor = ctx.drift_params.predictor(dt_s) if (drift and ctx.drift_params is not None) else None
+    inv_c = scanner.inverse_coupling() if scanner is not None else None
+    return CompensationPipeline(inverses, predictor, inv_coupling=inv_c)
+
+
+def _compensator(ctx: DemoContext, kind: str, drift: bool = True) -> PipelineCompensator:
+    """The compensator of ``kind`` for one scan (with or without the drift prediction);
+    its time origin is the scan's, after the one settling line."""
     o = ctx.options
     ns = o.size * o.samples_per_pixel
     dt = 1.0 / (2.0 * o.line_rate_Hz * ns)
     gain = _new_scanner(ctx, drift=False).nominal_gain_nm_per_V()
-    if drift:
-        return FeedforwardCompensator(ctx.models[kind], ctx.coupling, dt, gain, ctx.drift_params, _scan_T(ctx),
-                                      t0_s=-2 * ns * dt)
-    return FeedforwardCompensator(ctx.models[kind], ctx.coupling, dt, gain, None, None)
+    pipe = scan_pipeline(ctx, kind, dt, drift)
+    if drift and ctx.drift_params is not None:
+        return PipelineCompensator(pipe, dt, gain, ctx.scan_T(), t0_s=-2 * ns * dt)
+    return PipelineCompensator(pipe, dt, gain)
 
 
 def make_scan_step(kind: str) -> Step:

@@ -130,6 +130,36 @@ class CompensationPipeline:
         az = M[2, 0] * cx + M[2, 1] * cy + M[2, 2] * cz
         return (dx, dy, dz, cx, cy, cz, inv[0].step(float(ax)), inv[1].step(float(ay)), inv[2].step(float(az)))
 
+    def block(self, targets_nm: np.ndarray, T_C: np.ndarray | float, u_sent_V: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Vectorised: the numbers :meth:`step` gives per sample with ``u_sent`` taken from
+        ``u_sent_V`` (N, 3) [V] (the heat input) instead of the pipeline's own previous
+        output — for offline use where the voltages already sent are known or estimated.
+        ``targets_nm`` (N, 3) [nm], ``T_C`` (N,) or scalar [°C]. Returns drift (N, 3) [nm],
+        corrected (N, 3) [nm], u (N, 3) [V]. Not with a Kalman filter (measurements arrive
+        per sample)."""
+        if self.kalman is not None:
+            raise ValueError("block: not with a Kalman filter; use run()")
+        r = np.asarray(targets_nm, dtype=np.float64)
+        n = r.shape[0]
+        if self.drift is not None:
+            T = np.broadcast_to(np.asarray(T_C, dtype=np.float64), (n,))
+            d = self.drift.block(T, np.asarray(u_sent_V, dtype=np.float64))
+        else:
+            d = np.zeros((n, 3))
+        c = r - d
+        M = self.inv_coupling
+        if M is None:
+            a = c
+        else:   # the same operations, in the same order, as step()
+            a = np.empty_like(c)
+            for i in range(3):
+                a[:, i] = M[i, 0] * c[:, 0] + M[i, 1] * c[:, 1] + M[i, 2] * c[:, 2]
+        u = np.empty_like(c)
+        for i in range(3):
+            u[:, i] = self.inverses[i].block(np.ascontiguousarray(a[:, i]))
+        return d, c, u
+
     def describe(self) -> str:
         """One line: ``x: preisach+creep from x.json; y: linear calibration 80 nm/V; …``."""
         return "; ".join(f"{k}: {v}" for k, v in self.provenance.items())

@@ -142,7 +142,7 @@ def _demo_hysteresis(ctx: Any, path: Path) -> Path:
         a0.plot(e["u_V"], e["y_nm"] / 1000.0, color="k", lw=1.0, label="simulated scanner (measured)")
         for kind, models in ctx.models.items():
             try:
-                op = models["x"].forward(float(e["t_s"][1] - e["t_s"][0]))
+                op = models.axis("x").forward(float(e["t_s"][1] - e["t_s"][0]))
                 y = op.block(np.ascontiguousarray(e["u_V"]))
                 rms = float(np.sqrt(np.mean((y - e["y_nm"]) ** 2)))
                 a0.plot(e["u_V"], y / 1000.0, lw=0.8, ls="--", color=_colour(kind),
@@ -211,8 +211,7 @@ def _demo_drift(ctx: Any, path: Path) -> Path:
     step = max(1, int(keep.sum() // 4000))
     tk = t[keep][::step]
     fig, (a0, a1, a2) = plt.subplots(3, 1, figsize=(10, 7.0), sharex=True)
-    from .demo import _scan_T
-    T_of_t = _scan_T(ctx)
+    T_of_t = ctx.scan_T()
     if T_of_t is not None:
         a0.plot(tk, T_of_t(tk), color="k")
     a0.set_ylabel("ambient T [°C]")

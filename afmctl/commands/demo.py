@@ -14,9 +14,12 @@ Run the whole job on a simulated scanner, in-process, in about a minute:
      few kelvin during the scan);
   2. excite each lateral axis (reversal curves + decaying sine) and identify every
      available compensator model on the measured data (pi, epi, preisach, bouc-wen,
-     and preisach+creep: a Preisach model followed by a linear creep model);
+     and preisach+creep: the chain model, Preisach followed by linear creep) and
+     write each as a scanner model file OUT/models/scanner_KIND.json (per-axis models
+     + x/y coupling; usable in `afmctl run` as [compensation] scanner_model);
   3. raster-scan a 1.667 um calibration grating without compensation and with each
-     compensator (decoupling, drift prediction, inverse model);
+     compensator through afmctl's compensation pipeline (drift prediction,
+     decoupling, inverse model per axis);
   4. write into OUT: demo_images.png, demo_hysteresis.png, demo_errors.png,
      demo_lines.png, demo_drift.png and metrics.json (max_error_pct / rms_error_pct per
      compensator, errors in % of the scan range), and print the same table.
