@@ -69,6 +69,8 @@ class DemoOptions:
     quick: bool = False              #: shorter excitation (for tests)
     seed: int = 0
     docs_dir: Path | None = None     #: also copy the PNGs here as demo_*.png
+    speed_ladder: bool = True        #: the speed ladder (afmctl.speed_ladder) in metrics.json
+    ladder_controller: bool = True   #: its 1/4/16 lines/s rows through the real Controller
 
     def __post_init__(self) -> None:
         self.out = Path(self.out)
@@ -106,6 +108,7 @@ class DemoContext:
     timings_s: dict[str, float] = field(default_factory=dict)
     metrics: dict[str, Any] = field(default_factory=dict)
     drift_effect: dict[str, Any] | None = None
+    speed_ladder: dict[str, Any] | None = None
     messages: list[str] = field(default_factory=list)
 
     def note(self, text: str) -> None:
@@ -405,6 +408,64 @@ def step_drift_effect(ctx: DemoContext) -> None:
                         "max_error_pct_without_drift_correction": _max_pct(ctx, _errors(img))}
 
 
+def ladder_compensators(ctx: DemoContext) -> dict[str, str | None]:
+    """``{"none": None, "static": kind, "chain": kind}`` for the speed ladder: the static
+    model (preisach if identified, else the first single kind) and the chain (preisach+creep
+    if identified, else the first chain); missing ones are left out."""
+    out: dict[str, str | None] = {"none": None}
+    single = [k for k in ctx.models if "+" not in k]
+    chains = [k for k in ctx.models if "+" in k]
+    if single:
+        out["static"] = "preisach" if "preisach" in single else single[0]
+    if chains:
+        out["chain"] = "preisach+creep" if "preisach+creep" in chains else chains[0]
+    return out
+
+
+def _ladder_cell(ctx: DemoContext, kind: str | None, rate: float, folder: Path, scanner_json: Path) -> dict[str, Any]:
+    from . import speed_ladder as sl
+    o = ctx.options
+    loop_Hz = sl.CONTROLLER_RATE_HZ.get(rate) if o.ladder_controller else None
+    if loop_Hz is not None:
+        gain = _new_scanner(ctx, drift=False).nominal_gain_nm_per_V()
+        model = folder.parent / "models" / f"scanner_{kind}.json" if kind else None
+        err, info = sl.controller_errors_nm(folder, scanner_json, model, rate, loop_Hz, gain.tolist(),
+                                            lines=2 if o.quick else 3)
+        return {**sl.error_pct(err), "path": "controller", **info}
+    name = kind or "none"
+
+    def make(dt: float) -> PipelineCompensator:
+        return PipelineCompensator(scan_pipeline(ctx, name, dt, drift=False), dt,
+                                   _new_scanner(ctx, drift=False).nominal_gain_nm_per_V())
+    err = sl.offline_errors_nm(lambda: _new_scanner(ctx, drift=False), make, rate, lines=2 if o.quick else 4)
+    return {**sl.error_pct(err), "path": "offline"}
+
+
+def step_speed_ladder(ctx: DemoContext) -> None:
+    """Raster-line accuracy at 1, 4, 16 and 50 lines/s for none, the static model and the
+    chain (:mod:`afmctl.speed_ladder`); ``ctx.speed_ladder[rate][label]``."""
+    from . import speed_ladder as sl
+    from afmctl.sim_backend.scanner import DriftConfig
+    folder = ctx.options.out / "ladder"
+    folder.mkdir(exist_ok=True)
+    scanner_json = sl.write_scanner_json(ctx.scanner_config.model_copy(update={"drift": DriftConfig(kind="none")}),
+                                         folder / "scanner.json")
+    comps = ladder_compensators(ctx)
+    table: dict[str, Any] = {}
+    for rate in sl.LINE_RATES_HZ:
+        row = {}
+        for label, kind in comps.items():
+            try:
+                row[label] = {"model": kind or "linear calibration", **_ladder_cell(ctx, kind, rate, folder, scanner_json)}
+            except Exception as err:  # report, keep the demo going
+                row[label] = {"model": kind, "error": " ".join(str(err).split())}
+                log.warning("speed ladder %g lines/s %s: %s", rate, label, row[label]["error"])
+        table[f"{rate:g}"] = row
+        ctx.note(f"speed ladder {rate:g} lines/s: " + ", ".join(
+            f"{k} {v.get('max_error_pct', float('nan')):.2f} % max" for k, v in row.items()))
+    ctx.speed_ladder = table
+
+
 def step_metrics(ctx: DemoContext) -> None:
     o = ctx.options
     max_pct = {name: _max_pct(ctx, res.err_nm) for name, res in ctx.scans.items()}
@@ -424,6 +485,7 @@ def step_metrics(ctx: DemoContext) -> None:
                                          if ctx.true_drift_nm is not None else None)}
                   if ctx.drift_params is not None else None),
         "drift_effect": ctx.drift_effect,
+        "speed_ladder": ctx.speed_ladder,
         "coupling": {"x_from_y": round(float(ctx.coupling[0, 1]), 6), "y_from_x": round(float(ctx.coupling[1, 0]), 6)},
         "error_definition": "|actual - commanded| lateral position (x and y) over every recorded pixel, "
                             "trace and retrace, in % of the scan range",
@@ -445,7 +507,10 @@ def build_steps(options: DemoOptions) -> list[Step]:
     steps += [make_identify_step(k) for k in options.compensators]
     steps += [Step("scan none", step_scan_uncompensated)]
     steps += [make_scan_step(k) for k in options.compensators]
-    steps += [Step("drift effect", step_drift_effect), Step("metrics", step_metrics), Step("plots", step_plots)]
+    steps += [Step("drift effect", step_drift_effect)]
+    if options.speed_ladder:
+        steps += [Step("speed ladder", step_speed_ladder)]
+    steps += [Step("metrics", step_metrics), Step("plots", step_plots)]
     return steps
 
 
@@ -465,6 +530,29 @@ def format_table(metrics: dict[str, Any]) -> str:
                      f"with, {d['max_error_pct_without_drift_correction']:.3f} % without")
     for kind, why in metrics.get("skipped", {}).items():
         lines.append(f"skipped {kind}: {why}")
+    if metrics.get("speed_ladder"):
+        lines += ["", format_ladder(metrics["speed_ladder"])]
+    return "\n".join(lines)
+
+
+def format_ladder(ladder: dict[str, Any]) -> str:
+    """The speed ladder as a Markdown table: max / RMS error [% of the line] over the
+    central 80 % of each line, per line rate and compensator, and the path (controller at
+    its loop rate, or offline)."""
+    labels = list(next(iter(ladder.values())).keys())
+    head = "| lines/s | " + " | ".join(f"{k} max / rms [%]" for k in labels) + " | path |"
+    lines = [head, "|" + "---|" * (len(labels) + 2)]
+    for rate, row in ladder.items():
+        cells, path = [], ""
+        for k in labels:
+            c = row.get(k, {})
+            if "max_error_pct" in c:
+                cells.append(f"{c['max_error_pct']:.2f} / {c['rms_error_pct']:.2f}")
+                path = (f"controller, {c['loop_rate_Hz']:g} Hz output" if c.get("path") == "controller"
+                        else "offline (pipeline + simulator)")
+            else:
+                cells.append(f"failed: {c.get('error', '?')}")
+        lines.append(f"| {rate} | " + " | ".join(cells) + f" | {path} |")
     return "\n".join(lines)
 
 

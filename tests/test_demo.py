@@ -88,3 +88,25 @@ def test_full_size_demo_meets_the_acceptance_figures(tmp_path):
     assert m["best"] == "preisach+creep"
     assert mx["preisach+creep"] <= 1.5
     assert mx["preisach+creep"] * 5 <= mx["none"]
+
+
+def test_demo_speed_ladder_through_the_controller(demo_run):
+    """metrics.json speed_ladder = {line_rate_Hz: {compensator: {max_error_pct, rms_error_pct}}}:
+    1, 4, 16 lines/s from the real Controller (simulated CAN amplifier), 50 offline; the
+    model files the demo wrote are what the controller loaded."""
+    _, out = demo_run
+    m = json.loads((out / "metrics.json").read_text())
+    ladder = m["speed_ladder"]
+    assert list(ladder) == ["1", "4", "16", "50"]
+    for rate, row in ladder.items():
+        assert set(row) == {"none", "static", "chain"}, row
+        for label, cell in row.items():
+            assert 0 < cell["rms_error_pct"] <= cell["max_error_pct"], (rate, label, cell)
+            assert cell["path"] == ("offline" if rate == "50" else "controller")
+        assert row["chain"]["model"] == "preisach+creep" and row["static"]["model"] == "pi"
+        # any model beats the linear calibration at every speed
+        assert row["chain"]["max_error_pct"] < row["none"]["max_error_pct"]
+    assert (out / "models" / "scanner_preisach+creep.json").exists()
+    assert (out / "ladder" / "ladder-1-scanner_preisach+creep.afmlog").exists()
+    png = (out / "demo_speed_ladder.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
