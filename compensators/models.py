@@ -32,6 +32,7 @@ KINDS: dict[str, str] = {
     "creep": "afmctl.compensators.creep:LinearCreepModel",
     "preisach": "afmctl.compensators.preisach:PreisachModel",
     "bouc-wen": "afmctl.compensators.bouc_wen:BoucWenModel",
+    "dynamics": "afmctl.compensators.dynamics:LinearDynamicsModel",
     "chain": "afmctl.compensators.chain:ChainModel",
     "scanner": "afmctl.compensators.scanner_model:ScannerModel",
 }

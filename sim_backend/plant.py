@@ -214,3 +214,22 @@ class AxisPlant:
         op = self.model.forward(1e-3)
         y = op.block(np.linspace(self.u_min_V, self.u_max_V, 301))
         return float((y[-1] - y[0]) / (self.u_max_V - self.u_min_V))
+
+    def linear_response(self, f_Hz: np.ndarray, dt_s: float) -> np.ndarray:
+        """Small-signal frequency response of the axis' linear stages as simulated at
+        ``dt_s`` [s] (amplifier low-pass → creep → structural mode; slew and quantisation
+        ignored), unit DC gain: multiply by the hysteresis' local slope [nm/V] for
+        nm per V. Exact for :meth:`run` at that sample period (the discrete filters'
+        own responses)."""
+        _, a_lp, a_c, g_c, ad, bd, use_dyn = self._coeffs(float(dt_s))
+        zinv = np.exp(-2j * math.pi * np.asarray(f_Hz, dtype=float) * dt_s)
+        g = (1.0 - a_lp) / (1.0 - a_lp * zinv)
+        creep = np.ones_like(g)
+        for a, gk in zip(a_c, g_c):
+            creep -= gk * (1.0 - (1.0 - a) / (1.0 - a * zinv))
+        g = g * creep
+        if use_dyn:
+            # z_k = Ad·z_{k−1} + bd·r_k, output z_k[0]:  P = e1ᵀ (I − Ad z⁻¹)⁻¹ bd · R
+            M = np.eye(2)[None] - ad[None] * zinv[:, None, None]
+            g = g * np.linalg.solve(M, np.broadcast_to(bd, (zinv.size, 2))[..., None])[:, 0, 0]
+        return g

@@ -27,6 +27,9 @@ Model kinds (--model):
   creep     linear creep (bank of first-order lags), no hysteresis
   preisach  classical Preisach on an (alpha, beta) grid: asymmetric loops, exact inverse
   bouc-wen  Bouc-Wen differential model, nonlinear least squares
+  dynamics  linear dynamics (amplifier bandwidth, structural modes, delay), unit DC gain,
+            from a small-signal recording ('afmctl excite --kind dynamics'): frequency
+            response (Welch) fitted by modes + lags + delay; the gain is printed
   KIND+creep[+dynamics]
             a chain (kind chain): hysteresis KIND (pi, epi, preisach, bouc-wen), then
             linear creep, then linear dynamics, identified jointly (Hammerstein);
@@ -46,6 +49,8 @@ Options:
                     preisach: u_min_V, u_max_V (grid range, default the data range),
                       method=auto|for|nnls, smoothing (1e-4), max_rows, memory_depth
                     bouc-wen: n (fix the exponent), max_rows (20000), u0_V
+                    dynamics: n_modes (1), n_lags (1), segment=auto|all, nperseg,
+                      f_min_Hz, f_max_Hz, min_coherence (0.9)
                     e.g. --param min_slope_fraction=1e-3 --param 'thresholds=[0,10,20,30]'
 Output:
   --out MODEL.json  the fitted model (a 'kind' field plus its parameters); a summary and
@@ -62,7 +67,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("identify", help=HELP, description=DESCRIPTION,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--model", required=True, metavar="KIND",
-                   help="model kind: pi, epi, creep, preisach, bouc-wen, a chain KIND+creep[+dynamics], or auto")
+                   help="model kind: pi, epi, creep, preisach, bouc-wen, dynamics, a chain KIND+creep[+dynamics], "
+                        "or auto")
     p.add_argument("--data", metavar="DATA.csv", help="CSV with columns t,u,y (s, V, nm)")
     p.add_argument("--from-images", metavar="SCANS.npz",
                    help="instead of --data: identify without a position sensor from AFM images of a "
@@ -135,7 +141,8 @@ def run(args: argparse.Namespace) -> int:
         raise ModelError(f"{args.data}: the fit failed ({err}); is the input excited over its range?") from None
     except ValueError as err:  # a --param value of the wrong type that a kind did not check itself
         raise AfmctlError(f"--param: a value is not accepted by kind {args.model!r} ({err})") from None
-    y_fit = model.forward(dt).block(u)
+    predict = getattr(model, "predict_linear", None)  # dynamics: nm → nm, needs the fitted gain
+    y_fit = predict(u, y, dt) if predict is not None else model.forward(dt).block(u)
     rms = float(np.sqrt(np.mean((y_fit - y) ** 2)))
     peak = float(np.max(np.abs(y_fit - y)))
     span = float(np.ptp(y)) or 1.0

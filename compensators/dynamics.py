@@ -1,0 +1,195 @@
+"""Linear scanner dynamics (amplifier bandwidth, structural modes, delay) as a model file.
+
+``kind = "dynamics"``: a stable continuous LTI system with a pure delay and unit DC gain,
+input and output in nm. It is the last stage of the Hammerstein chain
+hysteresis → creep → dynamics (the static stages map V → nm, this one shapes the nm in
+time)::
+
+    G(s) = k · Π(s − z_i) / Π(s − p_i) · e^{−s·delay_s},   G(0) = 1
+
+Poles and zeros are stored as ``[re, im]`` pairs in rad/s (complex ones with their
+conjugate). :class:`LinearDynamicsModel` gives
+
+* ``forward(dt_s)`` — zero-order-hold discretisation (exact for a held input, fractional
+  delay included) as a streaming operator, :mod:`afmctl.compensators.lti`;
+* ``inverse(dt_s, preview_s=None)`` — a causal preview inverse with a fixed, reported
+  latency (``latency_samples``), :mod:`afmctl.compensators.dynamics_inverse`;
+* ``inverse_offline(y_nm, dt_s)`` — the stable non-causal inverse over a whole known
+  trajectory (handles delays and non-minimum-phase zeros);
+* ``identify(t_s, u, y_nm)`` — frequency response from a small-signal excitation fitted
+  by a stable transfer function, :mod:`afmctl.compensators.dynamics_identify`.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+from pydantic import Field, FiniteFloat, model_validator
+
+from .base import ModelError
+from .dynamics_inverse import InverseTaps, PreviewInverse, apply_offline, inverse_taps
+from .input_checks import block_samples
+from .lti import DiscreteLTI, LTIOperator, discretise, frequency_response
+from .models import HysteresisModel
+
+Pair = tuple[FiniteFloat, FiniteFloat]
+
+
+def _complex(pairs: list[Pair]) -> np.ndarray:
+    return np.array([complex(re, im) for re, im in pairs], dtype=complex)
+
+
+def _check_conjugates(name: str, values: np.ndarray) -> None:
+    for v in values:
+        if abs(v.imag) > 0 and not np.any(np.isclose(values, np.conj(v), rtol=1e-9, atol=1e-9)):
+            raise ValueError(f"{name}: {v.real:g}{v.imag:+g}j has no conjugate partner; "
+                             "complex values must come in conjugate pairs")
+
+
+class LinearDynamicsModel(HysteresisModel):
+    """Unit-DC-gain LTI dynamics with delay (``kind = "dynamics"``), nm → nm."""
+
+    kind: Literal["dynamics"] = "dynamics"
+    time_dependent: ClassVar[bool] = True
+    poles_rad_per_s: list[Pair] = Field(default_factory=list, max_length=40,
+                                        description="poles [re, im] in rad/s, re < 0")
+    zeros_rad_per_s: list[Pair] = Field(default_factory=list, max_length=40,
+                                        description="zeros [re, im] in rad/s, not at 0")
+    delay_s: FiniteFloat = Field(0.0, ge=0.0, le=1.0, description="pure delay [s]")
+    initial_nm: FiniteFloat = Field(0.0, description="input and output at rest before the first sample [nm]")
+    bandwidth_Hz: FiniteFloat | None = Field(None, gt=0, description="band limit of the inverse [Hz]; "
+                                             "null = 1.5 × the slowest pole")
+    regularisation: FiniteFloat = Field(1e-3, ge=0, le=10, description="Tikhonov λ of the inverse")
+    fit_info: dict[str, float | str] | None = Field(None, description="identification summary")
+
+    @model_validator(mode="after")
+    def _check(self) -> "LinearDynamicsModel":
+        p, z = self.poles(), self.zeros()
+        if np.any(p.real >= 0):
+            raise ValueError("poles_rad_per_s: every pole needs a negative real part (a stable system)")
+        if np.any(np.abs(z) < 1e-12):
+            raise ValueError("zeros_rad_per_s: a zero at s = 0 has no unit DC gain")
+        if z.size > p.size:
+            raise ValueError(f"zeros_rad_per_s: {z.size} zeros but {p.size} poles; need no more zeros than poles")
+        _check_conjugates("poles_rad_per_s", p)
+        _check_conjugates("zeros_rad_per_s", z)
+        return self
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_modes(cls, modes: list[tuple[float, float]] = (), real_poles_Hz: list[float] = (),
+                   delay_s: float = 0.0, **fields: Any) -> "LinearDynamicsModel":
+        """Second-order modes ``(f_Hz, ζ)`` and first-order lags ``f_Hz`` in series."""
+        poles: list[Pair] = []
+        for f, zeta in modes:
+            w = 2 * math.pi * float(f)
+            if not (0 < zeta < 1):
+                raise ModelError(f"modes: damping {zeta!r}; allowed 0 < ζ < 1")
+            re, im = -zeta * w, w * math.sqrt(1 - zeta * zeta)
+            poles += [(re, im), (re, -im)]
+        poles += [(-2 * math.pi * float(f), 0.0) for f in real_poles_Hz]
+        return cls(poles_rad_per_s=poles, delay_s=delay_s, **fields)
+
+    def poles(self) -> np.ndarray:
+        return _complex(self.poles_rad_per_s)
+
+    def zeros(self) -> np.ndarray:
+        return _complex(self.zeros_rad_per_s)
+
+    def frequency_response(self, f_Hz: np.ndarray) -> np.ndarray:
+        """Continuous ``G(j2πf)`` (complex, dimensionless) at ``f_Hz`` [Hz]."""
+        return frequency_response(self.zeros(), self.poles(), self.delay_s, f_Hz)
+
+    def discrete(self, dt_s: float | None) -> DiscreteLTI:
+        """Zero-order-hold discretisation at ``dt_s`` [s]."""
+        if dt_s is None:
+            raise ModelError("dt_s: None; the dynamics model needs a sample period > 0 s")
+        return discretise(self.zeros(), self.poles(), self.delay_s, float(dt_s))
+
+    def inverse_bandwidth_Hz(self, dt_s: float) -> float:
+        """Band limit of the inverse [Hz]: ``bandwidth_Hz`` or 1.5 × the slowest pole (just
+        above the first structural mode: above it the inverse's gain grows as f², and the
+        sharp corners of a raster would need more voltage and slew than an amplifier has),
+        at most 45 % of the sample rate."""
+        if self.bandwidth_Hz is not None:
+            bw = float(self.bandwidth_Hz)
+        else:
+            p = self.poles()
+            bw = 1.5 * float(np.min(np.abs(p))) / (2 * math.pi) if p.size else 0.45 / dt_s
+        return min(bw, 0.45 / dt_s)
+
+    # ------------------------------------------------------------------ operators
+    def forward(self, dt_s: float | None = None, initial_nm: float | None = None) -> LTIOperator:
+        """Operator y_static [nm] → y [nm] at sample period ``dt_s`` [s]."""
+        init = self.initial_nm if initial_nm is None else initial_nm
+        return LTIOperator(self.discrete(dt_s), init)
+
+    def taps(self, dt_s: float, preview_s: float | None = None) -> InverseTaps:
+        """The inverse filter at ``dt_s`` (see :mod:`afmctl.compensators.dynamics_inverse`)."""
+        sys = self.discrete(dt_s)
+        preview = None
+        if preview_s is not None:
+            if not (math.isfinite(preview_s) and preview_s >= 0):
+                raise ModelError(f"preview_s: {preview_s!r}; need ≥ 0 s")
+            preview = int(round(preview_s / float(dt_s)))
+        return inverse_taps(sys, self.inverse_bandwidth_Hz(float(dt_s)), float(self.regularisation), preview)
+
+    def inverse(self, dt_s: float | None = None, preview_s: float | None = None,
+                initial_nm: float | None = None) -> PreviewInverse:
+        """Causal preview inverse target [nm] → static-stage output [nm]. Its output lags
+        the target by ``latency_samples`` (the preview; automatic when ``preview_s`` is
+        None: long enough for all but 1e-10 of the inverse's energy)."""
+        if dt_s is None:
+            raise ModelError("dt_s: None; the dynamics model needs a sample period > 0 s")
+        init = self.initial_nm if initial_nm is None else initial_nm
+        return PreviewInverse(self.taps(float(dt_s), preview_s), init)
+
+    def inverse_offline(self, y_nm: np.ndarray, dt_s: float) -> np.ndarray:
+        """Stable non-causal inverse of a whole trajectory ``y_nm`` sampled at ``dt_s``:
+        the static-stage output [nm] that makes the dynamics follow ``y_nm`` (band-limited
+        to :meth:`inverse_bandwidth_Hz`). The trajectory is taken at rest before its first
+        and after its last sample."""
+        y = block_samples("y_nm", y_nm)
+        if y.size == 0:
+            return y.copy()
+        return apply_offline(self.taps(float(dt_s)), y)
+
+    # ------------------------------------------------------------------ identification
+    @classmethod
+    def identify(cls, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, **options: Any) -> "LinearDynamicsModel":
+        """Fit from a small-signal excitation (chirp, multisine, PRBS around a DC offset);
+        ``u`` in any unit (V or nm), the static gain is reported and then divided out.
+        Options: see :func:`afmctl.compensators.dynamics_identify.fit_dynamics`."""
+        from .dynamics_identify import fit_dynamics
+
+        fit = fit_dynamics(t_s, u_V, y_nm, **options)
+        return cls(poles_rad_per_s=[(float(p.real), float(p.imag)) for p in fit.poles],
+                   zeros_rad_per_s=[(float(z.real), float(z.imag)) for z in fit.zeros],
+                   delay_s=fit.delay_s, initial_nm=float(np.asarray(y_nm, dtype=float)[0]), fit_info=fit.info)
+
+    def predict_linear(self, u: np.ndarray, y_nm: np.ndarray, dt_s: float) -> np.ndarray:
+        """What the fitted linear model says ``y`` [nm] was for input ``u``: the first
+        output sample plus the static gain of ``fit_info`` times the dynamics' response to
+        the input's change (for the residual that ``afmctl identify`` prints)."""
+        u = block_samples("u", u)
+        gain = float((self.fit_info or {}).get("static_gain_y_per_u", 1.0))
+        g = self.forward(dt_s, initial_nm=float(u[0])).block(u) if u.size else u
+        return float(np.asarray(y_nm, dtype=float)[0]) + gain * (g - float(u[0]))
+
+    def summary(self) -> str:
+        lines = ["model            : linear dynamics, unit DC gain, with delay (kind dynamics)",
+                 f"delay            : {self.delay_s * 1e6:.4g} µs"]
+        for p in self.poles():
+            if p.imag < 0:
+                continue
+            f = abs(p) / (2 * math.pi)
+            zeta = -p.real / abs(p)
+            kind = "mode" if p.imag > 0 else "lag "
+            lines.append(f"  {kind} {f:10.5g} Hz" + (f"  ζ = {zeta:.4g}" if p.imag > 0 else ""))
+        for z in self.zeros():
+            if z.imag >= 0:
+                lines.append(f"  zero {abs(z) / (2 * math.pi):10.5g} Hz  re {z.real:+.4g} rad/s")
+        if self.fit_info:
+            lines += [f"  fit {k}: {v}" for k, v in self.fit_info.items()]
+        return "\n".join(lines)
