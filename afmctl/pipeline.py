@@ -245,8 +245,12 @@ def axis_inverses(config) -> tuple[list[StreamingOperator], dict[str, str], np.n
         elif scanner is not None and scanner.axis(axis) is not None:
             model, source = scanner.axis(axis), comp.scanner_model
         if model is not None:
-            inverses.append(model.inverse(dt))
+            op = model.inverse(dt)
+            inverses.append(op)
             prov[axis] = f"{_model_name(model)} from {Path(source).name}"
+            lat = int(getattr(op, "latency_samples", 0))
+            if lat:   # the loop does not read the trajectory ahead yet: the output lags
+                prov[axis] += f" (preview inverse: output lags the target by {lat} samples, {lat * dt * 1e3:.3g} ms)"
         else:
             cal = config.scanner.axis_spec(axis)
             inverses.append(LinearAxis(cal.nm_per_V, cal.offset_V))

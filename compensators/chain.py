@@ -108,8 +108,24 @@ class ChainModel(HysteresisModel):
 
     def inverse(self, dt_s: float | None = None) -> StreamingOperator:
         """Compensator y [nm] → u [V] at sample period ``dt_s`` [s]: the stages' inverses in
-        reverse order. A dynamics stage adds its ``latency_samples`` (preview) delay."""
-        return Chain(*(m.inverse(dt_s) for m in reversed(self.stages())))
+        reverse order. A dynamics stage makes it a preview inverse: the operator's
+        ``latency_samples`` (0 without dynamics) is how many samples its output lags the
+        target; feed it the target that many samples ahead."""
+        op = Chain(*(m.inverse(dt_s) for m in reversed(self.stages())))
+        op.latency_samples = sum(int(getattr(o, "latency_samples", 0)) for o in op.ops)  # type: ignore[attr-defined]
+        return op
+
+    def inverse_offline(self, y_nm: np.ndarray, dt_s: float) -> np.ndarray:
+        """Voltages [V] for a whole known target ``y_nm`` [nm] at ``dt_s`` [s], no latency:
+        the dynamics' stable non-causal inverse over the whole target, then the streaming
+        inverses of creep and hysteresis (``afmctl compensate``)."""
+        y = np.ascontiguousarray(check_finite("y_nm", y_nm).ravel())
+        if self.dynamics is not None:
+            y = np.ascontiguousarray(self.dynamics.inverse_offline(y, dt_s))
+        for m in (self.creep, self.hysteresis):
+            if m is not None:
+                y = m.inverse(dt_s).block(y)
+        return y
 
     def summary(self) -> str:
         lines = [f"model            : chain {self.structure} (kind chain)"]
@@ -121,10 +137,11 @@ class ChainModel(HysteresisModel):
 
     @classmethod
     def identify(cls, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, n_operators: int | None = None,
-                 structure: str = "preisach+creep", rounds: int = 2, **options: Any) -> "ChainModel":
+                 structure: str = "preisach+creep", rounds: int = 2,
+                 dynamics_options: dict[str, Any] | None = None, **options: Any) -> "ChainModel":
         """Fit the chain ``structure`` jointly (module docstring). ``n_operators`` and
-        ``options`` go to the hysteresis kind's ``identify``; data uniformly sampled
-        (t [s], u [V], y [nm])."""
+        ``options`` go to the hysteresis kind's ``identify``, ``dynamics_options`` to the
+        dynamics kind's; data uniformly sampled (t [s], u [V], y [nm])."""
         hyst_kind, stages = parse_structure(structure)
         hcls = model_class(hyst_kind)
         t = check_finite("t_s", t_s).ravel()
@@ -136,10 +153,12 @@ class ChainModel(HysteresisModel):
         hyst, creep = _fit_static(hcls, t, u, y, dt, "creep" in stages, max(1, int(rounds)), n_operators, options)
         dynamics = None
         if "dynamics" in stages:
+            # the static chain's output drives the linear dynamics; the dynamics kind picks
+            # the small-signal (chirp / multisine) part of the record itself
             x = hyst.forward(dt).block(u)
             if creep is not None:
                 x = creep.forward(dt).block(x)
-            dynamics = model_class("dynamics").identify(t, x, y)
+            dynamics = model_class("dynamics").identify(t, x, y, **dict(dynamics_options or {}))
         return cls(hysteresis=hyst, creep=creep, dynamics=dynamics)
 
 

@@ -65,11 +65,7 @@ def run(args: argparse.Namespace) -> int:
     t, y = data["t"], data["y"]
     dt = uniform_period(t, str(args.target)) if getattr(model, "time_dependent", False) else None
     try:
-        inverse = model.inverse(dt)
-    except ModelError as err:  # e.g. a Bouc–Wen model that is not invertible
-        raise ModelError(f"{args.model}: {err}") from None
-    try:
-        u = _run_chunked(inverse, y)
+        u = _inverse_voltages(model, y, dt, args)
     except ModelError as err:
         raise ModelError(f"{args.target}: {err}") from None
     if not np.all(np.isfinite(u)):
@@ -88,6 +84,19 @@ def run(args: argparse.Namespace) -> int:
     write_csv(args.out, {"t": t, "u": u})
     print(f"written          : {args.out} ({u.size} rows, u from {u.min():.6g} to {u.max():.6g} V)")
     return 0
+
+
+def _inverse_voltages(model, y, dt, args: argparse.Namespace):
+    """The voltages [V] for target ``y`` [nm]: a model with dynamics uses its stable
+    non-causal inverse over the whole known target (no latency); others stream."""
+    from afmctl.compensators.base import ModelError
+    if getattr(model, "dynamics", None) is not None:
+        return model.inverse_offline(y, dt)
+    try:
+        inverse = model.inverse(dt)
+    except ModelError as err:  # e.g. a Bouc–Wen model that is not invertible
+        raise ModelError(f"{args.model}: {err}") from None
+    return _run_chunked(inverse, y)
 
 
 def _axis_model(model, args: argparse.Namespace):
