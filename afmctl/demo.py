@@ -48,7 +48,7 @@ from .errors import AfmctlError
 log = logging.getLogger(__name__)
 
 #: compensator kinds the demo tries, in this order (model KINDS names)
-DEFAULT_COMPENSATORS = ("pi", "epi", "preisach", "bouc-wen", "preisach+creep")
+DEFAULT_COMPENSATORS = ("pi", "epi", "preisach", "bouc-wen", "preisach+creep", "preisach+creep+dynamics")
 LATERAL = ("x", "y")
 
 
@@ -99,6 +99,7 @@ class DemoContext:
     scanner_config: Any = None
     drift_params: Any = None
     excitation: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    dyn_excitation: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     coupling: np.ndarray = field(default_factory=lambda: np.eye(3))
     models: dict[str, dict[str, Any]] = field(default_factory=dict)
     skipped: dict[str, str] = field(default_factory=dict)
@@ -221,15 +222,28 @@ def step_excite(ctx: DemoContext) -> None:
     ctx.note(f"cross-coupling estimated: x←y {C[0, 1]:.4f}, y←x {C[1, 0]:.4f}")
 
 
-def identify_axis(kind: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray) -> Any:
+def identify_axis(kind: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, dyn: dict[str, np.ndarray] | None = None,
+                  static: Any = None) -> Any:
     """One axis's model of ``kind``: a single kind (``pi``, ``preisach``, …) or a chain
     (``preisach+creep``, …; :class:`afmctl.compensators.chain.ChainModel`) — what
-    ``afmctl identify --model KIND`` fits."""
+    ``afmctl identify --model KIND`` fits. A ``+dynamics`` chain takes its static stages
+    from ``static`` (the same chain without dynamics, already identified) or fits them on
+    ``t_s, u_V, y_nm``, and its dynamics on the small-signal record ``dyn`` (t_s, u_V,
+    y_nm at the simulator's rate) driven through those static stages."""
     from afmctl.compensators.models import model_class
-    if "+" in kind:
-        from afmctl.compensators.chain import ChainModel
+    if "+" not in kind:
+        return model_class(kind).identify(t_s, u_V, y_nm)
+    from afmctl.compensators.chain import ChainModel
+    if not kind.endswith("+dynamics"):
         return ChainModel.identify(t_s, u_V, y_nm, structure=kind)
-    return model_class(kind).identify(t_s, u_V, y_nm)
+    if dyn is None:
+        raise AfmctlError(f"compensator {kind!r}: no small-signal excitation recorded")
+    if static is None:
+        static = identify_axis(kind[:-len("+dynamics")], t_s, u_V, y_nm)
+    dt = float(dyn["t_s"][1] - dyn["t_s"][0])
+    x = static.forward(dt).block(np.ascontiguousarray(dyn["u_V"]))
+    dynamics = model_class("dynamics").identify(dyn["t_s"], x, dyn["y_nm"])
+    return ChainModel(hysteresis=static.hysteresis, creep=static.creep, dynamics=dynamics)
 
 
 def _check_kind(kind: str) -> None:
@@ -263,7 +277,10 @@ def make_identify_step(kind: str) -> Step:
         for axis in LATERAL:
             e = ctx.excitation[axis]
             try:
-                models[axis] = identify_axis(kind, e["t_s"], e["u_V"], e["y_nm"])
+                static = ctx.models.get(kind.removesuffix("+dynamics"))
+                models[axis] = identify_axis(kind, e["t_s"], e["u_V"], e["y_nm"], ctx.dyn_excitation.get(axis),
+                                             static.axis(axis) if static is not None and kind.endswith("+dynamics")
+                                             else None)
                 models[axis].inverse(1e-4).reset()   # can it be inverted at all?
             except NotImplementedError:
                 ctx.skipped[kind] = "identify() not implemented yet"
@@ -312,6 +329,21 @@ def step_scan_uncompensated(ctx: DemoContext) -> None:
         ctx.true_drift_nm = img.signals["position_nm"] - pos0
 
 
+def step_excite_dynamics(ctx: DemoContext) -> None:
+    """Per lateral axis, the small-signal multisine of ``afmctl excite --kind dynamics``
+    around mid-range, recorded at the simulator's 10 kHz (no averaging: the structural
+    mode must stay in the data)."""
+    from .excitation import ExcitationSpec, excitation
+    dt = EXCITE_SIM_DT_S
+    u1 = excitation("dynamics", ExcitationSpec(u_min_V=0.0, u_max_V=150.0, rate_Hz=1.0 / dt,
+                                               periods=4 if ctx.options.quick else 8))
+    for i, axis in enumerate(LATERAL):
+        u = np.zeros((u1.size, 3))
+        u[:, i] = u1
+        pos = _new_scanner(ctx, drift=False).run(u, dt)
+        ctx.dyn_excitation[axis] = {"t_s": np.arange(u1.size) * dt, "u_V": u1.copy(), "y_nm": pos[:, i].copy()}
+
+
 class PipelineCompensator:
     """Targets (N, 3) nm → voltages (N, 3) V for one scan through the product's
     :class:`afmctl.pipeline.CompensationPipeline` (drift prediction subtracted, x/y
@@ -338,7 +370,7 @@ class PipelineCompensator:
         else:
             T = np.full(r.shape[0], self.T_const_C)
         self.pipeline.reset()
-        d, _, u = self.pipeline.block(r, T, np.clip(r / self.gain, 0.0, 150.0))
+        d, _, u = self.pipeline.block(r, T, np.clip(r / self.gain, 0.0, 150.0), preview=True)
         self.drift_pred_nm = d if self.pipeline.drift is not None else None
         return u
 
@@ -409,16 +441,20 @@ def step_drift_effect(ctx: DemoContext) -> None:
 
 
 def ladder_compensators(ctx: DemoContext) -> dict[str, str | None]:
-    """``{"none": None, "static": kind, "chain": kind}`` for the speed ladder: the static
-    model (preisach if identified, else the first single kind) and the chain (preisach+creep
-    if identified, else the first chain); missing ones are left out."""
+    """``{"none": None, "static": kind, "chain": kind, "chain+dynamics": kind}`` for the
+    speed ladder: the static model (preisach if identified, else the first single kind),
+    the chain (preisach+creep if identified, else the first chain without dynamics) and the
+    first chain with dynamics; missing ones are left out."""
     out: dict[str, str | None] = {"none": None}
     single = [k for k in ctx.models if "+" not in k]
-    chains = [k for k in ctx.models if "+" in k]
+    chains = [k for k in ctx.models if "+" in k and not k.endswith("+dynamics")]
+    dyn = [k for k in ctx.models if k.endswith("+dynamics")]
     if single:
         out["static"] = "preisach" if "preisach" in single else single[0]
     if chains:
         out["chain"] = "preisach+creep" if "preisach+creep" in chains else chains[0]
+    if dyn:
+        out["chain+dynamics"] = dyn[0]
     return out
 
 
@@ -426,6 +462,8 @@ def _ladder_cell(ctx: DemoContext, kind: str | None, rate: float, folder: Path, 
     from . import speed_ladder as sl
     o = ctx.options
     loop_Hz = sl.CONTROLLER_RATE_HZ.get(rate) if o.ladder_controller else None
+    if kind is not None and kind.endswith("+dynamics"):
+        loop_Hz = None    # the loop does not read the trajectory ahead yet (preview): offline
     if loop_Hz is not None:
         gain = _new_scanner(ctx, drift=False).nominal_gain_nm_per_V()
         model = folder.parent / "models" / f"scanner_{kind}.json" if kind else None
@@ -504,6 +542,8 @@ def step_plots(ctx: DemoContext) -> None:
 
 def build_steps(options: DemoOptions) -> list[Step]:
     steps = [Step("setup", step_setup), Step("excite", step_excite)]
+    if any(k.endswith("+dynamics") for k in options.compensators):
+        steps += [Step("excite dynamics", step_excite_dynamics)]
     steps += [make_identify_step(k) for k in options.compensators]
     steps += [Step("scan none", step_scan_uncompensated)]
     steps += [make_scan_step(k) for k in options.compensators]
@@ -537,22 +577,26 @@ def format_table(metrics: dict[str, Any]) -> str:
 
 def format_ladder(ladder: dict[str, Any]) -> str:
     """The speed ladder as a Markdown table: max / RMS error [% of the line] over the
-    central 80 % of each line, per line rate and compensator, and the path (controller at
-    its loop rate, or offline)."""
+    central 80 % of each line, per line rate and compensator; cells marked ``(offline)``
+    come from the pipeline + simulator, the others from the real controller at the output
+    rate of the last column."""
     labels = list(next(iter(ladder.values())).keys())
-    head = "| lines/s | " + " | ".join(f"{k} max / rms [%]" for k in labels) + " | path |"
+    head = "| lines/s | " + " | ".join(f"{k} max / rms [%]" for k in labels) + " | controller output |"
     lines = [head, "|" + "---|" * (len(labels) + 2)]
     for rate, row in ladder.items():
-        cells, path = [], ""
+        cells, loop = [], "—"
         for k in labels:
             c = row.get(k, {})
-            if "max_error_pct" in c:
-                cells.append(f"{c['max_error_pct']:.2f} / {c['rms_error_pct']:.2f}")
-                path = (f"controller, {c['loop_rate_Hz']:g} Hz output" if c.get("path") == "controller"
-                        else "offline (pipeline + simulator)")
-            else:
+            if "max_error_pct" not in c:
                 cells.append(f"failed: {c.get('error', '?')}")
-        lines.append(f"| {rate} | " + " | ".join(cells) + f" | {path} |")
+                continue
+            text = f"{c['max_error_pct']:.2f} / {c['rms_error_pct']:.2f}"
+            if c.get("path") == "controller":
+                loop = f"{c['loop_rate_Hz']:g} Hz"
+            else:
+                text += " (offline)"
+            cells.append(text)
+        lines.append(f"| {rate} | " + " | ".join(cells) + f" | {loop} |")
     return "\n".join(lines)
 
 

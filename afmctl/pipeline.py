@@ -130,14 +130,19 @@ class CompensationPipeline:
         az = M[2, 0] * cx + M[2, 1] * cy + M[2, 2] * cz
         return (dx, dy, dz, cx, cy, cz, inv[0].step(float(ax)), inv[1].step(float(ay)), inv[2].step(float(az)))
 
-    def block(self, targets_nm: np.ndarray, T_C: np.ndarray | float, u_sent_V: np.ndarray
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def block(self, targets_nm: np.ndarray, T_C: np.ndarray | float, u_sent_V: np.ndarray,
+              preview: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Vectorised: the numbers :meth:`step` gives per sample with ``u_sent`` taken from
         ``u_sent_V`` (N, 3) [V] (the heat input) instead of the pipeline's own previous
         output — for offline use where the voltages already sent are known or estimated.
         ``targets_nm`` (N, 3) [nm], ``T_C`` (N,) or scalar [°C]. Returns drift (N, 3) [nm],
         corrected (N, 3) [nm], u (N, 3) [V]. Not with a Kalman filter (measurements arrive
-        per sample)."""
+        per sample).
+
+        ``preview``: the whole target is known, so an axis whose inverse has
+        ``latency_samples`` = L (a dynamics stage) is fed its decoupled target L samples
+        ahead (the last sample repeated at the end): its output is aligned with the target
+        instead of lagging it."""
         if self.kalman is not None:
             raise ValueError("block: not with a Kalman filter; use run()")
         r = np.asarray(targets_nm, dtype=np.float64)
@@ -157,7 +162,9 @@ class CompensationPipeline:
                 a[:, i] = M[i, 0] * c[:, 0] + M[i, 1] * c[:, 1] + M[i, 2] * c[:, 2]
         u = np.empty_like(c)
         for i in range(3):
-            u[:, i] = self.inverses[i].block(np.ascontiguousarray(a[:, i]))
+            lat = int(getattr(self.inverses[i], "latency_samples", 0)) if (preview and n) else 0
+            col = a[:, i] if lat == 0 else np.concatenate([a[lat:, i], np.full(min(lat, n), a[-1, i])])[:n]
+            u[:, i] = self.inverses[i].block(np.ascontiguousarray(col))
         return d, c, u
 
     def describe(self) -> str:

@@ -64,8 +64,9 @@ def run(args: argparse.Namespace) -> int:
     data = read_csv(args.target, ("t", "y"), min_rows=1)
     t, y = data["t"], data["y"]
     dt = uniform_period(t, str(args.target)) if getattr(model, "time_dependent", False) else None
+    invert = _inverter(model, dt, args)
     try:
-        u = _inverse_voltages(model, y, dt, args)
+        u = invert(y)
     except ModelError as err:
         raise ModelError(f"{args.target}: {err}") from None
     if not np.all(np.isfinite(u)):
@@ -86,17 +87,18 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _inverse_voltages(model, y, dt, args: argparse.Namespace):
-    """The voltages [V] for target ``y`` [nm]: a model with dynamics uses its stable
-    non-causal inverse over the whole known target (no latency); others stream."""
+def _inverter(model, dt, args: argparse.Namespace):
+    """target [nm] → voltages [V]: a model with dynamics uses its stable non-causal inverse
+    over the whole known target (no latency); others stream (chunked). A model that cannot
+    be inverted is blamed on the model file."""
     from afmctl.compensators.base import ModelError
     if getattr(model, "dynamics", None) is not None:
-        return model.inverse_offline(y, dt)
+        return lambda y: model.inverse_offline(y, dt)
     try:
         inverse = model.inverse(dt)
     except ModelError as err:  # e.g. a Bouc–Wen model that is not invertible
         raise ModelError(f"{args.model}: {err}") from None
-    return _run_chunked(inverse, y)
+    return lambda y: _run_chunked(inverse, y)
 
 
 def _axis_model(model, args: argparse.Namespace):
