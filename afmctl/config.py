@@ -122,8 +122,9 @@ class LoopSection(_Strict):
 class AxisCompensation(_Strict):
     """Feedforward model of one axis: a model JSON file (afmctl identify) or none (linear)."""
 
-    model: Path | None = Field(None, description="model JSON file (kind pi|epi|preisach|bouc-wen|creep); "
-                                                 "none: linear calibration")
+    model: Path | None = Field(None, description="model JSON file (kind pi|epi|preisach|bouc-wen|creep|chain, "
+                                                 "e.g. afmctl identify --model auto); overrides scanner_model "
+                                                 "for this axis; none: linear calibration")
 
 
 class DriftSection(_Strict):
@@ -175,6 +176,11 @@ class TemperatureSection(_Strict):
 
 
 class CompensationSection(_Strict):
+    """Feedforward: an optional scanner model file (per-axis chains + x/y/z coupling), per-axis
+    model files that override it, drift prediction and its temperature source."""
+
+    scanner_model: Path | None = Field(None, description="scanner model JSON (kind scanner): per-axis models "
+                                                         "and the 3x3 coupling matrix with its inverse")
     x: AxisCompensation = Field(default_factory=AxisCompensation)
     y: AxisCompensation = Field(default_factory=AxisCompensation)
     z: AxisCompensation = Field(default_factory=AxisCompensation)
@@ -553,6 +559,7 @@ def _resolve_paths(cfg: Config, base: Path) -> Config:
     for ax in AXES:
         c = cfg.compensation.axis(ax)
         c.model = fix(c.model)
+    cfg.compensation.scanner_model = fix(cfg.compensation.scanner_model)
     t = cfg.compensation.temperature
     t.file = fix(t.file)
     if isinstance(cfg.trajectory, FileSpec):

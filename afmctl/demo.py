@@ -12,14 +12,16 @@ A pipeline of small steps (each one a function of a shared :class:`DemoContext`)
    first-order reversal curves 0 → α_k → 0 V with short dwells at the turns, and a decaying
    sine; simulated at 10 kHz and averaged to 1 kHz (a sensor's output rate);
 3. **identify** — each compensator kind (``pi``, ``epi``, ``preisach``, ``bouc-wen``, and
-   ``preisach+creep`` = Preisach followed by the linear ``creep`` model, fitted
-   alternately) with its own ``identify()`` classmethod on that data; the x/y
-   cross-coupling is estimated from the same runs (least squares of the passive axis on
-   the driven one); kinds not available or failing are *skipped with a message*;
+   the chain ``preisach+creep``, :class:`afmctl.compensators.chain.ChainModel`) as
+   ``afmctl identify`` fits it; the x/y cross-coupling is estimated from the same runs
+   (least squares of the passive axis on the driven one); per kind, one scanner model
+   file ``OUT/models/scanner_<kind>.json`` (:mod:`afmctl.compensators.scanner_model`);
+   kinds not available or failing are *skipped with a message*;
 4. **scan** — the 1.667 µm-period calibration grating (:class:`afmctl.sim_backend.samples.Grating2D`)
    raster-scanned at ``size``×``size`` pixels over ``scan_nm`` square, once uncompensated
    (linear calibration: what a plain AFM does) and once per identified compensator
-   (decoupling → drift prediction subtracted → inverse model per axis); then the best
+   through :class:`afmctl.pipeline.CompensationPipeline` (drift prediction subtracted →
+   decoupling → inverse model per axis); then the best
    compensator once more without the drift prediction (what drift correction is worth);
 5. **report** — images, hysteresis loops, error histograms, drift over time (PNG) and
    ``metrics.json``: ``max_error_pct`` and ``rms_error_pct`` keyed by compensator,
@@ -46,7 +48,7 @@ from .errors import AfmctlError
 log = logging.getLogger(__name__)
 
 #: compensator kinds the demo tries, in this order (model KINDS names)
-DEFAULT_COMPENSATORS = ("pi", "epi", "preisach", "bouc-wen", "preisach+creep")
+DEFAULT_COMPENSATORS = ("pi", "epi", "preisach", "bouc-wen", "preisach+creep", "preisach+creep+dynamics")
 LATERAL = ("x", "y")
 
 
@@ -67,6 +69,8 @@ class DemoOptions:
     quick: bool = False              #: shorter excitation (for tests)
     seed: int = 0
     docs_dir: Path | None = None     #: also copy the PNGs here as demo_*.png
+    speed_ladder: bool = True        #: the speed ladder (afmctl.speed_ladder) in metrics.json
+    ladder_controller: bool = True   #: its 1/4/16 lines/s rows through the real Controller
 
     def __post_init__(self) -> None:
         self.out = Path(self.out)
@@ -95,6 +99,7 @@ class DemoContext:
     scanner_config: Any = None
     drift_params: Any = None
     excitation: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    dyn_excitation: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     coupling: np.ndarray = field(default_factory=lambda: np.eye(3))
     models: dict[str, dict[str, Any]] = field(default_factory=dict)
     skipped: dict[str, str] = field(default_factory=dict)
@@ -104,11 +109,23 @@ class DemoContext:
     timings_s: dict[str, float] = field(default_factory=dict)
     metrics: dict[str, Any] = field(default_factory=dict)
     drift_effect: dict[str, Any] | None = None
+    speed_ladder: dict[str, Any] | None = None
     messages: list[str] = field(default_factory=list)
 
     def note(self, text: str) -> None:
         log.info(text)
         self.messages.append(text)
+
+    def scan_T(self) -> Callable[[np.ndarray], np.ndarray] | None:
+        """Ambient temperature [°C] as a function of the time since the scan start [s]
+        (the drift scenario: a linear rise by ``warming_K`` over the scan); None without
+        the drift scenario."""
+        o = self.options
+        if self.drift_params is None:
+            return None
+        T0 = float(self.scanner_config.ambient_T_C)
+        total = o.size / o.line_rate_Hz
+        return lambda t: T0 + o.warming_K * np.clip(np.asarray(t) / total, 0.0, 1.0)
 
 
 @dataclass
@@ -202,52 +219,51 @@ def step_excite(ctx: DemoContext) -> None:
     ctx.note(f"cross-coupling estimated: x←y {C[0, 1]:.4f}, y←x {C[1, 0]:.4f}")
 
 
-class CreepChainModel:
-    """A hysteresis model followed by linear creep (the plant's structure): forward
-    ``u → hysteresis → creep → y``, inverse ``y → creep⁻¹ → hysteresis⁻¹ → u``; built from
-    two model files (``compensators``), no model math here."""
-
-    def __init__(self, hysteresis: Any, creep: Any) -> None:
-        self.hysteresis = hysteresis
-        self.creep = creep
-
-    def forward(self, dt_s: float | None = None) -> Any:
-        from afmctl.compensators.base import Chain
-        return Chain(self.hysteresis.forward(dt_s), self.creep.forward(dt_s))
-
-    def inverse(self, dt_s: float | None = None) -> Any:
-        from afmctl.compensators.base import Chain
-        return Chain(self.creep.inverse(dt_s), self.hysteresis.inverse(dt_s))
-
-
-def identify_with_creep(cls: Any, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, rounds: int = 2) -> CreepChainModel:
-    """Alternate: fit the hysteresis model on the creep-corrected output, then the creep
-    model (kind ``creep``, unit gain expected) from the hysteresis output to the measured
-    output."""
+def identify_axis(kind: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, dyn: dict[str, np.ndarray] | None = None,
+                  static: Any = None) -> Any:
+    """One axis's model of ``kind``: a single kind (``pi``, ``preisach``, …) or a chain
+    (``preisach+creep``, …; :class:`afmctl.compensators.chain.ChainModel`) — what
+    ``afmctl identify --model KIND`` fits. A ``+dynamics`` chain takes its static stages
+    from ``static`` (the same chain without dynamics, already identified) or fits them on
+    ``t_s, u_V, y_nm``, and its dynamics on the small-signal record ``dyn`` (t_s, u_V,
+    y_nm at the simulator's rate) driven through those static stages."""
     from afmctl.compensators.models import model_class
-    creep_cls = model_class("creep")
-    dt = float(t_s[1] - t_s[0])
-    x = y_nm
-    hyst = creep = None
-    for _ in range(rounds):
-        hyst = cls.identify(t_s, u_V, x)
-        h = hyst.forward(dt).block(np.ascontiguousarray(u_V))
-        creep = creep_cls.identify(t_s, h, y_nm, n_operators=5, tau_min_s=0.01, tau_max_s=100.0)
-        x = creep.inverse(dt).block(np.ascontiguousarray(y_nm))
-    return CreepChainModel(hyst, creep)
+    if "+" not in kind:
+        return model_class(kind).identify(t_s, u_V, y_nm)
+    from afmctl.compensators.chain import ChainModel
+    if not kind.endswith("+dynamics"):
+        return ChainModel.identify(t_s, u_V, y_nm, structure=kind)
+    if dyn is None:
+        raise AfmctlError(f"compensator {kind!r}: no small-signal excitation recorded")
+    if static is None:
+        static = identify_axis(kind[:-len("+dynamics")], t_s, u_V, y_nm)
+    dt = float(dyn["t_s"][1] - dyn["t_s"][0])
+    x = static.forward(dt).block(np.ascontiguousarray(dyn["u_V"]))
+    dynamics = model_class("dynamics").identify(dyn["t_s"], x, dyn["y_nm"])
+    return ChainModel(hysteresis=static.hysteresis, creep=static.creep, dynamics=dynamics)
+
+
+def _check_kind(kind: str) -> None:
+    """Raise for a kind (or chain) this installation does not know."""
+    from afmctl.compensators.models import model_class
+    if "+" in kind:
+        from afmctl.compensators.chain import parse_structure
+        base, stages = parse_structure(kind)
+        for k in (base, *stages):
+            model_class(k)
+    else:
+        model_class(kind)
 
 
 def make_identify_step(kind: str) -> Step:
-    base, _, extra = kind.partition("+")
-
+    """Identify ``kind`` on x and y, combine with the coupling into a scanner model file
+    (``OUT/models/scanner_<kind>.json``, loadable by ``afmctl run`` as
+    ``[compensation] scanner_model``)."""
     def run(ctx: DemoContext) -> None:
-        from afmctl.compensators.models import model_class
+        from afmctl.compensators.models import save_model
+        from afmctl.compensators.scanner_model import ScannerModel
         try:
-            cls = model_class(base)
-            if extra:
-                if extra != "creep":
-                    raise AfmctlError(f"compensator {kind!r}: only '<kind>+creep' chains are known")
-                model_class("creep")
+            _check_kind(kind)
         except ImportError as err:
             ctx.skipped[kind] = f"not available in this installation ({err})"
             return
@@ -258,10 +274,10 @@ def make_identify_step(kind: str) -> Step:
         for axis in LATERAL:
             e = ctx.excitation[axis]
             try:
-                if extra:
-                    models[axis] = identify_with_creep(cls, e["t_s"], e["u_V"], e["y_nm"])
-                else:
-                    models[axis] = cls.identify(e["t_s"], e["u_V"], e["y_nm"])
+                static = ctx.models.get(kind.removesuffix("+dynamics"))
+                models[axis] = identify_axis(kind, e["t_s"], e["u_V"], e["y_nm"], ctx.dyn_excitation.get(axis),
+                                             static.axis(axis) if static is not None and kind.endswith("+dynamics")
+                                             else None)
                 models[axis].inverse(1e-4).reset()   # can it be inverted at all?
             except NotImplementedError:
                 ctx.skipped[kind] = "identify() not implemented yet"
@@ -270,17 +286,14 @@ def make_identify_step(kind: str) -> Step:
                 ctx.skipped[kind] = f"{axis} axis: {' '.join(str(err).split())}"
                 log.warning("demo: %s skipped: %s", kind, ctx.skipped[kind])
                 return
-        ctx.models[kind] = models
+        scanner = ScannerModel(axes={"x": models["x"], "y": models["y"], "z": None}, coupling=ctx.coupling.tolist())
+        folder = ctx.options.out / "models"
+        folder.mkdir(exist_ok=True)
+        path = folder / f"scanner_{kind}.json"
+        save_model(scanner, path)
+        ctx.files.append(path)
+        ctx.models[kind] = scanner
     return Step(f"identify {kind}", run)
-
-
-def _scan_T(ctx: DemoContext) -> Callable[[np.ndarray], np.ndarray] | None:
-    o = ctx.options
-    if ctx.drift_params is None:
-        return None
-    T0 = float(ctx.scanner_config.ambient_T_C)
-    total = o.size / o.line_rate_Hz
-    return lambda t: T0 + o.warming_K * np.clip(np.asarray(t) / total, 0.0, 1.0)
 
 
 def _scan(ctx: DemoContext, name: str, compensator: Any, drift: bool = True) -> Any:
@@ -291,7 +304,7 @@ def _scan(ctx: DemoContext, name: str, compensator: Any, drift: bool = True) -> 
     return raster_image(scanner, Grating2D(period_nm=1667.0), scan_size_nm=o.scan_nm, pixels=o.size,
                         line_rate_Hz=o.line_rate_Hz, origin_nm=(o.origin_nm, o.origin_nm),
                         samples_per_pixel=o.samples_per_pixel, compensator=compensator,
-                        T_C=_scan_T(ctx) if drift else None, settle_lines=1, keep_signals=(name == "none"))
+                        T_C=ctx.scan_T() if drift else None, settle_lines=1, keep_signals=(name == "none"))
 
 
 def _errors(image: Any) -> np.ndarray:
@@ -313,52 +326,78 @@ def step_scan_uncompensated(ctx: DemoContext) -> None:
         ctx.true_drift_nm = img.signals["position_nm"] - pos0
 
 
-class FeedforwardCompensator:
-    """Targets (N, 3) nm → voltages (N, 3) V for one scan: decouple x/y, subtract the drift
-    predicted from the ambient temperature, invert the identified model per lateral axis
-    (z: linear calibration). Built per scan from fresh (reset) operators."""
+def step_excite_dynamics(ctx: DemoContext) -> None:
+    """Per lateral axis, the small-signal multisine of ``afmctl excite --kind dynamics``
+    around mid-range, recorded at the simulator's 10 kHz (no averaging: the structural
+    mode must stay in the data)."""
+    from .excitation import ExcitationSpec, excitation
+    dt = EXCITE_SIM_DT_S
+    u1 = excitation("dynamics", ExcitationSpec(u_min_V=0.0, u_max_V=150.0, rate_Hz=1.0 / dt,
+                                               periods=4 if ctx.options.quick else 8))
+    for i, axis in enumerate(LATERAL):
+        u = np.zeros((u1.size, 3))
+        u[:, i] = u1
+        pos = _new_scanner(ctx, drift=False).run(u, dt)
+        ctx.dyn_excitation[axis] = {"t_s": np.arange(u1.size) * dt, "u_V": u1.copy(), "y_nm": pos[:, i].copy()}
 
-    def __init__(self, models: dict[str, Any], coupling: np.ndarray, dt_s: float, gain_nm_per_V: np.ndarray,
-                 drift_params: Any = None, T_of_t: Callable[[np.ndarray], np.ndarray] | None = None,
-                 t0_s: float = 0.0) -> None:
-        self.models = models
-        self.inv_coupling = np.linalg.inv(coupling)
+
+class PipelineCompensator:
+    """Targets (N, 3) nm → voltages (N, 3) V for one scan through the product's
+    :class:`afmctl.pipeline.CompensationPipeline` (drift prediction subtracted, x/y
+    decoupled with the scanner model's ``C⁻¹``, each axis's inverse model; z and axes
+    without a model: the linear calibration). The heat input of the drift predictor is
+    the nominal voltage of each target (offline, :meth:`CompensationPipeline.block`)."""
+
+    def __init__(self, pipeline: Any, dt_s: float, gain_nm_per_V: np.ndarray,
+                 T_of_t: Callable[[np.ndarray], np.ndarray] | None = None, t0_s: float = 0.0,
+                 T_const_C: float = 22.0) -> None:
+        self.pipeline = pipeline
         self.dt_s = dt_s
         self.gain = gain_nm_per_V
-        self.drift_params = drift_params
         self.T_of_t = T_of_t
         self.t0_s = t0_s
+        self.T_const_C = T_const_C
         self.drift_pred_nm: np.ndarray | None = None
 
     def __call__(self, targets: np.ndarray) -> np.ndarray:
-        r = np.array(targets, dtype=np.float64)
-        if self.drift_params is not None and self.T_of_t is not None:
+        r = np.asarray(targets, dtype=np.float64)
+        if self.T_of_t is not None:
             t = self.t0_s + np.arange(r.shape[0]) * self.dt_s
             T = self.T_of_t(np.maximum(t, 0.0))
-            u_guess = np.clip(r / self.gain, 0.0, 150.0)          # heat input: nominal voltages
-            d = self.drift_params.predictor(self.dt_s).block(T, u_guess)
-            self.drift_pred_nm = d
-            r = r - d
-        disp = r @ self.inv_coupling.T                                # wanted axis displacements
-        u = disp / self.gain
-        for i, axis in enumerate(LATERAL):
-            model = self.models.get(axis)
-            if model is not None:
-                u[:, i] = model.inverse(self.dt_s).block(np.ascontiguousarray(disp[:, i]))
+        else:
+            T = np.full(r.shape[0], self.T_const_C)
+        self.pipeline.reset()
+        d, _, u = self.pipeline.block(r, T, np.clip(r / self.gain, 0.0, 150.0), preview=True)
+        self.drift_pred_nm = d if self.pipeline.drift is not None else None
         return u
 
 
-def _compensator(ctx: DemoContext, kind: str, drift: bool = True) -> FeedforwardCompensator:
-    """The feedforward compensator of ``kind`` for one scan (with or without the drift
-    prediction); its time origin is the scan's, after the one settling line."""
+def scan_pipeline(ctx: DemoContext, kind: str, dt_s: float, drift: bool) -> Any:
+    """The product's pipeline for the scanner model of ``kind`` (``none``: the linear
+    calibration only) at sample period ``dt_s`` [s]."""
+    from .pipeline import CompensationPipeline, LinearAxis
+    gain = _new_scanner(ctx, drift=False).nominal_gain_nm_per_V()
+    scanner = ctx.models.get(kind)
+    inverses = []
+    for i, axis in enumerate(("x", "y", "z")):
+        m = scanner.axis(axis) if scanner is not None else None
+        inverses.append(m.inverse(dt_s) if m is not None else LinearAxis(float(gain[i])))
+    predictor = ctx.drift_params.predictor(dt_s) if (drift and ctx.drift_params is not None) else None
+    inv_c = scanner.inverse_coupling() if scanner is not None else None
+    return CompensationPipeline(inverses, predictor, inv_coupling=inv_c)
+
+
+def _compensator(ctx: DemoContext, kind: str, drift: bool = True) -> PipelineCompensator:
+    """The compensator of ``kind`` for one scan (with or without the drift prediction);
+    its time origin is the scan's, after the one settling line."""
     o = ctx.options
     ns = o.size * o.samples_per_pixel
     dt = 1.0 / (2.0 * o.line_rate_Hz * ns)
     gain = _new_scanner(ctx, drift=False).nominal_gain_nm_per_V()
-    if drift:
-        return FeedforwardCompensator(ctx.models[kind], ctx.coupling, dt, gain, ctx.drift_params, _scan_T(ctx),
-                                      t0_s=-2 * ns * dt)
-    return FeedforwardCompensator(ctx.models[kind], ctx.coupling, dt, gain, None, None)
+    pipe = scan_pipeline(ctx, kind, dt, drift)
+    if drift and ctx.drift_params is not None:
+        return PipelineCompensator(pipe, dt, gain, ctx.scan_T(), t0_s=-2 * ns * dt)
+    return PipelineCompensator(pipe, dt, gain)
 
 
 def make_scan_step(kind: str) -> Step:
@@ -398,6 +437,70 @@ def step_drift_effect(ctx: DemoContext) -> None:
                         "max_error_pct_without_drift_correction": _max_pct(ctx, _errors(img))}
 
 
+def ladder_compensators(ctx: DemoContext) -> dict[str, str | None]:
+    """``{"none": None, "static": kind, "chain": kind, "chain+dynamics": kind}`` for the
+    speed ladder: the static model (preisach if identified, else the first single kind),
+    the chain (preisach+creep if identified, else the first chain without dynamics) and the
+    first chain with dynamics; missing ones are left out."""
+    out: dict[str, str | None] = {"none": None}
+    single = [k for k in ctx.models if "+" not in k]
+    chains = [k for k in ctx.models if "+" in k and not k.endswith("+dynamics")]
+    dyn = [k for k in ctx.models if k.endswith("+dynamics")]
+    if single:
+        out["static"] = "preisach" if "preisach" in single else single[0]
+    if chains:
+        out["chain"] = "preisach+creep" if "preisach+creep" in chains else chains[0]
+    if dyn:
+        out["chain+dynamics"] = dyn[0]
+    return out
+
+
+def _ladder_cell(ctx: DemoContext, kind: str | None, rate: float, folder: Path, scanner_json: Path) -> dict[str, Any]:
+    from . import speed_ladder as sl
+    o = ctx.options
+    loop_Hz = sl.CONTROLLER_RATE_HZ.get(rate) if o.ladder_controller else None
+    if kind is not None and kind.endswith("+dynamics"):
+        loop_Hz = None    # the loop does not read the trajectory ahead yet (preview): offline
+    if loop_Hz is not None:
+        gain = _new_scanner(ctx, drift=False).nominal_gain_nm_per_V()
+        model = folder.parent / "models" / f"scanner_{kind}.json" if kind else None
+        err, info = sl.controller_errors_nm(folder, scanner_json, model, rate, loop_Hz, gain.tolist(),
+                                            lines=2 if o.quick else 3)
+        return {**sl.error_pct(err), "path": "controller", **info}
+    name = kind or "none"
+
+    def make(dt: float) -> PipelineCompensator:
+        return PipelineCompensator(scan_pipeline(ctx, name, dt, drift=False), dt,
+                                   _new_scanner(ctx, drift=False).nominal_gain_nm_per_V())
+    err = sl.offline_errors_nm(lambda: _new_scanner(ctx, drift=False), make, rate, lines=2 if o.quick else 4)
+    return {**sl.error_pct(err), "path": "offline"}
+
+
+def step_speed_ladder(ctx: DemoContext) -> None:
+    """Raster-line accuracy at 1, 4, 16 and 50 lines/s for none, the static model and the
+    chain (:mod:`afmctl.speed_ladder`); ``ctx.speed_ladder[rate][label]``."""
+    from . import speed_ladder as sl
+    from afmctl.sim_backend.scanner import DriftConfig
+    folder = ctx.options.out / "ladder"
+    folder.mkdir(exist_ok=True)
+    scanner_json = sl.write_scanner_json(ctx.scanner_config.model_copy(update={"drift": DriftConfig(kind="none")}),
+                                         folder / "scanner.json")
+    comps = ladder_compensators(ctx)
+    table: dict[str, Any] = {}
+    for rate in sl.LINE_RATES_HZ:
+        row = {}
+        for label, kind in comps.items():
+            try:
+                row[label] = {"model": kind or "linear calibration", **_ladder_cell(ctx, kind, rate, folder, scanner_json)}
+            except Exception as err:  # report, keep the demo going
+                row[label] = {"model": kind, "error": " ".join(str(err).split())}
+                log.warning("speed ladder %g lines/s %s: %s", rate, label, row[label]["error"])
+        table[f"{rate:g}"] = row
+        ctx.note(f"speed ladder {rate:g} lines/s: " + ", ".join(
+            f"{k} {v.get('max_error_pct', float('nan')):.2f} % max" for k, v in row.items()))
+    ctx.speed_ladder = table
+
+
 def step_metrics(ctx: DemoContext) -> None:
     o = ctx.options
     max_pct = {name: _max_pct(ctx, res.err_nm) for name, res in ctx.scans.items()}
@@ -417,6 +520,7 @@ def step_metrics(ctx: DemoContext) -> None:
                                          if ctx.true_drift_nm is not None else None)}
                   if ctx.drift_params is not None else None),
         "drift_effect": ctx.drift_effect,
+        "speed_ladder": ctx.speed_ladder,
         "coupling": {"x_from_y": round(float(ctx.coupling[0, 1]), 6), "y_from_x": round(float(ctx.coupling[1, 0]), 6)},
         "error_definition": "|actual - commanded| lateral position (x and y) over every recorded pixel, "
                             "trace and retrace, in % of the scan range",
@@ -435,10 +539,15 @@ def step_plots(ctx: DemoContext) -> None:
 
 def build_steps(options: DemoOptions) -> list[Step]:
     steps = [Step("setup", step_setup), Step("excite", step_excite)]
+    if any(k.endswith("+dynamics") for k in options.compensators):
+        steps += [Step("excite dynamics", step_excite_dynamics)]
     steps += [make_identify_step(k) for k in options.compensators]
     steps += [Step("scan none", step_scan_uncompensated)]
     steps += [make_scan_step(k) for k in options.compensators]
-    steps += [Step("drift effect", step_drift_effect), Step("metrics", step_metrics), Step("plots", step_plots)]
+    steps += [Step("drift effect", step_drift_effect)]
+    if options.speed_ladder:
+        steps += [Step("speed ladder", step_speed_ladder)]
+    steps += [Step("metrics", step_metrics), Step("plots", step_plots)]
     return steps
 
 
@@ -458,6 +567,33 @@ def format_table(metrics: dict[str, Any]) -> str:
                      f"with, {d['max_error_pct_without_drift_correction']:.3f} % without")
     for kind, why in metrics.get("skipped", {}).items():
         lines.append(f"skipped {kind}: {why}")
+    if metrics.get("speed_ladder"):
+        lines += ["", format_ladder(metrics["speed_ladder"])]
+    return "\n".join(lines)
+
+
+def format_ladder(ladder: dict[str, Any]) -> str:
+    """The speed ladder as a Markdown table: max / RMS error [% of the line] over the
+    central 80 % of each line, per line rate and compensator; cells marked ``(offline)``
+    come from the pipeline + simulator, the others from the real controller at the output
+    rate of the last column."""
+    labels = list(next(iter(ladder.values())).keys())
+    head = "| lines/s | " + " | ".join(f"{k} max / rms [%]" for k in labels) + " | controller output |"
+    lines = [head, "|" + "---|" * (len(labels) + 2)]
+    for rate, row in ladder.items():
+        cells, loop = [], "—"
+        for k in labels:
+            c = row.get(k, {})
+            if "max_error_pct" not in c:
+                cells.append(f"failed: {c.get('error', '?')}")
+                continue
+            text = f"{c['max_error_pct']:.2f} / {c['rms_error_pct']:.2f}"
+            if c.get("path") == "controller":
+                loop = f"{c['loop_rate_Hz']:g} Hz"
+            else:
+                text += " (offline)"
+            cells.append(text)
+        lines.append(f"| {rate} | " + " | ".join(cells) + f" | {loop} |")
     return "\n".join(lines)
 
 

@@ -8,8 +8,14 @@ Per sample, for the target ``r`` [nm] (x, y, z):
    ``compensation.drift.kalman``) ``d̂ = model + bias``, the bias tracked from drift
    measurements fused by :meth:`CompensationPipeline.update_drift`;
 2. corrected target ``r' = r − d̂`` [nm];
-3. per axis, the inverse hysteresis/creep model ``u = model.inverse(dt_s).step(r')`` [V],
-   or, without a model, the linear calibration ``u = offset_V + r' / nm_per_V``.
+3. with a scanner model's coupling matrix ``C``, the decoupled axis targets
+   ``r'' = C⁻¹ r'`` [nm] (otherwise ``r'' = r'``);
+4. per axis, the inverse model ``u = model.inverse(dt_s).step(r'')`` [V] (any kind, a
+   hysteresis+creep+dynamics chain included), or, without a model, the linear calibration
+   ``u = offset_V + r'' / nm_per_V``.
+
+:attr:`CompensationPipeline.provenance` says, per axis, which model came from which file
+(``afmctl run`` prints it at start).
 
 The result goes to :class:`afmctl.safety.SafetyLayer`, never straight to an amplifier.
 """
@@ -55,7 +61,8 @@ class CompensationPipeline:
     """
 
     def __init__(self, inverses: Sequence[StreamingOperator], drift: Any | None = None,
-                 kalman: Any | None = None) -> None:
+                 kalman: Any | None = None, inv_coupling: np.ndarray | None = None,
+                 provenance: Mapping[str, str] | None = None) -> None:
         if len(inverses) != 3:
             raise ValueError("inverses: one operator per axis x, y, z")
         if kalman is not None and drift is None:
@@ -63,6 +70,10 @@ class CompensationPipeline:
         self.inverses = list(inverses)
         self.drift = drift
         self.kalman = kalman
+        #: C⁻¹ (3, 3) applied to the corrected target [nm/nm], or None (identity)
+        self.inv_coupling = None if inv_coupling is None else np.asarray(inv_coupling, dtype=np.float64).copy()
+        #: axis → "preisach+creep from x.json" / "linear calibration 80 nm/V"; "coupling" when used
+        self.provenance: dict[str, str] = dict(provenance or {})
         self._u_prev = np.zeros(3)
         self._zero = (0.0, 0.0, 0.0)
 
@@ -109,7 +120,54 @@ class CompensationPipeline:
             dx = dy = dz = 0.0
         cx, cy, cz = x - dx, y - dy, z - dz
         inv = self.inverses
-        return (dx, dy, dz, cx, cy, cz, inv[0].step(cx), inv[1].step(cy), inv[2].step(cz))
+        M = self.inv_coupling
+        if M is None:
+            return (dx, dy, dz, cx, cy, cz, inv[0].step(cx), inv[1].step(cy), inv[2].step(cz))
+        ax = M[0, 0] * cx + M[0, 1] * cy + M[0, 2] * cz
+        ay = M[1, 0] * cx + M[1, 1] * cy + M[1, 2] * cz
+        az = M[2, 0] * cx + M[2, 1] * cy + M[2, 2] * cz
+        return (dx, dy, dz, cx, cy, cz, inv[0].step(float(ax)), inv[1].step(float(ay)), inv[2].step(float(az)))
+
+    def block(self, targets_nm: np.ndarray, T_C: np.ndarray | float, u_sent_V: np.ndarray,
+              preview: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Vectorised: the numbers :meth:`step` gives per sample with ``u_sent`` taken from
+        ``u_sent_V`` (N, 3) [V] (the heat input) instead of the pipeline's own previous
+        output — for offline use where the voltages already sent are known or estimated.
+        ``targets_nm`` (N, 3) [nm], ``T_C`` (N,) or scalar [°C]. Returns drift (N, 3) [nm],
+        corrected (N, 3) [nm], u (N, 3) [V]. Not with a Kalman filter (measurements arrive
+        per sample).
+
+        ``preview``: the whole target is known, so an axis whose inverse has
+        ``latency_samples`` = L (a dynamics stage) is fed its decoupled target L samples
+        ahead (the last sample repeated at the end): its output is aligned with the target
+        instead of lagging it."""
+        if self.kalman is not None:
+            raise ValueError("block: not with a Kalman filter; use run()")
+        r = np.asarray(targets_nm, dtype=np.float64)
+        n = r.shape[0]
+        if self.drift is not None:
+            T = np.broadcast_to(np.asarray(T_C, dtype=np.float64), (n,))
+            d = self.drift.block(T, np.asarray(u_sent_V, dtype=np.float64))
+        else:
+            d = np.zeros((n, 3))
+        c = r - d
+        M = self.inv_coupling
+        if M is None:
+            a = c
+        else:   # the same operations, in the same order, as step()
+            a = np.empty_like(c)
+            for i in range(3):
+                a[:, i] = M[i, 0] * c[:, 0] + M[i, 1] * c[:, 1] + M[i, 2] * c[:, 2]
+        u = np.empty_like(c)
+        for i in range(3):
+            lat = int(getattr(self.inverses[i], "latency_samples", 0)) if (preview and n) else 0
+            col = a[:, i] if lat == 0 else np.concatenate([a[lat:, i], np.full(min(lat, n), a[-1, i])])[:n]
+            u[:, i] = self.inverses[i].block(np.ascontiguousarray(col))
+        return d, c, u
+
+    def describe(self) -> str:
+        """One line: ``x: preisach+creep from x.json; y: linear calibration 80 nm/V; …``."""
+        return "; ".join(f"{k}: {v}" for k, v in self.provenance.items())
 
     def run(self, targets_nm: np.ndarray, T_C: np.ndarray | float,
             measurements: Mapping[int, tuple[Sequence[float], float]] | None = None,
@@ -147,31 +205,67 @@ def load_drift_params(name_or_file: str, overrides: dict[str, Any] | None = None
     return DriftParams.from_spec(name_or_file, overrides, where="compensation.drift.params")
 
 
-def build_pipeline(config) -> CompensationPipeline:
-    """The pipeline described by an :class:`afmctl.config.Config`."""
+def _model_name(model: Any) -> str:
+    return getattr(model, "structure", None) or model.kind
+
+
+def axis_inverses(config) -> tuple[list[StreamingOperator], dict[str, str], np.ndarray | None]:
+    """Per-axis inverse operators, their provenance and C⁻¹ (or None) from the
+    configuration's ``[compensation]``: ``[compensation.<axis>] model`` first, then the
+    axis of ``scanner_model``, else the linear calibration of ``[scanner.calibration]``."""
     from afmctl.compensators.base import ModelError
     from afmctl.compensators.models import load_model
     dt = config.dt_s
+    comp = config.compensation
+    scanner = None
+    if comp.scanner_model is not None:
+        scanner = load_model(comp.scanner_model, expect=("scanner",))
     inverses: list[StreamingOperator] = []
+    prov: dict[str, str] = {}
     for axis in ("x", "y", "z"):
-        spec = config.compensation.axis(axis)
+        spec = comp.axis(axis)
+        model, source = None, None
         if spec.model is not None:
             try:
-                model = load_model(spec.model)
+                model, source = load_model(spec.model), spec.model
             except ModelError as err:
                 raise ModelError(f"compensation.{axis}.model: {err}") from None
-            inverses.append(model.inverse(dt))
-            log.info("axis %s: inverse %s model from %s", axis, model.kind, spec.model)
+            if model.kind == "scanner":
+                model = model.axis(axis)
+        elif scanner is not None and scanner.axis(axis) is not None:
+            model, source = scanner.axis(axis), comp.scanner_model
+        if model is not None:
+            op = model.inverse(dt)
+            inverses.append(op)
+            prov[axis] = f"{_model_name(model)} from {Path(source).name}"
+            lat = int(getattr(op, "latency_samples", 0))
+            if lat:   # the loop does not read the trajectory ahead yet: the output lags
+                prov[axis] += f" (preview inverse: output lags the target by {lat} samples, {lat * dt * 1e3:.3g} ms)"
         else:
             cal = config.scanner.axis_spec(axis)
             inverses.append(LinearAxis(cal.nm_per_V, cal.offset_V))
+            prov[axis] = f"linear calibration {cal.nm_per_V:g} nm/V (uncompensated)"
+    inv_c = None
+    if scanner is not None and not np.allclose(scanner.inverse_coupling(), np.eye(3)):
+        inv_c = scanner.inverse_coupling()
+        prov["coupling"] = f"inverse 3x3 from {Path(comp.scanner_model).name}"
+    return inverses, prov, inv_c
+
+
+def build_pipeline(config) -> CompensationPipeline:
+    """The pipeline described by an :class:`afmctl.config.Config`."""
+    dt = config.dt_s
+    inverses, prov, inv_c = axis_inverses(config)
+    for axis, text in prov.items():
+        log.info("compensation %s: %s", axis, text)
     drift = None
     if config.compensation.drift.enabled:
         params = load_drift_params(config.compensation.drift.params, config.compensation.drift.overrides)
         drift = params.predictor(dt)
+        prov["drift"] = f"predicted ({config.compensation.drift.params})"
     kalman = None
     if config.compensation.drift.kalman:
         from afmctl.compensators.drift_kalman import DriftKalman
         kalman = DriftKalman(dt, config.compensation.drift.kalman_params())
         log.info("drift: Kalman bias filter on (%s)", kalman.params)
-    return CompensationPipeline(inverses, drift, kalman)
+    return CompensationPipeline(inverses, drift, kalman, inv_coupling=inv_c, provenance=prov)

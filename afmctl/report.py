@@ -90,7 +90,35 @@ def demo_figures(ctx: Any, out: Path) -> list[Path]:
              _demo_lines(ctx, out / "demo_lines.png")]
     if ctx.true_drift_nm is not None:
         files.append(_demo_drift(ctx, out / "demo_drift.png"))
+    if getattr(ctx, "speed_ladder", None):
+        files.append(_demo_speed_ladder(ctx.speed_ladder, out / "demo_speed_ladder.png"))
     return files
+
+
+def _demo_speed_ladder(ladder: dict[str, Any], path: Path) -> Path:
+    """Max and RMS error [% of the line] vs line rate, one line per compensator."""
+    plt = _plt()
+    fig, (a0, a1) = plt.subplots(1, 2, figsize=(10, 4))
+    rates = [float(r) for r in ladder]
+    labels = list(next(iter(ladder.values())).keys())
+    for i, label in enumerate(labels):
+        cells = [ladder[r].get(label, {}) for r in ladder]
+        mx = [c.get("max_error_pct", np.nan) for c in cells]
+        rms = [c.get("rms_error_pct", np.nan) for c in cells]
+        model = next((c.get("model") for c in cells if c.get("model")), label)
+        a0.plot(rates, mx, marker="o", color=_colour(label, i), label=f"{label} ({model})")
+        a1.plot(rates, rms, marker="o", color=_colour(label, i), label=f"{label} ({model})")
+    for ax, what in ((a0, "max"), (a1, "RMS")):
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("line rate [lines/s]")
+        ax.set_ylabel(f"{what} error [% of the line]")
+        ax.axhline(1.0 if what == "max" else 0.5, color="k", ls=":", lw=0.8)
+        ax.grid(alpha=0.3, which="both")
+    a0.set_title("speed ladder: central 80 % of each 4 µm line")
+    a1.legend(fontsize=8)
+    fig.tight_layout()
+    return _save(fig, path)
 
 
 def _flatten_lines(img: np.ndarray) -> np.ndarray:
@@ -148,7 +176,7 @@ def _demo_hysteresis(ctx: Any, path: Path) -> Path:
         a0.plot(e["u_V"], e["y_nm"] / 1000.0, color="k", lw=1.0, label="simulated scanner (measured)")
         for kind, models in ctx.models.items():
             try:
-                op = models["x"].forward(float(e["t_s"][1] - e["t_s"][0]))
+                op = models.axis("x").forward(float(e["t_s"][1] - e["t_s"][0]))
                 y = op.block(np.ascontiguousarray(e["u_V"]))
                 rms = float(np.sqrt(np.mean((y - e["y_nm"]) ** 2)))
                 a0.plot(e["u_V"], y / 1000.0, lw=0.8, ls="--", color=_colour(kind),
@@ -217,8 +245,7 @@ def _demo_drift(ctx: Any, path: Path) -> Path:
     step = max(1, int(keep.sum() // 4000))
     tk = t[keep][::step]
     fig, (a0, a1, a2) = plt.subplots(3, 1, figsize=(10, 7.0), sharex=True)
-    from .demo import _scan_T
-    T_of_t = _scan_T(ctx)
+    T_of_t = ctx.scan_T()
     if T_of_t is not None:
         a0.plot(tk, T_of_t(tk), color="k")
     a0.set_ylabel("ambient T [°C]")

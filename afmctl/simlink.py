@@ -95,17 +95,9 @@ def tracking_error(config, setpoints: np.ndarray, seq_range: tuple[int, int] | N
     (so the ringing of its resonance after each step is in the result), and the position
     is compared at the end of the period — what a sensor sampled at the loop rate reads.
     Returns max and RMS absolute error per axis over ``seq_range`` (default: all)."""
-    from afmctl.sim_backend.scanner import Scanner
     if len(setpoints) == 0:
         return {}
-    scanner = Scanner(load_scanner_config(config.simulation.scanner))
-    fine = scanner.config.dt_s
-    sub = max(1, round(config.dt_s / fine))
-    if not math.isclose(sub * fine, config.dt_s, rel_tol=1e-9):
-        fine = config.dt_s / sub          # loop period not a multiple of the scanner's step
-    u = np.repeat(np.asarray(setpoints["u_V"], dtype=np.float64), sub, axis=0)
-    y = scanner.run(u, fine)[sub - 1::sub]
-    err = y - setpoints["target_nm"]
+    err = replay_positions_nm(config, setpoints) - setpoints["target_nm"]
     if seq_range is not None:
         sel = (setpoints["seq"] >= seq_range[0]) & (setpoints["seq"] < seq_range[1])
         err = err[sel]
@@ -115,6 +107,20 @@ def tracking_error(config, setpoints: np.ndarray, seq_range: tuple[int, int] | N
     idx = ["xyz".index(a) for a in axes]
     return {"axes": axes, "max_abs_nm": [float(np.abs(err[:, i]).max()) for i in idx],
             "rms_nm": [float(np.sqrt(np.mean(err[:, i] ** 2))) for i in idx]}
+
+
+def replay_positions_nm(config, setpoints: np.ndarray) -> np.ndarray:
+    """The true tip position [nm] (N, 3) at the end of each loop period when the voltages
+    sent (``setpoints["u_V"]``) are replayed through a fresh simulated scanner of the
+    configuration, each held for one loop period (see :func:`tracking_error`)."""
+    from afmctl.sim_backend.scanner import Scanner
+    scanner = Scanner(load_scanner_config(config.simulation.scanner))
+    fine = scanner.config.dt_s
+    sub = max(1, round(config.dt_s / fine))
+    if not math.isclose(sub * fine, config.dt_s, rel_tol=1e-9):
+        fine = config.dt_s / sub          # loop period not a multiple of the scanner's step
+    u = np.repeat(np.asarray(setpoints["u_V"], dtype=np.float64), sub, axis=0)
+    return scanner.run(u, fine)[sub - 1::sub]
 
 
 class SendClock:

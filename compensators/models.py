@@ -34,6 +34,8 @@ KINDS: dict[str, str] = {
     "preisach": "afmctl.compensators.preisach:PreisachModel",
     "bouc-wen": "afmctl.compensators.bouc_wen:BoucWenModel",
     "dynamics": "afmctl.compensators.dynamics:LinearDynamicsModel",
+    "chain": "afmctl.compensators.chain:ChainModel",
+    "scanner": "afmctl.compensators.scanner_model:ScannerModel",
 }
 
 

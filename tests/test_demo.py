@@ -13,7 +13,8 @@ from afmctl.cli import main
 def demo_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo")
     rc = main(["demo", "--out", str(out), "--size", "64", "--quick", "--no-progress",
-               "--only", "pi", "--only", "preisach+creep", "--only", "no-such-kind"])
+               "--only", "pi", "--only", "preisach+creep", "--only", "preisach+creep+dynamics",
+               "--only", "no-such-kind"])
     return rc, out
 
 
@@ -24,7 +25,7 @@ def test_demo_writes_images_plots_and_metrics(demo_run, capsys):
         data = (out / name).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000, name
     m = json.loads((out / "metrics.json").read_text())
-    assert set(m["max_error_pct"]) == {"none", "pi", "preisach+creep"}
+    assert set(m["max_error_pct"]) == {"none", "pi", "preisach+creep", "preisach+creep+dynamics"}
     assert set(m["rms_error_pct"]) == set(m["max_error_pct"])
     assert "no-such-kind" in m["skipped"]
     for name, v in m["max_error_pct"].items():
@@ -88,3 +89,26 @@ def test_full_size_demo_meets_the_acceptance_figures(tmp_path):
     assert m["best"] == "preisach+creep"
     assert mx["preisach+creep"] <= 1.5
     assert mx["preisach+creep"] * 5 <= mx["none"]
+
+
+def test_demo_speed_ladder_through_the_controller(demo_run):
+    """metrics.json speed_ladder = {line_rate_Hz: {compensator: {max_error_pct, rms_error_pct}}}:
+    1, 4, 16 lines/s from the real Controller (simulated CAN amplifier), 50 offline; the
+    model files the demo wrote are what the controller loaded."""
+    _, out = demo_run
+    m = json.loads((out / "metrics.json").read_text())
+    ladder = m["speed_ladder"]
+    assert list(ladder) == ["1", "4", "16", "50"]
+    for rate, row in ladder.items():
+        assert set(row) == {"none", "static", "chain", "chain+dynamics"}, row
+        for label, cell in row.items():
+            assert 0 < cell["rms_error_pct"] <= cell["max_error_pct"], (rate, label, cell)
+            offline = rate == "50" or label == "chain+dynamics"   # no preview in the loop yet
+            assert cell["path"] == ("offline" if offline else "controller")
+        assert row["chain"]["model"] == "preisach+creep" and row["static"]["model"] == "pi"
+        # any model beats the linear calibration at every speed
+        assert row["chain"]["max_error_pct"] < row["none"]["max_error_pct"]
+    assert (out / "models" / "scanner_preisach+creep.json").exists()
+    assert (out / "ladder" / "ladder-1-scanner_preisach+creep.afmlog").exists()
+    png = (out / "demo_speed_ladder.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000

@@ -14,8 +14,11 @@ Compute the voltages that make the scanner follow a target path, using the inver
 fitted model (hysteresis and, for epi/creep models, creep).
 
 Input:
-  --model MODEL.json   a model file written by 'afmctl identify' (any kind; a PI file
-                       written by 'afmctl model invert' works too)
+  --model MODEL.json   a model file written by 'afmctl identify' (any kind, a chain such
+                       as preisach+creep included; a PI file written by 'afmctl model
+                       invert' works too), or a scanner model (kind scanner) with --axis
+  --axis x|y|z         which axis of a scanner model to use (its coupling matrix is not
+                       applied: one axis at a time)
   --target TARGET.csv  header row and columns t,y: time (s, strictly increasing) and the
                        desired displacement (nm). Time-dependent kinds (epi, creep) need
                        uniformly spaced rows.
@@ -51,6 +54,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--model", required=True, metavar="MODEL.json", help="model JSON file (any kind)")
     p.add_argument("--target", required=True, metavar="TARGET.csv", help="CSV with columns t,y (s, nm)")
     p.add_argument("--out", required=True, metavar="VOLTS.csv", help="output CSV with columns t,u (s, V)")
+    p.add_argument("--axis", choices=("x", "y", "z"), help="axis of a scanner model file (kind scanner)")
     p.add_argument("--limits", nargs=2, type=float, metavar=("LO", "HI"), help="allowed voltage range [V]")
     p.add_argument("--clip", action="store_true", help="clip to --limits instead of failing")
     p.add_argument("--dynamics", metavar="DYN.json", help="dynamics model to invert first (offline stable inverse)")
@@ -70,20 +74,18 @@ def run(args: argparse.Namespace) -> int:
         raise AfmctlError("--slew-V-per-s: only used with --dynamics DYN.json")
     if args.limits and not (np.isfinite(args.limits).all() and args.limits[0] < args.limits[1]):
         raise AfmctlError(f"--limits: {args.limits[0]} {args.limits[1]}; need finite LO < HI (V)")
-    model = load_model(args.model)
+    model = _axis_model(load_model(args.model), args)
     data = read_csv(args.target, ("t", "y"), min_rows=1)
     t, y = data["t"], data["y"]
     timed = getattr(model, "time_dependent", False) or args.dynamics is not None
     dt = uniform_period(t, str(args.target)) if timed else None
+    if args.dynamics is not None:
+        def invert(target):
+            return _with_dynamics(args, model, target, dt)
+    else:
+        invert = _inverter(model, dt, args)
     try:
-        inverse = model.inverse(dt)
-    except ModelError as err:  # e.g. a Bouc–Wen model that is not invertible
-        raise ModelError(f"{args.model}: {err}") from None
-    try:
-        if args.dynamics is not None:
-            u = _with_dynamics(args, model, y, dt)
-        else:
-            u = _run_chunked(inverse, y)
+        u = invert(y)
     except ModelError as err:
         raise ModelError(f"{args.target}: {err}") from None
     if not np.all(np.isfinite(u)):
@@ -103,6 +105,36 @@ def run(args: argparse.Namespace) -> int:
     write_csv(args.out, {"t": t, "u": u})
     print(f"written          : {args.out} ({u.size} rows, u from {u.min():.6g} to {u.max():.6g} V)")
     return 0
+
+
+def _inverter(model, dt, args: argparse.Namespace):
+    """target [nm] → voltages [V]: a model with dynamics uses its stable non-causal inverse
+    over the whole known target (no latency); others stream (chunked). A model that cannot
+    be inverted is blamed on the model file."""
+    from afmctl.compensators.base import ModelError
+    if getattr(model, "dynamics", None) is not None:
+        return lambda y: model.inverse_offline(y, dt)
+    try:
+        inverse = model.inverse(dt)
+    except ModelError as err:  # e.g. a Bouc–Wen model that is not invertible
+        raise ModelError(f"{args.model}: {err}") from None
+    return lambda y: _run_chunked(inverse, y)
+
+
+def _axis_model(model, args: argparse.Namespace):
+    """The model itself, or axis ``--axis`` of a scanner model (one line naming the file
+    when that axis or the option is missing)."""
+    from ..errors import AfmctlError
+    if model.kind != "scanner":
+        if args.axis:
+            raise AfmctlError(f"--axis: {args.model} is a single-axis model (kind {model.kind}); drop --axis")
+        return model
+    if not args.axis:
+        raise AfmctlError(f"--axis: {args.model} is a scanner model; choose the axis with --axis x|y|z")
+    axis_model = model.axis(args.axis)
+    if axis_model is None:
+        raise AfmctlError(f"--axis: {args.model} has no model for axis {args.axis}")
+    return axis_model
 
 
 CHUNK = 200_000

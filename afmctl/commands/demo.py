@@ -14,12 +14,19 @@ Run the whole job on a simulated scanner, in-process, in about a minute:
      few kelvin during the scan);
   2. excite each lateral axis (reversal curves + decaying sine) and identify every
      available compensator model on the measured data (pi, epi, preisach, bouc-wen,
-     and preisach+creep: a Preisach model followed by a linear creep model);
+     and preisach+creep: the chain model, Preisach followed by linear creep) and
+     write each as a scanner model file OUT/models/scanner_KIND.json (per-axis models
+     + x/y coupling; usable in `afmctl run` as [compensation] scanner_model);
   3. raster-scan a 1.667 um calibration grating without compensation and with each
-     compensator (decoupling, drift prediction, inverse model);
+     compensator through afmctl's compensation pipeline (drift prediction,
+     decoupling, inverse model per axis);
   4. write into OUT: demo_images.png, demo_hysteresis.png, demo_errors.png,
-     demo_lines.png, demo_drift.png and metrics.json (max_error_pct / rms_error_pct per
-     compensator, errors in % of the scan range), and print the same table.
+     demo_lines.png, demo_drift.png, demo_speed_ladder.png and metrics.json
+     (max_error_pct / rms_error_pct per compensator, errors in % of the scan range;
+     speed_ladder: 4 um raster lines at 1, 4, 16 and 50 lines/s for none, the static
+     model and the chain, central 80 % of each line, 1-16 lines/s through the real
+     controller and the simulated CAN amplifier, 50 lines/s offline), and print the
+     same tables.
 
 Compensators that are not available in this installation are skipped with a message.
 """
@@ -58,6 +65,10 @@ def run(args: argparse.Namespace) -> int:
                           drift=not args.no_drift,
                           compensators=tuple(args.only) if args.only else DEFAULT_COMPENSATORS,
                           docs_dir=args.docs)
+    if not args.no_progress:
+        import sys
+        print("afmctl demo: starting; the first run compiles numerical kernels (numba, cached for later "
+              "runs), which can take a minute or two", file=sys.stderr, flush=True)
     ctx = run_demo(options, progress=not args.no_progress)
     for text in ctx.messages:
         print(text)

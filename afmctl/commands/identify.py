@@ -33,6 +33,14 @@ Model kinds (--model):
   dynamics  linear dynamics (amplifier bandwidth, structural modes, delay), unit DC gain,
             from a small-signal recording ('afmctl excite --kind dynamics'): frequency
             response (Welch) fitted by modes + lags + delay; the gain is printed
+  KIND+creep[+dynamics]
+            a chain (kind chain): hysteresis KIND (pi, epi, preisach, bouc-wen), then
+            linear creep, then linear dynamics, identified jointly (Hammerstein);
+            needs uniformly spaced samples
+  auto      fit every candidate chain on the first 70 % of the data, score each by its
+            prediction error on the last 30 % (held out), print the table and keep
+            the best (re-fitted on all the data); the table is stored in the model
+            file. Excite the full voltage range in the first 70 %.
 Real recordings (--data):
   --burn-in auto    samples until the input has passed both its extremes only set the model's
                     memory (the state the recording started in is unknown); 'none' or SECONDS
@@ -69,7 +77,9 @@ Examples:
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("identify", help=HELP, description=DESCRIPTION,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--model", required=True, metavar="KIND", help="model kind: pi, epi, creep, preisach, bouc-wen, dynamics")
+    p.add_argument("--model", required=True, metavar="KIND",
+                   help="model kind: pi, epi, creep, preisach, bouc-wen, dynamics, a chain KIND+creep[+dynamics], "
+                        "or auto")
     p.add_argument("--data", metavar="DATA.csv", help="CSV with columns t,u,y (s, V, nm)")
     p.add_argument("--from-images", metavar="SCANS", nargs="+",
                    help="instead of --data: identify without a position sensor from AFM images of a "
@@ -114,6 +124,9 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import AfmctlError
     from afmctl.compensators.models import model_class
 
+    if args.model == "auto" or "+" in args.model:
+        from .identify_chain import run_chain
+        return run_chain(args)
     cls = model_class(args.model)
     if getattr(args, "from_images", None) is not None:
         if args.data is not None:

@@ -215,6 +215,8 @@ def run(args: argparse.Namespace) -> int:
             stack.callback(amp.close)
         ctl = Controller(config, amp, scanner=scanner)
         stack.callback(ctl.close)
+        # always, --quiet included: which axes are compensated, by which model, from which file
+        print(f"afmctl: compensation {ctl.pipeline.describe()}", file=sys.stderr)
         if config.zenoh.enabled:   # in its own process: the loop's timing does not depend on it
             from ..zenoh_process import ZenohBridgeProcess
             bridge = ZenohBridgeProcess(ctl, config.zenoh, scanner_name=config.scanner.name)

@@ -1,0 +1,192 @@
+"""The composite per-axis model: hysteresis → creep → linear dynamics (Hammerstein chain).
+
+One model file (``kind = "chain"``) holds up to three stages, each itself a model of
+:data:`afmctl.compensators.models.KINDS`:
+
+* ``hysteresis`` — pi, epi, preisach or bouc-wen: ``u`` [V] → ``h`` [nm];
+* ``creep`` (optional) — a linear creep model (kind ``creep``) from ``h`` [nm] to the
+  displacement [nm]; its ``gain_nm_per_V`` is here a unit-less gain ≈ 1 (nm per nm);
+* ``dynamics`` (optional) — a linear dynamics model (kind ``dynamics``) [nm] → [nm].
+
+The forward operator is ``dynamics(creep(hysteresis(u)))``, the inverse (the feedforward
+compensator) ``hysteresis⁻¹(creep⁻¹(dynamics⁻¹(y)))``. The chain's *structure* is the
+string ``<hysteresis>[+creep][+dynamics]``, e.g. ``preisach+creep``; that is what the CLI
+accepts as ``--model`` and what ``afmctl run`` prints.
+
+Identification (:meth:`ChainModel.identify`) follows the Hammerstein structure and fits
+the stages jointly by alternation: the hysteresis on the creep-corrected output, then the
+creep from the hysteresis output to the measured output, ``rounds`` times; the dynamics
+last, from the static chain's output to the measured output.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+from pydantic import Field, SerializeAsAny, field_validator
+
+from .base import Chain, ModelError, StreamingOperator, check_finite
+from .models import HysteresisModel, model_class, model_from_dict
+
+log = logging.getLogger(__name__)
+
+#: hysteresis kinds a chain may start with
+HYSTERESIS_KINDS: tuple[str, ...] = ("pi", "epi", "preisach", "bouc-wen")
+#: optional stages, in chain order
+STAGES: tuple[str, ...] = ("creep", "dynamics")
+
+#: creep stage identification: lags between 10 ms and 100 s (5 of them)
+CREEP_OPTIONS: dict[str, Any] = {"n_operators": 5, "tau_min_s": 0.01, "tau_max_s": 100.0}
+
+
+def parse_structure(text: str) -> tuple[str, tuple[str, ...]]:
+    """``"preisach+creep+dynamics"`` → ``("preisach", ("creep", "dynamics"))``.
+
+    :class:`ModelError` naming the allowed parts for anything else (stages in chain order,
+    each at most once)."""
+    parts = [p.strip() for p in str(text).split("+")]
+    hyst, stages = parts[0], tuple(parts[1:])
+    allowed = f"<{'|'.join(HYSTERESIS_KINDS)}>[+creep][+dynamics]"
+    if hyst not in HYSTERESIS_KINDS:
+        raise ModelError(f"model: {text!r}: the chain must start with a hysteresis kind; allowed {allowed}")
+    order = [STAGES.index(s) if s in STAGES else -1 for s in stages]
+    if -1 in order or order != sorted(set(order)):
+        raise ModelError(f"model: {text!r}: stages must be creep and/or dynamics, in that order; allowed {allowed}")
+    return hyst, stages
+
+
+def _as_model(value: Any, where: str, allowed: tuple[str, ...]) -> Any:
+    if value is None or isinstance(value, HysteresisModel):
+        model = value
+    else:
+        model = model_from_dict(value, where=where)
+    if model is not None and model.kind not in allowed:
+        raise ValueError(f"kind {model.kind!r} is not allowed here; allowed: {', '.join(allowed)}")
+    return model
+
+
+class ChainModel(HysteresisModel):
+    """Per-axis chain ``hysteresis → creep → dynamics`` (module docstring); u [V] → y [nm]."""
+
+    kind: Literal["chain"] = "chain"
+    time_dependent: ClassVar[bool] = True
+    hysteresis: SerializeAsAny[HysteresisModel] = Field(description="pi|epi|preisach|bouc-wen model: u [V] → h [nm]")
+    creep: SerializeAsAny[HysteresisModel] | None = Field(None, description="creep model: h [nm] → y [nm], gain ≈ 1")
+    dynamics: SerializeAsAny[HysteresisModel] | None = Field(None, description="linear dynamics model [nm] → [nm]")
+    selection: list[dict[str, Any]] | None = Field(
+        None, description="afmctl identify --model auto: held-out score of every candidate (nm, %)")
+
+    @field_validator("hysteresis", mode="before")
+    @classmethod
+    def _hyst(cls, v: Any) -> Any:
+        return _as_model(v, "hysteresis", HYSTERESIS_KINDS)
+
+    @field_validator("creep", mode="before")
+    @classmethod
+    def _creep(cls, v: Any) -> Any:
+        return _as_model(v, "creep", ("creep",))
+
+    @field_validator("dynamics", mode="before")
+    @classmethod
+    def _dyn(cls, v: Any) -> Any:
+        return _as_model(v, "dynamics", ("dynamics",))
+
+    @property
+    def structure(self) -> str:
+        """``<hysteresis>[+creep][+dynamics]``."""
+        return "+".join([self.hysteresis.kind] + [s for s in STAGES if getattr(self, s) is not None])
+
+    def stages(self) -> list[HysteresisModel]:
+        """The stage models in chain (forward) order."""
+        return [m for m in (self.hysteresis, self.creep, self.dynamics) if m is not None]
+
+    def forward(self, dt_s: float | None = None) -> StreamingOperator:
+        """Operator u [V] → y [nm] at sample period ``dt_s`` [s]."""
+        return Chain(*(m.forward(dt_s) for m in self.stages()))
+
+    def inverse(self, dt_s: float | None = None) -> StreamingOperator:
+        """Compensator y [nm] → u [V] at sample period ``dt_s`` [s]: the stages' inverses in
+        reverse order. A dynamics stage makes it a preview inverse: the operator's
+        ``latency_samples`` (0 without dynamics) is how many samples its output lags the
+        target; feed it the target that many samples ahead."""
+        op = Chain(*(m.inverse(dt_s) for m in reversed(self.stages())))
+        op.latency_samples = sum(int(getattr(o, "latency_samples", 0)) for o in op.ops)  # type: ignore[attr-defined]
+        return op
+
+    def inverse_offline(self, y_nm: np.ndarray, dt_s: float) -> np.ndarray:
+        """Voltages [V] for a whole known target ``y_nm`` [nm] at ``dt_s`` [s], no latency:
+        the dynamics' stable non-causal inverse over the whole target, then the streaming
+        inverses of creep and hysteresis (``afmctl compensate``)."""
+        y = np.ascontiguousarray(check_finite("y_nm", y_nm).ravel())
+        if self.dynamics is not None:
+            y = np.ascontiguousarray(self.dynamics.inverse_offline(y, dt_s))
+        for m in (self.creep, self.hysteresis):
+            if m is not None:
+                y = m.inverse(dt_s).block(y)
+        return y
+
+    def summary(self) -> str:
+        lines = [f"model            : chain {self.structure} (kind chain)"]
+        for m in self.stages():
+            lines += ["  " + line for line in m.summary().splitlines()]
+        if self.selection:
+            lines += ["selection (held-out prediction error):"] + ["  " + ln for ln in format_table(self.selection).splitlines()]
+        return "\n".join(lines)
+
+    @classmethod
+    def identify(cls, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, n_operators: int | None = None,
+                 structure: str = "preisach+creep", rounds: int = 2,
+                 dynamics_options: dict[str, Any] | None = None, **options: Any) -> "ChainModel":
+        """Fit the chain ``structure`` jointly (module docstring). ``n_operators`` and
+        ``options`` go to the hysteresis kind's ``identify``, ``dynamics_options`` to the
+        dynamics kind's; data uniformly sampled (t [s], u [V], y [nm])."""
+        hyst_kind, stages = parse_structure(structure)
+        hcls = model_class(hyst_kind)
+        t = check_finite("t_s", t_s).ravel()
+        u = np.ascontiguousarray(check_finite("u_V", u_V).ravel())
+        y = np.ascontiguousarray(check_finite("y_nm", y_nm).ravel())
+        if not (t.size == u.size == y.size) or t.size < 8:
+            raise ModelError("data: need equal-length columns t, u, y with at least 8 samples")
+        dt = float(np.median(np.diff(t)))
+        hyst, creep = _fit_static(hcls, t, u, y, dt, "creep" in stages, max(1, int(rounds)), n_operators, options)
+        dynamics = None
+        if "dynamics" in stages:
+            # the static chain's output drives the linear dynamics; the dynamics kind picks
+            # the small-signal (chirp / multisine) part of the record itself
+            x = hyst.forward(dt).block(u)
+            if creep is not None:
+                x = creep.forward(dt).block(x)
+            dynamics = model_class("dynamics").identify(t, x, y, **dict(dynamics_options or {}))
+        return cls(hysteresis=hyst, creep=creep, dynamics=dynamics)
+
+
+def _fit_static(hcls: Any, t: np.ndarray, u: np.ndarray, y: np.ndarray, dt: float, with_creep: bool,
+                rounds: int, n_operators: int | None, options: dict[str, Any]) -> tuple[Any, Any]:
+    """Alternate: hysteresis on the creep-corrected output, creep from its output to ``y``."""
+    creep_cls = model_class("creep") if with_creep else None
+    target = y
+    hyst = creep = None
+    for _ in range(rounds if with_creep else 1):
+        hyst = hcls.identify(t, u, target, n_operators=n_operators, **dict(options))
+        if creep_cls is None:
+            break
+        h = hyst.forward(dt).block(u)
+        creep = creep_cls.identify(t, h, y, **CREEP_OPTIONS)
+        target = creep.inverse(dt).block(y)
+    return hyst, creep
+
+
+def format_table(table: Sequence[dict[str, Any]]) -> str:
+    """The selection table as text, best first (what ``identify --model auto`` prints;
+    rows from :func:`afmctl.compensators.selection.score_candidate`)."""
+    lines = [f"{'candidate':<18} {'held-out max':>14} {'held-out rms':>14} {'train rms':>11}",
+             f"{'':<18} {'[nm] (%)':>14} {'[nm] (%)':>14} {'[nm]':>11}"]
+    for row in table:
+        if "error" in row:
+            lines.append(f"{row['structure']:<18} failed: {row['error']}")
+            continue
+        lines.append(f"{row['structure']:<18} {row['heldout_max_nm']:>7.4g} ({row['heldout_max_pct']:.3g}) "
+                     f"{row['heldout_rms_nm']:>7.4g} ({row['heldout_rms_pct']:.3g}) {row['train_rms_nm']:>11.4g}")
+    return "\n".join(lines)

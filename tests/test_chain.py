@@ -1,0 +1,248 @@
+"""The per-axis chain (hysteresis+creep[+dynamics]), the scanner model file, ``identify
+--model auto`` through the CLI, and ``afmctl run`` saying which model drives which axis."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from plants import CreepingPlant, RelayPreisachPlant, decaying_triangle, staircase
+
+from afmctl.cli import main
+from afmctl.compensators.base import ModelError
+from afmctl.compensators.chain import ChainModel, parse_structure
+from afmctl.compensators.models import load_model, model_from_dict, save_model
+from afmctl.compensators.scanner_model import ScannerModel
+from afmctl.datafiles import read_csv, write_csv
+
+DT = 2e-3
+
+
+def _plant() -> CreepingPlant:
+    return CreepingPlant(RelayPreisachPlant(noise_nm=2.0, seed=1), dt_s=DT)
+
+
+def _excitation() -> np.ndarray:
+    """Nested loops (decaying triangle), then a staircase with 2 s dwells (creep)."""
+    _, u1 = decaying_triangle(DT, 6, 0.0, 150.0, samples_per_cycle=1000)
+    _, u2 = staircase(DT, [0, 40, 110, 70, 150, 20, 90, 60, 130, 10, 100, 30, 0], 2.0, ramp_s=0.2)
+    return np.concatenate([u1, u2])
+
+
+@pytest.fixture(scope="module")
+def ident(tmp_path_factory):
+    d = tmp_path_factory.mktemp("chain")
+    u = _excitation()
+    t = np.arange(u.size) * DT
+    plant = _plant()
+    plant.reset()
+    y = plant.run(u)
+    write_csv(d / "ident.csv", {"t": t, "u": u, "y": y})
+    return d, t, u, y
+
+
+@pytest.fixture(scope="module")
+def chain(ident):
+    _, t, u, y = ident
+    return ChainModel.identify(t, u, y, structure="preisach+creep")
+
+
+def test_structure_parsing_names_the_allowed_parts():
+    assert parse_structure("preisach+creep+dynamics") == ("preisach", ("creep", "dynamics"))
+    assert parse_structure("pi") == ("pi", ())
+    for bad in ("creep+pi", "preisach+dynamics+creep", "preisach+creep+creep", "foo+creep"):
+        with pytest.raises(ModelError, match="allowed <pi|epi|preisach|bouc-wen>"):
+            parse_structure(bad)
+
+
+def test_chain_block_equals_step_and_round_trips(chain, tmp_path):
+    rng = np.random.default_rng(3)
+    tgt = 2000.0 + 8000.0 * np.abs(np.sin(np.cumsum(rng.normal(0, 0.01, 3000))))
+    u = np.clip(tgt / 80.0, 0.0, 150.0)
+    for make, x in ((lambda: chain.forward(DT), u), (lambda: chain.inverse(DT), tgt)):
+        whole = make().block(x)
+        b = make()
+        steps = np.array([b.step(float(v)) for v in x])
+        np.testing.assert_array_equal(whole, steps)
+        c = make()
+        parts = np.concatenate([c.block(x[:777]), c.block(x[777:778]), c.block(x[778:])])
+        np.testing.assert_array_equal(whole, parts)
+    save_model(chain, tmp_path / "c.json")
+    back = load_model(tmp_path / "c.json")
+    assert back.structure == "preisach+creep"
+    np.testing.assert_array_equal(back.inverse(DT).block(tgt), chain.inverse(DT).block(tgt))
+
+
+def test_chain_forward_of_inverse_is_identity_on_band_limited_targets(chain):
+    t = np.arange(20000) * DT
+    tgt = 6000.0 + 3000.0 * np.sin(2 * np.pi * 0.3 * t) + 800.0 * np.sin(2 * np.pi * 1.1 * t + 0.4)
+    u = chain.inverse(DT).block(tgt)
+    assert 0.0 <= u.min() and u.max() <= 150.0
+    back = chain.forward(DT).block(u)
+    assert np.max(np.abs(back - tgt)) < 0.005 * np.ptp(tgt)
+
+
+def test_chain_file_errors_name_the_field(chain):
+    data = chain.model_dump(mode="json")
+    data["creep"] = {"kind": "pi", "thresholds": [0.0], "weights": [1.0]}
+    with pytest.raises(ModelError, match=r"m\.json: field creep"):
+        model_from_dict(data, where="m.json")
+    data = chain.model_dump(mode="json")
+    data["dynamics"] = {"kind": "nonsense"}
+    with pytest.raises(ModelError, match="m.json: field dynamics"):
+        model_from_dict(data, where="m.json")
+
+
+def test_scanner_model_checks_its_coupling_inverse(chain, tmp_path):
+    C = [[1.0, 0.02, 0.0], [-0.01, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    sm = ScannerModel(axes={"x": chain, "y": None, "z": None}, coupling=C)
+    np.testing.assert_allclose(sm.inverse_coupling() @ np.array(C), np.eye(3), atol=1e-12)
+    save_model(sm, tmp_path / "s.json")
+    back = load_model(tmp_path / "s.json")
+    assert back.describe_axis("x") == "preisach+creep" and back.describe_axis("y") == "none"
+    data = json.loads((tmp_path / "s.json").read_text())
+    data["coupling_inverse"] = np.eye(3).tolist()
+    with pytest.raises(ModelError, match="field coupling_inverse"):
+        model_from_dict(data, where="s.json")
+    with pytest.raises(ModelError, match="--axis x"):
+        back.inverse(DT)
+
+
+def _staircase_error_pct(model_path, d, capsys) -> tuple[float, float]:
+    """Compensate a staircase with 2 s dwells through the CLI, play it into the plant:
+    max and RMS |error| in % of the plant's 0–150 V displacement range."""
+    plant = _plant()
+    plant.reset()
+    full = plant.run(np.linspace(0.0, 150.0, 2000))
+    lo, hi = float(full.min()), float(full.max())
+    levels = np.array([0.1, 0.6, 0.3, 0.9, 0.5, 0.2, 0.8, 0.4]) * (hi - lo) + lo
+    ts, tg = staircase(DT, list(levels), 2.0, ramp_s=0.1)
+    write_csv(d / "stairs.csv", {"t": ts, "y": tg})
+    rc = main(["compensate", "--model", str(model_path), "--target", str(d / "stairs.csv"), "--out",
+               str(d / "volts.csv"), "--limits", "0", "150", "--clip"])
+    assert rc == 0, capsys.readouterr().err
+    u = read_csv(d / "volts.csv", ("t", "u"))["u"]
+    plant = _plant()
+    plant.reset()
+    e = plant.run(u) - tg
+    return 100 * float(np.max(np.abs(e))) / (hi - lo), 100 * float(np.sqrt(np.mean(e ** 2))) / (hi - lo)
+
+
+def test_identify_auto_picks_a_creep_chain_and_beats_static_preisach(ident, capsys):
+    d = ident[0]
+    rc = main(["identify", "--model", "auto", "--data", str(d / "ident.csv"), "--out", str(d / "auto.json"),
+               "--param", 'candidates=["pi", "preisach", "preisach+creep", "pi+creep"]'])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "held-out prediction error" in out and "selected         : preisach+creep" in out
+    saved = json.loads((d / "auto.json").read_text())
+    assert saved["kind"] == "chain" and [r["structure"] for r in saved["selection"]][0] == "preisach+creep"
+    assert len(saved["selection"]) == 4
+    rc = main(["identify", "--model", "preisach", "--data", str(d / "ident.csv"), "--out", str(d / "pre.json")])
+    assert rc == 0
+    capsys.readouterr()
+    auto_max, auto_rms = _staircase_error_pct(d / "auto.json", d, capsys)
+    pre_max, pre_rms = _staircase_error_pct(d / "pre.json", d, capsys)
+    print(f"staircase, 2 s dwells: auto {auto_max:.3f} % max / {auto_rms:.3f} % rms; "
+          f"static preisach {pre_max:.3f} % / {pre_rms:.3f} %")
+    assert auto_max < 0.6 * pre_max and auto_rms < 0.75 * pre_rms
+    assert auto_max < 1.6          # measured 1.44 % (static preisach 2.87 %); #11 targets 1.0 %: not reached yet
+
+
+def test_identify_chain_bad_input_is_one_line(ident, capsys, tmp_path):
+    d = ident[0]
+    rc = main(["identify", "--model", "creep+preisach", "--data", str(d / "ident.csv"), "--out", str(tmp_path / "m.json")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "allowed <pi|epi|preisach|bouc-wen>[+creep][+dynamics]" in err and "Traceback" not in err
+    rc = main(["identify", "--model", "auto", "--from-images", "x.npz", "--out", str(tmp_path / "m.json")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--from-images takes a single kind" in err
+
+
+def test_run_says_which_model_drives_which_axis(chain, tmp_path, capsys):
+    C = [[1.0, 0.01, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    save_model(ScannerModel(axes={"x": chain, "y": None, "z": None}, coupling=C), tmp_path / "scanner.json")
+    cfg = tmp_path / "run.toml"
+    cfg.write_text(f"""
+[scanner.calibration.x]
+nm_per_V = 80.0
+[scanner.calibration.y]
+nm_per_V = 80.0
+[scanner.calibration.z]
+nm_per_V = 13.333
+[amplifier]
+driver = "can"
+port = "virtual:chain-prov"
+[compensation]
+scanner_model = "scanner.json"
+[runlog]
+dir = "{tmp_path}"
+fsync = false
+[simulation]
+enabled = true
+[trajectory]
+kind = "raster"
+x0_nm = 1000
+y0_nm = 1000
+width_nm = 4000
+height_nm = 4000
+lines = 2
+line_rate_Hz = 4
+""")
+    rc = main(["run", "--config", str(cfg), "--seconds", "0.3", "--json", "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    line = next(ln for ln in err.splitlines() if ln.startswith("afmctl: compensation"))
+    assert "x: preisach+creep from scanner.json" in line
+    assert "y: linear calibration 80 nm/V (uncompensated)" in line
+    assert "coupling: inverse 3x3 from scanner.json" in line
+
+
+def test_pipeline_block_equals_step_with_coupling_and_drift(chain):
+    """CompensationPipeline.block (the demo's path) gives bit for bit what step() gives
+    per sample with the same heat input; the decoupler C⁻¹ is applied before the inverses."""
+    from afmctl.compensators.drift import DriftParams
+    from afmctl.pipeline import CompensationPipeline, LinearAxis
+
+    C = np.array([[1.0, 0.03, 0.0], [-0.02, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    params = DriftParams.named("physical_tube").scaled(60.0)
+
+    def make():
+        return CompensationPipeline([chain.inverse(DT), LinearAxis(80.0), LinearAxis(13.3, 1.0)],
+                                    params.predictor(DT), inv_coupling=np.linalg.inv(C))
+    rng = np.random.default_rng(5)
+    n = 3000
+    r = np.column_stack([6000 + 2000 * np.sin(np.arange(n) * 0.01), 4000 + rng.normal(0, 50, n), np.full(n, 100.0)])
+    T = 22.0 + np.linspace(0.0, 1.0, n)
+    u_heat = np.clip(r / 80.0, 0.0, 150.0)
+    d, c, u = make().block(r, T, u_heat)
+    p = make()
+    for i in range(n):
+        out = p.step(*r[i], float(T[i]), u_heat[i])
+        assert out == (*d[i], *c[i], *u[i])
+    # the decoupled y target is what the y axis's linear inverse received
+    np.testing.assert_allclose(u[:, 1] * 80.0, (np.linalg.inv(C) @ c.T)[1], rtol=1e-12, atol=1e-9)
+
+
+def test_chain_with_dynamics_inverts_offline_and_streams_with_latency(chain):
+    """preisach+creep+dynamics: the offline stable inverse makes the forward chain follow
+    a band-limited target; the streaming inverse reports its preview latency and is
+    block == step."""
+    from afmctl.compensators.dynamics import LinearDynamicsModel
+    dt = 1e-4
+    dyn = LinearDynamicsModel.from_modes([(800.0, 0.03)], real_poles_Hz=[3000.0])
+    full = ChainModel(hysteresis=chain.hysteresis, creep=chain.creep, dynamics=dyn)
+    assert full.structure == "preisach+creep+dynamics"
+    back = model_from_dict(json.loads(json.dumps(full.model_dump(mode="json"))))
+    assert back.structure == "preisach+creep+dynamics"
+    t = np.arange(20000) * dt
+    tgt = 6000.0 + 2500.0 * np.sin(2 * np.pi * 20.0 * t) * np.minimum(t / 0.2, 1.0)
+    u = full.inverse_offline(tgt, dt)
+    y = full.forward(dt).block(u)
+    assert np.max(np.abs(y - tgt)[2000:-2000]) < 0.005 * np.ptp(tgt)
+    static_u = ChainModel(hysteresis=chain.hysteresis, creep=chain.creep).inverse(dt).block(tgt)
+    y_static = full.forward(dt).block(static_u)
+    assert np.max(np.abs(y_static - tgt)[2000:-2000]) > 4 * np.max(np.abs(y - tgt)[2000:-2000])
+    a, b = full.inverse(dt), full.inverse(dt)
+    assert a.latency_samples > 0
+    np.testing.assert_array_equal(a.block(tgt[:3000]), np.array([b.step(float(v)) for v in tgt[:3000]]))
