@@ -34,7 +34,8 @@ def build_frame(feed: ViewFeed, cursors: dict[str, dict[str, int]], with_image: 
     scanners = {}
     for name, f in sorted(feed.feeds().items()):
         scanners[name] = f.frame(cursors.setdefault(name, {}), with_image)
-    return {"scanners": scanners, "history_s": feed.history_s, "display_rate_Hz": feed.display_rate_Hz}
+    return {"scanners": scanners, "history_s": feed.history_s, "display_rate_Hz": feed.display_rate_Hz,
+            "max_rows": feed.max_rows}
 
 
 def make_app(feed: ViewFeed, *, frame_rate_Hz: float = 10.0, image_every: int = 5) -> Starlette:

@@ -41,6 +41,11 @@ class ViewFeed:
         self._subs: list[Any] = []
         self.ignored = 0          # messages of scanners beyond MAX_SCANNERS
 
+    @property
+    def max_rows(self) -> int:
+        """Rows each stream of each scanner holds at most (server and page alike)."""
+        return max(1, int(self.display_rate_Hz * self.history_s))
+
     def keys(self) -> list[str]:
         """The key expressions subscribed to."""
         names = self.scanners or ["*"]

@@ -26,13 +26,16 @@ class HeightImage:
 
     def grid(self) -> dict[str, Any] | None:
         """``{"x_nm": [min, max], "y_nm": [min, max], "height_nm": rows × cols (None = empty),
-        "h_range_nm": [min, max], "samples": n, "sample": name}``; None before 2 samples."""
+        "h_range_nm": [min, max], "samples": n, "sample": name}``; None before 2 samples.
+        The area binned is the central 98 % of the samples in x and in y (the ramp from the
+        safe position to the scan's start stays out)."""
         if len(self._xyh) < 2:
             return None
         a = np.asarray(self._xyh, float)
         x, y, h = a[:, 0], a[:, 1], a[:, 2]
-        xr = [float(x.min()), float(x.max()) + 1e-9]
-        yr = [float(y.min()), float(y.max()) + 1e-9]
+        xr = [float(v) for v in np.percentile(x, [1.0, 99.0])]
+        yr = [float(v) for v in np.percentile(y, [1.0, 99.0])]
+        xr[1], yr[1] = max(xr[1], xr[0] + 1e-6), max(yr[1], yr[0] + 1e-6)
         bins = (self.rows, self.cols)
         s, _, _ = np.histogram2d(y, x, bins=bins, range=[yr, xr], weights=h)
         n, _, _ = np.histogram2d(y, x, bins=bins, range=[yr, xr])

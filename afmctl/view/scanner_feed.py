@@ -140,21 +140,25 @@ class ScannerFeed:
         """Move waiting tips to ``tips`` once the targets at their time have arrived."""
         sp, tip = self._sp_clock.offset_s, self._tip_clock.offset_s
         span = self._targets.span_s
-        rows = []
+        ready: list[tuple[float, np.ndarray, bool]] = []
         while self._pending:
             arrival, t_tip, pos = self._pending[0]
             if sp is None or tip is None or span is None:
                 if now_s - arrival < TIP_WAIT_S:
                     break                                   # no controller yet: wait a little
-                t_ctrl, target = t_tip, np.full(3, np.nan)  # none at all: the tip alone
+                t_ctrl = math.nan                           # none at all: the tip alone
             else:
                 t_ctrl = t_tip + tip - sp
                 if t_ctrl > span[1] and now_s - arrival < TIP_WAIT_S:
                     break                                   # its targets are still on the way
-                target = self._targets.at(np.array([t_ctrl]))[0]
             self._pending.popleft()
-            rows.append(_r([t_ctrl, *pos, *(pos - target)]))
-        self.tips.extend(rows)
+            ready.append((t_tip if math.isnan(t_ctrl) else t_ctrl, pos, math.isnan(t_ctrl)))
+        if not ready:
+            return
+        t = np.array([r[0] for r in ready])
+        target = self._targets.at(t)                        # one interpolation for the lot
+        target[[r[2] for r in ready]] = np.nan
+        self.tips.extend([_r([t[k], *r[1], *(r[1] - target[k])]) for k, r in enumerate(ready)])
 
     def tracking_summary(self) -> dict[str, Any]:
         """RMS tracking error [nm] over the last ``ERROR_WINDOW_S`` of tips, per axis x, y,

@@ -139,7 +139,7 @@ class LiveStack:
         self.scanner, self.rate_Hz, self.lines, self.line_rate_Hz = scanner, rate_Hz, lines, line_rate_Hz
         self.duration_s = duration_s
         self.procs: dict[str, _Proc] = {}
-        self.url = ""
+        self.url = self.sim_endpoint = self.run_endpoint = ""
 
     def _py(self, *args: str) -> list[str]:
         return [sys.executable, "-m", "afmctl", *args]
@@ -181,9 +181,9 @@ class LiveStack:
         return self.url
 
     def start(self) -> "LiveStack":
-        sim_ep, link = self.start_sim()
-        run_ep = self.start_run(link)
-        self.start_view(sim_ep, run_ep)
+        self.sim_endpoint, link = self.start_sim()
+        self.run_endpoint = self.start_run(link)
+        self.start_view(self.sim_endpoint, self.run_endpoint)
         run = self.procs["run"]
         if not wait_for(lambda: run.proc.poll() is not None or "afmctl: running" in run.stderr(), 120.0, 0.1) \
                 or run.proc.poll() is not None:
@@ -211,8 +211,9 @@ CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic
                   "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 
 #: JavaScript: pixels of a canvas within ``tol`` of an RGB colour, and all non-white ones
-_COUNT_JS = """([id, rgb, tol]) => {
-  const c = document.getElementById(id), d = c.getContext("2d").getImageData(0, 0, c.width, c.height).data;
+_COUNT_JS = """([id, rgb, tol, wFrac]) => {
+  const c = document.getElementById(id), w = Math.floor(c.width * wFrac);
+  const d = c.getContext("2d").getImageData(0, 0, w, c.height).data;
   let match = 0, ink = 0;
   for (let i = 0; i < d.length; i += 4) {
     if (d[i + 3] === 0) continue;
@@ -258,10 +259,11 @@ class Browser:
             self._pw.stop()
 
 
-def canvas_pixels(page, canvas_id: str, rgb: tuple[int, int, int], tol: int = 40) -> dict[str, int]:
-    """``{"match", "ink", "total"}``: pixels of canvas ``canvas_id`` near colour ``rgb``,
-    pixels that are not white, all pixels."""
-    return page.evaluate(_COUNT_JS, [canvas_id, list(rgb), tol])
+def canvas_pixels(page, canvas_id: str, rgb: tuple[int, int, int], tol: int = 40,
+                  width_fraction: float = 1.0) -> dict[str, int]:
+    """``{"match", "ink", "total"}``: pixels of canvas ``canvas_id`` (its left
+    ``width_fraction``) near colour ``rgb``, pixels that are not white, all pixels."""
+    return page.evaluate(_COUNT_JS, [canvas_id, list(rgb), tol, width_fraction])
 
 
 def js_heap_bytes(page) -> float:

@@ -16,7 +16,8 @@ function ticks(lo, hi, n) {
   if (!(hi > lo)) { return [lo]; }
   const step = niceStep(hi - lo, n);
   const out = [];
-  for (let v = Math.ceil(lo / step) * step; v <= hi + step * 1e-9; v += step) { out.push(v); }
+  // integer multiples of the step: no accumulated rounding (a tick at 0 reads "0")
+  for (let k = Math.ceil(lo / step); k * step <= hi + step * 1e-9; k++) { out.push(parseFloat((k * step).toPrecision(12))); }
   return out;
 }
 
@@ -44,7 +45,7 @@ class Plot {
     this.canvas = canvas;
     this.opts = opts;
     this.ctx = canvas.getContext("2d");
-    this.margin = { l: 64, r: opts.colorbar ? 74 : 12, t: 26, b: 40 };
+    this.margin = { l: 64, r: opts.colorbar ? 84 : 12, t: 26, b: 40 };
   }
 
   resize() {
@@ -201,6 +202,6 @@ function drawColorbar(plot, lo, hi) {
   c.fillStyle = "#1d2330"; c.font = "11px system-ui, 'DejaVu Sans', sans-serif";
   c.textAlign = "left"; c.textBaseline = "middle";
   for (const v of ticks(lo, hi, 5)) { c.fillText(fmt(v), x + w + 3, top + h - (v - lo) / ((hi - lo) || 1) * h); }
-  c.save(); c.translate(x + w + 50, top + h / 2); c.rotate(-Math.PI / 2); c.textAlign = "center";
+  c.save(); c.translate(x + w + 56, top + h / 2); c.rotate(-Math.PI / 2); c.textAlign = "center";
   c.font = "12px system-ui, 'DejaVu Sans', sans-serif"; c.fillText("height [nm]", 0, 0); c.restore();
 }

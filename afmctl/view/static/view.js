@@ -2,8 +2,9 @@
 // afmctl view: the live page. Frames arrive on /ws (new rows only); each scanner's rows are
 // kept for the server's history window and at most MAX_ROWS per stream (bounded memory).
 
-const MAX_ROWS = 20000;
-const state = { scanners: {}, selected: null, historyS: 30, frames: 0, dirty: true, lastFrameMs: 0 };
+const WINDOW_S = 5;        // seconds shown by the fast time plots (voltages, targets, error)
+const state = { scanners: {}, selected: null, historyS: 30, maxRows: 6000, frames: 0, dirty: true,
+  lastFrameMs: 0 };
 window.afmView = state;   // for tests and the curious: frame count, rows held per stream
 
 function newScanner() {
@@ -15,12 +16,13 @@ function trim(rows, historyS) {
   const tMin = rows[rows.length - 1][0] - historyS;
   let cut = 0;
   while (cut < rows.length && rows[cut][0] < tMin) { cut++; }
-  cut = Math.max(cut, rows.length - MAX_ROWS);
+  cut = Math.max(cut, rows.length - state.maxRows);
   if (cut > 0) { rows.splice(0, cut); }
 }
 
 function ingest(frame) {
   state.historyS = frame.history_s;
+  state.maxRows = frame.max_rows;
   for (const [name, f] of Object.entries(frame.scanners)) {
     const s = state.scanners[name] || (state.scanners[name] = newScanner());
     for (const key of ["setpoints", "tips", "drift"]) {
@@ -51,19 +53,25 @@ const plots = {};
 
 function setupPlots() {
   const mk = (id, opts) => { plots[id] = new Plot(document.getElementById(id), opts); };
-  mk("plot-volts", { title: "Voltages sent (after the safety layer)", xlabel: "controller time t [s]", ylabel: "u [V]" });
-  mk("plot-targets", { title: "Target (—) and true tip (- -)", xlabel: "controller time t [s]", ylabel: "position [nm]" });
+  mk("plot-volts", { title: "Voltages sent (after the safety layer)", xlabel: `controller time t [s] (last ${WINDOW_S} s)`, ylabel: "u [V]" });
+  mk("plot-targets", { title: "Target (—) and true tip (- -)", xlabel: `controller time t [s] (last ${WINDOW_S} s)`, ylabel: "position [nm]" });
   mk("plot-xy", { title: "Tip path against the target, x–y", xlabel: "x [nm]", ylabel: "y [nm]", equal: true });
-  mk("plot-error", { title: "Tracking error: tip − target", xlabel: "controller time t [s]", ylabel: "error [nm]" });
+  mk("plot-error", { title: "Tracking error: tip − target", xlabel: `controller time t [s] (last ${WINDOW_S} s)`, ylabel: "error [nm]" });
   mk("plot-drift", { title: "Drift estimate (band: ±1σ)", xlabel: "controller time t [s]", ylabel: "drift [nm]" });
   mk("plot-image", { title: "Image (sample height under the tip)", xlabel: "x [nm]", ylabel: "y [nm]",
     equal: true, colorbar: true });
 }
 
-function timeRange(s) {
+function timeRange(s, spanS) {
   const all = [s.setpoints, s.tips, s.drift].filter((r) => r.length);
   const tMax = Math.max(...all.map((r) => r[r.length - 1][0]));
-  return isFinite(tMax) ? [tMax - state.historyS, tMax] : [0, 1];
+  return isFinite(tMax) ? [tMax - spanS, tMax] : [0, 1];
+}
+
+function recent(rows, tr) {
+  let i = rows.length;
+  while (i > 0 && rows[i - 1][0] >= tr[0]) { i--; }
+  return i > 0 ? rows.slice(i - 1) : rows;
 }
 
 function axesPlot(p, s, rows, cols, names, tr, dash) {
@@ -78,7 +86,7 @@ function drawVolts(s, tr) {
   const p = plots["plot-volts"];
   p.resize();
   if (!s.setpoints.length) { p.frame(tr, [0, 1]); p.message("waiting for setpoints…"); return; }
-  axesPlot(p, s, s.setpoints, [4, 5, 6], ["x", "y", "z"], tr);
+  axesPlot(p, s, recent(s.setpoints, tr), [4, 5, 6], ["x", "y", "z"], tr);
   p.legend(["x", "y", "z"].map((a) => ({ name: `u_${a} [V]`, color: AXIS_COLORS[a] })));
 }
 
@@ -86,7 +94,7 @@ function drawTargets(s, tr) {
   const p = plots["plot-targets"];
   p.resize();
   if (!s.setpoints.length) { p.frame(tr, [0, 1]); p.message("waiting for setpoints…"); return; }
-  const sp = s.setpoints, tips = s.tips;
+  const sp = recent(s.setpoints, tr), tips = recent(s.tips, tr);
   p.frame(tr, extent([col(sp, 1), col(sp, 2), col(tips, 1), col(tips, 2)]));
   p.clip();
   for (const [a, k] of [["x", 1], ["y", 2]]) {
@@ -117,7 +125,7 @@ function drawXY(s) {
 function drawError(s, tr) {
   const p = plots["plot-error"];
   p.resize();
-  const rows = s.tips.filter((r) => r[4] !== null);
+  const rows = recent(s.tips, tr).filter((r) => r[4] !== null);
   if (!rows.length) { p.frame(tr, [-1, 1]); p.message("needs the simulator's sim/tip and setpoints"); return; }
   axesPlot(p, s, rows, [4, 5], ["x", "y"], tr);
   const t = s.tracking || {}, rms = t.rms_nm || [], pct = t.rms_pct || [];
@@ -154,6 +162,7 @@ function drawImage(s) {
 
 function fmtN(v, nd) {
   if (v === null || v === undefined || !isFinite(v)) { return "–"; }
+  if (Number.isInteger(v) && (nd || 0) >= 9) { return v.toLocaleString("en-US"); }
   return Math.abs(v) >= 1e4 ? v.toExponential(2) : String(parseFloat(Number(v).toPrecision(nd || 3)));
 }
 
@@ -189,8 +198,8 @@ function render() {
   requestAnimationFrame(render);
   if (!state.dirty || !state.selected) { return; }
   state.dirty = false;
-  const s = state.scanners[state.selected], tr = timeRange(s);
-  drawVolts(s, tr); drawTargets(s, tr); drawXY(s); drawError(s, tr); drawDrift(s, tr); drawImage(s); drawStats(s);
+  const s = state.scanners[state.selected], tr = timeRange(s, WINDOW_S), all = timeRange(s, state.historyS);
+  drawVolts(s, tr); drawTargets(s, tr); drawXY(s); drawError(s, tr); drawDrift(s, all); drawImage(s); drawStats(s);
   document.getElementById("clock").textContent = `t = ${fmtN(tr[1], 6)} s · frames ${state.frames}`;
 }
 
