@@ -123,8 +123,8 @@ def test_height_image_memory_is_bounded():
     for k in range(1000):
         img.add(k % 50, k // 50, float(k))
     g = img.grid()
-    assert img.samples == 1000 and len(img._xyh) == 100
-    assert g["h_range_nm"] == [900.0, 999.0]
+    assert img.samples == 1000 and img.held == 100 and img._xyh.shape == (100, 3)
+    assert g["h_range_nm"] == [900.0, 999.0]            # the last 100 samples
 
 
 def _publish_all(session, scanner: str, k: int) -> None:

@@ -1,7 +1,6 @@
 """The image as it builds up: height samples [nm] at the tip's true (x, y) [nm], binned."""
 from __future__ import annotations
 
-from collections import deque
 from typing import Any
 
 import numpy as np
@@ -12,14 +11,19 @@ class HeightImage:
     the area they cover (the mean height of the samples in each pixel, None where none
     fell). Memory is bounded by ``max_samples`` whatever the run's length."""
 
-    def __init__(self, cols: int = 128, rows: int = 64, max_samples: int = 60_000) -> None:
+    def __init__(self, cols: int = 128, rows: int = 64, max_samples: int = 30_000) -> None:
         self.cols, self.rows = cols, rows
-        self._xyh: deque[tuple[float, float, float]] = deque(maxlen=max_samples)
+        self._xyh = np.zeros((max_samples, 3))      # a ring, allocated once
         self.samples = 0
         self.sample_name = ""
 
+    @property
+    def held(self) -> int:
+        """Samples held (at most ``max_samples``)."""
+        return min(self.samples, len(self._xyh))
+
     def add(self, x_nm: float, y_nm: float, height_nm: float, sample_name: str = "") -> None:
-        self._xyh.append((x_nm, y_nm, height_nm))
+        self._xyh[self.samples % len(self._xyh)] = (x_nm, y_nm, height_nm)
         self.samples += 1
         if sample_name:
             self.sample_name = sample_name
@@ -29,9 +33,9 @@ class HeightImage:
         "h_range_nm": [min, max], "samples": n, "sample": name}``; None before 2 samples.
         The area binned is the central 98 % of the samples in x and in y (the ramp from the
         safe position to the scan's start stays out)."""
-        if len(self._xyh) < 2:
+        if self.held < 2:
             return None
-        a = np.asarray(self._xyh, float)
+        a = self._xyh[:self.held]
         x, y, h = a[:, 0], a[:, 1], a[:, 2]
         xr = [float(v) for v in np.percentile(x, [1.0, 99.0])]
         yr = [float(v) for v in np.percentile(y, [1.0, 99.0])]

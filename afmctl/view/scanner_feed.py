@@ -70,6 +70,8 @@ class ScannerFeed:
         self._sp_clock, self._tip_clock = ClockOffset(), ClockOffset()
         self._targets = TargetHistory(keep_s=TIP_WAIT_S + 3.0)
         self._pending: deque[tuple[float, float, np.ndarray]] = deque(maxlen=n)
+        # (controller time [s], error x, y [nm]) of the latest tips with a target: the summary
+        self._errors: deque[tuple[float, float, float]] = deque(maxlen=max(1, int(display_rate_Hz * ERROR_WINDOW_S)))
         self._next_batch: int | None = None
         self._t_last = -math.inf                           # newest controller time [s]
         self._range_nm = np.array([[math.inf] * 2, [-math.inf] * 2])   # min, max target x, y
@@ -95,6 +97,7 @@ class ScannerFeed:
             t = rec["t_s"].astype(float)
             if t[0] < self._t_last - 1.0:                  # the controller restarted
                 self._range_nm = np.array([[math.inf] * 2, [-math.inf] * 2])
+                self._errors.clear()
             self._t_last = float(t[-1])
             xy = rec["target_nm"][:, :2]
             self._range_nm = np.vstack([np.minimum(self._range_nm[0], xy.min(axis=0)),
@@ -158,26 +161,26 @@ class ScannerFeed:
         t = np.array([r[0] for r in ready])
         target = self._targets.at(t)                        # one interpolation for the lot
         target[[r[2] for r in ready]] = np.nan
-        self.tips.extend([_r([t[k], *r[1], *(r[1] - target[k])]) for k, r in enumerate(ready)])
+        err = np.array([r[1] for r in ready]) - target
+        self.tips.extend([_r([t[k], *r[1], *err[k]]) for k, r in enumerate(ready)])
+        ok = np.isfinite(err[:, 0]) & np.isfinite(err[:, 1])
+        self._errors.extend(zip(t[ok].tolist(), err[ok, 0].tolist(), err[ok, 1].tolist()))
 
     def tracking_summary(self) -> dict[str, Any]:
         """RMS tracking error [nm] over the last ``ERROR_WINDOW_S`` of tips, per axis x, y,
         and in % of the scan range (the targets' extent since the controller started)."""
-        tips, _ = self.tips.since(self.tips.next_index - 2000)
-        a = np.array([[np.nan if v is None else v for v in r] for r in tips], float).reshape(-1, 7)
+        with self._lock:
+            a = np.array(self._errors, float).reshape(-1, 3)
+        if len(a):
+            a = a[a[:, 0] >= a[-1, 0] - ERROR_WINDOW_S]
         if not len(a):
-            return {"rms_nm": [None, None], "rms_pct": [None, None], "n": 0}
-        a = a[a[:, 0] >= a[-1, 0] - ERROR_WINDOW_S]
-        err = a[:, 4:6]
-        ok = np.all(np.isfinite(err), axis=1)
-        if not ok.any():
-            return {"rms_nm": [None, None], "rms_pct": [None, None], "n": 0}
-        rms = np.sqrt(np.mean(err[ok] ** 2, axis=0))
+            return {"rms_nm": [None, None], "rms_pct": [None, None], "range_nm": [None, None], "n": 0}
+        rms = np.sqrt(np.mean(a[:, 1:3] ** 2, axis=0))
         with self._lock:
             rng = self._range_nm[1] - self._range_nm[0]
         with np.errstate(invalid="ignore", divide="ignore"):
             pct = np.where(rng > 0, 100.0 * rms / rng, np.nan)
-        return {"rms_nm": _r(rms, 2), "rms_pct": _r(pct, 3), "range_nm": _r(rng, 1), "n": int(ok.sum())}
+        return {"rms_nm": _r(rms, 2), "rms_pct": _r(pct, 3), "range_nm": _r(rng, 1), "n": len(a)}
 
     # ------------------------------------------------------------------ output
     def frame(self, cursor: dict[str, int], with_image: bool) -> dict[str, Any]:
