@@ -244,6 +244,17 @@ class SimTipMsg(_Message):
     position_nm: list[float] = Field(..., min_length=3, max_length=3)
 
 
+class SimImageMsg(_Message):
+    """One pixel of the simulator's image (``<prefix>/<scanner>/sim/image``): the sample
+    height [nm] under the true tip position [nm] at plant time ``t_s`` [s] (an ideal z
+    feedback keeps the tip on the surface), and the sample's name."""
+
+    t_s: float = Field(..., allow_inf_nan=False)
+    position_nm: _Vec3
+    height_nm: float = Field(..., ge=-POSITION_LIMIT_NM, le=POSITION_LIMIT_NM, allow_inf_nan=False)
+    sample: str = Field("", max_length=100)
+
+
 # --------------------------------------------------------------------------- decoding
 def _loads(payload: bytes, max_bytes: int) -> Any:
     if len(payload) > max_bytes:

@@ -25,6 +25,7 @@ import logging
 import math
 from collections.abc import Mapping, Sequence
 from typing import Any
+from pathlib import Path
 
 import numpy as np
 

@@ -15,6 +15,7 @@ import sys
 import threading
 from pathlib import Path
 from typing import Any
+from collections.abc import Callable
 
 from ..simservice import SimService, TipPublisher, load_settings, scanner_name
 
@@ -35,7 +36,10 @@ Ctrl-C or SIGTERM (exit 0).
 
 The true tip position (x, y, z in nm) can be published on zenoh as
 <prefix>/<scanner>/sim/tip (JSON {"schema", "seq", "t_s", "position_nm"}, default key
-afm/sim0/sim/tip). Zenoh is OFF by default, so plain `afmctl sim` opens no network port;
+afm/sim0/sim/tip). With --sample NAME (grating1d, grating2d, standard) it also publishes
+the image on .../sim/image: per published tip, the sample's height under the true tip
+(JSON {"schema", "seq", "t_s", "position_nm", "height_nm", "sample"}), which `afmctl view`
+shows as it builds up. Zenoh is OFF by default, so plain `afmctl sim` opens no network port;
 --zenoh switches it on (peer mode, scouting off, listen on loopback only):
 
   afmctl sim --zenoh                                   # listens on tcp/127.0.0.1:7447
@@ -87,9 +91,31 @@ def register(subparsers) -> None:
                    help="zenoh endpoint of a peer or router to connect to (repeatable; implies --zenoh)")
     p.add_argument("--publish-rate", type=float, default=None, metavar="HZ",
                    help="most sim/tip messages per second (overrides sim.publish_rate_Hz; default 100)")
+    p.add_argument("--sample", choices=sorted(SAMPLES), default=None,
+                   help="also publish the image on <prefix>/<scanner>/sim/image: the height of this "
+                        "simulated sample under the true tip, one pixel per published tip (implies --zenoh)")
     p.add_argument("--scanner", default=None, metavar="NAME",
                    help="scanner name, the <scanner> key chunk on zenoh (default sim0)")
     p.set_defaults(func=run)
+
+
+#: samples ``--sample`` can image (afmctl.sim_backend.samples, their default geometry)
+SAMPLES = {"grating1d": "Grating1D", "grating2d": "Grating2D", "standard": "StandardSample"}
+
+
+def image_publisher(sim_pub, sample_key: str) -> Callable[[float, Any], None]:
+    """``publish(t_s, position_nm)`` that publishes the tip on ``sim/tip`` and the sample's
+    height [nm] under it on ``sim/image`` (:class:`afmctl.messages.SimImageMsg`)."""
+    from afmctl.sim_backend import samples
+    sample = getattr(samples, SAMPLES[sample_key])()
+
+    def publish(t_s: float, position_nm: Any) -> None:
+        sim_pub.publish_tip(t_s, position_nm)
+        x, y = float(position_nm[0]), float(position_nm[1])
+        h = float(sample.height_nm(x, y))
+        sim_pub.publish_json("image", {"t_s": float(t_s), "position_nm": [float(v) for v in position_nm[:3]],
+                                       "height_nm": h, "sample": sample.name})
+    return publish
 
 
 def _zenoh_overrides(settings, args) -> None:
@@ -99,7 +125,7 @@ def _zenoh_overrides(settings, args) -> None:
     from ..errors import AfmctlError
     if args.scanner is not None:
         settings.scanner["name"] = args.scanner
-    if not (args.zenoh or args.zenoh_listen or args.zenoh_connect):
+    if not (args.zenoh or args.zenoh_listen or args.zenoh_connect or args.sample):
         return
     update: dict[str, Any] = {"enabled": True}
     if args.zenoh_listen:
@@ -154,7 +180,8 @@ def run(args) -> int:
                 from ..zenoh_api import SimPublisher
                 sim_pub = SimPublisher(settings.zenoh, name)
                 stack.callback(sim_pub.close)
-                tips = TipPublisher(sim_pub.publish_tip, rate_Hz=settings.sim.publish_rate_Hz,
+                publish = sim_pub.publish_tip if args.sample is None else image_publisher(sim_pub, args.sample)
+                tips = TipPublisher(publish, rate_Hz=settings.sim.publish_rate_Hz,
                                     queue_size=settings.sim.publish_queue)
                 stack.enter_context(tips)          # closed (drained) before sim_pub
             service = SimService(settings, on_tick=tips.offer if tips is not None else None,
@@ -168,6 +195,8 @@ def run(args) -> int:
                 rate = min(settings.sim.publish_rate_Hz, 1.0 / settings.sim.tick_s)
                 where = ", ".join([f"listen {e}" for e in settings.zenoh.listen]
                                   + [f"connect {e}" for e in settings.zenoh.connect]) or "no endpoint"
+                if args.sample is not None:
+                    print(f"image: {args.sample} heights on {settings.zenoh.key(name, 'sim/image')}", flush=True)
                 print(f"zenoh: publishing {tip_key} at up to {rate:g} Hz ({settings.zenoh.mode}, {where})",
                       flush=True)
             else:

@@ -1,0 +1,220 @@
+"use strict";
+// afmctl view: the live page. Frames arrive on /ws (new rows only); each scanner's rows are
+// kept for the server's history window and at most MAX_ROWS per stream (bounded memory).
+
+const WINDOW_S = 5;        // seconds shown by the fast time plots (voltages, targets, error)
+const state = { scanners: {}, selected: null, historyS: 30, maxRows: 6000, frames: 0, dirty: true,
+  lastFrameMs: 0 };
+window.afmView = state;   // for tests and the curious: frame count, rows held per stream
+
+function newScanner() {
+  return { setpoints: [], tips: [], drift: [], status: null, counts: {}, tracking: {}, image: null };
+}
+
+function trim(rows, historyS) {
+  if (!rows.length) { return; }
+  const tMin = rows[rows.length - 1][0] - historyS;
+  let cut = 0;
+  while (cut < rows.length && rows[cut][0] < tMin) { cut++; }
+  cut = Math.max(cut, rows.length - state.maxRows);
+  if (cut > 0) { rows.splice(0, cut); }
+}
+
+function ingest(frame) {
+  state.historyS = frame.history_s;
+  state.maxRows = frame.max_rows;
+  for (const [name, f] of Object.entries(frame.scanners)) {
+    const s = state.scanners[name] || (state.scanners[name] = newScanner());
+    for (const key of ["setpoints", "tips", "drift"]) {
+      const rows = f[key];
+      if (rows.length && s[key].length && rows[0][0] < s[key][s[key].length - 1][0] - 1) { s[key].length = 0; }
+      for (const r of rows) { s[key].push(r); }
+      trim(s[key], state.historyS);
+    }
+    s.status = f.status; s.counts = f.counts; s.tracking = f.tracking; s.lastRejected = f.last_rejected;
+    if ("image" in f) { s.image = f.image; }
+  }
+  state.frames++; state.dirty = true; state.lastFrameMs = performance.now();
+  updateSelector();
+}
+
+function updateSelector() {
+  const sel = document.getElementById("scanner"), names = Object.keys(state.scanners).sort();
+  if (sel.options.length !== names.length) {
+    sel.innerHTML = names.map((n) => `<option>${n.replace(/</g, "&lt;")}</option>`).join("");
+    if (!state.selected || !names.includes(state.selected)) { state.selected = names[0] || null; }
+    sel.value = state.selected;
+  }
+}
+
+function col(rows, k) { return rows.map((r) => r[k]); }
+
+const plots = {};
+
+function setupPlots() {
+  const mk = (id, opts) => { plots[id] = new Plot(document.getElementById(id), opts); };
+  mk("plot-volts", { title: "Voltages sent (after the safety layer)", xlabel: `controller time t [s] (last ${WINDOW_S} s)`, ylabel: "u [V]" });
+  mk("plot-targets", { title: "Target (—) and true tip (- -)", xlabel: `controller time t [s] (last ${WINDOW_S} s)`, ylabel: "position [nm]" });
+  mk("plot-xy", { title: "Tip path against the target, x–y", xlabel: "x [nm]", ylabel: "y [nm]", equal: true });
+  mk("plot-error", { title: "Tracking error: tip − target", xlabel: `controller time t [s] (last ${WINDOW_S} s)`, ylabel: "error [nm]" });
+  mk("plot-drift", { title: "Drift estimate (band: ±1σ)", xlabel: "controller time t [s]", ylabel: "drift [nm]" });
+  mk("plot-image", { title: "Image (sample height under the tip)", xlabel: "x [nm]", ylabel: "y [nm]",
+    equal: true, colorbar: true });
+}
+
+function timeRange(s, spanS) {
+  const all = [s.setpoints, s.tips, s.drift].filter((r) => r.length);
+  const tMax = Math.max(...all.map((r) => r[r.length - 1][0]));
+  return isFinite(tMax) ? [tMax - spanS, tMax] : [0, 1];
+}
+
+function recent(rows, tr) {
+  let i = rows.length;
+  while (i > 0 && rows[i - 1][0] >= tr[0]) { i--; }
+  return i > 0 ? rows.slice(i - 1) : rows;
+}
+
+function axesPlot(p, s, rows, cols, names, tr, dash) {
+  const xs = col(rows, 0);
+  p.frame(tr, extent(cols.map((k) => col(rows, k))));
+  p.clip();
+  cols.forEach((k, i) => p.line(xs, col(rows, k), AXIS_COLORS[names[i]], 1.5, dash));
+  p.ctx.restore();
+}
+
+function drawVolts(s, tr) {
+  const p = plots["plot-volts"];
+  p.resize();
+  if (!s.setpoints.length) { p.frame(tr, [0, 1]); p.message("waiting for setpoints…"); return; }
+  axesPlot(p, s, recent(s.setpoints, tr), [4, 5, 6], ["x", "y", "z"], tr);
+  p.legend(["x", "y", "z"].map((a) => ({ name: `u_${a} [V]`, color: AXIS_COLORS[a] })));
+}
+
+function drawTargets(s, tr) {
+  const p = plots["plot-targets"];
+  p.resize();
+  if (!s.setpoints.length) { p.frame(tr, [0, 1]); p.message("waiting for setpoints…"); return; }
+  const sp = recent(s.setpoints, tr), tips = recent(s.tips, tr);
+  p.frame(tr, extent([col(sp, 1), col(sp, 2), col(tips, 1), col(tips, 2)]));
+  p.clip();
+  for (const [a, k] of [["x", 1], ["y", 2]]) {
+    p.line(col(sp, 0), col(sp, k), AXIS_COLORS[a], 1.5);
+    if (tips.length) { p.line(col(tips, 0), col(tips, k), AXIS_COLORS[a], 1.5, [5, 3]); }
+  }
+  p.ctx.restore();
+  const items = [{ name: "target x [nm]", color: AXIS_COLORS.x }, { name: "target y [nm]", color: AXIS_COLORS.y }];
+  if (tips.length) { items.push({ name: "tip x, y [nm]", color: "#555", dash: [5, 3] }); }
+  p.legend(items);
+}
+
+function drawXY(s) {
+  const p = plots["plot-xy"];
+  p.resize();
+  const sp = s.setpoints.slice(-4000), tips = s.tips.slice(-4000);
+  if (!sp.length && !tips.length) { p.frame([0, 1], [0, 1]); p.message("waiting for setpoints…"); return; }
+  p.frame(extent([col(sp, 1), col(tips, 1)]), extent([col(sp, 2), col(tips, 2)]));
+  p.clip();
+  p.line(col(sp, 1), col(sp, 2), "#9aa3b2", 1.2);
+  if (tips.length) { p.line(col(tips, 1), col(tips, 2), "#e6550d", 1.5); }
+  p.ctx.restore();
+  const items = [{ name: "target", color: "#9aa3b2" }];
+  items.push({ name: tips.length ? "true tip (sim/tip)" : "no tip published", color: "#e6550d" });
+  p.legend(items);
+}
+
+function drawError(s, tr) {
+  const p = plots["plot-error"];
+  p.resize();
+  const rows = recent(s.tips, tr).filter((r) => r[4] !== null);
+  if (!rows.length) { p.frame(tr, [-1, 1]); p.message("needs the simulator's sim/tip and setpoints"); return; }
+  axesPlot(p, s, rows, [4, 5], ["x", "y"], tr);
+  const t = s.tracking || {}, rms = t.rms_nm || [], pct = t.rms_pct || [];
+  p.legend(["x", "y"].map((a, i) => ({ name: `e_${a} [nm]  rms ${fmtN(rms[i])} nm = ${fmtN(pct[i])} % of range`,
+    color: AXIS_COLORS[a] })));
+}
+
+function drawDrift(s, tr) {
+  const p = plots["plot-drift"];
+  p.resize();
+  const rows = s.drift;
+  if (!rows.length) { p.frame(tr, [-1, 1]); p.message("waiting for drift estimates…"); return; }
+  const lo = (k) => rows.map((r) => (r[k + 3] === null ? null : r[k] - r[k + 3]));
+  const hi = (k) => rows.map((r) => (r[k + 3] === null ? null : r[k] + r[k + 3]));
+  p.frame(tr, extent([1, 2, 3].flatMap((k) => [col(rows, k), lo(k), hi(k)])));
+  p.clip();
+  const xs = col(rows, 0), names = ["x", "y", "z"];
+  [1, 2, 3].forEach((k, i) => p.band(xs, lo(k), hi(k), AXIS_COLORS[names[i]] + "33"));
+  [1, 2, 3].forEach((k, i) => p.line(xs, col(rows, k), AXIS_COLORS[names[i]], 1.5));
+  p.ctx.restore();
+  const hasStd = rows.some((r) => r[4] !== null);
+  const items = names.map((a) => ({ name: `drift ${a} [nm]`, color: AXIS_COLORS[a] }));
+  items.push({ name: hasStd ? "±1σ" : "no σ (open-loop predictor)", color: "#88888855", box: true });
+  p.legend(items);
+}
+
+function drawImage(s) {
+  const p = plots["plot-image"];
+  p.resize();
+  if (!s.image) { p.frame([0, 1], [0, 1]); p.message("no image (afmctl sim --sample …)"); return; }
+  drawHeightMap(p, s.image);
+  p.legend([{ name: `${s.image.sample || "sample"}: ${s.image.samples} px samples`, color: "#21908d", box: true }]);
+}
+
+function fmtN(v, nd) {
+  if (v === null || v === undefined || !isFinite(v)) { return "–"; }
+  if (Number.isInteger(v) && (nd || 0) >= 9) { return v.toLocaleString("en-US"); }
+  return Math.abs(v) >= 1e4 ? v.toExponential(2) : String(parseFloat(Number(v).toPrecision(nd || 3)));
+}
+
+function drawStats(s) {
+  const st = (s.status && s.status.stats) || {}, b = st.bridge || {}, c = s.counts || {}, t = s.tracking || {};
+  const us = (v) => (v === undefined ? "–" : `${fmtN(v * 1e6)} µs`);
+  const rows = [
+    ["state", (s.status && s.status.state) || "–", "samples", fmtN(st.samples, 9)],
+    ["lateness p50 / p99 / max", `${us(st.lateness_p50_s)} / ${us(st.lateness_p99_s)} / ${us(st.lateness_max_s)}`,
+      "missed deadlines", fmtN(st.missed_deadlines, 9)],
+    ["errors / dropped records", `${fmtN(st.errors, 9)} / ${fmtN(st.dropped_records, 9)}`,
+      "rejected inputs (service)", fmtN(s.status && s.status.rejected, 9)],
+    ["setpoint batches / samples received", `${fmtN(c.setpoint_batches, 9)} / ${fmtN(c.setpoint_samples, 9)}`,
+      "batch sequence gaps (viewer)", fmtN(c.seq_gaps, 9)],
+    ["tracking error rms x / y", `${fmtN((t.rms_nm || [])[0])} / ${fmtN((t.rms_nm || [])[1])} nm`,
+      "in % of scan range x / y", `${fmtN((t.rms_pct || [])[0])} / ${fmtN((t.rms_pct || [])[1])} %`],
+    ["tips / drift / image / status msgs", `${fmtN(c.tips, 9)} / ${fmtN(c.drift, 9)} / ${fmtN(c.image, 9)} / ${fmtN(c.status, 9)}`,
+      "messages rejected (viewer)", fmtN(c.rejected, 9)],
+  ];
+  document.querySelector("#stats tbody").innerHTML = rows.map((r) =>
+    `<tr><td class="k">${r[0]}</td><td id="v-${slug(r[0])}">${r[1]}</td><td class="k">${r[2]}</td>` +
+    `<td id="v-${slug(r[2])}">${r[3]}</td></tr>`).join("");
+  const errs = (s.status && s.status.errors) || [];
+  document.getElementById("errors").textContent = errs.length
+    ? `last error: ${errs[errs.length - 1].source}: ${errs[errs.length - 1].message}` : (s.lastRejected || "");
+  const badge = document.getElementById("state"), name = (s.status && s.status.state) || "no status";
+  badge.textContent = name; badge.className = `state ${name}`;
+}
+
+function slug(text) { return text.split(" ")[0].replace(/[^a-z]/g, ""); }
+
+function render() {
+  requestAnimationFrame(render);
+  if (!state.dirty || !state.selected) { return; }
+  state.dirty = false;
+  const s = state.scanners[state.selected], tr = timeRange(s, WINDOW_S), all = timeRange(s, state.historyS);
+  drawVolts(s, tr); drawTargets(s, tr); drawXY(s); drawError(s, tr); drawDrift(s, all); drawImage(s); drawStats(s);
+  document.getElementById("clock").textContent = `t = ${fmtN(tr[1], 6)} s · frames ${state.frames}`;
+}
+
+function connect() {
+  const link = document.getElementById("link");
+  const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`);
+  ws.onopen = () => { link.textContent = "live"; };
+  ws.onmessage = (ev) => ingest(JSON.parse(ev.data));
+  ws.onclose = () => { link.textContent = "disconnected — retrying"; setTimeout(connect, 1000); };
+}
+
+document.getElementById("scanner").addEventListener("change", (ev) => {
+  state.selected = ev.target.value; state.dirty = true;
+});
+window.addEventListener("resize", () => { state.dirty = true; });
+setupPlots();
+connect();
+requestAnimationFrame(render);
