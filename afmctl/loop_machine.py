@@ -28,7 +28,7 @@ import enum
 import math
 import threading
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -38,8 +38,6 @@ from .safety import Watchdog
 from afmctl.drivers.base import ConnectionState
 from afmctl.drivers.errors import AmplifierError, LimitError
 
-if TYPE_CHECKING:
-    from .loop import Controller
 
 #: the feeder puts this into the sample deque after the trajectory's last block
 END_OF_TRAJECTORY = object()
@@ -73,7 +71,7 @@ class LoopMachine:
     """One run of the loop thread of ``ctl`` (see the module docstring); :meth:`run` blocks
     until the run ends."""
 
-    def __init__(self, ctl: "Controller") -> None:
+    def __init__(self, ctl: Any) -> None:  # an afmctl.loop.Controller (not imported: no cycle)
         cfg = ctl.config
         self.ctl = ctl
         self.safety = safety = ctl.safety

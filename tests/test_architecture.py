@@ -36,13 +36,8 @@ ALLOWED = {
 }
 
 # Known exceptions other engineers are removing in parallel. THE MERGER EMPTIES THESE LISTS.
-KNOWN_CYCLES_TO_BREAK: list[frozenset[str]] = [
-    frozenset({"afmctl.demo", "afmctl.report"}),          # engineer `chain`
-    frozenset({"afmctl.loop", "afmctl.trajectories"}),    # engineer `loop`
-]
-KNOWN_LONG_FUNCTIONS_TO_SPLIT: list[str] = [
-    "afmctl.loop:Controller._loop",                       # engineer `loop`
-]
+KNOWN_CYCLES_TO_BREAK: list[frozenset[str]] = []
+KNOWN_LONG_FUNCTIONS_TO_SPLIT: list[str] = []
 MAX_FUNCTION_LINES = 100
 
 

@@ -3,9 +3,9 @@ model kinds registered in :data:`afmctl.compensators.models.KINDS`)."""
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-from typing import Any
+
+from .identify_io import _plot, _read_conditioned, _save, parse_params  # noqa: F401 - parse_params: public
 
 log = logging.getLogger(__name__)
 
@@ -103,23 +103,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def parse_params(items: list[str]) -> dict[str, Any]:
-    """``["a=1", "b=[1,2]", "c=text"]`` → ``{"a": 1, "b": [1, 2], "c": "text"}``."""
-    from ..errors import AfmctlError
-
-    out: dict[str, Any] = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        key = key.strip()
-        if not sep or not key or not key.isidentifier():
-            raise AfmctlError(f"--param: {item!r} is not KEY=VALUE with KEY a name (e.g. min_slope_fraction=1e-3)")
-        try:
-            out[key] = json.loads(value)
-        except json.JSONDecodeError:
-            out[key] = value
-    return out
-
-
 def run(args: argparse.Namespace) -> int:
     from ..errors import AfmctlError
     from afmctl.compensators.models import model_class
@@ -155,18 +138,6 @@ def _run_from_images(args: argparse.Namespace) -> int:
     print(model.summary())
     print(f"written          : {args.out}")
     return 0
-
-
-def _read_conditioned(args: argparse.Namespace, uniform: bool):
-    from ..datafiles import read_csv
-    from ..errors import AfmctlError
-    from ..identdata import Y_UNITS, condition
-
-    if args.y_unit not in Y_UNITS:
-        raise AfmctlError(f"--y-unit: {args.y_unit!r} is not known; allowed: nm, um")
-    data = read_csv(args.data, ("t", "u", "y"), min_rows=2)
-    return condition(data["t"], data["u"], data["y"] * Y_UNITS[args.y_unit], str(args.data),
-                     burn_in=args.burn_in, delay=args.delay, despike=not args.keep_spikes, uniform=uniform)
 
 
 def _fit(cls, args: argparse.Namespace, c):
@@ -211,16 +182,6 @@ def _fit(cls, args: argparse.Namespace, c):
     return model, first, predict_nm(model, t, c.u_V[first:], str(args.data))
 
 
-def _save(model, path: str) -> None:
-    from ..errors import AfmctlError
-    from afmctl.compensators.models import save_model
-
-    try:
-        save_model(model, path)
-    except OSError as err:
-        raise AfmctlError(f"--out: cannot write {path} ({err.strerror})") from None
-
-
 def _report(args: argparse.Namespace, c, model, first: int, y_fit) -> None:
     """Summary, residual after the burn-in, data notes and the excitation check."""
     import numpy as np
@@ -248,26 +209,3 @@ def _report(args: argparse.Namespace, c, model, first: int, y_fit) -> None:
         print(f"plot             : {args.plot}")
 
 
-def _plot(path: str, t, u, y, y_fit, kind: str) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..errors import AfmctlError
-
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4))
-    a1.plot(u, y, lw=0.8, label="measured")
-    a1.plot(u, y_fit, lw=0.8, ls="--", label=f"{kind} model")
-    a1.set_xlabel("u [V]")
-    a1.set_ylabel("y [nm]")
-    a1.legend()
-    a2.plot(t, y_fit - y, lw=0.6)
-    a2.set_xlabel("t [s]")
-    a2.set_ylabel("model − measured [nm]")
-    fig.tight_layout()
-    try:
-        fig.savefig(path, dpi=110)
-    except OSError as err:
-        raise AfmctlError(f"--plot: cannot write {path} ({err.strerror})") from None
-    finally:
-        plt.close(fig)

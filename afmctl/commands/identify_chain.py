@@ -13,7 +13,7 @@ def _read(args: argparse.Namespace):
     estimated sensor delay applied), from the end of the burn-in on: ``(t, u, y, delay_s)``."""
     from ..errors import AfmctlError
     from ..identdata import delayed
-    from .identify import _read_conditioned
+    from .identify_io import _read_conditioned
 
     if getattr(args, "from_images", None) is not None:
         raise AfmctlError(f"--model {args.model}: chains and auto are identified from --data (t,u,y); "
@@ -34,7 +34,7 @@ def _fit(args: argparse.Namespace, t, u, y):
     from afmctl.compensators.chain import ChainModel, parse_structure
     from afmctl.compensators.selection import format_table, select_model
 
-    from .identify import parse_params
+    from .identify_io import parse_params
     params = parse_params(args.param)
     if args.operators is not None:
         params["n_operators"] = args.operators
@@ -59,7 +59,7 @@ def run_chain(args: argparse.Namespace) -> int:
     from afmctl.compensators.models import save_model
 
     from ..errors import AfmctlError
-    from .identify import _plot
+    from .identify_io import _plot
     t, u, y, delay_s = _read(args)
     try:
         model = _fit(args, t, u, y)
