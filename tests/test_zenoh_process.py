@@ -15,7 +15,7 @@ from afmctl.errors import AfmctlError
 from afmctl.loop import Controller
 from afmctl.messages import CmdRequest, SegmentMsg, decode_setpoints
 from afmctl.simlink import RecordingAmplifier
-from afmctl.testing import wait_for
+from afmctl.testing import assert_no_threads_left, wait_for
 from afmctl.zenoh_config import AclSettings, AclSubject, UserPasswordSettings, ZenohSettings, loopback_pair
 from afmctl.zenoh_process import ZenohBridgeProcess
 
@@ -84,6 +84,7 @@ def service(tmp_path):
         ctl.close()
         bridge.close()
     assert not bridge._proc.is_alive()
+    assert_no_threads_left("afmctl-zenoh")
 
 
 def _segment(seq: int, n: int = 300) -> bytes:
@@ -140,6 +141,7 @@ def test_slow_subscriber_does_not_hold_the_run(service):
     sp = RunLogReader(ctl.runlog_path).setpoints()
     assert len(sp) == ctl.stats()["samples"]
     assert len(slow.batches) < len(op.batches) or slow.batches   # slow, yet alive
+    assert "dropped_to_child" in op.status[-1]["stats"]["bridge"]   # what zenoh could not take is counted
 
 
 def test_a_bridge_that_cannot_start_is_one_afmctl_error(tmp_path):

@@ -7,9 +7,9 @@ HELP = """\
 Run the feedforward controller: read the configuration (TOML, see `afmctl schema` and
 examples/), open the amplifier (or serve a simulated amplifier + scanner in this process
 with [simulation] enabled = true), start the zenoh API if [zenoh] enabled = true (in a
-child process, so that it cannot delay the loop), and
-stream the configured trajectory through drift prediction, the inverse models and the
-safety layer to the amplifier at loop.rate_Hz. Every setpoint is written to a crash-safe
+child process, so that it cannot delay the loop), and stream the configured trajectory
+through drift prediction, the inverse models and the safety layer to the amplifier at
+loop.rate_Hz. Every setpoint is written to a crash-safe
 run log (runlog.dir; read it with `afmctl log show`).
 
 Ctrl-C or SIGTERM ramps the output to the safe value and stops cleanly; a second Ctrl-C
