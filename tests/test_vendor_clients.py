@@ -120,7 +120,9 @@ def test_our_driver_after_a_client_left_the_unit_in_compatibility_mode():
 def _python312() -> str | None:
     for cand in (os.environ.get("AFMCTL_PYTHON312"), shutil.which("python3.12"),
                  *sorted(glob.glob("/root/.pyenv/versions/3.12*/bin/python3.12"))):
-        if cand and Path(cand).exists():
+        # a pyenv shim exists even where that version is not selected: it must really run
+        if cand and Path(cand).exists() and subprocess.run([cand, "--version"], capture_output=True,
+                                                           timeout=30).returncode == 0:
             return cand
     return None
 

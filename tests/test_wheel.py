@@ -54,10 +54,10 @@ def test_installed_wheel_has_no_top_level_drivers(wheel, tmp_path):
     # Dependencies come from this test environment's site-packages (its .pth files, and with them
     # the editable afmctl, are not read from PYTHONPATH); cwd is empty, so no checkout is visible.
     env = {"PYTHONPATH": sysconfig.get_paths()["purelib"], "PATH": "/usr/bin:/bin"}
-    probe = ("import importlib.util as u, afmctl, afmctl.drivers.codec_can as c\n"
+    probe = ("import importlib.util as u, importlib.resources as r, afmctl\n"
              "print(afmctl.__file__)\n"
              "print(u.find_spec('drivers'), u.find_spec('compensators'), u.find_spec('sim_backend'))\n"
-             "print(c.DBC_PATH.is_file())\n")
+             "print((r.files('afmctl.drivers') / 'afm_amplifier.dbc').is_file())\n")
     out = subprocess.run([str(py), "-c", probe], cwd=tmp_path, env=env, capture_output=True,
                          text=True, timeout=120)
     assert out.returncode == 0, out.stderr

@@ -215,8 +215,6 @@ def run(args: argparse.Namespace) -> int:
             stack.callback(amp.close)
         ctl = Controller(config, amp, scanner=scanner)
         stack.callback(ctl.close)
-        # always, --quiet included: which axes are compensated, by which model, from which file
-        print(f"afmctl: compensation {ctl.pipeline.describe()}", file=sys.stderr)
         if config.zenoh.enabled:   # in its own process: the loop's timing does not depend on it
             from ..zenoh_process import ZenohBridgeProcess
             bridge = ZenohBridgeProcess(ctl, config.zenoh, scanner_name=config.scanner.name)
@@ -229,6 +227,8 @@ def run(args: argparse.Namespace) -> int:
         stops = {"n": 0}
         _install_signals(stack, ctl, stops)
         ctl.start(config.trajectory, runlog_path=args.log)
+        # always, --quiet included: which axes are compensated, by which model, from which file
+        print(f"afmctl: compensation {ctl.pipeline.describe()}", file=sys.stderr)
         if not args.quiet:
             print(f"afmctl: running {config.trajectory.kind} on {config.amplifier.driver} "
                   f"{'(simulated) ' if scanner is not None else ''}at {config.loop.rate_Hz:g} Hz; "
