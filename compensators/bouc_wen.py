@@ -42,8 +42,9 @@ from numba import njit
 from pydantic import Field, model_validator
 
 from .base import ModelError, StreamingOperator, check_finite
-from .models import HysteresisModel, plain_repr
+from .errortext import plain_repr
 from .input_checks import block_samples, finite_sample, number_option
+from .models import HysteresisModel
 
 log = logging.getLogger(__name__)
 

@@ -61,7 +61,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from .base import ModelError, check_finite
 from .heat import AxisHeat, HeatParams, TubeGeometry
-from .models import format_validation_error, plain_repr, read_json_file
+from .errortext import format_validation_error, plain_repr
+from .textfiles import read_json_file
 from .temperature import T_MAX_C, T_MIN_C
 
 log = logging.getLogger(__name__)

@@ -39,7 +39,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from .base import ModelError
-from .models import plain_repr
+from .errortext import plain_repr
 
 
 class KalmanParams(BaseModel):

@@ -55,7 +55,7 @@ from pydantic import Field, FiniteFloat
 from . import _pi_kernels as K
 from .base import ModelError, StreamingOperator
 from .input_checks import block_samples, finite_sample, number_option
-from .models import plain_repr
+from .errortext import plain_repr
 from .pi import (PIFamilyModel, PIOperator, fit_pi_weights,
                              prepare_pi_identification)
 

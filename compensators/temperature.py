@@ -17,7 +17,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from .base import ModelError
-from .models import plain_repr
+from .errortext import plain_repr
 
 #: The one allowed range of ambient temperatures [°C] (config files, zenoh temperature
 #: messages, the controller, the simulator and the drift predictor all check against it);

@@ -114,7 +114,7 @@ def test_no_numpy_scalar_reprs_in_messages(tmp_path, capsys):
     assert "row 2 is 500.0 °C" in line and "np." not in line
     from afmctl.compensators.base import ModelError
     from afmctl.compensators.drift_kalman import DriftKalman
-    from afmctl.compensators.models import plain_repr
+    from afmctl.compensators.errortext import plain_repr
     from afmctl.sim_backend.scanner import Scanner, default_scanner_config
     assert plain_repr(np.float64(1.5)) == "1.5" and plain_repr(np.int64(3)) == "3"
     with pytest.raises(ModelError, match=r"^T_C: 500\.0 out of range"):
