@@ -61,7 +61,7 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 def _one_line(err: BaseException) -> str:
     from pydantic import ValidationError
     if isinstance(err, ValidationError):
-        from afmctl.compensators.models import validation_error_line
+        from afmctl.compensators.errortext import validation_error_line
         return validation_error_line(err)
     return " ".join(str(err).split("\n"))
 

@@ -22,7 +22,8 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
-from afmctl.compensators.models import decode_text, first_validation_error, plain_repr, read_text_file
+from afmctl.compensators.errortext import first_validation_error, plain_repr
+from afmctl.compensators.textfiles import decode_text, read_text_file
 from afmctl.compensators.temperature import T_MAX_C, T_MIN_C
 
 from .errors import AfmctlError
@@ -596,7 +597,7 @@ def _deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
 
 def parse_toml(text: str, where: str) -> dict[str, Any]:
     """TOML ``text``; one-line :class:`AfmctlError` naming ``where`` when it cannot be decoded
-    (:func:`afmctl.compensators.models.decode_text`)."""
+    (:func:`afmctl.compensators.textfiles.decode_text`)."""
     return decode_text(text, "TOML", where, AfmctlError)
 
 

@@ -199,7 +199,7 @@ class Controller:
         except (TypeError, ValueError):
             raise AfmctlError(f"temperature: T_C {T_C!r} is not a number") from None
         if not (math.isfinite(T) and T_MIN_C <= T <= T_MAX_C):
-            raise AfmctlError(f"temperature: T_C {T_C!r} outside the allowed range {T_MIN_C:g}..{T_MAX_C:g} °C")
+            raise AfmctlError(f"temperature: T_C {T!r} outside the allowed range {T_MIN_C:g}..{T_MAX_C:g} °C")
         self._T_C = T
 
     def submit_drift_measurement(self, measured_drift_nm: Any, std_nm: float, t_s: float | None = None) -> None:

@@ -33,7 +33,7 @@ from typing import Annotated, Any, Literal, Union
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
-from afmctl.compensators.models import first_validation_error
+from afmctl.compensators.errortext import first_validation_error
 from afmctl.compensators.temperature import T_MAX_C, T_MIN_C
 
 from .errors import AfmctlError

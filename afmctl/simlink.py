@@ -29,7 +29,7 @@ def load_scanner_config(path: Path | None):
     if path is None:
         return default_scanner_config()
     from afmctl.compensators.base import ModelError
-    from afmctl.compensators.models import read_json_file
+    from afmctl.compensators.textfiles import read_json_file
     try:
         data = read_json_file(path, "scanner file")
     except ModelError as err:

@@ -16,7 +16,8 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from afmctl.compensators.models import read_text_file, validation_error_line
+from afmctl.compensators.errortext import validation_error_line
+from afmctl.compensators.textfiles import read_text_file
 
 from .config import format_validation_error, parse_toml
 from .errors import AfmctlError

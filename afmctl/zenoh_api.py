@@ -530,7 +530,7 @@ def position_range_from_config(config: Any, margin: float = 0.1) -> dict[str, tu
 def _one_line(err: BaseException) -> str:
     from pydantic import ValidationError
     if isinstance(err, ValidationError):
-        from afmctl.compensators.models import validation_error_line
+        from afmctl.compensators.errortext import validation_error_line
         return validation_error_line(err)
     return " ".join(str(err).split()) or type(err).__name__
 

@@ -42,8 +42,9 @@ from numba import njit
 from pydantic import Field, model_validator
 
 from .base import ModelError, StreamingOperator, check_finite
-from .models import HysteresisModel
+from .errortext import plain_repr
 from .input_checks import block_samples, finite_sample, number_option
+from .models import HysteresisModel
 
 log = logging.getLogger(__name__)
 
@@ -395,9 +396,9 @@ def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n: float | None = None, 
     if not np.ptp(u) > 0:
         raise ModelError("u_V: the input never changes; identification needs an input that sweeps the range")
     if n is not None and (isinstance(n, bool) or not isinstance(n, (int, float)) or not 1.0 <= float(n) <= 10.0):
-        raise ModelError(f"n: must be a number in 1..10, got {n!r}")
+        raise ModelError(f"n: must be a number in 1..10, got {plain_repr(n)}")
     if isinstance(max_rows, bool) or not isinstance(max_rows, (int, np.integer)) or max_rows < 20:
-        raise ModelError(f"max_rows: must be an integer >= 20, got {max_rows!r}")
+        raise ModelError(f"max_rows: must be an integer >= 20, got {plain_repr(max_rows)}")
     u0 = float(u[0]) if u0_V is None else number_option("u0_V", u0_V)
     u = np.ascontiguousarray(u)
     k0 = number_option("fit_from_index", fit_from_index, lo=0, hi=u.shape[0] - 20, integer=True)

@@ -61,7 +61,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from .base import ModelError, check_finite
 from .heat import AxisHeat, HeatParams, TubeGeometry
-from .models import format_validation_error, read_json_file
+from .errortext import format_validation_error, plain_repr
+from .textfiles import read_json_file
 from .temperature import T_MAX_C, T_MIN_C
 
 log = logging.getLogger(__name__)
@@ -727,7 +728,7 @@ class DriftPredictor:
 
     def __init__(self, params: DriftParams, dt_s: float) -> None:
         if not (isinstance(dt_s, (int, float)) and math.isfinite(dt_s) and 1e-7 <= dt_s <= 1e4):
-            raise ModelError(f"dt_s: {dt_s!r} s; allowed 1e-7..1e4 s")
+            raise ModelError(f"dt_s: {plain_repr(dt_s)} s; allowed 1e-7..1e4 s")
         self.params = params
         self.dt_s = float(dt_s)
         self.system = _discrete_system(params.model_dump_json(), self.dt_s)

@@ -39,6 +39,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from .base import ModelError
+from .errortext import plain_repr
 
 
 class KalmanParams(BaseModel):
@@ -103,7 +104,7 @@ class DriftKalman:
 
     def __init__(self, dt_s: float, params: KalmanParams | None = None, **overrides: float | bool) -> None:
         if not (isinstance(dt_s, (int, float)) and not isinstance(dt_s, bool) and math.isfinite(dt_s) and dt_s > 0):
-            raise ModelError(f"dt_s: {dt_s!r} s; must be a positive finite number")
+            raise ModelError(f"dt_s: {plain_repr(dt_s)} s; must be a positive finite number")
         base = params if params is not None else KalmanParams()
         self.params = base.model_copy(update=overrides) if overrides else base
         KalmanParams.model_validate(self.params.model_dump())
@@ -130,7 +131,7 @@ class DriftKalman:
         [nm] (3,)."""
         dt = self.dt_s if dt_s is None else _number(dt_s)
         if not (math.isfinite(dt) and dt >= 0):
-            raise ModelError(f"dt_s: {dt_s!r} s; must be a non-negative finite number")
+            raise ModelError(f"dt_s: {plain_repr(dt_s)} s; must be a non-negative finite number")
         m = _vector("model_drift_nm", model_drift_nm).copy()
         if m.shape[0] != 3 or not math.isfinite(m[0] + m[1] + m[2]):
             raise ModelError(f"model_drift_nm: {model_drift_nm!r}; need 3 finite values [nm]")
@@ -157,13 +158,13 @@ class DriftKalman:
         except (TypeError, ValueError):
             r = np.full(3, np.nan)
         if not np.all(np.isfinite(r)) or np.any(r <= 0):
-            raise ModelError(f"meas_std_nm: {meas_std_nm!r}; must be > 0 and finite [nm]")
+            raise ModelError(f"meas_std_nm: {plain_repr(meas_std_nm)}; must be > 0 and finite [nm]")
         m = self.model_nm if model_drift_nm is None else _vector("model_drift_nm", model_drift_nm)
         if m.shape[0] != 3 or not np.all(np.isfinite(m)):
             raise ModelError(f"model_drift_nm: {model_drift_nm!r}; need 3 finite values [nm]")
         age = _number(age_s)
         if not (math.isfinite(age) and age >= 0):
-            raise ModelError(f"age_s: {age_s!r} s; must be a non-negative finite number")
+            raise ModelError(f"age_s: {plain_repr(age_s)} s; must be a non-negative finite number")
         H = np.array([1.0, -age]) if self.n == 2 else np.array([1.0])
         for a in range(3):
             if not math.isfinite(z[a]):

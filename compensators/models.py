@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import importlib
 import json
-import tomllib
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -25,6 +24,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, ValidationError, field_validator
 
 from .base import ModelError, StreamingOperator
+from .errortext import format_validation_error
+from .textfiles import read_json_file
 
 #: kind → "module:Class". Add a line here when a new model kind lands.
 KINDS: dict[str, str] = {
@@ -95,81 +96,6 @@ def model_class(kind: str) -> type[HysteresisModel]:
         raise ModelError(f"kind: unknown model kind {kind!r}; allowed: {', '.join(sorted(KINDS))}") from None
     module_name, cls_name = target.split(":")
     return getattr(importlib.import_module(module_name), cls_name)
-
-
-def first_validation_error(err: ValidationError, prefix: str = "",
-                           skip: tuple[str, ...] = ()) -> tuple[dict[str, Any], str]:
-    """The first error of a pydantic ``err`` and the dotted name of its field: ``prefix`` +
-    the location without the parts in ``skip`` (e.g. union tags), ``"(root)"`` when empty.
-    The one place that turns a pydantic error into a field name (config files, model files,
-    zenoh messages and the command line all use it)."""
-    first = err.errors()[0]
-    name = prefix + ".".join(str(p) for p in first["loc"] if p not in skip)
-    return first, name or "(root)"
-
-
-def validation_error_line(err: ValidationError, prefix: str = "", skip: tuple[str, ...] = ()) -> str:
-    """One line ``field a.b: message`` for the first error of a pydantic ``err``."""
-    first, name = first_validation_error(err, prefix, skip)
-    return f"field {name}: {first['msg']}"
-
-
-def format_validation_error(err: ValidationError, where: str) -> str:
-    """One line ``WHERE: field a.b: message`` for the first error of ``err``."""
-    return f"{where}: {validation_error_line(err)}"
-
-
-def plain_repr(value: Any) -> str:
-    """``repr`` for messages, with numpy scalars shown as the Python numbers they hold
-    (``1.5``, not ``np.float64(1.5)``)."""
-    if isinstance(value, np.generic):
-        value = value.item()
-    return repr(value)
-
-
-def read_text_file(path: str | Path, what: str, error: type[Exception] = ModelError) -> str:
-    """The text of a UTF-8 file (a leading byte-order mark, as spreadsheets write, is dropped).
-    Unreadable, UTF-16 or binary files raise ``error`` with one line naming the file: the one
-    place where afmctl turns a user's file into text (model, drift-parameter, configuration and
-    simulator settings files)."""
-    p = Path(path)
-    try:
-        raw = p.read_bytes()
-    except OSError as err:
-        raise error(f"{p}: cannot read {what} ({err.strerror or err})") from None
-    if raw.startswith((b"\xff\xfe", b"\xfe\xff")):
-        raise error(f"{p}: {what} is UTF-16 text; save it as UTF-8")
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as err:
-        raise error(f"{p}: {what} is not UTF-8 text (byte 0x{raw[err.start]:02x} at offset {err.start}); "
-                    "is it a binary file?") from None
-    if "\x00" in text:
-        raise error(f"{p}: {what} contains NUL bytes; is it a binary file?")
-    return text
-
-
-def decode_text(text: str, fmt: str, where: str, error: type[Exception] = ModelError) -> Any:
-    """``text`` decoded as ``fmt`` (``"JSON"`` or ``"TOML"``); bad syntax, integers of more
-    than 4300 digits and nesting too deep to decode raise ``error`` with one line naming
-    ``where`` (the file)."""
-    loads = {"JSON": json.loads, "TOML": tomllib.loads}[fmt]
-    try:
-        return loads(text)
-    except RecursionError:
-        raise error(f"{where}: nested too deeply to decode as {fmt}") from None
-    except ValueError as err:          # JSONDecodeError and TOMLDecodeError are ValueErrors too
-        if isinstance(err, json.JSONDecodeError):
-            raise error(f"{where}: not valid JSON (line {err.lineno}: {err.msg})") from None
-        if isinstance(err, tomllib.TOMLDecodeError):
-            raise error(f"{where}: not valid TOML ({err})") from None
-        raise error(f"{where}: a number in it is too long (at most 4300 digits)") from None
-
-
-def read_json_file(path: str | Path, what: str = "model file") -> Any:
-    """Decode a JSON file; :class:`ModelError` naming the file for I/O, encoding and syntax
-    errors (:func:`read_text_file`, :func:`decode_text`)."""
-    return decode_text(read_text_file(path, what), "JSON", str(path))
 
 
 def model_from_dict(data: Any, where: str = "model") -> HysteresisModel:

@@ -17,6 +17,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from .base import ModelError
+from .errortext import plain_repr
 
 #: The one allowed range of ambient temperatures [°C] (config files, zenoh temperature
 #: messages, the controller, the simulator and the drift predictor all check against it);
@@ -106,7 +107,7 @@ def resample_uniform(t_s: np.ndarray, values: np.ndarray, dt_s: float, max_sampl
     times ``t_s`` onto ``t_grid = t_s[0] + k·dt_s`` covering ``t_s[-1]``."""
     t = np.asarray(t_s, dtype=np.float64)
     if not (math.isfinite(dt_s) and dt_s > 0):
-        raise ModelError(f"dt_s: {dt_s!r} s; must be > 0")
+        raise ModelError(f"dt_s: {plain_repr(dt_s)} s; must be > 0")
     n = int(math.ceil((t[-1] - t[0]) / dt_s - 1e-9)) + 1
     if n > max_samples:
         raise ModelError(f"dt_s: {dt_s:g} s over {t[-1] - t[0]:g} s needs {n} samples; at most {max_samples} "

@@ -178,7 +178,7 @@ class Scanner:
         """Ambient temperature [°C] held from now on (drives the thermal drift)."""
         T = float(T_C)
         if not math.isfinite(T) or not T_MIN_C <= T <= T_MAX_C:
-            raise ModelError(f"T_C: {T_C!r} out of range; allowed {T_MIN_C:g}…{T_MAX_C:g} °C")
+            raise ModelError(f"T_C: {T!r} out of range; allowed {T_MIN_C:g}…{T_MAX_C:g} °C")
         with self._lock:
             self._T_C = T
 

@@ -112,8 +112,15 @@ def test_no_numpy_scalar_reprs_in_messages(tmp_path, capsys):
     assert main(["drift", "predict", "--temperature", str(temps), "--out", str(tmp_path / "d.csv")]) == 2
     line = one_error_line(capsys)
     assert "row 2 is 500.0 °C" in line and "np." not in line
-    from afmctl.compensators.models import plain_repr
+    from afmctl.compensators.base import ModelError
+    from afmctl.compensators.drift_kalman import DriftKalman
+    from afmctl.compensators.errortext import plain_repr
+    from afmctl.sim_backend.scanner import Scanner, default_scanner_config
     assert plain_repr(np.float64(1.5)) == "1.5" and plain_repr(np.int64(3)) == "3"
+    with pytest.raises(ModelError, match=r"^T_C: 500\.0 out of range"):
+        Scanner(default_scanner_config()).set_ambient_temperature(np.float64(500.0))
+    with pytest.raises(ModelError, match=r"^dt_s: -0\.5 s;"):
+        DriftKalman(np.float64(-0.5))
 
 
 def test_compensate_defaults_its_limits_to_the_models_range(tmp_path, capsys):

@@ -7,7 +7,8 @@ A damaged file that cannot be valid must end with exit status 2 and exactly one
 never a traceback and never a silent success. A damage that may leave the file valid (a BOM,
 a cut at a line end) may succeed, but still never with a traceback.
 
-``demo`` and ``schema`` read no input files and are not here.
+``demo`` and ``schema`` read no input files and are not here; ``run``'s trajectory files are
+covered by the loop's own tests.
 """
 from __future__ import annotations
 
@@ -30,10 +31,11 @@ CSV_TY = "t,y\n0,0\n0.001,100\n0.002,{N}\n0.003,300\n"
 CSV_TT = "t,T\n0,20\n1,20.5\n2,{N}\n3,21.5\n"
 CSV_TUXYZ = "t,ux,uy,uz\n0,0,0,0\n0.01,1,1,1\n0.02,{N},2,2\n0.03,3,3,3\n"
 CSV_TU = "t,u\n0,0\n0.01,1\n0.02,{N}\n0.03,3\n"
+CSV_TX = "t,x\n0,0\n1,0.5\n2,{N}\n3,1.5\n"
 PI_JSON = '{"kind": "pi", "thresholds": [0.0, 10.0], "weights": [{N}, 5.0], "u_range_V": [0.0, 150.0]}'
 RUN_TOML = '[amplifier]\ndriver = "mdt693b"\nport = "/nonexistent/tty"\n[loop]\nrate_Hz = {N}\n'
 SIM_TOML = '[sim]\ntick_s = 0.01\npublish_rate_Hz = {N}\n'
-VALUES = {CSV_TUY: None, CSV_TY: "200", CSV_TT: "21", CSV_TUXYZ: "2", CSV_TU: "2", PI_JSON: "80.0",
+VALUES = {CSV_TUY: None, CSV_TY: "200", CSV_TT: "21", CSV_TUXYZ: "2", CSV_TU: "2", CSV_TX: "1", PI_JSON: "80.0",
           RUN_TOML: "100", SIM_TOML: "100"}
 NAN = {"csv": "nan", "json": "NaN", "toml": "nan"}
 
@@ -62,6 +64,8 @@ CASES = {
                                  "csv", CSV_TUXYZ, "ux"),
     "drift predict --params": (["drift", "predict", "--temperature", "{tt}", "--params", "{f}", "--out", "{o}"],
                                "json", "DRIFT", "K"),
+    "drift fit --drift": (["drift", "fit", "--temperature", "{tt}", "--drift", "{f}", "--out", "{o}"], "csv", CSV_TX,
+                          "x"),
     "amp stream --file": (["amp", "--driver", "mdt693b", "--port", "/nonexistent/tty", "stream", "--file", "{f}"],
                           "csv", CSV_TU, "u"),
     "run --config": (["run", "--config", "{f}", "--seconds", "0.1"], "toml", RUN_TOML, "rate_Hz"),
@@ -170,8 +174,10 @@ def _run_log(path: Path) -> bytes:
     return path.read_bytes()
 
 
-@pytest.mark.parametrize("argv", [["log", "show", "{f}"], ["report", "{f}", "--out", "{o}"]])
-def test_damaged_run_logs(argv, tmp_path, capsys):
+@pytest.mark.parametrize("argv", [["log", "show", "{f}"], ["report", "{f}", "--out", "{o}"],
+                                  ["identify", "--model", "pi", "--from-images", "{f}", "--out", "{o}"]])
+def test_damaged_binary_files(argv, tmp_path, capsys):
+    """Run logs for log and report, scan archives (.npz) for identify --from-images."""
     valid = _run_log(tmp_path / "valid.afmlog")
     rng = np.random.default_rng(7)
     damaged = [("random bytes", rng.integers(0, 256, 300, dtype=np.uint8).tobytes(), True),

@@ -31,3 +31,21 @@ def test_make_config_merges_defaults_toml_and_sections(tmp_path):
 def test_make_config_rejects_like_a_file():
     with pytest.raises(AfmctlError, match=r"^make_config: field loop\.rate_Hz = 1000000000\.0: .*allowed: 1 <= value <= 20000"):
         make_config(loop={"rate_Hz": 1e9})
+
+
+def test_slow_lists_name_real_tests():
+    """Every file and test the conftest marks slow exists (a rename must not silently move a
+    slow test into `make test-fast`)."""
+    import ast
+    from pathlib import Path
+
+    from conftest import SLOW_FILES, SLOW_TESTS
+    here = Path(__file__).parent
+    assert [f for f in SLOW_FILES if not (here / f).is_file()] == []
+    missing = []
+    for entry in SLOW_TESTS:
+        file, _, name = entry.partition("::")
+        tree = ast.parse((here / file).read_text(encoding="utf-8"))
+        if name not in {n.name for n in ast.walk(tree) if isinstance(n, ast.FunctionDef)}:
+            missing.append(entry)
+    assert missing == []

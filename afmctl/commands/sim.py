@@ -137,8 +137,9 @@ def _zenoh_overrides(settings, args) -> None:
     try:
         settings.zenoh = type(settings.zenoh).model_validate({**settings.zenoh.model_dump(), **update})
     except ValidationError as err:
-        first = err.errors()[0]
-        flag = {"listen": "--zenoh-listen", "connect": "--zenoh-connect"}.get(str(first["loc"][0]), "zenoh")
+        from afmctl.compensators.errortext import first_validation_error
+        first, field = first_validation_error(err)
+        flag = {"listen": "--zenoh-listen", "connect": "--zenoh-connect"}.get(field.split(".")[0], "zenoh")
         raise AfmctlError(f"{flag}: {first['msg'].removeprefix('Value error, ')}") from None
 
 
