@@ -75,6 +75,9 @@ def run(args: argparse.Namespace) -> int:
     if args.limits and not (np.isfinite(args.limits).all() and args.limits[0] < args.limits[1]):
         raise AfmctlError(f"--limits: {args.limits[0]} {args.limits[1]}; need finite LO < HI (V)")
     model = _axis_model(load_model(args.model), args)
+    if model.kind == "dynamics":
+        raise AfmctlError(f"{args.model}: field kind: a 'dynamics' model maps nm to nm, not to volts; give it as "
+                          "--dynamics beside a --model that maps volts (pi, epi, creep, preisach, bouc-wen)")
     data = read_csv(args.target, ("t", "y"), min_rows=1)
     t, y = data["t"], data["y"]
     timed = getattr(model, "time_dependent", False) or args.dynamics is not None

@@ -178,7 +178,7 @@ def _fit(cls, args: argparse.Namespace, c):
     first = c.u_V.size - t.size
     predict = getattr(model, "predict_linear", None)  # dynamics: nm → nm, needs the fitted gain
     if predict is not None:
-        return model, first, predict(u, y, float(np.median(np.diff(t))))
+        return model, first, predict(t, u, y, float(np.median(np.diff(t))))
     return model, first, predict_nm(model, t, c.u_V[first:], str(args.data))
 
 
@@ -190,9 +190,10 @@ def _report(args: argparse.Namespace, c, model, first: int, y_fit) -> None:
 
     t, u, y = c.t_s[first:], c.u_V[first:], c.y_nm[first:]
     k = c.fit_from - first
-    res = (y_fit - y)[k:]
+    seen = np.isfinite(y_fit[k:])          # dynamics: only its fitted segment is predicted
+    res = (y_fit - y)[k:][seen]
     rms, peak = float(np.sqrt(np.mean(res ** 2))), float(np.max(np.abs(res)))
-    span = float(np.ptp(y[k:])) or 1.0
+    span = float(np.ptp(y[k:][seen])) or 1.0
     print(model.summary())
     if model.delay_s:
         print(f"delay            : {model.delay_s:.6g} s (delay_s; used by model predict/validate — "
