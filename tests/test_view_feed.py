@@ -158,11 +158,15 @@ def test_view_feed_over_zenoh_finds_scanners_and_rejects_bad_payloads():
             publisher.put(f"afm/alpha/{leaf}", payload)
             assert wait_for(lambda: alpha.counts["rejected"] == n, 10.0)
             assert alpha.last_rejected.startswith(leaf) and words in alpha.last_rejected, alpha.last_rejected
+        # a scanner name no service could have (markup) is ignored, not shown
+        publisher.put("afm/<b>x/status", StatusMsg(seq=0, scanner="x", t_s=0.0, state="idle").to_json_bytes())
+        assert wait_for(lambda: view.ignored >= 1, 10.0)
+        assert sorted(view.feeds()) == ["alpha", "beta"]
         # a wildcard viewer tracks at most MAX_SCANNERS scanners
         for n in range(MAX_SCANNERS + 3):
             publisher.put(f"afm/extra{n}/status", StatusMsg(seq=0, scanner="x", t_s=0.0,
                                                             state="idle").to_json_bytes())
-        assert wait_for(lambda: view.ignored >= 5, 10.0)
+        assert wait_for(lambda: view.ignored >= 6, 10.0)
         assert len(view.feeds()) == MAX_SCANNERS
 
 

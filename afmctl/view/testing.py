@@ -236,6 +236,9 @@ class Browser:
 
     def __enter__(self) -> "Browser":
         from playwright.sync_api import sync_playwright
+        if not Path(CHROMIUM).exists():
+            raise RuntimeError(f"{CHROMIUM} is missing: install Debian's chromium (apt-get install chromium; "
+                               ".ci/run does this in CI)")
         self.user_data_dir.mkdir(parents=True, exist_ok=True)
         self._pw = sync_playwright().start()
         try:
