@@ -149,7 +149,11 @@ def test_height_image_keeps_the_latest_height_per_pixel_and_regrows_with_what_it
     assert img.grid()["x_nm"] == [0.0, 10.0]
     img.set_area([[0.0, 0.0], [10.0, 10.0]])                        # the raster grew in y
     g = img.grid()
-    assert g["y_nm"][0] < 0 and g["y_nm"][1] > 10.0                 # with headroom
+    assert g["y_nm"][0] == 0.0 and g["y_nm"][1] == 12.5               # only y's top grew, with headroom
+    assert g["x_nm"] == [0.0, 10.0]
+    for top in range(11, 200):                                      # a raster growing line by line
+        img.set_area([[0.0, 0.0], [10.0, float(top)]])
+    assert img.grid()["x_nm"] == [0.0, 10.0] and 199.0 <= img.grid()["y_nm"][1] <= 1.25 * 199.0
     held = [(r, c, v) for r, row in enumerate(g["height_nm"]) for c, v in enumerate(row) if v is not None]
     assert sorted(v for _, _, v in held) == [2.0, 7.0]              # re-binned, nothing lost
     assert img._h.shape == (5, 10)                                  # memory: the grid only

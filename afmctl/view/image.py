@@ -40,10 +40,11 @@ class HeightImage:
             return
         if self._area is not None and np.all(area[0] >= self._area[0]) and np.all(area[1] <= self._area[1]):
             return
-        if self._area is not None:
-            area = np.vstack([np.minimum(area[0], self._area[0]), np.maximum(area[1], self._area[1])])
+        if self._area is not None:      # grow only the sides that must, each with headroom
             span = area[1] - area[0]
-            area = area + np.array([-GROW_HEADROOM * span, GROW_HEADROOM * span])
+            lo = np.where(area[0] < self._area[0], area[0] - GROW_HEADROOM * span, self._area[0])
+            hi = np.where(area[1] > self._area[1], area[1] + GROW_HEADROOM * span, self._area[1])
+            area = np.vstack([lo, hi])
         old_h, old_area = self._h, self._area
         self._area, self._h = area, np.full((self.rows, self.cols), np.nan)
         if old_area is not None:
