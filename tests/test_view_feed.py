@@ -103,6 +103,7 @@ def test_scanner_feed_drift_status_image_and_a_frame_per_reader():
     feed.on_drift(DriftMsg(seq=1, t_s=1.1, drift_nm=[1.0, 2.0, 3.0]).to_json_bytes())
     feed.on_status(StatusMsg(seq=0, scanner="s1", t_s=1.0, state="running",
                              stats={"samples": 5}).to_json_bytes())
+    feed.on_setpoints(encode_setpoints(0, _batch(0, 1000, speed_nm_per_s=1000.0)))   # x 0…999, y 500
     for x in range(0, 1000, 10):
         feed.on_image(SimImageMsg(seq=x, t_s=0.0, position_nm=[x, x / 2, 0.0], height_nm=x / 100,
                                   sample="g").to_json_bytes())
@@ -111,20 +112,51 @@ def test_scanner_feed_drift_status_image_and_a_frame_per_reader():
     assert f["drift"] == [[1.0, 1.0, 2.0, 3.0, 0.1, 0.2, 0.3], [1.1, 1.0, 2.0, 3.0, None, None, None]]
     assert f["status"]["state"] == "running" and f["status"]["stats"]["samples"] == 5
     img = f["image"]
-    assert img["samples"] == 100 and img["sample"] == "g" and img["h_range_nm"] == [0.0, 9.9]
+    # the area: the targets' extent (x 0…999 nm, y 500 nm: no extent, so no area yet) — the
+    # y targets are constant, so nothing is binned until they span an area
+    assert img is None
+    feed.on_setpoints(encode_setpoints(1, _batch(1000, 10)))
+    rec = _batch(1010, 10)
+    rec["target_nm"][:, 1] = 0.0
+    feed.on_setpoints(encode_setpoints(2, rec))                     # now y 0…500 nm
+    for x in range(0, 1000, 10):
+        feed.on_image(SimImageMsg(seq=x, t_s=0.0, position_nm=[x, x / 2, 0.0], height_nm=x / 100,
+                                  sample="g").to_json_bytes())
+    img = feed.frame(cursor, with_image=True)["image"]
+    assert img["samples"] == 200 and img["outside"] == 100 and img["sample"] == "g"
+    assert img["h_range_nm"] == [0.0, 9.9]
     assert len(img["height_nm"]) == 64 and len(img["height_nm"][0]) == 128
+    assert img["x_nm"][0] < 0 and img["x_nm"][1] > 1009               # + 10 % margin
     assert json.dumps(f)                                # plain JSON (no NaN)
+    cursor = {}
+    f = feed.frame(cursor, with_image=False)
     assert feed.frame(cursor, with_image=False)["drift"] == []     # seen already
     assert "image" not in feed.frame(cursor, with_image=False)
 
 
-def test_height_image_memory_is_bounded():
-    img = HeightImage(cols=8, rows=4, max_samples=100)
-    for k in range(1000):
-        img.add(k % 50, k // 50, float(k))
+def test_height_image_keeps_the_latest_height_per_pixel_and_regrows_with_what_it_held():
+    img = HeightImage(cols=10, rows=5)
+    img.add(5.0, 5.0, 1.0)
+    assert img.grid() is None and img.outside == 1                  # no area yet
+    img.set_area([[0.0, 0.0], [10.0, 5.0]])
+    img.add(5.5, 2.5, 1.0)
+    img.add(5.6, 2.6, 2.0)                                          # same pixel: the latest wins
+    img.add(0.5, 0.5, 7.0)
     g = img.grid()
-    assert img.samples == 1000 and img.held == 100 and img._xyh.shape == (100, 3)
-    assert g["h_range_nm"] == [900.0, 999.0]            # the last 100 samples
+    assert g["height_nm"][2][5] == 2.0 and g["height_nm"][0][0] == 7.0
+    assert sum(v is not None for row in g["height_nm"] for v in row) == 2
+    img.set_area([[0.0, 0.0], [8.0, 4.0]])                          # inside: nothing changes
+    assert img.grid()["x_nm"] == [0.0, 10.0]
+    img.set_area([[0.0, 0.0], [10.0, 10.0]])                        # the raster grew in y
+    g = img.grid()
+    assert g["y_nm"][0] == 0.0 and g["y_nm"][1] == 12.5               # only y's top grew, with headroom
+    assert g["x_nm"] == [0.0, 10.0]
+    for top in range(11, 200):                                      # a raster growing line by line
+        img.set_area([[0.0, 0.0], [10.0, float(top)]])
+    assert img.grid()["x_nm"] == [0.0, 10.0] and 199.0 <= img.grid()["y_nm"][1] <= 1.25 * 199.0
+    held = [(r, c, v) for r, row in enumerate(g["height_nm"]) for c, v in enumerate(row) if v is not None]
+    assert sorted(v for _, _, v in held) == [2.0, 7.0]              # re-binned, nothing lost
+    assert img._h.shape == (5, 10)                                  # memory: the grid only
 
 
 def _publish_all(session, scanner: str, k: int) -> None:
@@ -158,11 +190,15 @@ def test_view_feed_over_zenoh_finds_scanners_and_rejects_bad_payloads():
             publisher.put(f"afm/alpha/{leaf}", payload)
             assert wait_for(lambda: alpha.counts["rejected"] == n, 10.0)
             assert alpha.last_rejected.startswith(leaf) and words in alpha.last_rejected, alpha.last_rejected
+        # a scanner name no service could have (markup) is ignored, not shown
+        publisher.put("afm/<b>x/status", StatusMsg(seq=0, scanner="x", t_s=0.0, state="idle").to_json_bytes())
+        assert wait_for(lambda: view.ignored >= 1, 10.0)
+        assert sorted(view.feeds()) == ["alpha", "beta"]
         # a wildcard viewer tracks at most MAX_SCANNERS scanners
         for n in range(MAX_SCANNERS + 3):
             publisher.put(f"afm/extra{n}/status", StatusMsg(seq=0, scanner="x", t_s=0.0,
                                                             state="idle").to_json_bytes())
-        assert wait_for(lambda: view.ignored >= 5, 10.0)
+        assert wait_for(lambda: view.ignored >= 6, 10.0)
         assert len(view.feeds()) == MAX_SCANNERS
 
 
@@ -208,3 +244,23 @@ def test_view_help_teaches():
     with pytest.raises(SystemExit) as ex:
         main(["view", "--help"])
     assert ex.value.code == 0
+
+
+def test_scanner_feed_holds_a_bounded_amount_whatever_the_run_length():
+    feed = ScannerFeed("s1", display_rate_Hz=50.0, history_s=2.0)      # rings of 100 rows
+    cursor: dict[str, int] = {}
+    for k in range(600):                                                # 12 s of 1 kHz setpoints
+        now = 100.0 + 0.02 * k
+        feed.on_setpoints(encode_setpoints(k, _batch(20 * k, 20)), arrival_s=now + 0.003)
+        feed.on_drift(DriftMsg(seq=k, t_s=0.02 * k, drift_nm=[0, 0, 1.0]).to_json_bytes())
+        for j in range(10):                                             # 500 tips/s and image pixels
+            t = 0.02 * k + 0.002 * j
+            feed.on_tip(SimTipMsg(seq=0, t_s=t, position_nm=[t, 1, 0]).to_json_bytes(), arrival_s=now + 0.002 * j)
+            feed.on_image(SimImageMsg(seq=0, t_s=t, position_nm=[t, t, 0], height_nm=1.0).to_json_bytes())
+        if k % 10 == 0:
+            feed.frame(cursor, with_image=True)
+    assert len(feed.setpoints) == len(feed.tips) == len(feed.drift) == 100
+    assert feed.image._h.shape == (64, 128) and feed.image.samples == 6000
+    assert len(feed._pending) <= 100 and len(feed._errors) <= 100
+    assert sum(len(t) for t in feed._targets._t) <= 5.0 * 1000 + 40     # 5 s of targets at full rate
+    assert feed.counts["setpoint_samples"] == 12_000 and feed.counts["tips"] == 6000

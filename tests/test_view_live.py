@@ -33,7 +33,7 @@ def _number(page, cell: str) -> int:
 
 
 def test_view_page_shows_the_live_scanner_in_headless_chromium(tmp_path):
-    with LiveStack(tmp_path, lines=80, line_rate_Hz=2.0) as stack, Browser(tmp_path / "chromium") as browser:
+    with LiveStack(tmp_path, lines=32, line_rate_Hz=2.0, repeat=8) as stack, Browser(tmp_path / "chromium") as browser:
         page = browser.open(stack.url)
         page.wait_for_function(LIVE_JS, timeout=90_000, polling=500)
         # the numbers update: samples of the loop (status) and setpoints received
@@ -51,7 +51,7 @@ def test_view_page_shows_the_live_scanner_in_headless_chromium(tmp_path):
             assert px["match"] >= least, (canvas, colour, px)
         # the image: the grating's pillars (viridis' bright end) and the floor between them
         # (its dark end), left of the colour bar; at least a fifth of the pixels filled
-        page.wait_for_function(FILLED_JS, timeout=60_000, polling=500)
+        page.wait_for_function(FILLED_JS, timeout=150_000, polling=1000)
         image = page.evaluate('window.afmView.scanners["stage1"].image')
         assert image["h_range_nm"] == pytest.approx([0.0, 100.0], abs=1e-6)   # grating2d: 100 nm pillars
         dark = canvas_pixels(page, "plot-image", (68, 1, 84), tol=40, width_fraction=0.75)

@@ -25,6 +25,15 @@ LEAVES = {"setpoint": "on_setpoints", "drift": "on_drift", "status": "on_status"
 MAX_SCANNERS = 16
 
 
+def _valid_name(settings: ZenohSettings, name: str) -> bool:
+    """A scanner name as the services use it (one key chunk of letters, digits, _ - .)."""
+    try:
+        settings.key(name, "status")
+    except ValueError:
+        return False
+    return True
+
+
 class ViewFeed:
     """``ViewFeed(settings, scanners=None)``: watch ``scanners`` (None: every scanner under
     ``settings.prefix``, discovered from its messages, at most :data:`MAX_SCANNERS`).
@@ -39,7 +48,7 @@ class ViewFeed:
         self._lock = threading.Lock()
         self._session: Any = None
         self._subs: list[Any] = []
-        self.ignored = 0          # messages of scanners beyond MAX_SCANNERS
+        self.ignored = 0          # messages of scanners beyond MAX_SCANNERS or with invalid names
 
     @property
     def max_rows(self) -> int:
@@ -83,11 +92,12 @@ class ViewFeed:
 
     def feed(self, name: str) -> ScannerFeed | None:
         """The feed of scanner ``name`` (created on its first message), or None when the
-        viewer already tracks :data:`MAX_SCANNERS` others."""
+        viewer already tracks :data:`MAX_SCANNERS` others or ``name`` is not a valid
+        scanner name (both counted in ``ignored``)."""
         with self._lock:
             feed = self._feeds.get(name)
             if feed is None:
-                if len(self._feeds) >= MAX_SCANNERS:
+                if len(self._feeds) >= MAX_SCANNERS or not _valid_name(self.settings, name):
                     self.ignored += 1
                     return None
                 feed = self._feeds[name] = ScannerFeed(name, self.display_rate_Hz, self.history_s)

@@ -20,6 +20,8 @@ log = logging.getLogger(__name__)
 
 #: seconds of tips that may wait for the setpoints they are compared with
 TIP_WAIT_S = 2.0
+#: the image covers the targets' x–y extent plus this fraction of it on each side
+IMAGE_MARGIN = 0.1
 #: window of the tracking-error summary [s]
 ERROR_WINDOW_S = 2.0
 
@@ -102,6 +104,8 @@ class ScannerFeed:
             xy = rec["target_nm"][:, :2]
             self._range_nm = np.vstack([np.minimum(self._range_nm[0], xy.min(axis=0)),
                                         np.maximum(self._range_nm[1], xy.max(axis=0))])
+            margin = IMAGE_MARGIN * (self._range_nm[1] - self._range_nm[0])
+            self.image.set_area(self._range_nm + np.array([-margin, margin]))
             self._sp_clock.update(arrival_s, float(t[-1]))
             self._targets.add(t, rec["target_nm"])
             keep = self._sp_dec.keep(t)

@@ -61,6 +61,7 @@ width_nm = 6000
 height_nm = 5000
 lines = {lines}
 line_rate_Hz = {line_rate_Hz}
+repeat = {repeat}
 [zenoh]
 enabled = true
 listen = ["{endpoint}"]
@@ -129,14 +130,16 @@ class _Proc:
 
 
 class LiveStack:
-    """``LiveStack(workdir, rate_Hz=1000, lines=..., line_rate_Hz=...)``; ``start()`` starts
+    """``LiveStack(workdir, rate_Hz=1000, lines=..., line_rate_Hz=..., repeat=frames,
+    duration_s=the simulator's lifetime)``; ``start()`` starts
     the three processes and returns when the page is served and the raster runs;
     ``url`` is the page's address; ``stop()`` ends them (view, run, sim)."""
 
     def __init__(self, workdir: Path, *, scanner: str = "stage1", rate_Hz: float = 1000.0, lines: int = 64,
-                 line_rate_Hz: float = 2.0, duration_s: float = 300.0) -> None:
+                 line_rate_Hz: float = 2.0, repeat: int = 1, duration_s: float = 300.0) -> None:
         self.workdir = Path(workdir)
         self.scanner, self.rate_Hz, self.lines, self.line_rate_Hz = scanner, rate_Hz, lines, line_rate_Hz
+        self.repeat = repeat
         self.duration_s = duration_s
         self.procs: dict[str, _Proc] = {}
         self.url = self.sim_endpoint = self.run_endpoint = ""
@@ -166,7 +169,8 @@ class LiveStack:
         users = self._users()
         cfg = self.workdir / "run.toml"
         cfg.write_text(RUN_TOML.format(scanner=self.scanner, port=port, rate_Hz=self.rate_Hz, dir=self.workdir,
-                                       lines=self.lines, line_rate_Hz=self.line_rate_Hz, endpoint=ep, users=users))
+                                       lines=self.lines, line_rate_Hz=self.line_rate_Hz, repeat=self.repeat,
+                                       endpoint=ep, users=users))
         self.procs["run"] = _Proc(self._py("run", "--config", str(cfg)), self.workdir, "run")
         return ep
 
@@ -236,6 +240,9 @@ class Browser:
 
     def __enter__(self) -> "Browser":
         from playwright.sync_api import sync_playwright
+        if not Path(CHROMIUM).exists():
+            raise RuntimeError(f"{CHROMIUM} is missing: install Debian's chromium (apt-get install chromium; "
+                               ".ci/run does this in CI)")
         self.user_data_dir.mkdir(parents=True, exist_ok=True)
         self._pw = sync_playwright().start()
         try:

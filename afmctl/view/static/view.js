@@ -41,7 +41,7 @@ function ingest(frame) {
 function updateSelector() {
   const sel = document.getElementById("scanner"), names = Object.keys(state.scanners).sort();
   if (sel.options.length !== names.length) {
-    sel.innerHTML = names.map((n) => `<option>${n.replace(/</g, "&lt;")}</option>`).join("");
+    sel.innerHTML = names.map((n) => `<option>${esc(n)}</option>`).join("");
     if (!state.selected || !names.includes(state.selected)) { state.selected = names[0] || null; }
     sel.value = state.selected;
   }
@@ -183,13 +183,17 @@ function drawStats(s) {
       "messages rejected (viewer)", fmtN(c.rejected, 9)],
   ];
   document.querySelector("#stats tbody").innerHTML = rows.map((r) =>
-    `<tr><td class="k">${r[0]}</td><td id="v-${slug(r[0])}">${r[1]}</td><td class="k">${r[2]}</td>` +
-    `<td id="v-${slug(r[2])}">${r[3]}</td></tr>`).join("");
+    `<tr><td class="k">${r[0]}</td><td id="v-${slug(r[0])}">${esc(r[1])}</td><td class="k">${r[2]}</td>` +
+    `<td id="v-${slug(r[2])}">${esc(r[3])}</td></tr>`).join("");
   const errs = (s.status && s.status.errors) || [];
   document.getElementById("errors").textContent = errs.length
     ? `last error: ${errs[errs.length - 1].source}: ${errs[errs.length - 1].message}` : (s.lastRejected || "");
   const badge = document.getElementById("state"), name = (s.status && s.status.state) || "no status";
-  badge.textContent = name; badge.className = `state ${name}`;
+  badge.textContent = name; badge.className = `state ${name.replace(/[^a-z]/g, "")}`;
+}
+
+function esc(text) {
+  return String(text).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" }[c]));
 }
 
 function slug(text) { return text.split(" ")[0].replace(/[^a-z]/g, ""); }
