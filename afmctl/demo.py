@@ -465,7 +465,7 @@ def _ladder_cell(ctx: DemoContext, kind: str | None, rate: float, folder: Path, 
         gain = _new_scanner(ctx, drift=False).nominal_gain_nm_per_V()
         model = folder.parent / "models" / f"scanner_{kind}.json" if kind else None
         err, info = sl.controller_errors_nm(folder, scanner_json, model, rate, loop_Hz, gain.tolist(),
-                                            lines=2 if o.quick else 3)
+                                            lines=2)   # one settling line, one scored
         return {**sl.error_pct(err), "path": "controller", **info}
     name = kind or "none"
 
