@@ -40,6 +40,10 @@ def _sweep() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.arange(u.size) * DT_S, u, y
 
 
+#: kinds made of other kinds' stages: warming those stages compiles every kernel they use
+COMPOSITE_KINDS = ("chain", "scanner")
+
+
 def _model_kind(kind: str) -> Callable[[], None]:
     def run() -> None:
         from afmctl.compensators.base import ModelError
@@ -67,7 +71,8 @@ def _drift() -> None:
 def warm_up_steps() -> list[tuple[str, Callable[[], None]]]:
     """``(name, callable)`` for every group of kernels."""
     from afmctl.compensators.models import KINDS
-    return [("simulated scanner", _sweep)] + [(f"model {kind}", _model_kind(kind)) for kind in KINDS] + [
+    kinds = [k for k in KINDS if k not in COMPOSITE_KINDS]
+    return [("simulated scanner", _sweep)] + [(f"model {kind}", _model_kind(kind)) for kind in kinds] + [
         ("drift predictor", _drift)]
 
 
