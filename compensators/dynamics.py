@@ -168,14 +168,22 @@ class LinearDynamicsModel(HysteresisModel):
                    zeros_rad_per_s=[(float(z.real), float(z.imag)) for z in fit.zeros],
                    delay_s=fit.delay_s, initial_nm=float(np.asarray(y_nm, dtype=float)[0]), fit_info=fit.info)
 
-    def predict_linear(self, u: np.ndarray, y_nm: np.ndarray, dt_s: float) -> np.ndarray:
-        """What the fitted linear model says ``y`` [nm] was for input ``u``: the first
-        output sample plus the static gain of ``fit_info`` times the dynamics' response to
-        the input's change (for the residual that ``afmctl identify`` prints)."""
+    def predict_linear(self, t_s: np.ndarray, u: np.ndarray, y_nm: np.ndarray, dt_s: float) -> np.ndarray:
+        """What the fitted linear model says ``y`` [nm] was for input ``u``, over the part
+        of the record it was fitted on (``fit_info`` fit_t0_s … fit_t1_s; NaN elsewhere):
+        the static gain of ``fit_info`` times the dynamics' response to the input's change,
+        plus the mean offset (for the residual ``afmctl identify`` prints)."""
         u = block_samples("u", u)
-        gain = float((self.fit_info or {}).get("static_gain_y_per_u", 1.0))
-        g = self.forward(dt_s, initial_nm=float(u[0])).block(u) if u.size else u
-        return float(np.asarray(y_nm, dtype=float)[0]) + gain * (g - float(u[0]))
+        info = self.fit_info or {}
+        gain = float(info.get("static_gain_y_per_u", 1.0))
+        t = np.asarray(t_s, dtype=float)
+        sel = (t >= float(info.get("fit_t0_s", -np.inf))) & (t <= float(info.get("fit_t1_s", np.inf)))
+        out = np.full(u.size, np.nan)
+        if np.count_nonzero(sel):
+            us = u[sel]
+            g = gain * (self.forward(dt_s, initial_nm=float(us[0])).block(us) - float(us[0]))
+            out[sel] = g + float(np.mean(np.asarray(y_nm, dtype=float)[sel] - g))
+        return out
 
     def summary(self) -> str:
         lines = ["model            : linear dynamics, unit DC gain, with delay (kind dynamics)",

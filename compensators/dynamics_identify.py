@@ -218,7 +218,7 @@ def fit_dynamics(t_s: np.ndarray, u: np.ndarray, y_nm: np.ndarray, **options: An
     info: dict[str, float | str] = {
         "static_gain_y_per_u": K, "fit_rms_log": rms, "f_min_Hz": float(frf.f_Hz[0]),
         "f_max_Hz": float(frf.f_Hz[-1]), "bins": float(frf.f_Hz.size), "sample_rate_Hz": fs,
-        "fitted_delay_s": tau,
+        "fitted_delay_s": tau, "fit_t0_s": float(t[0]), "fit_t1_s": float(t[-1]),
     }
     log.info("dynamics fit: %d modes, %d lags, delay %.3g µs, RMS log error %.3g over %d bins",
              n_modes, n_lags, tau * 1e6, rms, frf.f_Hz.size)

@@ -33,13 +33,36 @@ class _VoltageSpan(_Strict):
 
 
 class AmplifierConfig(_VoltageSpan):
-    """Piezo amplifier model: command → clip → quantise → slew limit → low-pass → piezo."""
+    """Piezo amplifier model: command → clip → quantise → slew limit → low-pass → piezo.
+
+    ``bandwidth_Hz`` and ``slew_V_per_s`` are the amplifier's figures with its load. To
+    derive them from the piezo instead, give ``load_capacitance_F`` with
+    ``output_resistance_ohm`` (the output stage and the piezo's capacitance form an RC
+    low-pass, f = 1/(2π·R·C)) and/or ``current_limit_A`` (a current-limited output slews
+    at most I/C); the effective value is the lower of the two."""
 
     u_min_V: float = Field(0.0, description="lowest output voltage [V]")
     u_max_V: float = Field(150.0, description="highest output voltage [V]")
     bits: int = Field(16, ge=0, le=32, description="DAC resolution over u_min_V…u_max_V; 0 = no quantisation")
     slew_V_per_s: float | None = Field(1.0e4, gt=0, description="slew-rate limit [V/s]; null = unlimited")
     bandwidth_Hz: float | None = Field(5.0e3, gt=0, description="first-order -3 dB bandwidth [Hz]; null = unlimited")
+    load_capacitance_F: float | None = Field(None, gt=0, le=1e-3, description="piezo capacitance [F]")
+    output_resistance_ohm: float | None = Field(None, gt=0, description="output resistance [Ω] (with the load)")
+    current_limit_A: float | None = Field(None, gt=0, description="output current limit [A] (with the load)")
+
+    def effective_bandwidth_Hz(self) -> float | None:
+        """-3 dB bandwidth [Hz] with the capacitive load (None = unlimited)."""
+        f = [self.bandwidth_Hz] if self.bandwidth_Hz else []
+        if self.load_capacitance_F and self.output_resistance_ohm:
+            f.append(1.0 / (2 * math.pi * self.output_resistance_ohm * self.load_capacitance_F))
+        return min(f) if f else None
+
+    def effective_slew_V_per_s(self) -> float | None:
+        """Slew limit [V/s] with the capacitive load (None = unlimited)."""
+        s = [self.slew_V_per_s] if self.slew_V_per_s else []
+        if self.load_capacitance_F and self.current_limit_A:
+            s.append(self.current_limit_A / self.load_capacitance_F)
+        return min(s) if s else None
 
 
 class PreisachComponent(_Strict):
@@ -108,12 +131,16 @@ class DynamicsConfig(_Strict):
 
 
 class AxisConfig(_Strict):
-    """One axis: amplifier → hysteresis → creep → structural mode."""
+    """One axis: amplifier → hysteresis → creep → structural mode(s).
+
+    ``dynamics`` is the first (dominant) mode; ``extra_modes`` are further modes in series
+    after it (each unit DC gain, discretised the same way)."""
 
     amplifier: AmplifierConfig = Field(default_factory=AmplifierConfig)
     hysteresis: HysteresisConfig = Field(default_factory=GaussianPreisachConfig)
     creep: CreepConfig | None = None
     dynamics: DynamicsConfig | None = None
+    extra_modes: list[DynamicsConfig] = Field(default_factory=list, max_length=8)
 
 
 class DriftConfig(_Strict):

@@ -24,6 +24,7 @@ log = logging.getLogger(__name__)
 
 #: capacity of the Preisach memory (turning points); deeper nesting wipes the innermost loop
 MEMORY_CAPACITY = 512
+_NONE = np.zeros(0)
 
 
 def preisach_weights(cfg: GaussianPreisachConfig) -> np.ndarray:
@@ -149,8 +150,9 @@ class AxisPlant:
         c = self._cache.get(dt_s)
         if c is None:
             amp = self.cfg.amplifier
-            max_step = amp.slew_V_per_s * dt_s if amp.slew_V_per_s else math.inf
-            a_lp = math.exp(-2 * math.pi * amp.bandwidth_Hz * dt_s) if amp.bandwidth_Hz else 0.0
+            slew, bw = amp.effective_slew_V_per_s(), amp.effective_bandwidth_Hz()
+            max_step = slew * dt_s if slew else math.inf
+            a_lp = math.exp(-2 * math.pi * bw * dt_s) if bw else 0.0
             if self.cfg.creep is not None and self.cfg.creep.fraction > 0:
                 a_c, g_c = creep_coefficients(self.cfg.creep, dt_s)
             else:
@@ -163,6 +165,14 @@ class AxisPlant:
             c = (max_step, a_lp, a_c, g_c, ad, bd, use_dyn)
             self._cache[dt_s] = c
         return c
+
+    def _extra(self, dt_s: float) -> list[tuple[np.ndarray, np.ndarray]]:
+        key = ("extra", dt_s)
+        m = self._cache.get(key)
+        if m is None:
+            m = [mode_matrices(d, dt_s) for d in self.cfg.extra_modes]
+            self._cache[key] = m
+        return m
 
     def _hyst(self, dt_s: float) -> StreamingOperator:
         if not self._external:
@@ -185,6 +195,7 @@ class AxisPlant:
         n_l = self.cfg.creep.n_lags if self.cfg.creep is not None else 0
         self.creep_state = np.full(n_l, h0)
         self.mode_state = np.array([h0, 0.0])
+        self.extra_states = [np.array([h0, 0.0]) for _ in self.cfg.extra_modes]
         self.u_piezo_V = self.u_min_V
         self.y_nm = h0
 
@@ -201,6 +212,10 @@ class AxisPlant:
         y = np.empty_like(u)
         post_k = K.creep_dynamics_nb if self.fast else K.creep_dynamics_py
         post_k(h, y, a_c, g_c, self.creep_state, ad, bd, self.mode_state, use_dyn)
+        for (ad_k, bd_k), z in zip(self._extra(float(dt_s)), self.extra_states):
+            # a further mode in series: the same kernel without creep lags
+            y_in = y.copy()
+            post_k(y_in, y, _NONE, _NONE, _NONE, ad_k, bd_k, z, True)
         if u.shape[0]:
             self.u_piezo_V = float(v[-1])
             self.y_nm = float(y[-1])
@@ -228,8 +243,9 @@ class AxisPlant:
         for a, gk in zip(a_c, g_c):
             creep -= gk * (1.0 - (1.0 - a) / (1.0 - a * zinv))
         g = g * creep
-        if use_dyn:
+        modes = ([(ad, bd)] if use_dyn else []) + self._extra(float(dt_s))
+        for ad_k, bd_k in modes:
             # z_k = Ad·z_{k−1} + bd·r_k, output z_k[0]:  P = e1ᵀ (I − Ad z⁻¹)⁻¹ bd · R
-            M = np.eye(2)[None] - ad[None] * zinv[:, None, None]
-            g = g * np.linalg.solve(M, np.broadcast_to(bd, (zinv.size, 2))[..., None])[:, 0, 0]
+            M = np.eye(2)[None] - ad_k[None] * zinv[:, None, None]
+            g = g * np.linalg.solve(M, np.broadcast_to(bd_k, (zinv.size, 2))[..., None])[:, 0, 0]
         return g

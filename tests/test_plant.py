@@ -225,3 +225,49 @@ def test_preisach_memory_is_the_compensators_memory():
         K2 = PK._memory_update(float(x), s2, K2, s2.shape[0] - 1)
         assert op.ist[0] == K2
         np.testing.assert_array_equal(op.s[: K2 + 1], s2[: K2 + 1])
+
+
+def _linear_axis(**kw) -> AxisConfig:
+    return AxisConfig(amplifier=kw.pop("amplifier", AmplifierConfig(bits=0, slew_V_per_s=None, bandwidth_Hz=None)),
+                      hysteresis=GaussianPreisachConfig(linear_nm_per_V=80.0), **kw)
+
+
+def test_capacitive_load_sets_bandwidth_and_slew():
+    """Output resistance × piezo capacitance is a low-pass; a current limit slews at I/C."""
+    amp = AmplifierConfig(bits=0, slew_V_per_s=None, bandwidth_Hz=None, load_capacitance_F=1e-6,
+                          output_resistance_ohm=100.0, current_limit_A=0.05)
+    assert amp.effective_bandwidth_Hz() == pytest.approx(1 / (2 * np.pi * 1e-4))
+    assert amp.effective_slew_V_per_s() == pytest.approx(5e4)
+    ax = AxisPlant(_linear_axis(amplifier=amp))
+    dt = 1e-6
+    _, v = ax.run(np.full(4000, 100.0), dt, return_voltage=True)
+    assert np.max(np.diff(v)) <= 5e4 * dt * (1 + 1e-9)  # slewing at I/C
+    assert v[int(1.5e-3 / dt)] < 80.0  # 2 ms of slewing to 100 V
+    assert v[-1] == pytest.approx(100.0, abs=0.5)  # then settled (RC = 100 µs)
+    # the smaller capacitance of a second piezo: faster
+    fast = amp.model_copy(update={"load_capacitance_F": 1e-7})
+    assert fast.effective_bandwidth_Hz() == pytest.approx(10 * amp.effective_bandwidth_Hz())
+    # an amplifier's own figure below the RC one wins
+    assert amp.model_copy(update={"bandwidth_Hz": 100.0}).effective_bandwidth_Hz() == 100.0
+
+
+def test_extra_modes_in_series_match_the_linear_response_and_blocks():
+    cfg = _linear_axis(dynamics=DynamicsConfig(resonance_Hz=1000.0, quality_factor=30.0),
+                       extra_modes=[DynamicsConfig(resonance_Hz=3500.0, quality_factor=15.0)])
+    dt = 1e-5
+    f0 = 3500.0
+    t = np.arange(40_000) * dt
+    u = 50 + 0.5 * np.sin(2 * np.pi * f0 * t)
+    fast, ref = AxisPlant(cfg), AxisPlant(cfg, fast=False)
+    y = fast.run(u, dt)
+    np.testing.assert_array_equal(ref.run(u, dt), y)
+    blocks = AxisPlant(cfg)
+    np.testing.assert_array_equal(np.concatenate([blocks.run(u[:1234], dt), blocks.run(u[1234:], dt)]), y)
+    # steady-state amplitude at 3.5 kHz equals |linear_response| × 80 nm/V × 0.5 V
+    g = AxisPlant(cfg).linear_response(np.array([f0]), dt)[0]
+    tail = y[-int(0.1 / dt):]
+    assert (tail.max() - tail.min()) / 2 == pytest.approx(abs(g) * 80 * 0.5, rel=0.01)
+    one = AxisPlant(cfg.model_copy(update={"extra_modes": []})).linear_response(np.array([f0]), dt)[0]
+    assert abs(g) / abs(one) == pytest.approx(15.0, rel=0.05)  # the second mode's resonance (Q 15) shows
+    fast.reset()
+    np.testing.assert_array_equal(fast.run(u, dt), y)

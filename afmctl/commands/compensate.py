@@ -26,6 +26,16 @@ Output:
   --out VOLTS.csv      columns t,u (s, V), one row per target row.
   --limits LO HI       optional voltage range (V): any voltage outside it is an error
                        unless --clip is given, which clips and reports how many samples.
+  --dynamics DYN.json  also invert the scanner's linear dynamics (a 'dynamics' model from
+                       'afmctl identify --model dynamics'): the target first goes through
+                       the stable non-causal inverse of the dynamics over the whole file
+                       (delay and resonance compensated, no latency), then through
+                       --model's inverse. Needs uniformly spaced rows; the path should
+                       start and end at rest. With --slew-V-per-s (and --limits) the
+                       inverse's band limit is lowered until the voltages fit (the
+                       turnarounds get rounder); what is still out of reach is clipped
+                       and rate-limited, and reported.
+  --slew-V-per-s S     the amplifier's slew limit [V/s] (with --dynamics)
 
 The model's operator starts from the state stored in the model file (a scanner at rest)
 and runs through the whole file. A preisach model clamps targets it cannot reach to the
@@ -45,6 +55,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--axis", choices=("x", "y", "z"), help="axis of a scanner model file (kind scanner)")
     p.add_argument("--limits", nargs=2, type=float, metavar=("LO", "HI"), help="allowed voltage range [V]")
     p.add_argument("--clip", action="store_true", help="clip to --limits instead of failing")
+    p.add_argument("--dynamics", metavar="DYN.json", help="dynamics model to invert first (offline stable inverse)")
+    p.add_argument("--slew-V-per-s", type=float, metavar="S", help="slew limit [V/s] for --dynamics")
     p.set_defaults(func=run)
 
 
@@ -56,15 +68,25 @@ def run(args: argparse.Namespace) -> int:
     from afmctl.compensators.base import ModelError
     from afmctl.compensators.models import load_model
 
+    if args.slew_V_per_s is not None and args.dynamics is None:
+        raise AfmctlError("--slew-V-per-s: only used with --dynamics DYN.json")
     if args.clip and not args.limits:
         raise AfmctlError("--clip: needs --limits LO HI")
     if args.limits and not (np.isfinite(args.limits).all() and args.limits[0] < args.limits[1]):
         raise AfmctlError(f"--limits: {args.limits[0]} {args.limits[1]}; need finite LO < HI (V)")
     model = _axis_model(load_model(args.model), args)
+    if model.kind == "dynamics":
+        raise AfmctlError(f"{args.model}: field kind: a 'dynamics' model maps nm to nm, not to volts; give it as "
+                          "--dynamics beside a --model that maps volts (pi, epi, creep, preisach, bouc-wen, chain)")
+    if args.dynamics is not None and getattr(model, "dynamics", None) is not None:
+        raise AfmctlError(f"--dynamics: {args.model} already holds a dynamics stage ({model.structure}); drop --dynamics")
     data = read_csv(args.target, ("t", "y"), min_rows=1)
     t, y = data["t"], data["y"]
-    dt = uniform_period(t, str(args.target)) if getattr(model, "time_dependent", False) else None
-    invert = _inverter(model, dt, args)
+    timed = getattr(model, "time_dependent", False) or args.dynamics is not None
+    dt = uniform_period(t, str(args.target)) if timed else None
+    invert = _inverter(model, dt, args)      # a model that cannot be inverted is blamed here
+    if args.dynamics is not None:
+        invert = lambda y_nm: _with_dynamics(args, model, y_nm, dt)  # noqa: E731
     try:
         u = invert(y)
     except ModelError as err:
@@ -118,6 +140,27 @@ def _axis_model(model, args: argparse.Namespace):
 
 
 CHUNK = 200_000
+
+
+def _with_dynamics(args, model, y, dt):
+    """Dynamics inverse (offline, within --limits/--slew-V-per-s), then ``model``'s inverse."""
+    import math
+
+    from ..errors import AfmctlError
+    from afmctl.compensators.dynamics_limits import invert_within_limits
+    from afmctl.compensators.models import load_model
+
+    dyn = load_model(args.dynamics, expect=("dynamics",))
+    slew = args.slew_V_per_s
+    if slew is not None and not (math.isfinite(slew) and slew > 0):
+        raise AfmctlError(f"--slew-V-per-s: {slew}; need a finite rate > 0 V/s")
+    lo, hi = args.limits if args.limits else (-math.inf, math.inf)
+    res = invert_within_limits(dyn, y, dt, lambda: model.inverse(dt), lo, hi, slew)
+    print(f"dynamics         : {res.report()}")
+    if res.clipped and not args.clip:
+        raise AfmctlError(f"{args.target}: {res.clipped} samples need voltages outside --limits {lo:g} {hi:g} V "
+                          "even with the lowest band limit; add --clip to clip them")
+    return res.u_V
 
 
 def _run_chunked(op, y):

@@ -46,16 +46,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--u-max-V", required=True, type=float, metavar="HI", help="highest voltage [V]")
     p.add_argument("--rate-Hz", required=True, type=float, metavar="R", help="sample rate you will play at [Hz]")
     p.add_argument("--out", required=True, metavar="EXC.csv", help="output CSV, columns t,u (s, V)")
-    p.add_argument("--slew-V-per-s", type=float, help="amplifier slew limit [V/s]; samples stay within half of it")
-    p.add_argument("--sweep-V-per-s", type=float, help="ramp speed of static/creep [V/s] (default: the range per s)")
-    p.add_argument("--dwell-s", type=float, default=2.0, help="creep dwell per level [s] (default 2)")
-    p.add_argument("--gap-s", type=float, default=1.0, help="settling hold between parts [s] (default 1)")
-    p.add_argument("--amplitude-pct", type=float, default=2.0,
+    p.add_argument("--slew-V-per-s", type=float, metavar="V_PER_S", help="amplifier slew limit [V/s]; samples stay within half of it")
+    p.add_argument("--sweep-V-per-s", type=float, metavar="V_PER_S", help="ramp speed of static/creep [V/s] (default: the range per s)")
+    p.add_argument("--dwell-s", type=float, metavar="S", default=2.0, help="creep dwell per level [s] (default 2)")
+    p.add_argument("--gap-s", type=float, metavar="S", default=1.0, help="settling hold between parts [s] (default 1)")
+    p.add_argument("--amplitude-pct", type=float, metavar="PCT", default=2.0,
                    help="multisine peak, %% of the range (default 2)")
-    p.add_argument("--f-min-Hz", type=float, default=5.0, help="lowest multisine line [Hz] (default 5)")
-    p.add_argument("--f-max-Hz", type=float, help="highest multisine line [Hz] (default 40 %% of the rate)")
-    p.add_argument("--periods", type=int, default=8, help="multisine periods after one settling period (default 8)")
-    p.add_argument("--seed", type=int, default=0, help="multisine phases seed (default 0)")
+    p.add_argument("--f-min-Hz", type=float, metavar="HZ", default=5.0, help="lowest multisine line [Hz] (default 5)")
+    p.add_argument("--f-max-Hz", type=float, metavar="HZ", help="highest multisine line [Hz] (default 40 %% of the rate)")
+    p.add_argument("--periods", type=int, metavar="N", default=8, help="multisine periods after one settling period (default 8)")
+    p.add_argument("--seed", type=int, metavar="N", default=0, help="multisine phases seed (default 0)")
     p.set_defaults(func=run)
 
 

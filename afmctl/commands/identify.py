@@ -141,11 +141,12 @@ def run(args: argparse.Namespace) -> int:
         raise ModelError(f"{args.data}: the fit failed ({err}); is the input excited over its range?") from None
     except ValueError as err:  # a --param value of the wrong type that a kind did not check itself
         raise AfmctlError(f"--param: a value is not accepted by kind {args.model!r} ({err})") from None
-    predict = getattr(model, "predict_linear", None)  # dynamics: nm → nm, needs the fitted gain
-    y_fit = predict(u, y, dt) if predict is not None else model.forward(dt).block(u)
-    rms = float(np.sqrt(np.mean((y_fit - y) ** 2)))
-    peak = float(np.max(np.abs(y_fit - y)))
-    span = float(np.ptp(y)) or 1.0
+    predict = getattr(model, "predict_linear", None)  # dynamics: its fitted segment, with its gain
+    y_fit = predict(t, u, y, dt) if predict is not None else model.forward(dt).block(u)
+    seen = np.isfinite(y_fit)
+    rms = float(np.sqrt(np.mean((y_fit[seen] - y[seen]) ** 2)))
+    peak = float(np.max(np.abs(y_fit[seen] - y[seen])))
+    span = float(np.ptp(y[seen])) or 1.0
     try:
         save_model(model, args.out)
     except OSError as err:
