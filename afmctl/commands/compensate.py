@@ -77,7 +77,9 @@ def run(args: argparse.Namespace) -> int:
     model = _axis_model(load_model(args.model), args)
     if model.kind == "dynamics":
         raise AfmctlError(f"{args.model}: field kind: a 'dynamics' model maps nm to nm, not to volts; give it as "
-                          "--dynamics beside a --model that maps volts (pi, epi, creep, preisach, bouc-wen)")
+                          "--dynamics beside a --model that maps volts (pi, epi, creep, preisach, bouc-wen, chain)")
+    if args.dynamics is not None and getattr(model, "dynamics", None) is not None:
+        raise AfmctlError(f"--dynamics: {args.model} already holds a dynamics stage ({model.structure}); drop --dynamics")
     data = read_csv(args.target, ("t", "y"), min_rows=1)
     t, y = data["t"], data["y"]
     timed = getattr(model, "time_dependent", False) or args.dynamics is not None

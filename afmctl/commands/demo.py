@@ -7,14 +7,15 @@ from pathlib import Path
 HELP = "simulated scanner in-process: grating images with/without compensation, plots, metrics"
 
 DESCRIPTION = """\
-Run the whole job on a simulated scanner, in-process, in about a minute:
+Run the whole job on a simulated scanner, in-process, in one to three minutes:
 
   1. build the default simulated 3-axis scanner (asymmetric Preisach hysteresis, creep,
      resonances, x/y cross-coupling, 0-150 V) with a drift scenario (the lab warms by a
      few kelvin during the scan);
   2. excite each lateral axis (reversal curves + decaying sine) and identify every
      available compensator model on the measured data (pi, epi, preisach, bouc-wen,
-     and preisach+creep: the chain model, Preisach followed by linear creep) and
+     preisach+creep: the chain model, Preisach followed by linear creep, and
+     preisach+creep+dynamics: plus linear dynamics from a small-signal multisine) and
      write each as a scanner model file OUT/models/scanner_KIND.json (per-axis models
      + x/y coupling; usable in `afmctl run` as [compensation] scanner_model);
   3. raster-scan a 1.667 um calibration grating without compensation and with each
@@ -24,9 +25,9 @@ Run the whole job on a simulated scanner, in-process, in about a minute:
      demo_lines.png, demo_drift.png, demo_speed_ladder.png and metrics.json
      (max_error_pct / rms_error_pct per compensator, errors in % of the scan range;
      speed_ladder: 4 um raster lines at 1, 4, 16 and 50 lines/s for none, the static
-     model and the chain, central 80 % of each line, 1-16 lines/s through the real
-     controller and the simulated CAN amplifier, 50 lines/s offline), and print the
-     same tables.
+     model, the chain and the chain with dynamics, central 80 % of each line, 1-16
+     lines/s through the real controller (2 kHz) and the simulated CAN amplifier; 50
+     lines/s and the dynamics chain offline), and print the same tables.
 
 Compensators that are not available in this installation are skipped with a message.
 """
@@ -52,7 +53,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--no-drift", action="store_true", help="switch the drift scenario off")
     p.add_argument("--only", action="append", metavar="KIND",
                    help="compensator to run (repeatable; a model kind or KIND+creep; "
-                        "default: pi, epi, preisach, bouc-wen, preisach+creep)")
+                        "default: pi, epi, preisach, bouc-wen, preisach+creep, preisach+creep+dynamics)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--docs", type=Path, default=None, metavar="DIR",
                    help="also copy the PNGs into DIR (e.g. docs/img)")
