@@ -3,7 +3,6 @@ image grid, the zenoh feed (real sessions on loopback) and the command line's er
 from __future__ import annotations
 
 import json
-import math
 import time
 
 import numpy as np
