@@ -3,7 +3,6 @@ image grid, the zenoh feed (real sessions on loopback) and the command line's er
 from __future__ import annotations
 
 import json
-import math
 import time
 
 import numpy as np
@@ -240,10 +239,14 @@ def test_view_cli_bad_config_names_the_file_and_field(tmp_path, capsys):
     assert "cannot read" in capsys.readouterr().err
 
 
-def test_view_help_teaches():
+def test_view_help_teaches(capsys):
     with pytest.raises(SystemExit) as ex:
         main(["view", "--help"])
     assert ex.value.code == 0
+    out = capsys.readouterr().out
+    for words in ("--connect tcp/127.0.0.1:7447", "http://127.0.0.1:8765/", "observers", "[zenoh.tls]",
+                  "--sample grating2d"):
+        assert words in out, words
 
 
 def test_scanner_feed_holds_a_bounded_amount_whatever_the_run_length():
