@@ -28,6 +28,7 @@ import numpy as np
 from pydantic import Field, SerializeAsAny, field_validator
 
 from .base import Chain, ModelError, StreamingOperator, check_finite
+from .input_checks import number_option
 from .models import HysteresisModel, model_class, model_from_dict
 
 log = logging.getLogger(__name__)
@@ -138,10 +139,16 @@ class ChainModel(HysteresisModel):
     @classmethod
     def identify(cls, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, n_operators: int | None = None,
                  structure: str = "preisach+creep", rounds: int = 2,
-                 dynamics_options: dict[str, Any] | None = None, **options: Any) -> "ChainModel":
+                 dynamics_options: dict[str, Any] | None = None, fit_from_index: int = 0,
+                 **options: Any) -> "ChainModel":
         """Fit the chain ``structure`` jointly (module docstring). ``n_operators`` and
         ``options`` go to the hysteresis kind's ``identify``, ``dynamics_options`` to the
-        dynamics kind's; data uniformly sampled (t [s], u [V], y [nm])."""
+        dynamics kind's; data uniformly sampled (t [s], u [V], y [nm]).
+
+        ``fit_from_index`` is a burn-in: the whole record runs through every stage (so the
+        hysteresis memory and the creep lags hold the state the recording put them in), but
+        only samples from that index on are fitted. Kinds with ``fits_with_burn_in`` get it
+        passed through; the others are fitted on the part after it."""
         hyst_kind, stages = parse_structure(structure)
         hcls = model_class(hyst_kind)
         t = check_finite("t_s", t_s).ravel()
@@ -149,8 +156,10 @@ class ChainModel(HysteresisModel):
         y = np.ascontiguousarray(check_finite("y_nm", y_nm).ravel())
         if not (t.size == u.size == y.size) or t.size < 8:
             raise ModelError("data: need equal-length columns t, u, y with at least 8 samples")
+        k0 = int(number_option("fit_from_index", fit_from_index, lo=0, hi=t.size - 8, integer=True))
         dt = float(np.median(np.diff(t)))
-        hyst, creep = _fit_static(hcls, t, u, y, dt, "creep" in stages, max(1, int(rounds)), n_operators, options)
+        fit = _StageFit(t, u, k0)
+        hyst, creep = _fit_static(hcls, fit, y, dt, "creep" in stages, max(1, int(rounds)), n_operators, options)
         dynamics = None
         if "dynamics" in stages:
             # the static chain's output drives the linear dynamics; the dynamics kind picks
@@ -158,22 +167,38 @@ class ChainModel(HysteresisModel):
             x = hyst.forward(dt).block(u)
             if creep is not None:
                 x = creep.forward(dt).block(x)
-            dynamics = model_class("dynamics").identify(t, x, y, **dict(dynamics_options or {}))
+            dynamics = model_class("dynamics").identify(t[k0:], x[k0:], y[k0:], **dict(dynamics_options or {}))
         return cls(hysteresis=hyst, creep=creep, dynamics=dynamics)
 
 
-def _fit_static(hcls: Any, t: np.ndarray, u: np.ndarray, y: np.ndarray, dt: float, with_creep: bool,
+class _StageFit:
+    """Identify one stage with a burn-in of ``k0`` samples: passed through to kinds with
+    ``fits_with_burn_in``, cut off for the others."""
+
+    def __init__(self, t: np.ndarray, u: np.ndarray, k0: int) -> None:
+        self.t, self.u, self.k0 = t, u, k0
+
+    def __call__(self, mcls: Any, x: np.ndarray, y: np.ndarray, **options: Any) -> Any:
+        if self.k0 and getattr(mcls, "fits_with_burn_in", False):
+            return mcls.identify(self.t, x, y, fit_from_index=self.k0, **options)
+        k = self.k0
+        return mcls.identify(self.t[k:], np.ascontiguousarray(x[k:]), np.ascontiguousarray(y[k:]), **options)
+
+
+def _fit_static(hcls: Any, fit: _StageFit, y: np.ndarray, dt: float, with_creep: bool,
                 rounds: int, n_operators: int | None, options: dict[str, Any]) -> tuple[Any, Any]:
-    """Alternate: hysteresis on the creep-corrected output, creep from its output to ``y``."""
+    """Alternate: hysteresis on the creep-corrected output, creep from its output to ``y``
+    (each stage run over the whole record, fitted after the burn-in)."""
     creep_cls = model_class("creep") if with_creep else None
+    u = fit.u
     target = y
     hyst = creep = None
     for _ in range(rounds if with_creep else 1):
-        hyst = hcls.identify(t, u, target, n_operators=n_operators, **dict(options))
+        hyst = fit(hcls, u, target, n_operators=n_operators, **dict(options))
         if creep_cls is None:
             break
         h = hyst.forward(dt).block(u)
-        creep = creep_cls.identify(t, h, y, **CREEP_OPTIONS)
+        creep = fit(creep_cls, h, y, **CREEP_OPTIONS)
         target = creep.inverse(dt).block(y)
     return hyst, creep
 

@@ -125,6 +125,7 @@ class LinearCreepModel(HysteresisModel):
 
     kind: Literal["creep"] = "creep"
     time_dependent: ClassVar[bool] = True
+    fits_with_burn_in: ClassVar[bool] = True
     gain_nm_per_V: FiniteFloat = Field(gt=0, description="static gain [nm/V]")
     offset_nm: FiniteFloat = Field(default=0.0, description="output offset [nm]")
     initial_V: FiniteFloat = Field(default=0.0, description="input at rest before the first sample [V]")
@@ -170,7 +171,8 @@ class LinearCreepModel(HysteresisModel):
         ``tau_min_s`` (default 5 samples) and ``tau_max_s`` (default a fifth of the record).
         With ``z_k`` the lag outputs of ``u``: ``y = offset + g(1 − Σc)·u + Σ g·c_k·z_k`` is
         linear in ``(offset, g(1−Σc), g·c_k)``; ``c_k ≥ 0`` is enforced with bounded least
-        squares. Data must be uniformly sampled.
+        squares. Data must be uniformly sampled. ``fit_from_index`` (option, default 0):
+        samples before it only drive the lags (a burn-in); the rows fitted start there.
         """
         from scipy.optimize import lsq_linear
 
@@ -190,8 +192,11 @@ class LinearCreepModel(HysteresisModel):
             raise ModelError("u_V: the input voltage never changes")
         tau_min = number_option("tau_min_s", options.pop("tau_min_s", 5 * dt))
         tau_max = number_option("tau_max_s", options.pop("tau_max_s", max(0.2 * (t[-1] - t[0]), 2 * tau_min)))
+        k0 = number_option("fit_from_index", options.pop("fit_from_index", 0), lo=0, hi=u.size - 4 * n - 4,
+                           integer=True)
         if options:
-            raise ModelError(f"options: unknown option(s) {', '.join(sorted(options))}; allowed: tau_min_s, tau_max_s")
+            raise ModelError(f"options: unknown option(s) {', '.join(sorted(options))}; "
+                             "allowed: tau_min_s, tau_max_s, fit_from_index")
         if not (0 < tau_min < tau_max):
             raise ModelError(f"tau_min_s, tau_max_s: need 0 < tau_min_s < tau_max_s (got {tau_min}, {tau_max})")
         tau = log_spaced_time_constants(tau_min, tau_max, n)
@@ -201,10 +206,10 @@ class LinearCreepModel(HysteresisModel):
         for k in range(n):
             a = math.exp(-dt / float(tau[k]))
             Z[:, k] = lfilter([1.0 - a], [1.0, -a], u, zi=[a * float(u[0])])[0]
-        A = np.column_stack([np.ones_like(u), u, Z])
+        A = np.column_stack([np.ones_like(u), u, Z])[k0:]
         lb = np.full(n + 2, -np.inf)
         lb[2:] = 0.0
-        res = lsq_linear(A, y, bounds=(lb, np.full(n + 2, np.inf)), method="bvls", tol=1e-12)
+        res = lsq_linear(A, y[k0:], bounds=(lb, np.full(n + 2, np.inf)), method="bvls", tol=1e-12)
         off, pu, pk = float(res.x[0]), float(res.x[1]), res.x[2:]
         g = pu + float(np.sum(pk))
         if g <= 0:

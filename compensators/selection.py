@@ -19,6 +19,7 @@ import numpy as np
 
 from .base import ModelError, check_finite
 from .chain import ChainModel, format_table, parse_structure
+from .input_checks import number_option
 
 log = logging.getLogger(__name__)
 
@@ -28,36 +29,38 @@ DEFAULT_CANDIDATES: tuple[str, ...] = ("pi", "pi+creep", "epi", "preisach", "pre
                                        "bouc-wen", "bouc-wen+creep")
 
 
-def _fit(structure: str, t: np.ndarray, u: np.ndarray, y: np.ndarray, options: dict[str, Any]) -> ChainModel:
-    return ChainModel.identify(t, u, y, structure=structure, **options)
+def _fit(structure: str, t: np.ndarray, u: np.ndarray, y: np.ndarray, options: dict[str, Any],
+         fit_from_index: int = 0) -> ChainModel:
+    return ChainModel.identify(t, u, y, structure=structure, fit_from_index=fit_from_index, **options)
 
 
-def scored_samples(u_V: np.ndarray, split: int) -> np.ndarray:
+def scored_samples(u_V: np.ndarray, split: int, fit_from_index: int = 0) -> np.ndarray:
     """Held-out samples whose input lies inside the training part's input range (no model
     can be asked to extrapolate past what it was identified on): a boolean mask over
-    ``u_V[split:]``."""
-    lo, hi = float(np.min(u_V[:split])), float(np.max(u_V[:split]))
+    ``u_V[split:]``; the training part is ``u_V[fit_from_index:split]``."""
+    lo, hi = float(np.min(u_V[fit_from_index:split])), float(np.max(u_V[fit_from_index:split]))
     return (u_V[split:] >= lo) & (u_V[split:] <= hi)
 
 
 def score_candidate(structure: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, split: int,
-                    options: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Identify ``structure`` on samples ``[:split]``, predict all, score ``[split:]``.
+                    options: dict[str, Any] | None = None, fit_from_index: int = 0) -> dict[str, Any]:
+    """Identify ``structure`` on samples ``[fit_from_index:split]`` (the samples before
+    ``fit_from_index`` only set the memory), predict all, score ``[split:]``.
 
     Returns a table row: ``structure``, ``heldout_rms_nm``, ``heldout_max_nm``,
     ``heldout_rms_pct``, ``heldout_max_pct`` (% of the held-out span), ``train_rms_nm``;
     or ``structure`` and ``error`` (one line) when the fit fails."""
     parse_structure(structure)
     try:
-        model = _fit(structure, t_s[:split], u_V[:split], y_nm[:split], options or {})
+        model = _fit(structure, t_s[:split], u_V[:split], y_nm[:split], options or {}, fit_from_index)
         dt = float(np.median(np.diff(t_s)))
         pred = model.forward(dt).block(np.ascontiguousarray(u_V))
     except (ModelError, ValueError, np.linalg.LinAlgError) as err:
         return {"structure": structure, "error": " ".join(str(err).split())}
     if not np.all(np.isfinite(pred)):
         return {"structure": structure, "error": "the model's prediction is not finite"}
-    e_test = (pred[split:] - y_nm[split:])[scored_samples(u_V, split)]
-    e_train = pred[:split] - y_nm[:split]
+    e_test = (pred[split:] - y_nm[split:])[scored_samples(u_V, split, fit_from_index)]
+    e_train = (pred - y_nm)[fit_from_index:split]
     span = float(np.ptp(y_nm[split:])) or 1.0
     rms = float(np.sqrt(np.mean(e_test ** 2)))
     peak = float(np.max(np.abs(e_test)))
@@ -66,42 +69,55 @@ def score_candidate(structure: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.n
             "train_rms_nm": round(float(np.sqrt(np.mean(e_train ** 2))), 4)}
 
 
-def _key(row: dict[str, Any]) -> tuple[float, float]:
+#: selection criteria: the table's sort key (held-out nm), ties broken by the other one
+CRITERIA: tuple[str, ...] = ("rms", "max")
+
+
+def _key(row: dict[str, Any], criterion: str = "rms") -> tuple[float, float]:
     if "error" in row:
         return (math.inf, math.inf)
-    return (row["heldout_max_nm"], row["heldout_rms_nm"])
+    rms, peak = row["heldout_rms_nm"], row["heldout_max_nm"]
+    return (rms, peak) if criterion == "rms" else (peak, rms)
 
 
 def select_model(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates: Sequence[str] = DEFAULT_CANDIDATES,
                  holdout_fraction: float = 0.3, options: dict[str, Any] | None = None,
+                 fit_from_index: int = 0, criterion: str = "rms",
                  ) -> tuple[ChainModel, list[dict[str, Any]]]:
     """Score every candidate (module docstring), refit the best on all the data.
 
-    ``t_s`` [s] uniformly sampled, ``u_V`` [V], ``y_nm`` [nm]. Returns the best model (its
-    ``selection`` field holds the table, best first) and the table."""
+    ``t_s`` [s] uniformly sampled, ``u_V`` [V], ``y_nm`` [nm]. ``fit_from_index`` is a
+    burn-in: the samples before it only set the models' memory; of the part after it, the
+    first ``1 − holdout_fraction`` is fitted and the rest scored (the models run over the
+    whole record). ``criterion``: ``rms`` (default) or ``max`` held-out error. Returns the
+    best model (its ``selection`` field holds the table, best first) and the table."""
     t = check_finite("t_s", t_s).ravel()
     u = np.ascontiguousarray(check_finite("u_V", u_V).ravel())
     y = np.ascontiguousarray(check_finite("y_nm", y_nm).ravel())
     if not 0.05 <= holdout_fraction <= 0.5:
         raise ModelError(f"holdout_fraction: {holdout_fraction}; allowed 0.05 … 0.5")
+    if criterion not in CRITERIA:
+        raise ModelError(f"criterion: {criterion!r}; allowed {', '.join(CRITERIA)}")
     if not candidates:
         raise ModelError("candidates: none given")
-    split = int(round(t.size * (1.0 - holdout_fraction)))
-    if split < 64 or t.size - split < 16:
-        raise ModelError(f"data: {t.size} samples are too few to hold out {holdout_fraction:.0%} for scoring")
-    inside = float(np.mean(scored_samples(u, split)))
+    k0 = int(number_option("fit_from_index", fit_from_index, lo=0, hi=max(0, t.size - 80), integer=True))
+    split = k0 + int(round((t.size - k0) * (1.0 - holdout_fraction)))
+    if split - k0 < 64 or t.size - split < 16:
+        raise ModelError(f"data: {t.size - k0} samples after the burn-in are too few to hold out "
+                         f"{holdout_fraction:.0%} for scoring")
+    inside = float(np.mean(scored_samples(u, split, k0)))
     if inside < 0.5:
         raise ModelError(f"data: only {inside:.0%} of the held-out last {holdout_fraction:.0%} lies inside the input "
                          "range of the rest; excite the full voltage range early in the record")
     table = []
     for structure in candidates:
-        row = score_candidate(structure, t, u, y, split, options)
+        row = score_candidate(structure, t, u, y, split, options, k0)
         log.info("auto: %s → %s", structure, row)
         table.append(row)
-    table.sort(key=_key)
+    table.sort(key=lambda row: _key(row, criterion))
     if "error" in table[0]:
         raise ModelError("data: no candidate could be identified; " + "; ".join(
             f"{r['structure']}: {r['error']}" for r in table))
-    best = _fit(table[0]["structure"], t, u, y, options or {})
+    best = _fit(table[0]["structure"], t, u, y, options or {}, k0)
     best.selection = table
     return best, table

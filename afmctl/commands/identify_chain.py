@@ -10,7 +10,8 @@ log = logging.getLogger(__name__)
 
 def _read(args: argparse.Namespace):
     """The recording conditioned as for single kinds (units, spikes, uniform sampling, the
-    estimated sensor delay applied), from the end of the burn-in on: ``(t, u, y, delay_s)``."""
+    estimated sensor delay applied), whole: ``(t, u, y, delay_s, fit_from)``; the samples
+    before ``fit_from`` (the burn-in) only set the models' memory."""
     from ..errors import AfmctlError
     from ..identdata import delayed
     from .identify_io import _read_conditioned
@@ -27,10 +28,10 @@ def _read(args: argparse.Namespace):
     for note in c.notes:
         print(f"data             : {note}")
     u = delayed(c.t_s, c.u_V, c.delay_s)
-    return c.t_s[k:], u[k:], c.y_nm[k:], c.delay_s
+    return c.t_s, u, c.y_nm, c.delay_s, k
 
 
-def _fit(args: argparse.Namespace, t, u, y):
+def _fit(args: argparse.Namespace, t, u, y, fit_from: int):
     from afmctl.compensators.chain import ChainModel, parse_structure
     from afmctl.compensators.selection import format_table, select_model
 
@@ -41,14 +42,17 @@ def _fit(args: argparse.Namespace, t, u, y):
     if args.model == "auto":
         holdout = float(params.pop("holdout_fraction", 0.3))
         candidates = params.pop("candidates", None)
+        criterion = str(params.pop("criterion", "rms"))
         kwargs = {"candidates": tuple(candidates)} if candidates else {}
-        model, table = select_model(t, u, y, holdout_fraction=holdout, options=params, **kwargs)
-        print(f"held-out prediction error (last {holdout:.0%} of {args.data}; % of its span):")
+        model, table = select_model(t, u, y, holdout_fraction=holdout, options=params, fit_from_index=fit_from,
+                                    criterion=criterion, **kwargs)
+        print(f"held-out prediction error (last {holdout:.0%} of {args.data} after the burn-in; % of its span; "
+              f"ranked by {criterion}):")
         print(format_table(table))
         print(f"selected         : {model.structure}")
         return model
     parse_structure(args.model)
-    return ChainModel.identify(t, u, y, structure=args.model, **params)
+    return ChainModel.identify(t, u, y, structure=args.model, fit_from_index=fit_from, **params)
 
 
 def run_chain(args: argparse.Namespace) -> int:
@@ -60,9 +64,9 @@ def run_chain(args: argparse.Namespace) -> int:
 
     from ..errors import AfmctlError
     from .identify_io import _plot
-    t, u, y, delay_s = _read(args)
+    t, u, y, delay_s, k = _read(args)
     try:
-        model = _fit(args, t, u, y)
+        model = _fit(args, t, u, y, k)
     except TypeError as err:
         raise AfmctlError(f"--param: not accepted by --model {args.model} ({err})") from None
     except ModelError as err:
@@ -71,9 +75,10 @@ def run_chain(args: argparse.Namespace) -> int:
         raise ModelError(f"{args.data}: the fit failed ({err}); is the input excited over its range?") from None
     dt = float(np.median(np.diff(t)))
     y_fit = model.forward(dt).block(np.ascontiguousarray(u))
-    rms = float(np.sqrt(np.mean((y_fit - y) ** 2)))
-    peak = float(np.max(np.abs(y_fit - y)))
-    span = float(np.ptp(y)) or 1.0
+    res = (y_fit - y)[k:]               # the burn-in only set the memory
+    rms = float(np.sqrt(np.mean(res ** 2)))
+    peak = float(np.max(np.abs(res)))
+    span = float(np.ptp(y[k:])) or 1.0
     model.delay_s = delay_s
     if model.u_range_V is None:        # compensate's default --limits
         model.u_range_V = (float(np.min(u)), float(np.max(u)))
@@ -82,9 +87,10 @@ def run_chain(args: argparse.Namespace) -> int:
     except OSError as err:
         raise AfmctlError(f"--out: cannot write {args.out} ({err.strerror})") from None
     print(model.summary())
-    print(f"fit residual     : rms {rms:.4g} nm, max {peak:.4g} nm ({100 * peak / span:.3g} % of the {span:.4g} nm span)")
+    print(f"fit residual     : rms {rms:.4g} nm, max {peak:.4g} nm ({100 * peak / span:.3g} % of the {span:.4g} nm span)"
+          + (f", from t = {float(t[k]):.4g} s" if k else ""))
     print(f"written          : {args.out}")
     if args.plot:
-        _plot(args.plot, t, u, y, y_fit, model.structure)
+        _plot(args.plot, t[k:], u[k:], y[k:], y_fit[k:], model.structure)
         print(f"plot             : {args.plot}")
     return 0
