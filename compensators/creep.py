@@ -214,7 +214,7 @@ class LinearCreepModel(HysteresisModel):
         g = pu + float(np.sum(pk))
         if g <= 0:
             raise ModelError("data: the fitted static gain is not positive; is y really increasing with u?")
-        c = pk / g
+        c = np.maximum(pk, 0.0) / g     # bvls may return -0.0 or a rounding-level negative
         if float(np.sum(c)) >= 1.0:
             c = c * (0.999 / float(np.sum(c)))
         return cls(gain_nm_per_V=g, offset_nm=off, initial_V=float(u[0]), time_constants_s=tau.tolist(),

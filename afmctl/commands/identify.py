@@ -37,10 +37,13 @@ Model kinds (--model):
             a chain (kind chain): hysteresis KIND (pi, epi, preisach, bouc-wen), then
             linear creep, then linear dynamics, identified jointly (Hammerstein);
             needs uniformly spaced samples
-  auto      fit every candidate chain on the first 70 % of the data, score each by its
-            prediction error on the last 30 % (held out), print the table and keep
-            the best (re-fitted on all the data); the table is stored in the model
-            file. Excite the full voltage range in the first 70 %.
+  auto      fit every candidate chain on the first 70 % of the data after the burn-in,
+            score each by its prediction error on the last 30 % (held out; the models
+            run over the whole record, so the burn-in sets their memory), print the
+            table and keep the lowest held-out RMS (re-fitted on all the data); the
+            table is stored in the model file. Excite the full voltage range in the
+            first 70 %. --param 'candidates=["pi","preisach+creep"]',
+            holdout_fraction=0.3, criterion=rms|max
 Real recordings (--data):
   --burn-in auto    samples until the input has passed both its extremes only set the model's
                     memory (the state the recording started in is unknown); 'none' or SECONDS
