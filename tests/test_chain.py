@@ -157,6 +157,10 @@ def test_identify_chain_bad_input_is_one_line(ident, capsys, tmp_path):
     rc = main(["identify", "--model", "auto", "--from-images", "x.npz", "--out", str(tmp_path / "m.json")])
     err = capsys.readouterr().err
     assert rc == 2 and "--from-images takes a single kind" in err
+    rc = main(["identify", "--model", "auto", "--data", str(d / "ident.csv"), "--out", str(tmp_path / "m.json"),
+               "--param", "criterion=median"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--param criterion: 'median'; allowed rms, max" in err and "Traceback" not in err
 
 
 def test_run_says_which_model_drives_which_axis(chain, tmp_path, capsys):

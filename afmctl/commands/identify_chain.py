@@ -33,8 +33,9 @@ def _read(args: argparse.Namespace):
 
 def _fit(args: argparse.Namespace, t, u, y, fit_from: int):
     from afmctl.compensators.chain import ChainModel, parse_structure
-    from afmctl.compensators.selection import format_table, select_model
+    from afmctl.compensators.selection import CRITERIA, format_table, select_model
 
+    from ..errors import AfmctlError
     from .identify_io import parse_params
     params = parse_params(args.param)
     if args.operators is not None:
@@ -42,7 +43,9 @@ def _fit(args: argparse.Namespace, t, u, y, fit_from: int):
     if args.model == "auto":
         holdout = float(params.pop("holdout_fraction", 0.3))
         candidates = params.pop("candidates", None)
-        criterion = str(params.pop("criterion", "rms"))
+        criterion = params.pop("criterion", "rms")
+        if criterion not in CRITERIA:
+            raise AfmctlError(f"--param criterion: {criterion!r}; allowed {', '.join(CRITERIA)} (held-out error)")
         kwargs = {"candidates": tuple(candidates)} if candidates else {}
         model, table = select_model(t, u, y, holdout_fraction=holdout, options=params, fit_from_index=fit_from,
                                     criterion=criterion, **kwargs)
