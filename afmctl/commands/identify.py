@@ -73,6 +73,7 @@ Output:
 Examples:
   afmctl identify --model pi --data sweep.csv --out pi.json --operators 13
   afmctl identify --model preisach --data sweep.csv --out pre.json --param u_min_V=0 --param u_max_V=150
+  afmctl identify --model auto --data recording.csv --out best.json   # prints the held-out table
   afmctl compensate --model pi.json --target path.csv --out volts.csv
 """
 
