@@ -118,9 +118,9 @@ class StreamProducer:
         per top-up cycle (tests inject host stalls there). Returns the statistics."""
         samples = np.asarray(samples_V, dtype=float).reshape(-1, 3)
         self.safety.sync_from_device()
-        self.amp.start_stream(self.rate_Hz)
+        self.amp.start_stream(self.rate_Hz, prefill=int(min(self.high, len(samples))))
         self._queued = 0
-        poll_s = max((self.high - self.low) / self.rate_Hz / 4, 0.0005)
+        poll_s = max(min(self.high - self.low, self.low) / self.rate_Hz / 4, 0.0005)
         next_wake = self.clock()
         while self._queued < len(samples) and not self._estop.is_set():
             level = self._queued - self._played()
@@ -158,7 +158,7 @@ class StreamProducer:
         ramp = []
         while [round(v, 9) for v in s.last] != [round(g, 9) for g in goal]:
             ramp.extend(self.limit_block(np.array([s.xyz(goal, fill=0.0)])))
-        self.amp.start_stream(self.rate_Hz)
+        self.amp.start_stream(self.rate_Hz, prefill=int(min(self.high, len(ramp))))
         self._queued = 0
         self._queue_paced(ramp)
         self.stats.ramp_samples = len(ramp)

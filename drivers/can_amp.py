@@ -209,9 +209,9 @@ class CANAmplifier(Amplifier):
                 "dbc": codec.DBC_RESOURCE}
 
     # -- buffered stream --
-    def _stream_command(self, cmd: int, rate_Hz: float = 0.0) -> BufferStatus:
+    def _stream_command(self, cmd: int, rate_Hz: float = 0.0, prefill: int = 1) -> BufferStatus:
         """Send STREAM_CTRL and wait for the STREAM_STATUS that answers it."""
-        data = codec.encode_stream_ctrl(cmd, rate_Hz)
+        data = codec.encode_stream_ctrl(cmd, rate_Hz, prefill)
         with self._cond:
             before = self._stream_status_count
         self.transport.send(self._ids[codec.STREAM_CTRL], data, self.timeout_s)
@@ -226,12 +226,13 @@ class CANAmplifier(Amplifier):
             assert self._stream_status is not None
             return _buffer_status(self._stream_status)
 
-    def start_stream(self, rate_Hz: float) -> BufferStatus:
+    def start_stream(self, rate_Hz: float, prefill: int = 1) -> BufferStatus:
         """Empty the amplifier's FIFO and arm it to play queued samples at ``rate_Hz`` [Hz]
-        (a whole number) on its own clock; the clock starts with the first sample queued."""
+        (a whole number) on its own clock; the clock starts once ``prefill`` samples are
+        queued (or at :meth:`drain_stream`)."""
         with self._lock:
             self._guard()
-            status = self._io(self._stream_command, codec.CMD_START, rate_Hz)
+            status = self._io(self._stream_command, codec.CMD_START, rate_Hz, prefill)
             self._stream_seq = 0
             self.stream_rate_Hz = float(rate_Hz)
             return status

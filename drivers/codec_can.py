@@ -13,14 +13,14 @@ HEARTBEAT       host     COUNTER, REQ_STATE (0 keep/1 enable/2 disable), REQ_STA
 STATUS          amp      applied X_V, Y_V, Z_V, LAST_SEQ, STATE, ERROR_CODE
 ERROR           amp      CODE, DETAIL, SEQ
 LIMITS          amp      MIN_V, X_MAX_V, Y_MAX_V, Z_MAX_V
-STREAM_CTRL     host     CMD (0 status/1 start/2 flush/3 drain), RATE_HZ
+STREAM_CTRL     host     CMD (0 status/1 start/2 flush/3 drain), RATE_HZ, PREFILL
 STREAM_XYZ      host     X_V, Y_V, Z_V, SEQ (16 bit) — one sample for the stream FIFO
 STREAM_STATUS   amp      LEVEL, UNDERRUNS, PLAYED_SEQ, STREAM_STATE, CAPACITY_LOG2, OVERFLOWS
 ==============  =======  ==========================================================
 
 Buffered stream (device-timed output): the host sends STREAM_CTRL start with the rate,
 then STREAM_XYZ samples; the amplifier plays sample k at t0 + k / RATE_HZ on its own
-clock (t0 = arrival of sample 0) and counts an underrun for every tick with an empty FIFO
+clock (t0 = arrival of the sample that makes the FIFO hold PREFILL samples) and counts an underrun for every tick with an empty FIFO
 (the output then holds). STREAM_CTRL flush empties the FIFO at once (estop).
 """
 from __future__ import annotations
@@ -125,15 +125,19 @@ def encode_stream_sample(values_V: Sequence[float], seq: int, lows_V: Sequence[f
     return message(STREAM_SAMPLE).encode({"X_V": x, "Y_V": y, "Z_V": z, "SEQ": seq & 0xFFFF}, strict=False)
 
 
-def encode_stream_ctrl(cmd: int, rate_Hz: float = 0.0) -> bytes:
-    """4 data bytes of STREAM_CTRL: ``cmd`` one of CMD_STATUS/START/FLUSH/DRAIN; ``rate_Hz``
-    the play rate for CMD_START (a whole number of Hz, 1..1 000 000)."""
+def encode_stream_ctrl(cmd: int, rate_Hz: float = 0.0, prefill: int = 1) -> bytes:
+    """6 data bytes of STREAM_CTRL: ``cmd`` one of CMD_STATUS/START/FLUSH/DRAIN; ``rate_Hz``
+    the play rate for CMD_START (a whole number of Hz, 1..1 000 000); ``prefill`` the samples
+    to queue before the amplifier's clock starts (1..65535)."""
+    if not (isinstance(prefill, int) and 1 <= prefill <= 0xFFFF):
+        raise LimitError(f"stream prefill {prefill!r}: a whole number of samples in 1..65535")
     if cmd not in (CMD_STATUS, CMD_START, CMD_FLUSH, CMD_DRAIN):
         raise ProtocolError(f"STREAM_CTRL: unknown command {cmd!r} (0..3)")
     rate = round(float(rate_Hz)) if math.isfinite(rate_Hz) else -1
     if cmd == CMD_START and not (1 <= rate <= 1_000_000 and rate == float(rate_Hz)):
         raise LimitError(f"stream rate {rate_Hz!r} Hz: a whole number of Hz in 1..1000000")
-    return message(STREAM_CTRL).encode({"CMD": cmd, "RATE_HZ": rate if cmd == CMD_START else 0})
+    return message(STREAM_CTRL).encode({"CMD": cmd, "RATE_HZ": rate if cmd == CMD_START else 0,
+                                        "PREFILL": prefill if cmd == CMD_START else 0})
 
 
 def encode_heartbeat(counter: int, req_state: int = 0, req_status: bool = False, req_info: bool = False) -> bytes:

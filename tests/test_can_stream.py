@@ -28,8 +28,11 @@ def test_stream_sample_bytes_are_little_endian_with_a_16_bit_seq():
 
 
 def test_stream_ctrl_bytes_and_refusals():
-    assert codec_can.encode_stream_ctrl(codec_can.CMD_START, 10_000) == bytes([0x01, 0x10, 0x27, 0x00])
-    assert codec_can.encode_stream_ctrl(codec_can.CMD_FLUSH) == bytes([0x02, 0, 0, 0])
+    assert codec_can.encode_stream_ctrl(codec_can.CMD_START, 10_000) == bytes([0x01, 0x10, 0x27, 0x00, 1, 0])
+    assert codec_can.encode_stream_ctrl(codec_can.CMD_START, 1000, 300) == bytes([0x01, 0xE8, 0x03, 0, 0x2C, 1])
+    assert codec_can.encode_stream_ctrl(codec_can.CMD_FLUSH) == bytes([0x02, 0, 0, 0, 0, 0])
+    with pytest.raises(LimitError, match="prefill"):
+        codec_can.encode_stream_ctrl(codec_can.CMD_START, 1000, 0)
     for bad in (0, 0.5, 1e7, float("nan"), 100.5):
         with pytest.raises(LimitError, match="whole number of Hz"):
             codec_can.encode_stream_ctrl(codec_can.CMD_START, bad)
@@ -70,13 +73,30 @@ def test_a_sample_that_arrives_after_its_tick_is_an_underrun():
     assert [t for t, _ in played] == [0.0, 0.02] and p.underruns == 2  # ticks 1 and 3
 
 
+def test_the_clock_starts_when_the_prefill_is_queued():
+    p, played = _player()
+    p.start(1000.0, prefill=3)
+    p.push(0, (1.0, 0.0, 0.0), 0.0)
+    p.push(1, (2.0, 0.0, 0.0), 0.004)  # slower than the rate: no underrun while armed
+    p.run_until(0.005)
+    assert p.state is StreamState.ARMED and not played
+    p.push(2, (3.0, 0.0, 0.0), 0.006)
+    p.run_until(0.008)
+    assert [t for t, _ in played] == [0.006, 0.007, 0.008] and p.underruns == 0
+    p.start(1000.0, prefill=10)
+    p.push(0, (1.0, 0.0, 0.0), 1.0)
+    p.drain(1.5)  # fewer than the prefill: drain starts the clock
+    p.run_until(2.0)
+    assert played[-1] == (1.5, (1.0, 0.0, 0.0)) and p.state is StreamState.IDLE
+
+
 def test_drain_flush_overflow_and_gap():
     p, played = _player(capacity_log2=2)
     assert p.push(0, (0.0,) * 3, 0.0) == "idle"
     p.start(10.0)
     assert [p.push(k, (0.0,) * 3, 0.0) for k in (0, 1, 2, 3)] == [None] * 4
     assert p.push(4, (0.0,) * 3, 0.0) == "overflow" and p.overflows == 1
-    p.drain()
+    p.drain(0.0)
     p.run_until(10.0)
     assert p.state is StreamState.IDLE and len(played) == 4 and p.underruns == 0
     p.start(10.0)
@@ -116,7 +136,7 @@ def _ramp(n: int, start_V: float = 0.0, step_V: float = 0.01) -> list[tuple[floa
 def test_driver_streams_a_block_played_on_the_amplifier_clock(link):
     amp, sim, sink = link
     _move_to(amp, 0.0, 10.0, 20.0)
-    assert amp.start_stream(1000).state == "armed"
+    assert amp.start_stream(1000, prefill=300).state == "armed"
     block = _ramp(300)
     assert amp.queue(block) == 300
     amp.drain_stream()  # play what is queued, then stop (no underruns counted at the end)

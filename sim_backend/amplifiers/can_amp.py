@@ -276,11 +276,11 @@ class SimCANAmplifier:
                 if rate < 1:
                     self._error(1, 0, 0)
                 else:
-                    self.stream.start(rate)
+                    self.stream.start(rate, int(sig["PREFILL"]))
             elif cmd == 2:
                 self.stream.flush()
             elif cmd == 3:
-                self.stream.drain()
+                self.stream.drain(self.now())
             self.send_stream_status()
             self._stream_lock.notify_all()
 

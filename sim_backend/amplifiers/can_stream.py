@@ -57,9 +57,11 @@ class StreamPlayer:
         self.expected_seq = 0
 
     # -- host commands --
-    def start(self, rate_Hz: float) -> None:
-        """Empty the FIFO and arm: sample 0's arrival starts the clock at ``rate_Hz``."""
+    def start(self, rate_Hz: float, prefill: int = 1) -> None:
+        """Empty the FIFO and arm: the clock starts at ``rate_Hz`` when ``prefill`` samples
+        are queued (t0 = the arrival of that sample; all of them are there by then)."""
         self._fifo.clear()
+        self.prefill = max(1, int(prefill))
         self.rate_Hz = float(rate_Hz)
         self.tick = 0
         self.underruns = 0
@@ -73,11 +75,14 @@ class StreamPlayer:
         self._fifo.clear()
         self.state = StreamState.IDLE
 
-    def drain(self) -> None:
-        """Play what is queued, then stop."""
-        if self.state is StreamState.PLAYING:
+    def drain(self, now_s: float) -> None:
+        """Play what is queued (starting the clock at ``now_s`` if still armed), then stop."""
+        if self.state is StreamState.ARMED and self._fifo:
+            self.t0_s = now_s
             self.state = StreamState.DRAINING
-        elif self.state is StreamState.ARMED:  # nothing queued yet
+        elif self.state is StreamState.PLAYING:
+            self.state = StreamState.DRAINING
+        elif self.state is StreamState.ARMED:  # nothing queued
             self.state = StreamState.IDLE
 
     def fault(self) -> None:
@@ -97,10 +102,10 @@ class StreamPlayer:
             self.gaps += 1
             outcome = "gap"
         self.expected_seq = (seq + 1) & 0xFFFF
-        if self.state is StreamState.ARMED:
+        self._fifo.append((t_arrival_s, seq, values))
+        if self.state is StreamState.ARMED and len(self._fifo) >= self.prefill:
             self.state = StreamState.PLAYING
             self.t0_s = t_arrival_s
-        self._fifo.append((t_arrival_s, seq, values))
         return outcome
 
     # -- the amplifier's clock --
@@ -109,7 +114,7 @@ class StreamPlayer:
         return self.t0_s + k / self.rate_Hz
 
     def run_until(self, now_s: float) -> int:
-        """Play every tick due at or before ``now_s``; returns how many ticks were played."""
+        """Play every tick due at or before ``now_s``; returns how many ticks passed."""
         n = 0
         while self.state in (StreamState.PLAYING, StreamState.DRAINING):
             t_k = self.tick_time_s(self.tick)
@@ -120,14 +125,28 @@ class StreamPlayer:
                 self.played_seq = seq
                 self.played += 1
                 self.apply(values, t_k)
+                skip = 1
             elif self.state is StreamState.DRAINING and not self._fifo:
                 self.state = StreamState.IDLE
                 break
-            else:
-                self.underruns += 1
-            self.tick += 1
-            n += 1
+            else:  # empty (or the head arrives later): every tick up to then is an underrun
+                skip = self._ticks_through(min(now_s, self._fifo[0][0]) if self._fifo else now_s)
+                if self._fifo and skip > 1 and self.tick_time_s(self.tick + skip - 1) >= self._fifo[0][0]:
+                    skip -= 1  # the head is there at its arrival tick: that one plays
+                self.underruns += skip
+            self.tick += skip
+            n += skip
         return n
+
+    def _ticks_through(self, t_s: float) -> int:
+        """How many ticks from the current one lie at or before ``t_s`` (at least 1: the
+        current tick is due). Computed, then corrected against :meth:`tick_time_s`."""
+        k = max(self.tick, int((t_s - self.t0_s) * self.rate_Hz))
+        while self.tick_time_s(k + 1) <= t_s:
+            k += 1
+        while k > self.tick and self.tick_time_s(k) > t_s:
+            k -= 1
+        return k - self.tick + 1
 
     def next_tick_s(self) -> float | None:
         """When the next tick is due [s], or None when not playing."""
