@@ -156,7 +156,7 @@ def test_a_stalling_producer_with_a_buffer_causes_no_underrun(link):
     zero underruns, every played sample at exactly t0 + k / rate."""
     amp, sim, sink = link
     _move_to(amp, 0.0, 10.0, 20.0)
-    amp.start_stream(1000)
+    amp.start_stream(1000, prefill=100)
     rate, n_total, low, high = 1000, 1000, 60, 100
 
     def samples(k0: int, n: int) -> list[tuple[float, float, float]]:
