@@ -243,3 +243,37 @@ def test_no_block_makes_the_driver_queue_a_value_outside_limits_or_slew(link, de
     for r0, r1 in zip(got, got[1:]):
         for v0, v1 in zip(r0, r1):
             assert 0.0 <= v1 <= 150.0 and abs(v1 - v0) <= 0.5 + 1e-9
+
+
+def test_simulator_stream_frames_on_the_raw_bus():
+    """Raw frames (cantools from the DBC file, no driver): start answers STREAM_STATUS armed,
+    a sample out of range stops the stream (ERROR 1, state fault), a SEQ gap is reported."""
+    import can
+    import cantools
+    from pathlib import Path
+
+    db = cantools.database.load_file(str(Path(codec_can.__file__).with_name(codec_can.DBC_RESOURCE)))
+    ctrl, sample = db.get_message_by_name("STREAM_CTRL"), db.get_message_by_name("STREAM_XYZ")
+    channel = f"raw-{uuid.uuid4().hex[:8]}"
+
+    def send(bus, msg, **sig):
+        bus.send(can.Message(arbitration_id=msg.frame_id, is_extended_id=False, data=msg.encode(sig)))
+
+    def recv(bus, name):
+        while (m := bus.recv(1.0)) is not None:
+            if m.arbitration_id == db.get_message_by_name(name).frame_id:
+                return db.decode_message(m.arbitration_id, m.data, decode_choices=False)
+        raise AssertionError(f"no {name}")
+
+    with serve_can(channel) as sim, can.Bus(interface="virtual", channel=channel) as bus:
+        send(bus, ctrl, CMD=1, RATE_HZ=100, PREFILL=5)
+        st = recv(bus, "STREAM_STATUS")
+        assert (st["STREAM_STATE"], st["LEVEL"], st["CAPACITY_LOG2"]) == (1, 0, 12)
+        send(bus, sample, X_V=1.0, Y_V=1.0, Z_V=1.0, SEQ=0)
+        send(bus, sample, X_V=1.0, Y_V=1.0, Z_V=1.0, SEQ=2)
+        assert (recv(bus, "ERROR")["CODE"], sim.gaps) == (2, 1)
+        send(bus, sample, X_V=160.0, Y_V=1.0, Z_V=1.0, SEQ=3)
+        assert recv(bus, "ERROR")["CODE"] == 1
+        send(bus, ctrl, CMD=0, RATE_HZ=0, PREFILL=0)
+        st = recv(bus, "STREAM_STATUS")
+        assert (st["STREAM_STATE"], st["LEVEL"]) == (4, 0) and sim.stream.played == 0
