@@ -7,6 +7,13 @@ LAST_SEQ is the last one sent (no frame lost) and that no ERROR frame came back.
 At connect the driver asks for LIMITS and STATUS and continues the sequence after the
 amplifier's LAST_SEQ. Received frames are handled by a :class:`can.Notifier`; bus errors
 arrive through the listener's ``on_error`` and put the driver in ``DISCONNECTED``.
+
+Buffered stream (device-timed output): :meth:`start_stream` sets the amplifier playing
+samples at ``rate_Hz`` on its own clock, :meth:`queue` sends a block of samples (each
+checked first: limits and at most ``max_step_V`` between consecutive samples, i.e. the
+slew limit times the sample period), :meth:`buffer_status` reads the FIFO level and
+underruns, :meth:`flush_stream` empties the FIFO at once (estop) and reads the output it
+left, :meth:`drain_stream` lets it play out.
 The safety checks (limits, step limit, lock, state) are the template's
 (:class:`afmctl.drivers.base.Amplifier`); this module fills in its hooks.
 """
@@ -15,14 +22,29 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 from . import codec_can as codec
 from .base import Amplifier, ConnectionState, VoltageLimits
 from .errors import AmplifierTimeout, LimitError, ProtocolError
+from .stream_safety import check_block
 from .transport_can import CanTransport
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class BufferStatus:
+    """The amplifier's stream FIFO as its STREAM_STATUS frame reports it."""
+
+    level: int  #: samples queued
+    capacity: int  #: FIFO size [samples]
+    underruns: int  #: ticks with an empty FIFO since the start (mod 65536)
+    played_seq: int  #: SEQ of the last sample played
+    state: str  #: idle, armed, playing, draining, fault
+    overflows: int  #: samples refused by a full FIFO (mod 256)
 
 
 class CANAmplifier(Amplifier):
@@ -40,6 +62,10 @@ class CANAmplifier(Amplifier):
         self._status: dict[str, float] | None = None
         self._status_count = 0
         self._limits_frame: dict[str, float] | None = None
+        self._stream_status: dict[str, float] | None = None
+        self._stream_status_count = 0
+        self._stream_seq = 0
+        self.stream_rate_Hz: float | None = None
         self._errors: list[ProtocolError] = []
         self._bus_error: Exception | None = None
         self._seq = 0
@@ -47,7 +73,9 @@ class CANAmplifier(Amplifier):
         self._counter = 0
         self.sent = 0
         self._ids = {name: codec.frame_id(name) for name in
-                     (codec.SETPOINT, codec.HEARTBEAT, codec.STATUS, codec.ERROR, codec.LIMITS)}
+                     (codec.SETPOINT, codec.HEARTBEAT, codec.STATUS, codec.ERROR, codec.LIMITS,
+                      codec.STREAM_CTRL, codec.STREAM_SAMPLE, codec.STREAM_STATUS)}
+        self._rx_kinds = {self._ids[k]: k for k in (codec.STATUS, codec.ERROR, codec.LIMITS, codec.STREAM_STATUS)}
         super().__init__(transport, **options)
 
     @classmethod
@@ -64,8 +92,7 @@ class CANAmplifier(Amplifier):
     # -- receive side (notifier thread) --
     def _on_message(self, msg: Any) -> None:
         fid = msg.arbitration_id
-        kind = {self._ids[codec.STATUS]: codec.STATUS, self._ids[codec.ERROR]: codec.ERROR,
-                self._ids[codec.LIMITS]: codec.LIMITS}.get(fid)
+        kind = self._rx_kinds.get(fid)
         if kind is None:
             return
         try:
@@ -80,6 +107,9 @@ class CANAmplifier(Amplifier):
                 self._status_count += 1
             elif kind == codec.LIMITS:
                 self._limits_frame = sig
+            elif kind == codec.STREAM_STATUS:
+                self._stream_status = sig
+                self._stream_status_count += 1
             else:
                 self._errors.append(codec.error_from(sig, bytes(msg.data)))
             self._cond.notify_all()
@@ -177,3 +207,96 @@ class CANAmplifier(Amplifier):
         st = self._status or {}
         return {"amplifier_state": codec.STATES.get(int(st.get("STATE", 2)), "unknown"),
                 "dbc": codec.DBC_RESOURCE}
+
+    # -- buffered stream --
+    def _stream_command(self, cmd: int, rate_Hz: float = 0.0, prefill: int = 1) -> BufferStatus:
+        """Send STREAM_CTRL and wait for the STREAM_STATUS that answers it."""
+        data = codec.encode_stream_ctrl(cmd, rate_Hz, prefill)
+        with self._cond:
+            before = self._stream_status_count
+        self.transport.send(self._ids[codec.STREAM_CTRL], data, self.timeout_s)
+        deadline = time.monotonic() + self.timeout_s
+        with self._cond:
+            while self._stream_status_count == before:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise AmplifierTimeout(f"no STREAM_STATUS from the CAN amplifier on {self.transport.url} "
+                                           f"within {self.timeout_s:g} s")
+                self._cond.wait(left)
+            assert self._stream_status is not None
+            return _buffer_status(self._stream_status)
+
+    def start_stream(self, rate_Hz: float, prefill: int = 1) -> BufferStatus:
+        """Empty the amplifier's FIFO and arm it to play queued samples at ``rate_Hz`` [Hz]
+        (a whole number) on its own clock; the clock starts once ``prefill`` samples are
+        queued (or at :meth:`drain_stream`)."""
+        with self._lock:
+            self._guard()
+            status = self._io(self._stream_command, codec.CMD_START, rate_Hz, prefill)
+            self._stream_seq = 0
+            self.stream_rate_Hz = float(rate_Hz)
+            return status
+
+    def queue(self, block_V: Sequence[Sequence[float]]) -> int:
+        """Queue samples (rows of x, y, z [V]) for the stream; every sample, quantised to the
+        frame's 2.5 mV step, is checked before the first is sent (limits, ``max_step_V`` from
+        the previous sample). Returns the number queued."""
+        with self._lock:
+            self._guard()
+            if self.stream_rate_Hz is None:
+                raise ProtocolError("queue() before start_stream(): the amplifier is not streaming")
+            lim = self._limits
+            raw = check_block(block_V, self.axes, lim, self._last, None)  # finite, inside the limits
+            quantised = [tuple(codec.quantize_inside(v, lim[a].min_V, lim[a].max_V) for a, v in zip(self.axes, row))
+                         for row in raw]
+            rows = check_block(quantised, self.axes, lim, self._last, self.max_step_V)
+            self._io(self._send_samples, rows)
+            return len(rows)
+
+    def _send_samples(self, rows: list[tuple[float, ...]]) -> None:
+        lim = self._limits
+        lows, highs = [lim[a].min_V for a in self.axes], [lim[a].max_V for a in self.axes]
+        fid = self._ids[codec.STREAM_SAMPLE]
+        for row in rows:
+            self.transport.send(fid, codec.encode_stream_sample(row, self._stream_seq, lows, highs), self.timeout_s)
+            self._stream_seq = (self._stream_seq + 1) & 0xFFFF
+            self._last.update(zip(self.axes, row))
+            self.sent += 1
+
+    def buffer_status(self) -> BufferStatus:
+        """Ask the amplifier for its FIFO level and underrun count."""
+        with self._lock:
+            self._guard()
+            return self._io(self._stream_command, codec.CMD_STATUS)
+
+    def latest_buffer_status(self) -> BufferStatus | None:
+        """The last STREAM_STATUS received (sent by a playing amplifier every 10 ms), no I/O."""
+        with self._cond:
+            return None if self._stream_status is None else _buffer_status(self._stream_status)
+
+    def flush_stream(self) -> dict[str, float]:
+        """Empty the FIFO and stop at once (estop); returns the output the amplifier holds
+        [V], which becomes the reference for the next step or ramp."""
+        with self._lock:
+            # no _guard(): an estop must reach the amplifier even with an error pending
+            self._io(self._stream_command, codec.CMD_FLUSH)
+            self.stream_rate_Hz = None
+            status = self._io(self._request_status)
+            held = {a: float(status[f"{a.upper()}_V"]) for a in self.axes}
+            self._last.update(held)
+            return held
+
+    def drain_stream(self) -> BufferStatus:
+        """Let the amplifier play what is queued, then stop."""
+        with self._lock:
+            self._guard()
+            status = self._io(self._stream_command, codec.CMD_DRAIN)
+            self.stream_rate_Hz = None
+            return status
+
+
+def _buffer_status(sig: dict[str, float]) -> BufferStatus:
+    return BufferStatus(level=int(sig["LEVEL"]), capacity=1 << int(sig["CAPACITY_LOG2"]),
+                        underruns=int(sig["UNDERRUNS"]), played_seq=int(sig["PLAYED_SEQ"]),
+                        state=codec.STREAM_STATES.get(int(sig["STREAM_STATE"]), "unknown"),
+                        overflows=int(sig["OVERFLOWS"]))

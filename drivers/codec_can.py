@@ -13,7 +13,15 @@ HEARTBEAT       host     COUNTER, REQ_STATE (0 keep/1 enable/2 disable), REQ_STA
 STATUS          amp      applied X_V, Y_V, Z_V, LAST_SEQ, STATE, ERROR_CODE
 ERROR           amp      CODE, DETAIL, SEQ
 LIMITS          amp      MIN_V, X_MAX_V, Y_MAX_V, Z_MAX_V
+STREAM_CTRL     host     CMD (0 status/1 start/2 flush/3 drain), RATE_HZ, PREFILL
+STREAM_XYZ      host     X_V, Y_V, Z_V, SEQ (16 bit) — one sample for the stream FIFO
+STREAM_STATUS   amp      LEVEL, UNDERRUNS, PLAYED_SEQ, STREAM_STATE, CAPACITY_LOG2, OVERFLOWS
 ==============  =======  ==========================================================
+
+Buffered stream (device-timed output): the host sends STREAM_CTRL start with the rate,
+then STREAM_XYZ samples; the amplifier plays sample k at t0 + k / RATE_HZ on its own
+clock (t0 = arrival of the sample that makes the FIFO hold PREFILL samples) and counts an underrun for every tick with an empty FIFO
+(the output then holds). STREAM_CTRL flush empties the FIFO at once (estop).
 """
 from __future__ import annotations
 
@@ -26,9 +34,12 @@ from .errors import LimitError, ProtocolError
 
 DBC_RESOURCE = "afm_amplifier.dbc"
 SETPOINT, HEARTBEAT, STATUS, ERROR, LIMITS = "SETPOINT_XYZ", "HEARTBEAT", "STATUS", "ERROR", "LIMITS"
+STREAM_CTRL, STREAM_SAMPLE, STREAM_STATUS = "STREAM_CTRL", "STREAM_XYZ", "STREAM_STATUS"
+CMD_STATUS, CMD_START, CMD_FLUSH, CMD_DRAIN = 0, 1, 2, 3
+STREAM_STATES = {0: "idle", 1: "armed", 2: "playing", 3: "draining", 4: "fault"}
 FLAG_REQ_STATUS = 0x01
 ERRORS = {1: "value outside the amplifier range", 2: "sequence gap (setpoints lost or reordered)",
-          3: "outputs disabled", 4: "hardware fault"}
+          3: "outputs disabled", 4: "hardware fault", 5: "stream FIFO overflow"}
 STATES = {0: "disabled", 1: "enabled", 2: "fault"}
 
 
@@ -101,6 +112,32 @@ def encode_setpoint(values_V: Sequence[float], seq: int, lows_V: Sequence[float]
         raise LimitError(f"setpoint ({x}, {y}, {z}) V does not fit the CAN frame's range [{lo:g}, {hi:g}] V")
     return message(SETPOINT).encode({"X_V": x, "Y_V": y, "Z_V": z, "SEQ": seq & 0xFF, "FLAGS": flags & 0xFF},
                                        strict=False)
+
+
+def encode_stream_sample(values_V: Sequence[float], seq: int, lows_V: Sequence[float],
+                         highs_V: Sequence[float]) -> bytes:
+    """8 data bytes of STREAM_XYZ (one FIFO sample, SEQ mod 65536); each value [V] as sent
+    lies in its [low, high] and in the DBC's range, as for :func:`encode_setpoint`."""
+    x, y, z = (quantize_inside(v, lo, hi) for v, lo, hi in zip(values_V, lows_V, highs_V))
+    lo, hi = setpoint_range_V()
+    if not (lo <= x <= hi and lo <= y <= hi and lo <= z <= hi):
+        raise LimitError(f"sample ({x}, {y}, {z}) V does not fit the CAN frame's range [{lo:g}, {hi:g}] V")
+    return message(STREAM_SAMPLE).encode({"X_V": x, "Y_V": y, "Z_V": z, "SEQ": seq & 0xFFFF}, strict=False)
+
+
+def encode_stream_ctrl(cmd: int, rate_Hz: float = 0.0, prefill: int = 1) -> bytes:
+    """6 data bytes of STREAM_CTRL: ``cmd`` one of CMD_STATUS/START/FLUSH/DRAIN; ``rate_Hz``
+    the play rate for CMD_START (a whole number of Hz, 1..1 000 000); ``prefill`` the samples
+    to queue before the amplifier's clock starts (1..65535)."""
+    if not (isinstance(prefill, int) and 1 <= prefill <= 0xFFFF):
+        raise LimitError(f"stream prefill {prefill!r}: a whole number of samples in 1..65535")
+    if cmd not in (CMD_STATUS, CMD_START, CMD_FLUSH, CMD_DRAIN):
+        raise ProtocolError(f"STREAM_CTRL: unknown command {cmd!r} (0..3)")
+    rate = round(float(rate_Hz)) if math.isfinite(rate_Hz) else -1
+    if cmd == CMD_START and not (1 <= rate <= 1_000_000 and rate == float(rate_Hz)):
+        raise LimitError(f"stream rate {rate_Hz!r} Hz: a whole number of Hz in 1..1000000")
+    return message(STREAM_CTRL).encode({"CMD": cmd, "RATE_HZ": rate if cmd == CMD_START else 0,
+                                        "PREFILL": prefill if cmd == CMD_START else 0})
 
 
 def encode_heartbeat(counter: int, req_state: int = 0, req_status: bool = False, req_info: bool = False) -> bytes:

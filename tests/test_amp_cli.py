@@ -133,3 +133,38 @@ def test_stream_has_a_default_step_limit(mdt, tmp_path, capsys):
     assert main(["amp", "--driver", "mdt693b", "--port", mdt.port, "--max-step", "50", "stream",
                  "--file", path]) == 0
     assert mdt.device.outputs["x"] == 40.0
+
+
+def test_wave_plays_a_file_on_the_amplifier_clock_for_n_cycles(tmp_path, capsys):
+    from afmctl.sim_backend.amplifiers.base import RecordingSink
+    n, rate = 200, 2000
+    x = 20.0 + 5.0 * np.sin(2 * np.pi * np.arange(n) / n)
+    path = write_csv(tmp_path / "w.csv", "t,ux,uy,uz", np.column_stack([np.arange(n) / rate, x,
+                                                                       np.full(n, 3.0), np.full(n, 4.0)]))
+    channel = f"wave-{uuid.uuid4().hex[:8]}"
+    sink = RecordingSink(max_history=100_000)
+    with serve_can(channel, sink) as sim:
+        assert main(["amp", "--driver", "can", "--port", f"virtual:{channel}", "--max-step", "25", "wave",
+                     "--file", path, "--rate-Hz", str(rate), "--cycles", "3"]) == 0
+        out = capsys.readouterr().out
+        assert f"played {3 * n} samples (3 cycle(s)) at 2000 Hz" in out and " 0 underrun(s)" in out
+        played = [(t, v) for t, v in sink.history if t >= sim.stream.t0_s]
+        assert len(played) == 3 * n
+        assert [t for t, _ in played] == [sim.stream.t0_s + k / rate for k in range(3 * n)]
+        assert np.max(np.abs(np.array([v["x"] for _, v in played]) - np.tile(x, 3))) <= 0.00125 + 1e-9
+
+
+def test_wave_refuses_bad_arguments_a_bad_wrap_and_other_drivers(mdt, tmp_path, capsys):
+    path = write_csv(tmp_path / "w.csv", "t,u", [(0.0, 1.0), (0.001, 5.0), (0.002, 9.0)])  # steps 4 V
+    channel = f"wave-{uuid.uuid4().hex[:8]}"
+    with serve_can(channel) as sim:
+        base = ["amp", "--driver", "can", "--port", f"virtual:{channel}", "--max-step", "10", "wave", "--file", path]
+        assert main(base + ["--rate-Hz", "1000.5"]) == 2
+        assert "--rate-Hz: 1000.5 must be a whole number" in capsys.readouterr().err
+        assert main(base + ["--rate-Hz", "1000", "--cycles", "0"]) == 2
+        assert main(["amp", "--driver", "can", "--port", f"virtual:{channel}", "--max-step", "5", "wave",
+                     "--file", path, "--rate-Hz", "1000", "--cycles", "2"]) == 2
+        assert "the wrap from the last row to the first is 8 V" in capsys.readouterr().err
+        assert sim.stream.played == 0 and sim.received == 0
+    assert main(["amp", "--driver", "mdt693b", "--port", mdt.port, "wave", "--file", path, "--rate-Hz", "100"]) == 2
+    assert "wave works with --driver can" in capsys.readouterr().err

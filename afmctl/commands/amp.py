@@ -6,6 +6,8 @@ import logging
 import math
 import time
 
+from . import amp_wave
+
 log = logging.getLogger(__name__)
 
 #: --max-step for ``stream`` when none is given [V]
@@ -31,6 +33,9 @@ Actions:
   info                      identity, limits, connection state
   get                       read back the applied output voltages
   set x=V [y=V z=V]         set some axes, then read back
+  wave --file VOLTS.csv --rate-Hz R [--cycles N]
+                            play the rows on the amplifier's own clock through its
+                            stream FIFO (driver can), N times; reports underruns
   stream --file VOLTS.csv   send every row in order at the times of its t column (or
                             at --rate HZ rows per second), print the rate achieved and
                             warn when the link could not keep that timing. Columns t,u
@@ -43,6 +48,7 @@ Examples:
   afmctl amp --driver mdt693b --port /dev/ttyUSB0 info
   afmctl amp --driver mdt693b --port /dev/pts/5 --limit 0:100 set x=10 y=20
   afmctl amp --driver nv200 --port /dev/ttyUSB1 stream --file ramp.csv --rate 500
+  afmctl amp --driver can --port virtual:afm0 wave --file scan.csv --rate-Hz 5000 --cycles 10
 """
 
 
@@ -100,6 +106,7 @@ def register(subparsers) -> None:
     st.add_argument("--axis", choices=["x", "y", "z"], default="x", help="axis of a t,u file (default x)")
     st.add_argument("--rate", type=float, default=None, metavar="HZ",
                     help="send HZ rows per second, ignoring the t column (default: the t column's timing)")
+    amp_wave.add_parser(actions)
     p.set_defaults(func=run)
 
 
@@ -125,7 +132,10 @@ def run(args) -> int:
     if getattr(args, "rate", None) is not None and not (args.rate > 0 and math.isfinite(args.rate)):
         raise AfmctlError(f"--rate: {args.rate} Hz must be a positive number")
     rows = None
-    if args.action == "stream":
+    if args.action == "wave":
+        amp_wave.check_args(args)
+        args.rate = args.rate_Hz
+    if args.action in ("stream", "wave"):
         rows = _load_stream(args)  # file problems are reported before connecting
     options = {}
     host = _host_limits(args.limit)
@@ -135,7 +145,7 @@ def run(args) -> int:
         raise AfmctlError(f"--max-step: {args.max_step} V must be a positive number of volts")
     if args.max_step is not None:
         options["max_step_V"] = args.max_step
-    elif args.action == "stream":
+    elif args.action in ("stream", "wave"):
         options["max_step_V"] = DEFAULT_STREAM_STEP_V
     amp = open_amplifier(args.driver, args.port, baudrate=args.baud, timeout_s=args.timeout, **options)
     with amp:
@@ -147,6 +157,8 @@ def run(args) -> int:
         elif args.action == "set":
             amp.set_voltages(dict(args.values))
             print(_fmt(amp.get_voltages()))
+        elif args.action == "wave":
+            amp_wave.play(amp, rows, args, _check_file_limits, _fmt)
         else:
             _stream(amp, rows, args)
     return 0

@@ -10,6 +10,14 @@ count up by one (mod 256) from the last frame: otherwise ERROR code 2 with DETAI
 expected SEQ (the setpoint is still applied — the newest one is the best). FLAGS bit0 or
 a HEARTBEAT with REQ_STATUS asks for a STATUS frame; REQ_INFO for LIMITS. LAST_SEQ
 starts at 255, so a host continues at 0.
+
+Buffered stream (STREAM_CTRL, STREAM_XYZ, STREAM_STATUS): samples fill a FIFO of
+``2**fifo_log2`` entries that a player thread plays on the amplifier's clock, sample k at
+exactly t0 + k / rate (see :mod:`.can_stream`); the scanner sink receives those computed
+times, so the tip's timing does not depend on when the host sent the frames. A sample
+outside the range or while disabled stops the stream (ERROR 1 or 3, FIFO emptied, output
+holds); a full FIFO refuses a sample (ERROR 5). STREAM_STATUS answers every STREAM_CTRL
+and is sent every ``STATUS_PERIOD_S`` of play.
 """
 from __future__ import annotations
 
@@ -22,11 +30,15 @@ from importlib import resources
 from pathlib import Path
 
 from .base import Sink, elapsed_clock
+from .can_stream import StreamPlayer, StreamState
 
 log = logging.getLogger(__name__)
 
 #: the DBC's messages this amplifier receives and sends
-_MESSAGES = ("SETPOINT_XYZ", "HEARTBEAT", "STATUS", "ERROR", "LIMITS")
+_MESSAGES = ("SETPOINT_XYZ", "HEARTBEAT", "STATUS", "ERROR", "LIMITS", "STREAM_CTRL", "STREAM_XYZ",
+             "STREAM_STATUS")
+#: how often a playing stream reports its FIFO [s of the amplifier clock]
+STATUS_PERIOD_S = 0.01
 
 
 def read_dbc_text() -> str:
@@ -57,7 +69,8 @@ class SimCANAmplifier:
 
     def __init__(self, channel: str = "afm0", sink: Sink | None = None, *, interface: str = "virtual",
                  now: Callable[[], float] | None = None, min_V: float = 0.0, max_V: float = 150.0,
-                 dbc_path: str | Path | None = None, record_seq: bool = False, **bus_options: object) -> None:
+                 dbc_path: str | Path | None = None, record_seq: bool = False, fifo_log2: int = 12,
+                 **bus_options: object) -> None:
         self.channel = channel
         self.interface = interface
         self.sink = sink
@@ -67,7 +80,7 @@ class SimCANAmplifier:
         self.db = load_database(dbc_path)
         self._msg = {name: self.db.get_message_by_name(name) for name in _MESSAGES}
         #: frame id -> message name, for the frames this amplifier receives
-        self._rx = {self._msg[n].frame_id: n for n in ("SETPOINT_XYZ", "HEARTBEAT")}
+        self._rx = {self._msg[n].frame_id: n for n in ("SETPOINT_XYZ", "HEARTBEAT", "STREAM_CTRL", "STREAM_XYZ")}
         self._bus_options = bus_options
         self.outputs = {a: 0.0 for a in self.axes}
         self.enabled = True
@@ -78,6 +91,8 @@ class SimCANAmplifier:
         self.rejected = 0
         self.record_seq = record_seq
         self.seq_log: list[int] = []
+        #: every stream sample received (x, y, z) [V], when ``record_seq``
+        self.stream_log: list[tuple[float, float, float]] = []
         self.requested_min_V = math.inf
         self.requested_max_V = -math.inf
         #: per axis: (smallest, largest) voltage ever requested by a host [V]
@@ -87,6 +102,13 @@ class SimCANAmplifier:
         self._bus = None
         self._notifier = None
         self._lock = threading.Lock()
+        self._send_lock = threading.Lock()
+        #: guards the stream player (notifier thread pushes, player thread plays)
+        self._stream_lock = threading.Condition()
+        self.stream = StreamPlayer(self._play, capacity_log2=fifo_log2)
+        self._player: threading.Thread | None = None
+        self._running = False
+        self._last_stream_status_s = 0.0
 
     # -- life --
     def start(self) -> "SimCANAmplifier":
@@ -106,12 +128,21 @@ class SimCANAmplifier:
             if self._bus is None:
                 self._bus = can.Bus(interface=self.interface, channel=self.channel, **self._bus_options)
                 self._notifier = can.Notifier(self._bus, [_Listener()], timeout=0.05)
+                self._running = True
+                self._player = threading.Thread(target=self._player_loop, name="sim-can-stream", daemon=True)
+                self._player.start()
         return self
 
     def stop(self) -> None:
         with self._lock:
             notifier, self._notifier = self._notifier, None
             bus, self._bus = self._bus, None
+            player, self._player = self._player, None
+        with self._stream_lock:
+            self._running = False
+            self._stream_lock.notify_all()
+        if player is not None:
+            player.join(timeout=1.0)
         if notifier is not None:
             notifier.stop(timeout=1.0)
         if bus is not None:
@@ -145,7 +176,8 @@ class SimCANAmplifier:
         if bus is None:
             return
         msg = self._msg[name]
-        bus.send(can.Message(arbitration_id=msg.frame_id, data=msg.encode(signals), is_extended_id=False))
+        with self._send_lock:
+            bus.send(can.Message(arbitration_id=msg.frame_id, data=msg.encode(signals), is_extended_id=False))
 
     def _error(self, code: int, detail: int, seq: int) -> None:
         self.last_error = code
@@ -170,11 +202,19 @@ class SimCANAmplifier:
         sig = self._msg[name].decode(data, decode_choices=False)
         if name == "SETPOINT_XYZ":
             self._setpoint(sig)
+        elif name == "STREAM_XYZ":
+            self._stream_sample(sig)
+        elif name == "STREAM_CTRL":
+            self._stream_ctrl(sig)
         else:
             if sig["REQ_STATE"] == 1:
                 self.enabled = True
             elif sig["REQ_STATE"] == 2:
                 self.enabled = False
+                with self._stream_lock:  # disabled outputs stop a stream where it stands
+                    self.stream.run_until(self.now())
+                    if self.stream.state is not StreamState.IDLE:
+                        self.stream.flush()
             if sig["REQ_INFO"]:
                 self.send_limits()
             if sig["REQ_STATUS"]:
@@ -213,3 +253,75 @@ class SimCANAmplifier:
                 self.sink.apply(dict(values), self.now())
         if int(sig["FLAGS"]) & 1:
             self.send_status()
+
+    # -- buffered stream --
+    def _play(self, values: tuple[float, float, float], t_s: float) -> None:
+        """One sample played by the stream at its tick time ``t_s`` (under the stream lock)."""
+        self.outputs = dict(zip(self.axes, values))
+        if self.sink is not None:
+            self.sink.apply(dict(self.outputs), t_s)
+
+    def send_stream_status(self) -> None:
+        st = self.stream.status()
+        self._send("STREAM_STATUS", {"LEVEL": min(st.level, 0xFFFF), "UNDERRUNS": st.underruns & 0xFFFF,
+                                     "PLAYED_SEQ": st.played_seq, "STREAM_STATE": int(st.state),
+                                     "CAPACITY_LOG2": st.capacity_log2, "OVERFLOWS": st.overflows & 0xFF})
+
+    def _stream_ctrl(self, sig: dict) -> None:
+        cmd = int(sig["CMD"])
+        with self._stream_lock:
+            self.stream.run_until(self.now())
+            if cmd == 1:
+                rate = float(sig["RATE_HZ"])
+                if rate < 1:
+                    self._error(1, 0, 0)
+                else:
+                    self.stream.start(rate, int(sig["PREFILL"]))
+            elif cmd == 2:
+                self.stream.flush()
+            elif cmd == 3:
+                self.stream.drain(self.now())
+            self.send_stream_status()
+            self._stream_lock.notify_all()
+
+    def _stream_sample(self, sig: dict) -> None:
+        seq = int(sig["SEQ"])
+        values = (float(sig["X_V"]), float(sig["Y_V"]), float(sig["Z_V"]))
+        with self._stream_lock:
+            now = self.now()
+            self.stream.run_until(now)
+            self.received += 1
+            if self.record_seq:
+                self.seq_log.append(seq)
+                self.stream_log.append(values)
+            if not self.enabled or any(not self.min_V <= v <= self.max_V[a] for a, v in zip(self.axes, values)):
+                self.rejected += 1
+                if self.stream.state is not StreamState.FAULT:
+                    self.stream.fault()
+                    self._error(3 if not self.enabled else 1, 0, seq)
+                return
+            expected = self.stream.expected_seq
+            outcome = self.stream.push(seq, values, now)
+            if outcome == "gap":
+                self.gaps += 1
+                self._error(2, expected, seq)
+            elif outcome == "overflow":
+                self._error(5, seq, seq)
+            elif outcome == "idle":
+                self.rejected += 1
+            self._stream_lock.notify_all()
+
+    def _player_loop(self) -> None:
+        """The amplifier's own clock: plays due ticks, reports the FIFO every STATUS_PERIOD_S."""
+        with self._stream_lock:
+            while self._running:
+                now = self.now()
+                self.stream.run_until(now)
+                nxt = self.stream.next_tick_s()
+                if nxt is not None and now - self._last_stream_status_s >= STATUS_PERIOD_S:
+                    self._last_stream_status_s = now
+                    self.send_stream_status()
+                # wake for the next tick, but at most every 1 ms (ticks are played late in
+                # batches with their own computed times; the sink never sees the wake-up time)
+                wait = 0.05 if nxt is None else min(max(nxt - now, 0.0), 0.001)
+                self._stream_lock.wait(wait if wait > 0 else 0.0005)

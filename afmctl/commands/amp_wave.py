@@ -1,0 +1,90 @@
+"""``afmctl amp ... wave``: play a file of voltages on the amplifier's own clock (buffered
+stream), ``--cycles`` times, and report what the amplifier says it played."""
+from __future__ import annotations
+
+import logging
+import math
+import time
+
+log = logging.getLogger(__name__)
+
+#: FIFO level the host keeps ahead of the amplifier [s of samples]
+WAVE_LOW_S, WAVE_HIGH_S = 0.1, 0.3
+
+
+def add_parser(actions) -> None:
+    w = actions.add_parser(
+        "wave", help="play a CSV of voltages on the amplifier's clock (buffered stream; driver can)",
+        description="Play the rows of VOLTS.csv (columns t,u with --axis, or t,ux,uy,uz [V]; the t column "
+                    "is not used) at --rate-Hz on the amplifier's own clock, --cycles times, through its "
+                    "stream FIFO: host delays do not reach the output while the FIFO holds samples. "
+                    "Every row, the wrap from the last row to the first and the step from the present "
+                    "output are checked against the limits and --max-step before anything is sent. "
+                    "Supported by --driver can (GCS wave tables and the NV200 buffer: not yet).")
+    w.add_argument("--file", required=True, metavar="VOLTS.csv")
+    w.add_argument("--axis", choices=["x", "y", "z"], default="x", help="axis of a t,u file (default x)")
+    w.add_argument("--rate-Hz", dest="rate_Hz", type=float, required=True, metavar="R",
+                   help="samples per second, a whole number 1..1000000")
+    w.add_argument("--cycles", type=int, default=1, metavar="N", help="play the file N times (default 1)")
+
+
+def check_args(args) -> None:
+    from ..errors import AfmctlError
+    r = args.rate_Hz
+    if not (math.isfinite(r) and r == round(r) and 1 <= r <= 1_000_000):
+        raise AfmctlError(f"--rate-Hz: {r:g} must be a whole number of Hz in 1..1000000")
+    if not 1 <= args.cycles <= 1_000_000:
+        raise AfmctlError(f"--cycles: {args.cycles} must be in 1..1000000")
+
+
+def _rows(amp, loaded, args):
+    """The whole wave as rows x, y, z [V] (axes not in the file hold their present output)."""
+    import numpy as np
+
+    from ..errors import AfmctlError
+    axes, values, columns, _ = loaded
+    step = getattr(amp, "max_step_V", None)
+    if args.cycles > 1 and step is not None:
+        wrap = np.abs(values[0] - values[-1])
+        if np.any(wrap > step):
+            k = int(np.argmax(wrap))
+            raise AfmctlError(f"{args.file}: column {columns[k]}: the wrap from the last row to the first is "
+                              f"{wrap[k]:g} V, over --max-step {step:g} V; nothing was sent")
+    held = amp.last_output
+    full = np.column_stack([values[:, axes.index(a)] if a in axes else np.full(len(values), held.get(a, 0.0))
+                            for a in amp.axes])
+    return np.tile(full, (args.cycles, 1))
+
+
+def play(amp, loaded, args, check_file_limits, fmt) -> None:
+    """Stream the wave, keeping the FIFO between WAVE_LOW_S and WAVE_HIGH_S; print a summary.
+    ``check_file_limits(amp, loaded, path)`` and ``fmt(volts)`` are ``afmctl amp``'s."""
+    from ..errors import AfmctlError
+    if not hasattr(amp, "start_stream"):
+        raise AfmctlError(f"--driver {amp.name}: no buffered stream in this driver yet; wave works with --driver can")
+    check_file_limits(amp, loaded, args.file)
+    rows = _rows(amp, loaded, args)
+    rate = args.rate_Hz
+    low, high = max(1, int(WAVE_LOW_S * rate)), max(2, int(WAVE_HIGH_S * rate))
+    amp.start_stream(rate, prefill=int(min(high, len(rows))))
+    queued, t0 = 0, time.perf_counter()
+    while queued < len(rows):
+        st = amp.latest_buffer_status()
+        played = 0
+        if st is not None and st.state != "armed":  # SEQ of the last played, unwrapped
+            played = queued - ((queued - ((st.played_seq + 1) & 0xFFFF)) & 0xFFFF)
+        if queued - played < low or queued == 0:
+            n = min(high - (queued - played), len(rows) - queued)
+            amp.queue(rows[queued:queued + n].tolist())
+            queued += n
+        time.sleep(min(low / rate / 4, 0.05))
+    amp.drain_stream()
+    while (st := amp.buffer_status()).state not in ("idle", "fault"):
+        time.sleep(0.01)
+    elapsed = time.perf_counter() - t0
+    print(f"played {queued} samples ({args.cycles} cycle(s)) at {rate:g} Hz on the amplifier clock: "
+          f"{st.underruns} underrun(s), {st.overflows} overflow(s); host time {elapsed:.3f} s "
+          f"(schedule {len(rows) / rate:.3f} s)")
+    if st.state == "fault":
+        raise AfmctlError("the amplifier stopped the stream (fault); see the error above")
+    print("final: " + fmt(amp.get_voltages()))
