@@ -8,7 +8,6 @@ through :func:`afmctl.hardware.open_driver` — the same code path as with hardw
 from __future__ import annotations
 
 import contextlib
-import logging
 import math
 import time
 from collections.abc import Iterator
@@ -19,8 +18,6 @@ import numpy as np
 
 from .errors import AfmctlError
 from afmctl.drivers.base import AmplifierInterface
-
-log = logging.getLogger(__name__)
 
 
 def load_scanner_config(path: Path | None):

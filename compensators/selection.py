@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from .base import ModelError, check_finite
-from .chain import ChainModel, format_table, parse_structure
+from .chain import ChainModel, parse_structure
 
 log = logging.getLogger(__name__)
 

@@ -32,7 +32,8 @@ def _read(args: argparse.Namespace):
 
 def _fit(args: argparse.Namespace, t, u, y):
     from afmctl.compensators.chain import ChainModel, parse_structure
-    from afmctl.compensators.selection import format_table, select_model
+    from afmctl.compensators.chain import format_table
+    from afmctl.compensators.selection import select_model
 
     from .identify_io import parse_params
     params = parse_params(args.param)
