@@ -25,6 +25,7 @@ from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, Settings
 from afmctl.compensators.errortext import first_validation_error, plain_repr
 from afmctl.compensators.textfiles import decode_text, read_text_file
 from afmctl.compensators.temperature import T_MAX_C, T_MIN_C
+from afmctl.drivers.registry import driver_names
 
 from .errors import AfmctlError
 from .zenoh_config import ZenohSettings
@@ -83,8 +84,8 @@ class Limits(_Strict):
 class AmplifierSection(_Strict):
     """The amplifier link (drivers.registry.open_amplifier)."""
 
-    driver: str = Field("mdt693b", description="driver name, one of afmctl.drivers.registry.driver_names(): "
-                                               "mdt693b, mdt694b, gcs, nv200 or can")
+    driver: str = Field("mdt693b", description="driver name: " + ", ".join(driver_names()),
+                        json_schema_extra={"enum": list(driver_names())})
     port: str = Field("", description="pyserial URL/path (e.g. /dev/ttyUSB0) or 'virtual:afm0' for CAN; "
                                       "empty with [simulation] enabled")
     options: dict[str, Any] = Field(default_factory=dict, description="extra driver options (e.g. baudrate)")
@@ -96,7 +97,6 @@ class AmplifierSection(_Strict):
     @classmethod
     def _known_driver(cls, v: str) -> str:
         """The registry's names are the only source of the allowed drivers."""
-        from afmctl.drivers.registry import driver_names
         if v not in driver_names():
             raise ValueError(f"unknown driver {v!r}; allowed: {', '.join(driver_names())}")
         return v
