@@ -23,9 +23,10 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
-# The inner loop: everything but the end-to-end tests marked `slow` (under a minute).
+# The inner loop: everything but the tests marked `slow` (tests/conftest.py), on two worker
+# processes (pytest-xdist): under a minute on 2 cores (docs/ARCHITECTURE.md, "Working on afmctl").
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -q -m "not slow"
+	$(BIN)/python -m pytest -q -m "not slow" -n 2
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py

@@ -25,6 +25,7 @@ from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, Settings
 from afmctl.compensators.errortext import first_validation_error, plain_repr
 from afmctl.compensators.textfiles import decode_text, read_text_file
 from afmctl.compensators.temperature import T_MAX_C, T_MIN_C
+from afmctl.drivers.registry import driver_names
 
 from .errors import AfmctlError
 from .zenoh_config import ZenohSettings
@@ -83,14 +84,22 @@ class Limits(_Strict):
 class AmplifierSection(_Strict):
     """The amplifier link (drivers.registry.open_amplifier)."""
 
-    driver: Literal["mdt693b", "mdt694b", "gcs", "nv200", "can"] = Field(
-        "mdt693b", description="driver name: mdt693b, mdt694b, gcs, nv200 or can")
+    driver: str = Field("mdt693b", description="driver name: " + ", ".join(driver_names()),
+                        json_schema_extra={"enum": list(driver_names())})
     port: str = Field("", description="pyserial URL/path (e.g. /dev/ttyUSB0) or 'virtual:afm0' for CAN; "
                                       "empty with [simulation] enabled")
     options: dict[str, Any] = Field(default_factory=dict, description="extra driver options (e.g. baudrate)")
     limits_V: dict[Axis, Limits] = Field(default_factory=dict,
                                          description="host voltage limits per axis [V] (default 0..150 V)")
     slew_V_per_s: float = Field(1000.0, gt=0, le=1e7, description="largest output slew rate [V/s]")
+
+    @field_validator("driver")
+    @classmethod
+    def _known_driver(cls, v: str) -> str:
+        """The registry's names are the only source of the allowed drivers."""
+        if v not in driver_names():
+            raise ValueError(f"unknown driver {v!r}; allowed: {', '.join(driver_names())}")
+        return v
 
     def axis_limits(self, axis: str) -> Limits:
         return self.limits_V.get(axis, Limits())  # type: ignore[call-overload]

@@ -118,8 +118,6 @@ class Controller:
     ----------
     config: :class:`afmctl.config.Config`.
     amplifier: an open :class:`afmctl.drivers.base.Amplifier`; the controller never closes it.
-    scanner: optional simulated scanner (sim_backend) behind a simulated amplifier; kept
-        for summaries (tracking error), never touched by the loop thread.
     pipeline: optional :class:`afmctl.pipeline.CompensationPipeline` (default: built from
         ``config``).
     """
@@ -127,10 +125,9 @@ class Controller:
     status_interval_s = 0.5
     dispatch_interval_s = 0.02
 
-    def __init__(self, config, amplifier, *, scanner=None, pipeline=None) -> None:
+    def __init__(self, config, amplifier, *, pipeline=None) -> None:
         self.config = config
         self.amplifier = amplifier
-        self.scanner = scanner
         self.dt_s = float(config.dt_s)
         if pipeline is None:
             from .pipeline import build_pipeline
@@ -167,7 +164,6 @@ class Controller:
         #: why the run log failed (the run was stopped), or None
         self.runlog_error: str | None = None
         self._done = threading.Event()
-        self._start_wall = 0.0
 
     # ------------------------------------------------------------------ public API
     @property
@@ -328,7 +324,6 @@ class Controller:
             gc.freeze()   # long-lived objects leave the collector's generations
         if self.config.runlog.enabled:
             self._open_runlog(runlog_path)
-        self._start_wall = time.time()
         self._set_state(State.RUNNING, "start")
         if it is not None:
             self._feeder = threading.Thread(target=self._feed, args=(it,), name="afmctl-feeder", daemon=True)
@@ -428,7 +423,6 @@ class Controller:
     def _reset_stats(self) -> None:
         """Zero every counter of :meth:`stats` (a new run starts from scratch)."""
         self._w = 0
-        self._n_late = 0
         self._hist[:] = 0
         self._whist[:] = 0
         self._missed_log.clear()

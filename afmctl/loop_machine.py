@@ -164,7 +164,6 @@ class LoopMachine:
         late = now - next_t
         if ctl._state is not State.FAULT:
             loop_stats.add(ctl._hist, late)
-            ctl._n_late += 1
             if late > ctl._late_max:
                 ctl._late_max = late
             if late > 0.5 * period:

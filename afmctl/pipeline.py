@@ -76,7 +76,6 @@ class CompensationPipeline:
         #: axis → "preisach+creep from x.json" / "linear calibration 80 nm/V"; "coupling" when used
         self.provenance: dict[str, str] = dict(provenance or {})
         self._u_prev = np.zeros(3)
-        self._zero = (0.0, 0.0, 0.0)
 
     def reset(self) -> None:
         for op in self.inverses:

@@ -99,11 +99,8 @@ def score(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, y_pred_nm: np.ndar
 def plot_validation(path: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, y_pred_nm: np.ndarray,
                     start: int, title: str) -> None:
     """Measured vs predicted over time and against u, and the error with its mean removed."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from .errors import AfmctlError
+    from .figures import pyplot, save_figure
+    plt = pyplot()
 
     sl = slice(start, None)
     e = y_pred_nm[sl] - y_nm[sl]
@@ -121,9 +118,4 @@ def plot_validation(path: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarra
     ax[2].set(xlabel="t [s]", ylabel="error [nm]", title=f"RMS {rms:.4g} nm (mean removed)")
     ax[2].legend()
     fig.tight_layout()
-    try:
-        fig.savefig(path, dpi=100)
-    except OSError as err:
-        raise AfmctlError(f"--plot: cannot write {path} ({err.strerror})") from None
-    finally:
-        plt.close(fig)
+    save_figure(fig, path, dpi=100)

@@ -44,10 +44,8 @@ _SPARE = ("tab:cyan", "tab:olive", "tab:pink", "tab:gray")
 
 
 def _plt():
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    return plt
+    from .figures import pyplot
+    return pyplot()
 
 
 def _save(fig: Any, path: Path) -> Path:
@@ -379,13 +377,12 @@ def _tracking_samples(sp: np.ndarray, events: list[dict[str, Any]]) -> np.ndarra
 def _simulate(sp: np.ndarray, meta: dict[str, Any]) -> np.ndarray:
     """Replay the logged voltages through the run's simulated scanner (its
     ``simulation.scanner`` file from the log's configuration, else the default scanner),
-    from rest: the true positions [nm] that scanner would reach."""
-    from .simlink import load_scanner_config
-    from afmctl.sim_backend.scanner import Scanner
+    from rest, each held for the logged loop period: the true positions [nm] that scanner
+    would reach (:func:`afmctl.simlink.replay_voltages_nm`, as ``afmctl run`` reports)."""
+    from .simlink import replay_voltages_nm
     t = sp["t_s"]
     dt = float(np.median(np.diff(t))) if len(t) > 1 else 1e-3
     if not np.isfinite(dt) or dt <= 0:
         raise AfmctlError("run log: setpoint times are not increasing; cannot simulate")
     path = ((meta.get("config") or {}).get("simulation") or {}).get("scanner")
-    cfg = load_scanner_config(Path(path) if path else None)
-    return Scanner(cfg).run(np.ascontiguousarray(sp["u_V"]), dt)
+    return replay_voltages_nm(sp["u_V"], dt, Path(path) if path else None)

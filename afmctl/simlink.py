@@ -8,7 +8,6 @@ through :func:`afmctl.hardware.open_driver` — the same code path as with hardw
 from __future__ import annotations
 
 import contextlib
-import logging
 import math
 import time
 from collections.abc import Iterator
@@ -19,8 +18,6 @@ import numpy as np
 
 from .errors import AfmctlError
 from afmctl.drivers.base import AmplifierInterface
-
-log = logging.getLogger(__name__)
 
 
 def load_scanner_config(path: Path | None):
@@ -113,13 +110,21 @@ def replay_positions_nm(config, setpoints: np.ndarray) -> np.ndarray:
     """The true tip position [nm] (N, 3) at the end of each loop period when the voltages
     sent (``setpoints["u_V"]``) are replayed through a fresh simulated scanner of the
     configuration, each held for one loop period (see :func:`tracking_error`)."""
+    return replay_voltages_nm(setpoints["u_V"], config.dt_s, config.simulation.scanner)
+
+
+def replay_voltages_nm(u_V: np.ndarray, dt_s: float, scanner_file: Path | None = None) -> np.ndarray:
+    """The true tip position [nm] (N, 3) at the end of each period ``dt_s`` [s] when each
+    row of ``u_V`` [V] (N, 3) is held for one period on a fresh simulated scanner (the
+    ``scanner_file`` JSON, else the default scanner), simulated at the scanner's own time
+    step so that the ringing of its resonance after each step is in the result."""
     from afmctl.sim_backend.scanner import Scanner
-    scanner = Scanner(load_scanner_config(config.simulation.scanner))
+    scanner = Scanner(load_scanner_config(scanner_file))
     fine = scanner.config.dt_s
-    sub = max(1, round(config.dt_s / fine))
-    if not math.isclose(sub * fine, config.dt_s, rel_tol=1e-9):
-        fine = config.dt_s / sub          # loop period not a multiple of the scanner's step
-    u = np.repeat(np.asarray(setpoints["u_V"], dtype=np.float64), sub, axis=0)
+    sub = max(1, round(dt_s / fine))
+    if not math.isclose(sub * fine, dt_s, rel_tol=1e-9):
+        fine = dt_s / sub                 # the period is not a multiple of the scanner's step
+    u = np.repeat(np.asarray(u_V, dtype=np.float64), sub, axis=0)
     return scanner.run(u, fine)[sub - 1::sub]
 
 

@@ -129,8 +129,8 @@ def controller_errors_nm(folder: Path, scanner_json: Path, model: Path | None, r
     cfg = load_config(text=_config_text(folder, scanner_json, model, rate_Hz, loop_Hz, lines, channel, nm_per_V))
     path = folder / f"{name}.afmlog"
     path.unlink(missing_ok=True)        # a rerun of the demo replaces its ladder logs
-    with simulated_amplifier(cfg) as (amp, scanner):
-        ctl = Controller(cfg, amp, scanner=scanner)
+    with simulated_amplifier(cfg) as (amp, _scanner):
+        ctl = Controller(cfg, amp)
         try:
             ctl.start(cfg.trajectory, runlog_path=path)
             if not ctl.wait(60 + lines / rate_Hz * 4):

@@ -169,7 +169,10 @@ def _solve_up(G, v, u_min, inv_du, du, L, beta0, lo, hi, t):
 
 @njit(cache=True)
 def _solve_down(G, v, u_min, inv_du, du, L, alpha0, lo, hi, t):
-    """Largest β in [lo, hi] with E(α0, β) = t, walking β-cells downward (eqs. 9–11)."""
+    """Largest β in [lo, hi] with E(α0, β) = t, walking β-cells downward (eqs. 9–11).
+
+    The mirror image of :func:`_solve_up` (β for α, downward for upward): kept as its own
+    loop because a shared one would need a direction branch in every cell of the walk."""
     x = (alpha0 - u_min) * inv_du
     i = int(x)
     if i > L - 1:

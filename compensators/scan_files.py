@@ -18,7 +18,6 @@ voltages into its scan size) give pixel i of a line of P pixels the voltage
 """
 from __future__ import annotations
 
-import json
 import logging
 import re
 import zipfile

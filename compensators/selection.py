@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from .base import ModelError, check_finite
-from .chain import ChainModel, format_table, parse_structure
+from .chain import ChainModel, parse_structure
 from .input_checks import number_option
 
 log = logging.getLogger(__name__)

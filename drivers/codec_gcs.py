@@ -16,7 +16,8 @@ TERMINATOR = b"\n"
 DECIMALS = 4
 MAX_REPLY = 4096
 
-#: GCS error codes emulated by the simulator and named in driver errors
+#: GCS error codes emulated by the simulator and named in driver errors (a table per codec: the
+#: shape matches the other codecs' tables, the codes and texts are the device's)
 ERRORS: dict[int, str] = {
     0: "no error",
     1: "parameter syntax error",

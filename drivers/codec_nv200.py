@@ -16,6 +16,8 @@ XON = b"\x11"
 DECIMALS = 3
 MAX_REPLY = 4096
 
+#: NV200 error codes emulated by the simulator and named in driver errors (each codec keeps its
+#: own table: the shape matches the other codecs' tables, the codes and texts are the device's)
 ERRORS: dict[int, str] = {
     1: "unspecified error",
     2: "unknown command",

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator
+from typing import TYPE_CHECKING
 
 from .amplifiers.base import RecordingSink
 
@@ -78,6 +79,6 @@ def no_leaks(grace_s: float = 2.0) -> Iterator[None]:
     assert not extra_fds, f"file descriptors left open: {[describe(fd) for fd in sorted(extra_fds)]}"
 
 
-if False:  # pragma: no cover - names for type checkers only
+if TYPE_CHECKING:  # pragma: no cover - names for type checkers only
     from .amplifiers.can_amp import SimCANAmplifier
     from .amplifiers.pty_server import PtyServer

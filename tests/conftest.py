@@ -8,26 +8,105 @@ import os
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 
-# Whole files of end-to-end tests (subprocesses, the demo, real zenoh sessions across processes,
-# hardware-in-the-loop with the simulator) that take several seconds each: marked `slow`, so
-# that `make test-fast` (pytest -m "not slow") stays an inner loop. Single slow tests elsewhere
-# carry @pytest.mark.slow themselves.
+# Whole files of end-to-end tests (subprocesses, the demo, real zenoh sessions and processes,
+# vendor clients and simulators on ptys, hardware-in-the-loop with the simulator): marked `slow`,
+# so that `make test-fast` (pytest -m "not slow") stays an inner loop. Single slow tests elsewhere
+# are listed in SLOW_TESTS (or carry @pytest.mark.slow themselves).
 SLOW_FILES = frozenset({
     "test_demo.py", "test_drift_scenario.py", "test_examples.py", "test_fuzz_files.py", "test_hil.py",
-    "test_hil_live_tip.py", "test_readme_tour.py", "test_zenoh_e2e.py",
-    "test_zenoh_run_process.py",
+    "test_hil_live_tip.py", "test_readme_tour.py", "test_sim_cli.py", "test_sim_zenoh.py",
+    "test_vendor_clients.py", "test_view_feed.py", "test_zenoh_bridge.py", "test_zenoh_config.py",
+    "test_zenoh_e2e.py", "test_zenoh_process.py", "test_zenoh_run_process.py",
 })
 
 
-# Single tests measured at 2.5 s or more on the shared 2-core machine (pytest --durations)
-# that start subprocesses or run long property searches.
+# Single tests that took about 0.3 s or more on the shared 2-core machine (pytest --durations=0, all
+# parametrisations summed): identifications on long records, property searches and fuzzing,
+# subprocesses, plots, wall-time and reconnect waits. What stays fast: codecs, operators (block
+# equals step), config, the safety layer, the loop in-process, CLI offline basics, architecture.
+# The figure for the fast set is in docs/ARCHITECTURE.md ("Working on afmctl").
 SLOW_TESTS = frozenset({
+    "test_amp_cli.py::test_stream_keeps_the_time_column",
+    "test_amp_cli.py::test_stream_three_axes_in_order_and_reports_the_rate",
+    "test_amp_cli.py::test_stream_warns_when_the_rate_is_not_reached",
+    "test_amplifier_contract.py::test_host_limits_narrow_the_device_range_and_refuse_before_sending",
+    "test_amplifier_contract.py::test_reconnect_after_the_device_disappears_and_returns",
+    "test_amplifier_contract.py::test_reconnect_gives_up_with_a_connection_error",
+    "test_amplifier_contract.py::test_timeout_when_the_device_goes_silent",
+    "test_architecture.py::test_known_exception_lists_are_still_needed",
+    "test_chain.py::test_chain_block_equals_step_and_round_trips",
+    "test_chain.py::test_identify_auto_picks_a_creep_chain_and_beats_static_preisach",
+    "test_chain.py::test_identify_chain_bad_input_is_one_line",
+    "test_chain.py::test_run_says_which_model_drives_which_axis",
+    "test_cli_offline.py::test_bad_data_files",
+    "test_cli_offline.py::test_bad_model_files",
+    "test_cli_offline.py::test_identify_epi_and_creep_then_compensate",
+    "test_cli_offline.py::test_param_option_passed_to_identify",
     "test_cli_offline.py::test_real_subprocess_bad_and_good",
+    "test_cli_offline.py::test_wrong_kind_for_invert_and_other_errors",
+    "test_cli_skeleton.py::test_version_runs_as_module",
+    "test_compensator_contract.py::test_bouc_wen_huge_steps_and_stiff_models_stay_finite",
+    "test_drift_kalman_loop.py::test_huge_measured_drift_cannot_push_voltages_out",
+    "test_drift_kalman_loop.py::test_loop_estimate_model_then_measurement",
+    "test_drift_measure.py::test_drift_measure_recovers_known_shifts",
+    "test_drift_watch.py::test_frames_feed_the_kalman_filter_while_running",
+    "test_driver_limits.py::test_max_step_holds_between_concurrent_callers",
+    "test_driver_limits.py::test_no_value_outside_the_limits_leaves_the_driver",
+    "test_driver_robustness.py::test_any_reply_gives_an_amplifier_error_or_a_sane_connection",
+    "test_driver_robustness.py::test_concurrent_callers_are_serialised",
+    "test_driver_robustness.py::test_misbehaving_devices_give_a_clear_error_fast",
+    "test_dynamics.py::test_any_block_split_gives_the_same_numbers",
+    "test_dynamics.py::test_identify_recovers_a_known_model",
+    "test_dynamics.py::test_zoh_discretisation_matches_continuous_simulation",
+    "test_dynamics_sim.py::test_compensate_with_dynamics_beats_static_alone_at_speed",
+    "test_dynamics_sim.py::test_excite_writes_playable_voltages_within_range_and_slew",
+    "test_dynamics_sim.py::test_identified_frf_matches_the_simulators_true_one",
+    "test_dynamics_sim.py::test_limited_inverse_never_exceeds_range_or_slew_and_reports",
+    "test_epi.py::test_epi_halves_the_dwell_error_of_pi_on_a_creeping_plant",
+    "test_error_holes.py::test_report_names_its_quantities_and_shows_the_tracking_error_when_known",
+    "test_identify_artefacts.py::test_absolute_offset_is_fitted",
+    "test_identify_artefacts.py::test_bom_csv_is_accepted",
+    "test_identify_artefacts.py::test_control_voltage_range_0_to_10_V",
+    "test_identify_artefacts.py::test_creep_with_holds_is_seen_and_not_taken_for_a_delay",
+    "test_identify_artefacts.py::test_delay_is_estimated_and_stored",
+    "test_identify_artefacts.py::test_excitation_check_names_what_is_missing",
+    "test_identify_artefacts.py::test_mid_scale_start_fit_and_residuals_not_distorted",
+    "test_identify_artefacts.py::test_non_uniform_sampling",
+    "test_identify_artefacts.py::test_spikes_are_removed",
+    "test_identify_artefacts.py::test_units_kV_and_um_are_refused_with_the_allowed_range",
+    "test_identify_artefacts.py::test_validate_reports_without_start_distortion_and_offset",
+    "test_image_identify.py::test_compensated_grating_period_is_uniform",
+    "test_image_identify.py::test_image_identification_matches_true_position_identification",
+    "test_imaging.py::test_compensator_mapping_and_callable_and_png",
+    "test_loop.py::test_drift_correction_and_temperature",
+    "test_loop.py::test_fault_holds_reconnects_and_resumes_from_readback",
+    "test_loop.py::test_temperature_from_file",
+    "test_messages.py::test_fuzzed_trajectories_raise_only_message_error",
+    "test_phase_corr.py::test_sub_pixel_on_non_periodic_windows",
+    "test_pi_identify.py::test_pi_feedforward_beats_best_linear_scaling_3x_on_preisach_plant",
+    "test_plant.py::test_extra_modes_in_series_match_the_linear_response_and_blocks",
+    "test_preisach_cli.py::test_bad_options_are_one_line_errors",
+    "test_preisach_cli.py::test_identify_and_compensate_preisach",
+    "test_preisach_cli.py::test_identify_bouc_wen",
+    "test_preisach_identify.py::test_feedforward_on_asymmetric_relay_plant_beats_pi",
+    "test_preisach_identify.py::test_nnls_identification_reproduces_a_finer_plant",
+    "test_realdata.py::test_pi_identified_on_ident_predicts_validate_within_120_nm",
+    "test_report.py::test_report_default_out_dir",
+    "test_report.py::test_report_writes_plots_and_summary",
+    "test_run_cli_errors.py::test_missing_trajectory_file_through_a_real_process",
+    "test_runlog.py::test_kill_9_keeps_every_flushed_record",
+    "test_runlog.py::test_killed_run_log_is_not_reported_complete",
+    "test_runlog.py::test_reader_stops_at_first_torn_or_corrupt_chunk",
+    "test_runlog_errors.py::test_afmctl_run_exits_3_when_the_run_log_directory_vanishes",
+    "test_runlog_errors.py::test_disk_full_stops_the_run_and_keeps_the_records",
+    "test_runlog_errors.py::test_vanished_directory_stops_the_run_and_copies_the_records_back",
     "test_safety.py::test_controller_fuzz_never_emits_unsafe_voltage",
     "test_safety.py::test_faults_reconnects_stops_and_readbacks_never_make_an_unsafe_step",
-    "test_sim_cli.py::test_sim_prints_the_pty_serves_mdt693b_and_stops_on_sigterm",
-    "test_sim_cli.py::test_sim_with_a_config_file_chooses_the_protocol",
-    "test_amp_cli.py::test_stream_warns_when_the_rate_is_not_reached",
+    "test_safety.py::test_loop_catching_up_after_a_stall_keeps_the_slew_rate",
+    "test_safety.py::test_slew_limit_holds_per_wall_time_between_sends",
+    "test_scan_files.py::test_identify_from_image_files_equals_npz",
+    "test_sim_amplifiers.py::test_mdt_is_no_faster_than_115200_baud",
+    "test_trajectories.py::test_smooth_move_respects_limits",
 })
 
 

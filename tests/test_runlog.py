@@ -127,13 +127,14 @@ KILL_CHILD = textwrap.dedent("""
 """)
 
 
-def test_kill_9_keeps_every_flushed_record(tmp_path):
-    log_path = tmp_path / "killed.afmlog"
+def _kill_9_after_flushes(log_path, n_flushed: int) -> int:
+    """Run KILL_CHILD writing ``log_path``, SIGKILL it once it reports ``n_flushed`` flushed
+    setpoint records (or 30 s passed); return the last count it reported."""
     proc = subprocess.Popen([sys.executable, "-c", KILL_CHILD, str(log_path)], stdout=subprocess.PIPE, text=True)
     try:
         flushed = 0
         t0 = time.monotonic()
-        while flushed < 400 and time.monotonic() - t0 < 30:
+        while flushed < n_flushed and time.monotonic() - t0 < 30:
             line = proc.stdout.readline()
             if not line:
                 break
@@ -142,7 +143,13 @@ def test_kill_9_keeps_every_flushed_record(tmp_path):
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
         proc.stdout.close()
-    assert flushed >= 400, "child did not get going"
+    assert flushed >= n_flushed, "child did not get going"
+    return flushed
+
+
+def test_kill_9_keeps_every_flushed_record(tmp_path):
+    log_path = tmp_path / "killed.afmlog"
+    flushed = _kill_9_after_flushes(log_path, 400)
     r = RunLogReader(log_path)
     sp = r.setpoints()
     assert len(sp) >= flushed
@@ -195,20 +202,7 @@ def test_killed_run_log_is_not_reported_complete(tmp_path, capsys):
     """kill -9 leaves whole chunks (not torn) but no end record: `afmctl log show` must not
     call that log complete."""
     log_path = tmp_path / "killed.afmlog"
-    proc = subprocess.Popen([sys.executable, "-c", KILL_CHILD, str(log_path)], stdout=subprocess.PIPE, text=True)
-    try:
-        flushed = 0
-        t0 = time.monotonic()
-        while flushed < 200 and time.monotonic() - t0 < 30:
-            line = proc.stdout.readline()
-            if not line:
-                break
-            flushed = int(line)
-    finally:
-        os.kill(proc.pid, signal.SIGKILL)
-        proc.wait()
-        proc.stdout.close()
-    assert flushed >= 200, "child did not get going"
+    _kill_9_after_flushes(log_path, 200)
     r = RunLogReader(log_path)
     assert not r.closed and not r.complete and not r.summary()["complete"]
     assert main(["log", "show", str(log_path)]) == 0

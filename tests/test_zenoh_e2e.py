@@ -80,8 +80,8 @@ def service(tmp_path_factory):
         auth=UserPasswordSettings(dictionary_file=users),
         acl=AclSettings(enabled=True, operators=[AclSubject(id="operators", usernames=["op"])]))
     cfg = load_config(text=CONFIG.format(channel=f"zen-e2e-{id(server)}"))
-    with simulated_amplifier(cfg) as (amp, scanner):
-        ctl = Controller(cfg, amp, scanner=scanner)
+    with simulated_amplifier(cfg) as (amp, _scanner):
+        ctl = Controller(cfg, amp)
         bridge, cli = bridge_on_free_port(ctl, "s1", server, status_period_s=0.2)
         op = Client(cli.model_copy(update={"auth": UserPasswordSettings(user="op", password="op-pw")}))
         viewer = Client(cli.model_copy(update={"auth": UserPasswordSettings(user="viewer", password="viewer-pw")}))

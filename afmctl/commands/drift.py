@@ -326,9 +326,8 @@ def run_fit(args: argparse.Namespace) -> int:
 
 
 def _plot(path: str, t, T, d, name: str) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from ..figures import pyplot, save_figure
+    plt = pyplot()
     fig, (a1, a2) = plt.subplots(2, 1, sharex=True, figsize=(7, 5))
     a1.plot(t, T, color="tab:red")
     a1.set_ylabel("T [°C]")
@@ -339,7 +338,4 @@ def _plot(path: str, t, T, d, name: str) -> None:
     a2.legend()
     a1.set_title(f"predicted drift ({name})")
     fig.tight_layout()
-    try:
-        fig.savefig(path, dpi=110)
-    finally:
-        plt.close(fig)
+    save_figure(fig, path)

@@ -32,8 +32,8 @@ def _read(args: argparse.Namespace):
 
 
 def _fit(args: argparse.Namespace, t, u, y, fit_from: int):
-    from afmctl.compensators.chain import ChainModel, parse_structure
-    from afmctl.compensators.selection import CRITERIA, format_table, select_model
+    from afmctl.compensators.chain import ChainModel, format_table, parse_structure
+    from afmctl.compensators.selection import CRITERIA, select_model
 
     from ..errors import AfmctlError
     from .identify_io import parse_params

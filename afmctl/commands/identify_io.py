@@ -47,11 +47,8 @@ def _save(model, path: str) -> None:
 
 
 def _plot(path: str, t, u, y, y_fit, kind: str) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..errors import AfmctlError
+    from ..figures import pyplot, save_figure
+    plt = pyplot()
 
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4))
     a1.plot(u, y, lw=0.8, label="measured")
@@ -63,10 +60,5 @@ def _plot(path: str, t, u, y, y_fit, kind: str) -> None:
     a2.set_xlabel("t [s]")
     a2.set_ylabel("model − measured [nm]")
     fig.tight_layout()
-    try:
-        fig.savefig(path, dpi=110)
-    except OSError as err:
-        raise AfmctlError(f"--plot: cannot write {path} ({err.strerror})") from None
-    finally:
-        plt.close(fig)
+    save_figure(fig, path)
 

@@ -213,7 +213,7 @@ def run(args: argparse.Namespace) -> int:
             from ..hardware import open_driver
             amp = open_driver(config, config.amplifier.port)
             stack.callback(amp.close)
-        ctl = Controller(config, amp, scanner=scanner)
+        ctl = Controller(config, amp)
         stack.callback(ctl.close)
         if config.zenoh.enabled:   # in its own process: the loop's timing does not depend on it
             from ..zenoh_process import ZenohBridgeProcess
