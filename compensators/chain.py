@@ -100,6 +100,10 @@ class ChainModel(HysteresisModel):
         """``<hysteresis>[+creep][+dynamics]``."""
         return "+".join([self.hysteresis.kind] + [s for s in STAGES if getattr(self, s) is not None])
 
+    def voltage_range_V(self) -> tuple[float, float] | None:
+        """The chain's own identified range, else its hysteresis stage's [V]."""
+        return self.u_range_V or self.hysteresis.voltage_range_V()
+
     def stages(self) -> list[HysteresisModel]:
         """The stage models in chain (forward) order."""
         return [m for m in (self.hysteresis, self.creep, self.dynamics) if m is not None]
