@@ -371,17 +371,23 @@ class PipelineCompensator:
 
 def scan_pipeline(ctx: DemoContext, kind: str, dt_s: float, drift: bool) -> Any:
     """The product's pipeline for the scanner model of ``kind`` (``none``: the linear
-    calibration only) at sample period ``dt_s`` [s]."""
-    from .pipeline import CompensationPipeline, LinearAxis
-    gain = _new_scanner(ctx, drift=False).nominal_gain_nm_per_V()
+    calibration only) at sample period ``dt_s`` [s]. An axis whose model has a dynamics
+    stage inverts each whole scan offline within the simulated amplifier's range and slew
+    limit, ramping from the voltage the scanner rests at (:func:`afmctl.pipeline.offline_inverse`)."""
+    from .pipeline import CompensationPipeline, LinearAxis, offline_inverse
+    sim = _new_scanner(ctx, drift=False)
+    gain, limits, rest = sim.nominal_gain_nm_per_V(), sim.voltage_limits_V(), sim.held_voltage_V()
     scanner = ctx.models.get(kind)
-    inverses = []
+    inverses, offline = [], []
     for i, axis in enumerate(("x", "y", "z")):
         m = scanner.axis(axis) if scanner is not None else None
         inverses.append(m.inverse(dt_s) if m is not None else LinearAxis(float(gain[i])))
+        slew = getattr(ctx.scanner_config, axis).amplifier.effective_slew_V_per_s()
+        offline.append(None if m is None else
+                       offline_inverse(m, dt_s, float(limits[i, 0]), float(limits[i, 1]), slew, float(rest[i])))
     predictor = ctx.drift_params.predictor(dt_s) if (drift and ctx.drift_params is not None) else None
     inv_c = scanner.inverse_coupling() if scanner is not None else None
-    return CompensationPipeline(inverses, predictor, inv_coupling=inv_c)
+    return CompensationPipeline(inverses, predictor, inv_coupling=inv_c, offline=offline)
 
 
 def _compensator(ctx: DemoContext, kind: str, drift: bool = True) -> PipelineCompensator:

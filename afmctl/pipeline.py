@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 from pathlib import Path
 
@@ -63,12 +63,18 @@ class CompensationPipeline:
 
     def __init__(self, inverses: Sequence[StreamingOperator], drift: Any | None = None,
                  kalman: Any | None = None, inv_coupling: np.ndarray | None = None,
-                 provenance: Mapping[str, str] | None = None) -> None:
+                 provenance: Mapping[str, str] | None = None,
+                 offline: Sequence[Callable[[np.ndarray], np.ndarray] | None] | None = None) -> None:
         if len(inverses) != 3:
             raise ValueError("inverses: one operator per axis x, y, z")
         if kalman is not None and drift is None:
             raise ValueError("kalman: needs a drift predictor")
         self.inverses = list(inverses)
+        #: per axis, a whole-target inverse nm → V within the amplifier's limits (or None),
+        #: used by :meth:`block` with ``preview`` (see :func:`offline_inverse`)
+        self.offline = list(offline) if offline is not None else [None, None, None]
+        if len(self.offline) != 3:
+            raise ValueError("offline: one entry per axis x, y, z")
         self.drift = drift
         self.kalman = kalman
         #: C⁻¹ (3, 3) applied to the corrected target [nm/nm], or None (identity)
@@ -137,9 +143,11 @@ class CompensationPipeline:
         corrected (N, 3) [nm], u (N, 3) [V]. Not with a Kalman filter (measurements arrive
         per sample).
 
-        ``preview``: the whole target is known, so an axis whose inverse has
-        ``latency_samples`` = L (a dynamics stage) is fed its decoupled target L samples
-        ahead (the last sample repeated at the end): its output is aligned with the target
+        ``preview``: the whole target is known. An axis with an ``offline`` inverse (a
+        chain with dynamics, :func:`offline_inverse`) gets its decoupled target through it
+        (stable non-causal inverse within the amplifier's limits); otherwise an axis whose
+        inverse has ``latency_samples`` = L is fed its decoupled target L samples ahead
+        (the last sample repeated at the end): its output is aligned with the target
         instead of lagging it."""
         if self.kalman is not None:
             raise ValueError("block: not with a Kalman filter; use run()")
@@ -160,6 +168,9 @@ class CompensationPipeline:
                 a[:, i] = M[i, 0] * c[:, 0] + M[i, 1] * c[:, 1] + M[i, 2] * c[:, 2]
         u = np.empty_like(c)
         for i in range(3):
+            if preview and n and self.offline[i] is not None:
+                u[:, i] = self.offline[i](np.ascontiguousarray(a[:, i]))
+                continue
             lat = int(getattr(self.inverses[i], "latency_samples", 0)) if (preview and n) else 0
             col = a[:, i] if lat == 0 else np.concatenate([a[lat:, i], np.full(min(lat, n), a[-1, i])])[:n]
             u[:, i] = self.inverses[i].block(np.ascontiguousarray(col))
@@ -196,6 +207,23 @@ class CompensationPipeline:
             u[i] = out[6:9]
             prev = out[6:9]
         return d, c, u
+
+
+def offline_inverse(model: Any, dt_s: float, u_min_V: float, u_max_V: float, slew_V_per_s: float | None,
+                    u_start_V: float | None = None) -> Callable[[np.ndarray], np.ndarray] | None:
+    """For :class:`CompensationPipeline`'s ``offline``: a whole-target inverse nm → V of
+    ``model`` at ``dt_s`` [s] within [u_min_V, u_max_V] [V] and ``slew_V_per_s`` [V/s],
+    ramping from ``u_start_V`` [V] (the voltage the amplifier holds before the first
+    sample) — ``model.inverse_within_limits`` — or None when the model has no dynamics
+    stage (its streaming inverse is already exact offline)."""
+    if getattr(model, "dynamics", None) is None:
+        return None
+
+    def invert(target_nm: np.ndarray) -> np.ndarray:
+        res = model.inverse_within_limits(target_nm, dt_s, u_min_V, u_max_V, slew_V_per_s, u_start_V)
+        log.info("offline inverse (%s): %s", _model_name(model), res.report())
+        return res.u_V
+    return invert
 
 
 def load_drift_params(name_or_file: str, overrides: dict[str, Any] | None = None):

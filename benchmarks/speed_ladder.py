@@ -18,9 +18,9 @@ The workflow a user runs, through the command line (in-process ``afmctl.cli.main
 4. the voltages run through a fresh default scanner; the error of the true x position is
    taken over the central 80 % of every trace and retrace, in % of the 4 µm line.
 
-Rows: ``none`` (nominal gain), ``preisach``, ``preisach+dynamics`` (CLI),
-``preisach+creep`` and ``preisach+creep+dynamics`` (stages composed in Python, same
-limits). Writes its section of docs/BENCHMARKS.md between ``<!-- bench:speed_ladder -->``
+Rows: ``none`` (nominal gain), ``preisach``, ``preisach+dynamics`` (``--dynamics``),
+``preisach+creep`` and ``preisach+creep+dynamics`` (the chain files through
+``afmctl compensate``, same limits: the chain's one offline inverse). Writes its section of docs/BENCHMARKS.md between ``<!-- bench:speed_ladder -->``
 markers and the table as JSON.
 
     .venv/bin/python benchmarks/speed_ladder.py [--rates 1 4 16 50] [--no-write] [--json OUT.json]
@@ -44,10 +44,9 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from afmctl.cli import main as afmctl  # noqa: E402
-from afmctl.compensators.base import Chain  # noqa: E402
+from afmctl.compensators.chain import ChainModel  # noqa: E402
 from afmctl.compensators.creep import LinearCreepModel  # noqa: E402
-from afmctl.compensators.dynamics_limits import invert_within_limits  # noqa: E402
-from afmctl.compensators.models import load_model  # noqa: E402
+from afmctl.compensators.models import load_model, save_model  # noqa: E402
 from afmctl.datafiles import read_csv, write_csv  # noqa: E402
 from afmctl.sim_backend.scanner import Scanner, default_scanner_config  # noqa: E402
 from sections import write_section  # noqa: E402  (benchmarks/sections.py)
@@ -99,6 +98,10 @@ def identify(work: Path) -> dict[str, Path]:
     d = read_csv(creep, ("t", "u", "y"))
     cm = LinearCreepModel.identify(d["t"], pre.forward(None).block(d["u"]), d["y"])
     paths["creep"].write_text(cm.model_dump_json(indent=2), encoding="utf-8")
+    # the chain model files (kind chain) that afmctl compensate inverts as one model
+    paths["chain"], paths["chain_dyn"] = work / "chain.json", work / "chain_dyn.json"
+    save_model(ChainModel(hysteresis=pre, creep=cm), paths["chain"])
+    save_model(ChainModel(hysteresis=pre, creep=cm, dynamics=load_model(paths["dyn"])), paths["chain_dyn"])
     return paths
 
 
@@ -137,13 +140,13 @@ def ladder_rate(rate_Hz: float, paths: dict[str, Path], work: Path) -> dict[str,
               "--slew-V-per-s", f"{SLEW_V_PER_S:g}", "--clip")
     row["preisach+dynamics"] = line_error_pct(play_x(read_csv(volts, ("t", "u"))["u"], DT_S), tgt, start, n, lines)
     row["preisach+dynamics"]["note"] = out.strip().splitlines()[0]
-    pre, creep, dyn = (load_model(paths[k]) for k in ("pre", "creep", "dyn"))
-    u = Chain(creep.inverse(DT_S), pre.inverse(None)).block(tgt)
-    row["preisach+creep"] = line_error_pct(play_x(u, DT_S), tgt, start, n, lines)
-    res = invert_within_limits(dyn, tgt, DT_S, lambda: Chain(creep.inverse(DT_S), pre.inverse(None)),
-                               *LIMITS_V, SLEW_V_PER_S)
-    row["preisach+creep+dynamics"] = line_error_pct(play_x(res.u_V, DT_S), tgt, start, n, lines)
-    row["preisach+creep+dynamics"]["note"] = res.report()
+    for label, model in (("preisach+creep", paths["chain"]), ("preisach+creep+dynamics", paths["chain_dyn"])):
+        extra = ("--slew-V-per-s", f"{SLEW_V_PER_S:g}", "--clip") if label.endswith("dynamics") else ()
+        out = cli("compensate", "--model", str(model), "--target", str(target_csv), "--out", str(volts),
+                  "--limits", *map(str, LIMITS_V), *extra)
+        row[label] = line_error_pct(play_x(read_csv(volts, ("t", "u"))["u"], DT_S), tgt, start, n, lines)
+        if extra:
+            row[label]["note"] = next(ln for ln in out.splitlines() if ln.startswith("dynamics"))
     return row
 
 
@@ -183,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"({time.perf_counter() - t0:.0f} s). Default simulated scanner, x axis, 4 µm lines "
                 "(4–8 µm), 100 kHz samples; max / RMS error over the central 80 % of every trace and "
                 "retrace, % of the line. Workflow through the CLI (excite → simulator → identify → "
-                "compensate; the `+creep` rows compose the stages in Python). Amplifier limits "
+                "compensate; the `+creep` rows are chain model files). Amplifier limits "
                 f"{LIMITS_V[0]:g}–{LIMITS_V[1]:g} V, {SLEW_V_PER_S:g} V/s.\n\n" + tab)
         write_section(NAME, body)
     return 0

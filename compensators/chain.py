@@ -21,6 +21,7 @@ last, from the static chain's output to the measured output.
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Sequence
 from typing import Any, ClassVar, Literal
 
@@ -29,6 +30,7 @@ from pydantic import Field, SerializeAsAny, field_validator
 
 from .base import Chain, ModelError, StreamingOperator, check_finite
 from .input_checks import number_option
+from .dynamics_limits import LimitedInverse, invert_within_limits, rate_limit
 from .models import HysteresisModel, model_class, model_from_dict
 
 log = logging.getLogger(__name__)
@@ -99,6 +101,10 @@ class ChainModel(HysteresisModel):
         """``<hysteresis>[+creep][+dynamics]``."""
         return "+".join([self.hysteresis.kind] + [s for s in STAGES if getattr(self, s) is not None])
 
+    def voltage_range_V(self) -> tuple[float, float] | None:
+        """The chain's own identified range, else its hysteresis stage's [V]."""
+        return self.u_range_V or self.hysteresis.voltage_range_V()
+
     def stages(self) -> list[HysteresisModel]:
         """The stage models in chain (forward) order."""
         return [m for m in (self.hysteresis, self.creep, self.dynamics) if m is not None]
@@ -116,17 +122,36 @@ class ChainModel(HysteresisModel):
         op.latency_samples = sum(int(getattr(o, "latency_samples", 0)) for o in op.ops)  # type: ignore[attr-defined]
         return op
 
-    def inverse_offline(self, y_nm: np.ndarray, dt_s: float) -> np.ndarray:
-        """Voltages [V] for a whole known target ``y_nm`` [nm] at ``dt_s`` [s], no latency:
-        the dynamics' stable non-causal inverse over the whole target, then the streaming
-        inverses of creep and hysteresis (``afmctl compensate``)."""
+    def static_inverse(self, dt_s: float | None = None) -> StreamingOperator:
+        """A fresh compensator of the static part, y [nm] → u [V]: ``creep⁻¹`` then
+        ``hysteresis⁻¹`` (what follows the dynamics' inverse)."""
+        return Chain(*(m.inverse(dt_s) for m in (self.creep, self.hysteresis) if m is not None))
+
+    def inverse_within_limits(self, y_nm: np.ndarray, dt_s: float, u_min_V: float = -math.inf,
+                              u_max_V: float = math.inf, slew_V_per_s: float | None = None,
+                              u_start_V: float | None = None) -> LimitedInverse:
+        """The chain's one offline inverse: voltages [V] for a whole known target ``y_nm``
+        [nm] at ``dt_s`` [s], no latency, within [u_min_V, u_max_V] and ``slew_V_per_s``
+        [V/s] (None: unlimited). With a dynamics stage its stable non-causal inverse runs
+        over the whole target with the band limit lowered until the voltages fit
+        (:func:`~afmctl.compensators.dynamics_limits.invert_within_limits`), then the static
+        inverse; without one, the static inverse. What is still out of reach is clipped and
+        rate-limited, starting from ``u_start_V`` (the voltage held before the first
+        sample; None: the first sample), and counted in the result."""
         y = np.ascontiguousarray(check_finite("y_nm", y_nm).ravel())
         if self.dynamics is not None:
-            y = np.ascontiguousarray(self.dynamics.inverse_offline(y, dt_s))
-        for m in (self.creep, self.hysteresis):
-            if m is not None:
-                y = m.inverse(dt_s).block(y)
-        return y
+            return invert_within_limits(self.dynamics, y, dt_s, lambda: self.static_inverse(dt_s),
+                                        u_min_V, u_max_V, slew_V_per_s, u_start_V=u_start_V)
+        u = self.static_inverse(dt_s).block(y)
+        max_step = (slew_V_per_s or math.inf) * dt_s
+        slew = float(np.max(np.abs(np.diff(u)))) / dt_s if u.size > 1 else 0.0
+        out, clipped, limited = rate_limit(u, u_min_V, u_max_V, max_step, u_start_V)
+        return LimitedInverse(out, math.inf, math.inf, slew, clipped, limited)
+
+    def inverse_offline(self, y_nm: np.ndarray, dt_s: float) -> np.ndarray:
+        """Voltages [V] for a whole known target ``y_nm`` [nm] at ``dt_s`` [s], no latency,
+        without voltage or slew limits (:meth:`inverse_within_limits` with none)."""
+        return self.inverse_within_limits(y_nm, dt_s).u_V
 
     def summary(self) -> str:
         lines = [f"model            : chain {self.structure} (kind chain)"]

@@ -40,9 +40,12 @@ class LimitedInverse:
 
     def report(self) -> str:
         """One line for the user."""
-        txt = f"dynamics inverse band limit {self.bandwidth_Hz:.4g} Hz"
-        if self.bandwidth_Hz < self.model_bandwidth_Hz:
-            txt += f" (lowered from {self.model_bandwidth_Hz:.4g} Hz to stay within the limits)"
+        if math.isfinite(self.bandwidth_Hz):
+            txt = f"dynamics inverse band limit {self.bandwidth_Hz:.4g} Hz"
+            if self.bandwidth_Hz < self.model_bandwidth_Hz:
+                txt += f" (lowered from {self.model_bandwidth_Hz:.4g} Hz to stay within the limits)"
+        else:   # a chain without dynamics: the static inverse alone
+            txt = "static inverse"
         txt += f", fastest change {self.needed_slew_V_per_s:.4g} V/s"
         if self.clipped or self.slew_limited:
             txt += (f"; NOT reachable: {self.clipped} samples clipped to the range, "
@@ -54,32 +57,40 @@ def _max_slew(u: np.ndarray, dt_s: float) -> float:
     return float(np.max(np.abs(np.diff(u)))) / dt_s if u.size > 1 else 0.0
 
 
-def rate_limit(u: np.ndarray, lo: float, hi: float, max_step: float) -> tuple[np.ndarray, int, int]:
-    """Clip to [lo, hi], then limit each sample's change to ``max_step`` (causal);
-    returns (voltages, samples clipped, samples rate-limited). A limited step is made
-    1e-9 shorter than ``max_step`` so that rounding never lets it exceed the limit."""
+def rate_limit(u: np.ndarray, lo: float, hi: float, max_step: float,
+               u_start_V: float | None = None) -> tuple[np.ndarray, int, int]:
+    """Clip to [lo, hi], then limit each sample's change to ``max_step`` [V] (causal);
+    returns (voltages, samples clipped, samples rate-limited). ``u_start_V``: the voltage
+    the amplifier holds before the first sample (None: the first sample is reachable), so
+    a trajectory that does not start where the scanner rests ramps there at the slew
+    limit. A limited step is made 1e-9 shorter than ``max_step`` so that rounding never
+    lets it exceed the limit."""
     c = np.clip(u, lo, hi)
     clipped = int(np.count_nonzero(c != u))
     out = c.copy()
     limited = 0
     step = max_step * (1 - 1e-9)
-    for k in range(1, out.size):
-        d = out[k] - out[k - 1]
+    prev = out[0] if (u_start_V is None or out.size == 0) else min(max(float(u_start_V), lo), hi)
+    for k in range(out.size):
+        d = out[k] - prev
         if abs(d) > max_step:
-            out[k] = out[k - 1] + math.copysign(step, d)
+            out[k] = prev + math.copysign(step, d)
             limited += 1
+        prev = out[k]
     return out, clipped, limited
 
 
 def invert_within_limits(dynamics, target_nm: np.ndarray, dt_s: float,
                          static_inverse: Callable[[], StreamingOperator], u_min_V: float, u_max_V: float,
-                         slew_V_per_s: float | None = None, min_bandwidth_Hz: float | None = None
-                         ) -> LimitedInverse:
+                         slew_V_per_s: float | None = None, min_bandwidth_Hz: float | None = None,
+                         u_start_V: float | None = None) -> LimitedInverse:
     """Voltages [V] for ``target_nm`` through ``dynamics`` (a
     :class:`~afmctl.compensators.dynamics.LinearDynamicsModel`, offline stable inverse)
     and a fresh static inverse from ``static_inverse()`` (nm → V), within
     [u_min_V, u_max_V] and ``slew_V_per_s``. The band limit goes down from the model's by
-    :data:`STEP` per attempt to ``min_bandwidth_Hz`` (default a fifth of the slowest pole)."""
+    :data:`STEP` per attempt to ``min_bandwidth_Hz`` (default a fifth of the slowest pole).
+    ``u_start_V``: the voltage held before the first sample (see :func:`rate_limit`); the
+    ramp from it is not counted when the band limit is chosen."""
     model_bw = dynamics.inverse_bandwidth_Hz(dt_s)
     p = dynamics.poles()
     floor = min_bandwidth_Hz or (0.2 * float(np.min(np.abs(p))) / (2 * math.pi) if p.size else model_bw / 10)
@@ -95,7 +106,7 @@ def invert_within_limits(dynamics, target_nm: np.ndarray, dt_s: float,
         if (slew <= max_step / dt_s and in_range) or bw / STEP < floor:
             break
         bw /= STEP
-    u_out, clipped, limited = rate_limit(u, u_min_V, u_max_V, max_step)
+    u_out, clipped, limited = rate_limit(u, u_min_V, u_max_V, max_step, u_start_V)
     res = LimitedInverse(u_out, bw, model_bw, slew, clipped, limited)
     log.info("%s", res.report())
     return res

@@ -41,6 +41,9 @@ def test_demo_compensation_beats_uncompensated(demo_run):
     assert best == min((k for k in mx if k != "none"), key=mx.get)
     assert mx[best] * 5 <= mx["none"]
     assert mx[best] <= 2.0                        # reduced run; the full size: test_full_size_demo_…
+    # issue #11: the dynamics stage must not cost accuracy (it was 78 % vs 0.86 % when
+    # the chain's offline inverse ignored the amplifier's slew and range and its rest)
+    assert mx["preisach+creep+dynamics"] <= 1.25 * mx["preisach+creep"], mx
     assert m["drift"]["max_true_drift_nm"] > 1.0  # the drift scenario is on
     d = m["drift_effect"]
     assert d["compensator"] == best and d["max_error_pct_with_drift_correction"] == mx[best]
@@ -108,6 +111,9 @@ def test_demo_speed_ladder_through_the_controller(demo_run):
         assert row["chain"]["model"] == "preisach+creep" and row["static"]["model"] == "pi"
         # any model beats the linear calibration at every speed
         assert row["chain"]["max_error_pct"] < row["none"]["max_error_pct"]
+    # both offline at 50 lines/s: the dynamics stage is no worse (13.5 % vs 3.6 % before #11's fix)
+    fifty = ladder["50"]
+    assert fifty["chain+dynamics"]["max_error_pct"] <= 1.1 * fifty["chain"]["max_error_pct"], fifty
     assert (out / "models" / "scanner_preisach+creep.json").exists()
     assert (out / "ladder" / "ladder-1-scanner_preisach+creep.afmlog").exists()
     png = (out / "demo_speed_ladder.png").read_bytes()

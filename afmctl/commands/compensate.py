@@ -36,8 +36,11 @@ Output:
                        start and end at rest. With --slew-V-per-s (and --limits) the
                        inverse's band limit is lowered until the voltages fit (the
                        turnarounds get rounder); what is still out of reach is clipped
-                       and rate-limited, and reported.
-  --slew-V-per-s S     the amplifier's slew limit [V/s] (with --dynamics)
+                       and rate-limited, and reported. A chain model with a dynamics
+                       stage (e.g. preisach+creep+dynamics) is inverted the same way,
+                       within --limits (default: the model's range) and --slew-V-per-s.
+  --slew-V-per-s S     the amplifier's slew limit [V/s] (with --dynamics or a chain
+                       model with a dynamics stage)
 
 The model's operator starts from the state stored in the model file (a scanner at rest)
 and runs through the whole file. A preisach model clamps targets it cannot reach to the
@@ -70,8 +73,6 @@ def run(args: argparse.Namespace) -> int:
     from afmctl.compensators.base import ModelError
     from afmctl.compensators.models import load_model
 
-    if args.slew_V_per_s is not None and args.dynamics is None:
-        raise AfmctlError("--slew-V-per-s: only used with --dynamics DYN.json")
     if args.limits and not (np.isfinite(args.limits).all() and args.limits[0] < args.limits[1]):
         raise AfmctlError(f"--limits: {args.limits[0]} {args.limits[1]}; need finite LO < HI (V)")
     model = _axis_model(load_model(args.model), args)
@@ -80,11 +81,14 @@ def run(args: argparse.Namespace) -> int:
                           "--dynamics beside a --model that maps volts (pi, epi, creep, preisach, bouc-wen, chain)")
     if args.dynamics is not None and getattr(model, "dynamics", None) is not None:
         raise AfmctlError(f"--dynamics: {args.model} already holds a dynamics stage ({model.structure}); drop --dynamics")
+    with_dynamics = args.dynamics is not None or getattr(model, "dynamics", None) is not None
+    if args.slew_V_per_s is not None and not with_dynamics:
+        raise AfmctlError("--slew-V-per-s: only used with --dynamics DYN.json or a chain model with a dynamics stage")
     data = read_csv(args.target, ("t", "y"), min_rows=1)
     t, y = data["t"], data["y"]
-    timed = getattr(model, "time_dependent", False) or args.dynamics is not None
+    timed = getattr(model, "time_dependent", False) or with_dynamics
     dt = uniform_period(t, str(args.target)) if timed else None
-    if args.dynamics is not None:
+    if with_dynamics:
         def invert(target):
             return _with_dynamics(args, model, target, dt)
     else:
@@ -113,12 +117,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _inverter(model, dt, args: argparse.Namespace):
-    """target [nm] → voltages [V]: a model with dynamics uses its stable non-causal inverse
-    over the whole known target (no latency); others stream (chunked). A model that cannot
-    be inverted is blamed on the model file."""
+    """target [nm] → voltages [V] for a model without dynamics: its inverse streams
+    (chunked). A model that cannot be inverted is blamed on the model file."""
     from afmctl.compensators.base import ModelError
-    if getattr(model, "dynamics", None) is not None:
-        return lambda y: model.inverse_offline(y, dt)
     try:
         inverse = model.inverse(dt)
     except ModelError as err:  # e.g. a Bouc–Wen model that is not invertible
@@ -158,19 +159,24 @@ def _limits(given, model) -> tuple[float, float, str]:
 
 
 def _with_dynamics(args, model, y, dt):
-    """Dynamics inverse (offline, within --limits/--slew-V-per-s), then ``model``'s inverse."""
+    """The offline inverse within --limits/--slew-V-per-s: a chain model's own dynamics
+    stage (:meth:`ChainModel.inverse_within_limits`), or --dynamics then ``model``'s
+    inverse — the same :func:`invert_within_limits` either way."""
     import math
 
     from ..errors import AfmctlError
     from afmctl.compensators.dynamics_limits import invert_within_limits
     from afmctl.compensators.models import load_model
 
-    dyn = load_model(args.dynamics, expect=("dynamics",))
     slew = args.slew_V_per_s
     if slew is not None and not (math.isfinite(slew) and slew > 0):
         raise AfmctlError(f"--slew-V-per-s: {slew}; need a finite rate > 0 V/s")
     lo, hi, _ = _limits(args.limits, model)
-    res = invert_within_limits(dyn, y, dt, lambda: model.inverse(dt), lo, hi, slew)
+    if args.dynamics is None:
+        res = model.inverse_within_limits(y, dt, lo, hi, slew)
+    else:
+        dyn = load_model(args.dynamics, expect=("dynamics",))
+        res = invert_within_limits(dyn, y, dt, lambda: model.inverse(dt), lo, hi, slew)
     print(f"dynamics         : {res.report()}")
     if res.clipped and not args.clip:
         raise AfmctlError(f"{args.target}: {res.clipped} samples need voltages outside the limits {lo:g}..{hi:g} V "
