@@ -1,5 +1,5 @@
 """``afmctl run --drift-images DIR``: while the controller scans, watch a directory for the AFM
-frames the acquisition software writes (.gwy, .gsf, .tif; all of the same area), measure each
+frames the acquisition software writes (.gwy, .gsf, .tif, .ibw; all of the same area), measure each
 new frame's drift by phase correlation (:mod:`afmctl.drift_images`) and hand it to the
 controller's Kalman filter (``compensation.drift.kalman = true``).
 

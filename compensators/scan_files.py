@@ -7,7 +7,7 @@ Two kinds of input:
   written by ``afmctl.sim_backend.image_scans``), read by :func:`load_scans_npz`;
 * AFM image files, one scan range per file, read with the formats' own libraries:
   Gwyddion ``.gwy`` (gwyfile), Gwyddion Simple Field ``.gsf`` (gsffile), TIFF ``.tif/.tiff``
-  (tifffile). Trace and retrace channels, the scan size [nm] and the line rate [Hz] come
+  (tifffile), Asylum Research Igor binary wave ``.ibw`` (igor2). Trace and retrace channels, the scan size [nm] and the line rate [Hz] come
   from the file's metadata (see :func:`read_scan_image`). Asylum ``.ibw`` and Bruker
   Nanoscope files are not read yet.
 
@@ -33,7 +33,7 @@ from .input_checks import number_option
 
 log = logging.getLogger(__name__)
 
-IMAGE_SUFFIXES = (".gwy", ".gsf", ".tif", ".tiff")
+IMAGE_SUFFIXES = (".gwy", ".gsf", ".tif", ".tiff", ".ibw")
 _RATE_KEYS = re.compile(r"(line|scan)[ _]?rate", re.IGNORECASE)
 
 
@@ -81,7 +81,7 @@ def read_scan_image(path: str | Path) -> ScanImage:
     """Read one AFM image file by its suffix (:data:`IMAGE_SUFFIXES`)."""
     p = Path(path)
     suffix = p.suffix.lower()
-    readers = {".gwy": _read_gwy, ".gsf": _read_gsf, ".tif": _read_tiff, ".tiff": _read_tiff}
+    readers = {".gwy": _read_gwy, ".gsf": _read_gsf, ".tif": _read_tiff, ".tiff": _read_tiff, ".ibw": _read_ibw}
     if suffix not in readers:
         raise ModelError(f"{p}: unknown image format {suffix!r}; allowed: {', '.join(IMAGE_SUFFIXES)}, .npz")
     if not p.is_file():
@@ -229,3 +229,45 @@ def identify_from_scan_files(paths: list[str | Path], kind: str = "preisach", n_
         raise ModelError(f"{where}: {err}") from None
     except ValueError as err:  # incl. numpy.linalg.LinAlgError; e.g. an option value of the wrong type
         raise ModelError(f"{where}: the image-based identification failed ({err})") from None
+
+
+def _asylum_note(note: str) -> dict[str, str]:
+    """The ``key: value`` lines of an Asylum wave note (carriage-return or newline separated)."""
+    meta = {}
+    for line in re.split(r"[\r\n]+", note):
+        key, sep, value = line.partition(":")
+        if sep:
+            meta[key.strip()] = value.strip()
+    return meta
+
+
+def _read_ibw(p: Path) -> ScanImage:
+    """Asylum Research ``.ibw``: one 3-D wave (scan points, scan lines, layers) in m, the layer
+    names (HeightTrace, HeightRetrace, ...) in the labels of dimension 2, and ``ScanSize`` [m],
+    ``ScanRate`` [Hz] (lines per second), optionally ``SlowScanSize`` [m] as ``key: value`` lines in the wave note."""
+    from igor2 import binarywave
+
+    wave = binarywave.load(str(p))["wave"]
+    data = np.asarray(wave["wData"], dtype=np.float64)
+    if data.ndim == 2:
+        data = data[:, :, None]
+    if data.ndim != 3:
+        raise ModelError(f"wave of {data.ndim} dimensions; an Asylum image is (points, lines, layers)")
+    labels = [lb.decode("latin-1") if isinstance(lb, bytes) else str(lb) for lb in wave["labels"][2]]
+    labels = labels[1:] if len(labels) == data.shape[2] + 1 else labels  # entry 0 names the dimension
+    layers: dict[str, np.ndarray] = {}
+    for k, name in enumerate(labels[: data.shape[2]]):
+        role = _channel_role(name)
+        if role and role not in layers and "height" in name.lower():
+            layers[role] = data[:, :, k].T  # Igor column-major (points, lines) -> (lines, pixels)
+    if "trace" not in layers:
+        raise ModelError(f"no HeightTrace layer (layers: {', '.join(labels) or 'none'})")
+    note = wave.get("note", b"")
+    meta = _asylum_note(note.decode("latin-1") if isinstance(note, bytes) else str(note))
+    if "ScanSize" not in meta:
+        raise ModelError("no 'ScanSize' line in the wave note")
+    size_nm = float(meta["ScanSize"]) * 1e9
+    height = float(meta["SlowScanSize"]) * 1e9 if "SlowScanSize" in meta else None  # else square pixels
+    rate = float(meta["ScanRate"]) if "ScanRate" in meta else None
+    retrace = layers.get("retrace")
+    return ScanImage(str(p), layers["trace"] * 1e9, None if retrace is None else retrace * 1e9, size_nm, rate, height)

@@ -40,7 +40,16 @@ def write_gwy(path, img):
     c.tofile(str(path))
 
 
-@pytest.mark.parametrize("suffix,writer", [(".tif", write_tiff), (".gwy", write_gwy)])
+def write_ibw(path, img):
+    """Asylum layout (igorwriter): (points, lines, layers) in m, layer names in dimension 2's labels."""
+    from igorwriter import IgorWave
+    wave = IgorWave(np.ascontiguousarray((img * 1e-9).T[:, :, None]), name="frame")
+    wave.set_dimlabel(2, 0, "HeightTrace")
+    wave.set_note(f"ScanSize: {SCAN_NM * 1e-9!r}\rScanRate: 1.0\r")
+    wave.save(str(path))
+
+
+@pytest.mark.parametrize("suffix,writer", [(".tif", write_tiff), (".gwy", write_gwy), (".ibw", write_ibw)])
 def test_drift_measure_recovers_known_shifts(tmp_path, frames, capsys, suffix, writer):
     paths = []
     for k, img in enumerate(frames):

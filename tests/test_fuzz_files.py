@@ -204,3 +204,39 @@ def test_damaged_binary_files(argv, tmp_path, capsys):
             assert len(errors) == 1 and str(f) in errors[0], where
         if must_fail:
             assert rc == 2, f"silent success: {where}"
+
+
+def test_damaged_asylum_ibw_files(tmp_path, capsys):
+    """Asylum .ibw frames (written by igorwriter) truncated, flipped or replaced: drift measure
+    either reads them or stops with one error line naming the file, never a traceback."""
+    from igorwriter import IgorWave
+
+    rng = np.random.default_rng(11)
+    good = tmp_path / "good.ibw"
+    wave = IgorWave(np.ascontiguousarray(rng.normal(0, 1e-9, (64, 32, 2))), name="img")
+    wave.set_dimlabel(2, 0, "HeightTrace")
+    wave.set_dimlabel(2, 1, "HeightRetrace")
+    wave.set_note("ScanSize: 5e-06\rScanRate: 1\r")
+    wave.save(str(good))
+    valid = good.read_bytes()
+    damaged = [("random bytes", rng.integers(0, 256, 300, dtype=np.uint8).tobytes(), True),
+               ("empty", b"", True)]
+    for cut in sorted(rng.integers(1, len(valid) - 1, 6)):
+        damaged.append((f"truncated at {cut}", valid[:cut], False))
+    flipped = bytearray(valid)
+    for i in rng.integers(0, 400, 5):     # the headers and the start of the data
+        flipped[i] ^= 0xFF
+    damaged.append(("bytes flipped", bytes(flipped), False))
+    for name, content, must_fail in damaged:
+        f = tmp_path / "bad.ibw"
+        f.write_bytes(content)
+        capsys.readouterr()
+        rc = main(["drift", "measure", str(good), str(f), "--out", str(tmp_path / "d.csv")])
+        cap = capsys.readouterr()
+        where = f"{name}: rc={rc} stderr={cap.err!r}"
+        assert "Traceback" not in cap.err and rc in (0, 2), where
+        if rc == 2:
+            errors = [ln for ln in cap.err.splitlines() if ln.startswith("afmctl: error:")]
+            assert len(errors) == 1 and str(f) in errors[0], where
+        if must_fail:
+            assert rc == 2, f"silent success: {where}"

@@ -58,7 +58,21 @@ def write_tiff(path, scans, r):
                      metadata={"scan_size_nm": RANGES[r] * GAIN, "line_rate_Hz": 2.0, "z_unit": "nm"})
 
 
-WRITERS = {"gwy": (write_gwy, "r{}.gwy"), "gsf": (write_gsf, "r{}_trace.gsf"), "tiff": (write_tiff, "r{}.tif")}
+def write_ibw(path, scans, r):
+    """Asylum layout, written by igorwriter: (points, lines, layers) in m, layer names as the
+    labels of dimension 2, the scan parameters as ``key: value`` lines of the wave note."""
+    from igorwriter import IgorWave
+
+    tr, rt = _spatial(scans, r)
+    wave = IgorWave(np.ascontiguousarray(np.stack([tr.T, rt.T], axis=2)), name="r%d" % r)
+    for k, name in enumerate(("HeightTrace", "HeightRetrace")):
+        wave.set_dimlabel(2, k, name)
+    wave.set_note(f"ScanSize: {RANGES[r] * GAIN * 1e-9!r}\rScanRate: 2\rScanLines: {tr.shape[0]}\r"
+                  f"ScanPoints: {tr.shape[1]}\r")
+    wave.save(str(path))
+
+
+WRITERS = {"gwy": (write_gwy, "r{}.gwy"), "gsf": (write_gsf, "r{}_trace.gsf"), "tiff": (write_tiff, "r{}.tif"), "ibw": (write_ibw, "r{}.ibw")}
 
 
 def _write_all(tmp_path, scans, fmt):
@@ -84,7 +98,7 @@ def test_each_format_reads_back_channels_size_and_rate(tmp_path, scans, fmt):
     np.testing.assert_allclose(arrays["u_trace_V"], scans.u_trace_V, rtol=1e-12)
 
 
-@pytest.mark.parametrize("fmt", ["gsf", "gwy", "tiff"])
+@pytest.mark.parametrize("fmt", ["gsf", "gwy", "tiff", "ibw"])
 def test_identify_from_image_files_equals_npz(tmp_path, scans, fmt, capsys):
     npz = scans.save_npz(tmp_path / "scans.npz")
     common = ["identify", "--model", "preisach", "--operators", "15"]
@@ -105,6 +119,9 @@ def test_image_file_errors_name_the_file(tmp_path, capsys):
         read_scan_image(tmp_path / "bad.gwy")
     with pytest.raises(ModelError, match="unknown image format"):
         read_scan_image(tmp_path / "x.jpg")
+    (tmp_path / "bad.ibw").write_bytes(b"\x05\x00" + b"\x00" * 40)
+    with pytest.raises(ModelError, match="bad.ibw: not a readable"):
+        read_scan_image(tmp_path / "bad.ibw")
     rc = main(["identify", "--model", "preisach", "--from-images", str(tmp_path / "bad.gwy"),
                "--out", str(tmp_path / "m.json")])
     err = capsys.readouterr().err

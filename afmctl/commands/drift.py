@@ -28,7 +28,7 @@ and the tip's drift since the first frame is written (the sample is taken to sta
 the tip drifts by +d, features appear at -d).
 
 Inputs:
-  IMG...                   two or more frames, in time order: .gwy, .gsf or .tif (trace
+  IMG...                   two or more frames, in time order: .gwy, .gsf, .tif or Asylum .ibw (trace
                            channel; pixel size from the scan size in the file's metadata)
   --frame-period-s S       time between frames (s); default: lines / line rate from the
                            file's metadata
@@ -124,7 +124,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     pf.set_defaults(func=run_fit)
     pm = sub.add_parser("measure", help="drift between successive AFM frames of the same area (nm)",
                         description=MEASURE_DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
-    pm.add_argument("images", nargs="+", metavar="IMG", help="frames in time order (.gwy, .gsf, .tif)")
+    pm.add_argument("images", nargs="+", metavar="IMG", help="frames in time order (.gwy, .gsf, .tif, .ibw)")
     pm.add_argument("--out", required=True, metavar="DRIFT.csv", help="output CSV t,x,y,dx_px,dy_px")
     pm.add_argument("--frame-period-s", type=float, default=None, metavar="S",
                     help="time between frames in s (default: lines / line rate from the metadata)")
