@@ -134,19 +134,29 @@ class CANAmplifier(Amplifier):
                             codec.encode_heartbeat(self._counter, req_state, req_status, req_info), self.timeout_s)
 
     def _request_status(self, req_info: bool = False, req_state: int = 0) -> dict[str, float]:
+        def answered(before: int) -> bool:
+            return self._status_count != before and not (req_info and self._limits_frame is None)
+
+        self._send_and_await(lambda: self._heartbeat(req_state=req_state, req_status=True, req_info=req_info),
+                             lambda: self._status_count, answered, "STATUS")
         with self._cond:
-            before = self._status_count
-        self._heartbeat(req_state=req_state, req_status=True, req_info=req_info)
-        deadline = time.monotonic() + self.timeout_s
-        with self._cond:
-            while self._status_count == before or (req_info and self._limits_frame is None):
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise AmplifierTimeout(f"no STATUS from the CAN amplifier on {self.transport.url} "
-                                           f"within {self.timeout_s:g} s")
-                self._cond.wait(left)
             assert self._status is not None
             return dict(self._status)
+
+    def _send_and_await(self, send, count, answered, frame: str) -> None:
+        """``send()``, then wait (up to ``timeout_s``) until ``answered(count before sending)``:
+        a status frame newer than the request arrived (counts change under ``_cond``)."""
+        with self._cond:
+            before = count()
+        send()
+        deadline = time.monotonic() + self.timeout_s
+        with self._cond:
+            while not answered(before):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise AmplifierTimeout(f"no {frame} from the CAN amplifier on {self.transport.url} "
+                                           f"within {self.timeout_s:g} s")
+                self._cond.wait(left)
 
     # -- hooks of the template --
     def _open_link(self) -> None:
@@ -212,17 +222,10 @@ class CANAmplifier(Amplifier):
     def _stream_command(self, cmd: int, rate_Hz: float = 0.0, prefill: int = 1) -> BufferStatus:
         """Send STREAM_CTRL and wait for the STREAM_STATUS that answers it."""
         data = codec.encode_stream_ctrl(cmd, rate_Hz, prefill)
+        self._send_and_await(lambda: self.transport.send(self._ids[codec.STREAM_CTRL], data, self.timeout_s),
+                             lambda: self._stream_status_count,
+                             lambda before: self._stream_status_count != before, "STREAM_STATUS")
         with self._cond:
-            before = self._stream_status_count
-        self.transport.send(self._ids[codec.STREAM_CTRL], data, self.timeout_s)
-        deadline = time.monotonic() + self.timeout_s
-        with self._cond:
-            while self._stream_status_count == before:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise AmplifierTimeout(f"no STREAM_STATUS from the CAN amplifier on {self.transport.url} "
-                                           f"within {self.timeout_s:g} s")
-                self._cond.wait(left)
             assert self._stream_status is not None
             return _buffer_status(self._stream_status)
 

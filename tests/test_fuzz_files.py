@@ -197,13 +197,7 @@ def test_damaged_binary_files(argv, tmp_path, capsys):
         capsys.readouterr()
         rc = main(args)
         cap = capsys.readouterr()
-        where = f"{argv[0]} / {name}: rc={rc} stderr={cap.err!r}"
-        assert "Traceback" not in cap.err and rc in (0, 2), where
-        if rc == 2:
-            errors = [ln for ln in cap.err.splitlines() if ln.startswith("afmctl: error:")]
-            assert len(errors) == 1 and str(f) in errors[0], where
-        if must_fail:
-            assert rc == 2, f"silent success: {where}"
+        _assert_read_or_one_error_line(rc, cap.err, f, must_fail, f"{argv[0]} / {name}")
 
 
 def test_damaged_asylum_ibw_files(tmp_path, capsys):
@@ -233,10 +227,16 @@ def test_damaged_asylum_ibw_files(tmp_path, capsys):
         capsys.readouterr()
         rc = main(["drift", "measure", str(good), str(f), "--out", str(tmp_path / "d.csv")])
         cap = capsys.readouterr()
-        where = f"{name}: rc={rc} stderr={cap.err!r}"
-        assert "Traceback" not in cap.err and rc in (0, 2), where
-        if rc == 2:
-            errors = [ln for ln in cap.err.splitlines() if ln.startswith("afmctl: error:")]
-            assert len(errors) == 1 and str(f) in errors[0], where
-        if must_fail:
-            assert rc == 2, f"silent success: {where}"
+        _assert_read_or_one_error_line(rc, cap.err, f, must_fail, name)
+
+
+def _assert_read_or_one_error_line(rc: int, err: str, f, must_fail: bool, what: str) -> None:
+    """A damaged input file is either read (exit 0) or refused with exit 2 and exactly one
+    error line naming it; never a traceback; ``must_fail`` inputs must be refused."""
+    where = f"{what}: rc={rc} stderr={err!r}"
+    assert "Traceback" not in err and rc in (0, 2), where
+    if rc == 2:
+        errors = [ln for ln in err.splitlines() if ln.startswith("afmctl: error:")]
+        assert len(errors) == 1 and str(f) in errors[0], where
+    if must_fail:
+        assert rc == 2, f"silent success: {where}"
