@@ -118,10 +118,21 @@ class LoopSection(_Strict):
     realtime_priority: int | None = Field(
         None, ge=1, le=99, description="run the loop thread SCHED_FIFO at this priority (Linux; needs "
                                        "CAP_SYS_NICE or root; None: normal scheduling)")
+    cpu: int | Literal["auto", "none"] | None = Field(
+        "auto", description="CPU of the loop thread; every other afmctl thread and the zenoh process run on "
+                            "the others: 'auto' (the highest CPU when the process may use two or more), a CPU "
+                            "number 0..1023, or none (no pinning); Linux only")
     gc_freeze: bool = Field(True, description="collect garbage and freeze the survivors at start (shorter "
                                               "garbage-collector pauses during the run)")
     resync_periods: int = Field(20, ge=2, le=100000,
                                 description="when this many periods late, restart the schedule instead of catching up")
+
+    @field_validator("cpu")
+    @classmethod
+    def _cpu_number(cls, v: int | str | None) -> int | str | None:
+        if isinstance(v, int) and not 0 <= v <= 1023:
+            raise ValueError(f"{v} is not a CPU number 0..1023 (or 'auto', 'none')")
+        return v
 
     @property
     def dt_s(self) -> float:

@@ -63,6 +63,7 @@ from afmctl.compensators.temperature import T_MAX_C, T_MIN_C
 
 from . import loop_stats
 from .errors import AfmctlError, error_line
+from . import cpu_pinning
 from .loop_machine import (C_COR, C_D, C_S, C_SEQ, C_T, C_TGT, C_TICK, C_U, END_OF_TRAJECTORY, N_COLS,
                            RING_ROWS, LoopMachine, Mode, State)  # noqa: F401 - Mode re-exported
 from .runlog import DRIFT_DTYPE, SETPOINT_DTYPE, RunLogWriter
@@ -98,17 +99,38 @@ def _flat(rows: np.ndarray) -> list[float]:
     return rows.ravel().tolist()
 
 
-def helper_priority(loop_priority: int | None) -> None:
+def helper_priority(loop_priority: int | None, cpus: frozenset[int] | None = None) -> None:
     """Make the calling thread SCHED_FIFO one step below a real-time loop thread (priority
     ``loop_priority``; None: leave it). Every thread of the loop's process that takes the
     interpreter lock now and then (feeder, dispatcher, run log, the zenoh pipe threads) runs
     so, because an ordinary thread preempted by other processes while holding the lock makes
-    the loop wait for it (priority inversion)."""
+    the loop wait for it (priority inversion). ``cpus``: pin the thread there too (the CPUs
+    that are not the loop's, :mod:`afmctl.cpu_pinning`; None: leave)."""
+    cpu_pinning.pin_this_thread(cpus)
     if loop_priority is not None:
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(1, loop_priority - 1)))
         except (AttributeError, OSError):
             pass
+
+
+def quiet_window_wait_s(now_s: float, deadline_s: float, period_s: float, spin_s: float) -> float:
+    """How long [s] a helper thread waits from ``now_s`` to be inside the loop's quiet window.
+
+    The loop ticks at ``deadline_s + k · period_s`` (perf_counter [s]), works for a while, then
+    sleeps until ``spin_s`` before the next deadline and spins. The quiet window of each period
+    starts a quarter period after the deadline (the tick's work done) and ends ``spin_s`` plus
+    a quarter period before the next one; a helper that starts there hands the interpreter
+    lock back before the loop needs it. 0 when ``now_s`` is inside a window, when the loop is
+    not running (``deadline_s`` 0) or when the period leaves no window (fast loops)."""
+    start = 0.25 * period_s
+    end = 0.75 * period_s - spin_s
+    if deadline_s <= 0.0 or end - start < 1e-4:
+        return 0.0
+    phase = (now_s - deadline_s) % period_s
+    if start <= phase <= end:
+        return 0.0
+    return (start - phase) % period_s
 
 
 class Controller:
@@ -164,6 +186,11 @@ class Controller:
         #: why the run log failed (the run was stopped), or None
         self.runlog_error: str | None = None
         self._done = threading.Event()
+        #: perf_counter time [s] of the deadline of the loop's latest tick (0: not running);
+        #: written by the loop thread, read by the dispatcher to keep off the next deadline
+        self._deadline_s = 0.0
+        #: loop.cpu resolved: the loop thread's CPU and the other threads' CPUs
+        self.cpu_plan = cpu_pinning.plan_for(config.loop.cpu)
 
     # ------------------------------------------------------------------ public API
     @property
@@ -444,7 +471,7 @@ class Controller:
 
     def _helper_priority(self) -> None:
         """Run the calling helper thread (feeder, dispatcher) as :func:`helper_priority` says."""
-        helper_priority(self.config.loop.realtime_priority)
+        helper_priority(self.config.loop.realtime_priority, self.cpu_plan.others)
 
     def _feed(self, it: Iterator) -> None:
         self._helper_priority()
@@ -471,6 +498,11 @@ class Controller:
         if si is not None:
             sys.setswitchinterval(si)
         prio = self.config.loop.realtime_priority
+        plan = self.cpu_plan
+        if plan.loop_cpu is not None and cpu_pinning.pin_this_thread(frozenset({plan.loop_cpu})):
+            self._event("cpu", plan.why)
+        else:
+            self._event("cpu-none", plan.why)
         if prio is not None:
             try:
                 os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))  # this thread only
@@ -536,6 +568,7 @@ class Controller:
                     self._call_sinks("on_status", self._status("final"))
                     break
                 time.sleep(self.dispatch_interval_s)
+                self._sleep_to_quiet_window()
         finally:
             if self.runlog is not None:
                 self.runlog.write_event({"seq": self._seq, "t_s": self._tick * self.dt_s, "wall_time": time.time(),
@@ -543,6 +576,14 @@ class Controller:
                                          "detail": self.stats()})
                 self.runlog.close()
             self._done.set()
+
+    def _sleep_to_quiet_window(self) -> None:
+        """Dispatcher: wait until just after one of the loop's ticks, so that its work (run log,
+        sinks, zenoh frames) takes the interpreter lock while the loop thread sleeps, not while
+        it waits for a deadline. See :func:`quiet_window_wait_s`."""
+        wait = quiet_window_wait_s(time.perf_counter(), self._deadline_s, self.dt_s, self.config.loop.spin_s)
+        if wait > 0.0:
+            time.sleep(wait)
 
     def _check_runlog(self) -> None:
         """Dispatcher: a run log that cannot be written stops the run (ramp to the safe value

@@ -174,6 +174,7 @@ class LoopMachine:
             next_t = now
         self.now_s = now
         self.next_t_s = next_t
+        ctl._deadline_s = next_t
 
     def _T_from_file(self) -> float:
         """Ambient temperature [°C] of ``compensation.temperature.file`` at this tick."""

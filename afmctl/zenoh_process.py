@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from . import cpu_pinning
 from .errors import AfmctlError, error_line
 from .runlog import SETPOINT_DTYPE
 
@@ -164,7 +165,9 @@ class ZenohBridgeProcess:
         below it (see :func:`afmctl.loop.helper_priority`)."""
         from .loop import helper_priority
         config = getattr(self.controller, "config", None)
-        helper_priority(getattr(getattr(config, "loop", None), "realtime_priority", None))
+        plan = getattr(self.controller, "cpu_plan", None)
+        helper_priority(getattr(getattr(config, "loop", None), "realtime_priority", None),
+                        plan.others if plan is not None else None)
 
     # ------------------------------------------------------------------ calls from the child
     def _serve(self) -> None:
@@ -317,6 +320,9 @@ def _child_main(settings: Any, scanner_name: str, config: Any, data_in: Any, rpc
     its log records go to the parent (``logs``) from ``log_level`` up."""
     import logging.handlers
     signal.signal(signal.SIGINT, signal.SIG_IGN)     # Ctrl-C is the service's to handle
+    loop = getattr(config, "loop", None)
+    if loop is not None:   # off the loop's CPU, before zenoh starts its threads (they inherit it)
+        cpu_pinning.pin_this_thread(cpu_pinning.plan_for(loop.cpu).others)
     root = logging.getLogger()
     root.setLevel(log_level)
     root.addHandler(logging.handlers.QueueHandler(_PipeLogQueue(logs)))  # type: ignore[arg-type]

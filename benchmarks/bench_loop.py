@@ -42,10 +42,13 @@ def _pi_models(d: Path) -> dict[str, Path]:
 
 
 def run_once(rate: float, seconds: float, amp_kind: str, tmp: Path, models: dict[str, Path],
-             rt: int | None = None, zenoh: str = "off") -> dict:
+             rt: int | None = None, zenoh: str = "off", cpu: str = "auto") -> dict:
     """One timed run; ``zenoh``: ``off``, ``inproc`` (ZenohBridge in this process) or
     ``child`` (the bridge in a child process, afmctl.zenoh_process) — with a subscriber in
-    another process receiving every setpoint batch."""
+    another process receiving every setpoint batch. ``cpu``: ``loop.cpu`` (auto, none or a
+    CPU number); this thread (and so the subscriber process) keeps off the loop's CPU, as in
+    ``afmctl run``."""
+    from afmctl import cpu_pinning
     from afmctl.config import load_config
     from afmctl.loop import Controller
     from afmctl.hardware import open_driver
@@ -65,6 +68,7 @@ enabled = true
 [loop]
 rate_Hz = {rate}
 {f"realtime_priority = {rt}" if rt else ""}
+cpu = {cpu if cpu.isdigit() else repr(cpu).replace("'", '"')}
 [compensation.drift]
 enabled = true
 params = "physical_tube"
@@ -86,6 +90,7 @@ lines = {lines}
 line_rate_Hz = {line_rate}
 """
     cfg = load_config(text=text)
+    cpu_pinning.pin_this_thread(cpu_pinning.plan_for(cfg.loop.cpu).others)
     server = None
     if amp_kind == "memory":
         amp = RecordingAmplifier()
@@ -219,7 +224,7 @@ def zenoh_compare(args: argparse.Namespace) -> int:
         models = _pi_models(tmp)
         for k in range(args.reps):
             for m in modes:
-                r = run_once(args.rate, args.seconds, args.amp, tmp, models, args.rt, zenoh=m)
+                r = run_once(args.rate, args.seconds, args.amp, tmp, models, args.rt, zenoh=m, cpu=args.cpu)
                 runs[m].append(r)
                 print(f"rep {k + 1} zenoh {m:6s}: p50 {r['p50_us']:.1f} us  p99 {r['p99_us']:.1f} us  "
                       f"max {r['max_us']:.1f} us  missed {r['missed']} of {r['ticks']}; work p50 "
@@ -228,7 +233,7 @@ def zenoh_compare(args: argparse.Namespace) -> int:
                                                                      "work_p50_us")} for m in modes}
     base = med.get("off", {}).get("p99_us")
     cmd = (f".venv/bin/python benchmarks/bench_loop.py --zenoh {','.join(modes)} --seconds {args.seconds:g} "
-           f"--rate {args.rate:g} --reps {args.reps} --amp {args.amp} --rt {args.rt or 0}")
+           f"--rate {args.rate:g} --reps {args.reps} --amp {args.amp} --rt {args.rt or 0} --cpu {args.cpu}")
     load = os.getloadavg()[0]
     rows = "\n".join(
         f"| {m} | {med[m]['p50_us']:.1f} µs | {med[m]['p99_us']:.1f} µs | "
@@ -244,7 +249,8 @@ The bench:loop chain at {args.rate:g} Hz; with zenoh the bridge publishes every 
 estimate and status, and a subscriber in another process (benchmarks/zenoh_counter.py) receives every
 setpoint batch (checked: no gap, every sample). *off*: no bridge; *inproc*: `ZenohBridge` in the loop's
 process; *child*: `afmctl.zenoh_process.ZenohBridgeProcess` (what `afmctl run` uses), the bridge in
-its own process fed through a pipe. Target (#14): p99 with zenoh ≤ 1.2 × off and ≤ 150 µs.
+its own process fed through a pipe. `loop.cpu` {args.cpu}: {'the loop thread on a CPU of its own, every other thread (dispatcher, feeder, zenoh process, subscriber) on the others' if args.cpu != 'none' else 'no CPU pinning'}; the dispatcher works in the quiet part of the loop period
+(`afmctl.loop.quiet_window_wait_s`). Target (#14): p99 with zenoh ≤ 1.2 × off and ≤ 150 µs.
 
 | zenoh | lateness p50 | lateness p99 | p99 / off | max | missed | work p50 | p99 of each run [µs] |
 |---|---|---|---|---|---|---|---|
@@ -262,6 +268,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rate", type=float, default=1000.0, help="loop rate [Hz] (default 1000)")
     ap.add_argument("--reps", type=int, default=1, help="repetitions; medians are reported (default 1)")
     ap.add_argument("--amp", choices=["memory", "can"], default="memory", help="amplifier (default memory)")
+    ap.add_argument("--cpu", default="auto", metavar="CPU",
+                    help="loop.cpu: auto (default: the loop thread on the highest CPU, everything else on the "
+                         "others), none (no pinning) or a CPU number")
     ap.add_argument("--rt", type=int, default=10, metavar="PRIO",
                     help="loop.realtime_priority: SCHED_FIFO priority of the loop thread (default 10; needs "
                          "root or CAP_SYS_NICE, otherwise normal scheduling); 0 = normal scheduling")
@@ -280,7 +289,7 @@ def main(argv: list[str] | None = None) -> int:
         models = _pi_models(tmp)
         runs = []
         for k in range(args.reps):
-            r = run_once(args.rate, args.seconds, args.amp, tmp, models, args.rt)
+            r = run_once(args.rate, args.seconds, args.amp, tmp, models, args.rt, cpu=args.cpu)
             runs.append(r)
             print(f"run {k + 1}: p50 {r['p50_us']:.1f} us  p99 {r['p99_us']:.1f} us  max {r['max_us']:.1f} us  "
                   f"missed {r['missed']} of {r['ticks']} ticks; work p50 {r['work_p50_us']:.1f} us", flush=True)

@@ -3,6 +3,7 @@ the in-process bridge, over a real zenoh session on loopback, with the real Cont
 from __future__ import annotations
 
 import json
+import os
 import socket
 import time
 
@@ -121,6 +122,14 @@ def test_commands_trajectories_and_every_batch_through_the_child(service):
     assert err["source"] == "cmd" and "the Kalman filter is off" in err["message"], err
     assert op.cmd("estop")[0]["ok"]
     assert ctl.wait(10) and ctl.state.value == "stopped"
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPUs")
+def test_the_zenoh_process_keeps_off_the_loops_cpu(service):
+    cfg, ctl, bridge, client = service
+    others = ctl.cpu_plan.others
+    assert others and ctl.cpu_plan.loop_cpu not in others
+    assert os.sched_getaffinity(bridge.pid) == set(others)
 
 
 def test_slow_subscriber_does_not_hold_the_run(service):

@@ -196,12 +196,15 @@ def run(args: argparse.Namespace) -> int:
     import json
     import sys
 
+    from .. import cpu_pinning
     from ..config import load_config
     from ..loop import Controller
 
     _check_seconds(args.seconds)
     config = load_config(args.config, overrides={"amplifier": {"port": args.port}} if args.port else None)
     scanner = None
+    # this thread, the in-process simulator and the zenoh process: off the loop's CPU
+    cpu_pinning.pin_this_thread(cpu_pinning.plan_for(config.loop.cpu).others)
     warning = link_warning(config)
     if warning:
         print(f"afmctl: warning: {warning}", file=sys.stderr)
@@ -232,7 +235,7 @@ def run(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"afmctl: running {config.trajectory.kind} on {config.amplifier.driver} "
                   f"{'(simulated) ' if scanner is not None else ''}at {config.loop.rate_Hz:g} Hz; "
-                  f"run log {ctl.runlog_path}", file=sys.stderr)
+                  f"{ctl.cpu_plan.why}; run log {ctl.runlog_path}", file=sys.stderr)
         _wait_for_run(ctl, args, stops)
         ctl.close()
         summary = _summary(ctl, config, scanner)
