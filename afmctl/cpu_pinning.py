@@ -31,12 +31,19 @@ class CpuPlan:
     why: str
 
 
+_ALLOWED: list[frozenset[int] | None] = []
+
+
 def allowed_cpus() -> frozenset[int] | None:
-    """The CPUs this process may run on, or None where the OS cannot say (not Linux)."""
-    try:
-        return frozenset(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return None
+    """The CPUs this process may run on, or None where the OS cannot say (not Linux). Read
+    once, at the first call — before afmctl pins any of its threads (a pinned thread would
+    report only its own CPUs)."""
+    if not _ALLOWED:
+        try:
+            _ALLOWED.append(frozenset(os.sched_getaffinity(0)))
+        except (AttributeError, OSError):
+            _ALLOWED.append(None)
+    return _ALLOWED[0]
 
 
 def plan(setting: int | str | None, allowed: frozenset[int] | None) -> CpuPlan:

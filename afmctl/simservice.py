@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from afmctl.compensators.errortext import validation_error_line
 from afmctl.compensators.textfiles import read_text_file
@@ -35,6 +35,16 @@ class AmplifierSection(BaseModel):
     protocol: Literal["mdt693b", "mdt694b", "gcs", "nv200"] = "mdt693b"
     baud: int = Field(115200, ge=300, le=10_000_000)
     link: str | None = None
+    #: serve on this loopback TCP endpoint HOST:PORT instead of a pty (an Ethernet port: gcs, nv200)
+    tcp: str | None = None
+
+    @field_validator("tcp")
+    @classmethod
+    def _loopback_endpoint(cls, v: str | None) -> str | None:
+        if v is not None:
+            from afmctl.sim_backend.amplifiers.tcp_server import parse_endpoint
+            parse_endpoint(v)
+        return v
 
 
 class SimSection(BaseModel):
@@ -113,7 +123,12 @@ class SimService:
             except OSError as err:
                 raise AfmctlError(f"--record {record}: cannot write ({err.strerror})") from None
         self.device = make_device(amp.protocol, sink, now=self.clock)
-        self.server = PtyServer(self.device, baud=amp.baud, link=amp.link)
+        if amp.tcp is not None:
+            from afmctl.sim_backend.amplifiers.tcp_server import TcpServer, parse_endpoint
+            host, port = parse_endpoint(amp.tcp)
+            self.server = TcpServer(self.device, host=host, port=port)
+        else:
+            self.server = PtyServer(self.device, baud=amp.baud, link=amp.link)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 

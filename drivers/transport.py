@@ -44,7 +44,9 @@ class SerialTransport:
         self.timeout_s = float(timeout_s)
         self.write_timeout_s = float(write_timeout_s if write_timeout_s is not None else timeout_s)
         self.max_backlog_s = float(max_backlog_s)
-        self._s_per_byte = 10.0 / self.baudrate if self.baudrate > 0 else 0.0
+        # a TCP link (socket://, a controller's Ethernet port) has no baud rate to pace by
+        paced = self.baudrate > 0 and not url.startswith("socket://")
+        self._s_per_byte = 10.0 / self.baudrate if paced else 0.0
         self._wire_free_at = 0.0
         if "://" not in url:
             # two programs writing to one amplifier is never intended: lock the device

@@ -77,8 +77,8 @@ def link_warning(config) -> str | None:
     """A warning when loop.rate_Hz exceeds what the amplifier link carries."""
     driver = config.amplifier.driver
     ceiling = LINK_CEILING_PER_S.get(driver)
-    if ceiling is None:
-        return None
+    if ceiling is None or str(config.amplifier.port or "").startswith("socket://"):
+        return None      # CAN and TCP links carry more than the loop's rate limit
     if driver != "can":
         baud = config.amplifier.options.get("baudrate") or (config.simulation.baud if config.simulation.enabled
                                                             else 115200)

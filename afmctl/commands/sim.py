@@ -78,6 +78,10 @@ def register(subparsers) -> None:
                    help="amplifier protocol (overrides the config; default mdt693b)")
     p.add_argument("--baud", type=int, default=None, help="simulated baud rate (default 115200)")
     p.add_argument("--link", default=None, help="also create this symlink to the pty")
+    p.add_argument("--tcp", default=None, metavar="HOST:PORT",
+                   help="serve on this loopback TCP endpoint instead of a pty, as controllers with an Ethernet "
+                        "port are reached (gcs: E-727 port 50000; nv200: NV200/D NET); the driver's port is "
+                        "socket://HOST:PORT; PORT 0 picks a free one (printed as 'link:')")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("--record", type=Path, default=None, metavar="FILE.csv",
                    help="write every output change the amplifier applies to FILE.csv "
@@ -154,6 +158,13 @@ def run(args) -> int:
         settings.amplifier.baud = args.baud
     if args.link:
         settings.amplifier.link = args.link
+    if args.tcp:
+        from ..sim_backend.amplifiers.tcp_server import parse_endpoint
+        try:
+            parse_endpoint(args.tcp)
+        except ValueError as err:
+            raise AfmctlError(f"--tcp: {err}") from None
+        settings.amplifier.tcp = args.tcp
     if args.duration is not None and not (args.duration > 0 and math.isfinite(args.duration)):
         raise AfmctlError(f"--duration: {args.duration} s must be a positive number of seconds")
     if args.publish_rate is not None:
@@ -188,9 +199,10 @@ def run(args) -> int:
             service = SimService(settings, on_tick=tips.offer if tips is not None else None,
                                  record=args.record)
             stack.enter_context(service)           # stopped first: no tick after this
-            print(service.pty_path, flush=True)
+            print(service.pty_path or service.port, flush=True)
             print(f"link: {service.port}", flush=True)
-            print(f"protocol: {settings.amplifier.protocol} at {settings.amplifier.baud} baud; "
+            link = ("TCP" if settings.amplifier.tcp else f"{settings.amplifier.baud} baud")
+            print(f"protocol: {settings.amplifier.protocol} at {link}; "
                   f"load: {service.description}", flush=True)
             if tips is not None:
                 rate = min(settings.sim.publish_rate_Hz, 1.0 / settings.sim.tick_s)

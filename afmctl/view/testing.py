@@ -1,6 +1,8 @@
 """A live stack for tests, benchmarks and screenshots of ``afmctl view``: ``afmctl sim``
-(MDT693B on a pty, the true tip and a grating image on zenoh), ``afmctl run`` (a raster at
-``rate_Hz`` on that pty, zenoh with access control: only the user ``viewer`` may observe)
+(a PI E-727 on a loopback TCP port — its Ethernet link carries 1 kHz of three-axis setpoints,
+which no 115200-baud serial line does — the true tip and a grating image on zenoh),
+``afmctl run`` (a raster at ``rate_Hz`` over ``socket://``, zenoh with access control: only
+the user ``viewer`` may observe)
 and ``afmctl view`` (authenticated as ``viewer``), each its own process, zenoh on loopback
 with free ports."""
 from __future__ import annotations
@@ -36,7 +38,7 @@ nm_per_V = 80.0
 [scanner.calibration.z]
 nm_per_V = 13.333
 [amplifier]
-driver = "mdt693b"
+driver = "gcs"
 port = "{port}"
 slew_V_per_s = 3000
 [loop]
@@ -157,7 +159,7 @@ class LiveStack:
         (self.workdir / "sim.toml").write_text(SIM_TOML.format(users=self._users()))
         ep = free_loopback_endpoint()
         sim = self.procs["sim"] = _Proc(self._py(
-            "sim", "--config", str(self.workdir / "sim.toml"), "--protocol", "mdt693b", "--baud", "921600",
+            "sim", "--config", str(self.workdir / "sim.toml"), "--protocol", "gcs", "--tcp", "127.0.0.1:0",
             "--zenoh-listen", ep, "--scanner", self.scanner, "--sample", "grating2d",
             "--duration", str(self.duration_s)), self.workdir, "sim")
         sim.wait_line("zenoh:", 120.0)
