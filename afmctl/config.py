@@ -120,8 +120,9 @@ class LoopSection(_Strict):
                                        "CAP_SYS_NICE or root; None: normal scheduling)")
     cpu: int | Literal["auto", "none"] | None = Field(
         "auto", description="CPU of the loop thread; every other afmctl thread and the zenoh process run on "
-                            "the others: 'auto' (the highest CPU when the process may use two or more), a CPU "
-                            "number 0..1023, or none (no pinning); Linux only")
+                            "the others: 'auto' (with realtime_priority set: the highest CPU when the process "
+                            "may use two or more; otherwise no pinning), a CPU number 0..1023, or 'none'; "
+                            "Linux only")
     gc_freeze: bool = Field(True, description="collect garbage and freeze the survivors at start (shorter "
                                               "garbage-collector pauses during the run)")
     resync_periods: int = Field(20, ge=2, le=100000,

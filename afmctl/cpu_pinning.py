@@ -8,15 +8,18 @@ either preempts it or is preempted while holding the lock, and the loop waits. W
 thread afmctl starts (feeder, dispatcher, zenoh process and its pipe threads, and in
 ``afmctl run`` the main thread with the in-process simulator) is pinned to the other CPUs.
 
-``loop.cpu``: ``"auto"`` (default) — the highest CPU this process may use, when it may use
-two or more; an integer — that CPU (it must be one the process may use); ``"none"`` — no
-pinning. See docs/CONTROLLER.md and the ``bench:loop-zenoh`` section of docs/BENCHMARKS.md.
+``loop.cpu``: ``"auto"`` (default) — with ``loop.realtime_priority`` set, the highest CPU
+this process may use, when it may use two or more; without it no pinning, because helper
+threads crowded onto the other CPUs at normal priority are preempted there while holding
+the interpreter lock, and the loop waits for them (priority inversion); an integer — that
+CPU (it must be one the process may use); ``"none"`` — no pinning. See docs/CONTROLLER.md and the ``bench:loop-zenoh`` section of docs/BENCHMARKS.md.
 """
 from __future__ import annotations
 
 import logging
 import os
 from dataclasses import dataclass
+from typing import Any
 
 log = logging.getLogger(__name__)
 
@@ -46,10 +49,13 @@ def allowed_cpus() -> frozenset[int] | None:
     return _ALLOWED[0]
 
 
-def plan(setting: int | str | None, allowed: frozenset[int] | None) -> CpuPlan:
-    """The pinning for ``loop.cpu`` = ``setting`` on a process allowed ``allowed`` CPUs."""
+def plan(setting: int | str | None, allowed: frozenset[int] | None, realtime: bool = True) -> CpuPlan:
+    """The pinning for ``loop.cpu`` = ``setting`` on a process allowed ``allowed`` CPUs;
+    ``realtime``: ``loop.realtime_priority`` is set (``"auto"`` pins only then)."""
     if setting is None or setting == "none":
         return CpuPlan(None, None, "loop.cpu none: no CPU pinning")
+    if setting == "auto" and not realtime:
+        return CpuPlan(None, None, "no CPU pinning (loop.cpu auto pins with loop.realtime_priority)")
     if allowed is None:
         return CpuPlan(None, None, "CPU pinning not available on this OS")
     if len(allowed) < 2:
@@ -63,9 +69,10 @@ def plan(setting: int | str | None, allowed: frozenset[int] | None) -> CpuPlan:
                                 f"{','.join(str(c) for c in sorted(others))}")
 
 
-def plan_for(setting: int | str | None) -> CpuPlan:
-    """:func:`plan` for this process."""
-    return plan(setting, allowed_cpus())
+def plan_for(loop: Any) -> CpuPlan:
+    """:func:`plan` for this process and a config's ``[loop]`` section (``cpu``,
+    ``realtime_priority``)."""
+    return plan(loop.cpu, allowed_cpus(), loop.realtime_priority is not None)
 
 
 def pin_this_thread(cpus: frozenset[int] | None) -> bool:

@@ -190,7 +190,7 @@ class Controller:
         #: written by the loop thread, read by the dispatcher to keep off the next deadline
         self._deadline_s = 0.0
         #: loop.cpu resolved: the loop thread's CPU and the other threads' CPUs
-        self.cpu_plan = cpu_pinning.plan_for(config.loop.cpu)
+        self.cpu_plan = cpu_pinning.plan_for(config.loop)
 
     # ------------------------------------------------------------------ public API
     @property

@@ -322,7 +322,7 @@ def _child_main(settings: Any, scanner_name: str, config: Any, data_in: Any, rpc
     signal.signal(signal.SIGINT, signal.SIG_IGN)     # Ctrl-C is the service's to handle
     loop = getattr(config, "loop", None)
     if loop is not None:   # off the loop's CPU, before zenoh starts its threads (they inherit it)
-        cpu_pinning.pin_this_thread(cpu_pinning.plan_for(loop.cpu).others)
+        cpu_pinning.pin_this_thread(cpu_pinning.plan_for(loop).others)
     root = logging.getLogger()
     root.setLevel(log_level)
     root.addHandler(logging.handlers.QueueHandler(_PipeLogQueue(logs)))  # type: ignore[arg-type]

@@ -90,7 +90,7 @@ lines = {lines}
 line_rate_Hz = {line_rate}
 """
     cfg = load_config(text=text)
-    cpu_pinning.pin_this_thread(cpu_pinning.plan_for(cfg.loop.cpu).others)
+    cpu_pinning.pin_this_thread(cpu_pinning.plan_for(cfg.loop).others)
     server = None
     if amp_kind == "memory":
         amp = RecordingAmplifier()

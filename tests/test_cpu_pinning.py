@@ -9,13 +9,19 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from afmctl.config import load_config
-from afmctl.cpu_pinning import plan, plan_for
+from afmctl.cpu_pinning import plan
 from afmctl.errors import AfmctlError
 from afmctl.loop import Controller, quiet_window_wait_s
 from afmctl.simlink import RecordingAmplifier
 from afmctl.testing import make_config, wait_for
 
 TWO = frozenset({0, 1})
+
+
+def test_auto_pins_only_a_realtime_loop():
+    p = plan("auto", TWO, realtime=False)
+    assert p.loop_cpu is None and "realtime_priority" in p.why
+    assert plan(1, TWO, realtime=False).loop_cpu == 1       # an explicit CPU: always
 
 
 def test_auto_takes_the_highest_cpu_and_leaves_the_rest_to_the_others():
@@ -63,7 +69,7 @@ def test_no_window_when_the_loop_is_not_running_or_too_fast():
 
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPUs")
 def test_the_loop_thread_runs_alone_on_its_cpu(tmp_path):
-    cfg = make_config(tmp_path, trajectory={"kind": "queue"})
+    cfg = make_config(tmp_path, trajectory={"kind": "queue"}, loop={"cpu": max(os.sched_getaffinity(0))})
     ctl = Controller(cfg, RecordingAmplifier())
     try:
         ctl.start(cfg.trajectory)
@@ -74,4 +80,3 @@ def test_the_loop_thread_runs_alone_on_its_cpu(tmp_path):
     finally:
         ctl.stop()
         ctl.close()
-    assert plan_for("none").loop_cpu is None

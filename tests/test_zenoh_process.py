@@ -125,11 +125,20 @@ def test_commands_trajectories_and_every_batch_through_the_child(service):
 
 
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPUs")
-def test_the_zenoh_process_keeps_off_the_loops_cpu(service):
-    cfg, ctl, bridge, client = service
-    others = ctl.cpu_plan.others
-    assert others and ctl.cpu_plan.loop_cpu not in others
-    assert os.sched_getaffinity(bridge.pid) == set(others)
+def test_the_zenoh_process_keeps_off_the_loops_cpu(tmp_path):
+    loop_cpu = max(os.sched_getaffinity(0))
+    text = CONFIG.format(dir=tmp_path / "runs").replace("rate_Hz = 1000\n", f"rate_Hz = 1000\ncpu = {loop_cpu}\n")
+    cfg = load_config(text=text)
+    ctl = Controller(cfg, RecordingAmplifier())
+    srv, _ = loopback_pair()
+    bridge = ZenohBridgeProcess(ctl, srv, "s1")
+    try:
+        assert ctl.cpu_plan.loop_cpu == loop_cpu
+        assert os.sched_getaffinity(bridge.pid) == set(ctl.cpu_plan.others)
+        assert loop_cpu not in os.sched_getaffinity(bridge.pid)
+    finally:
+        ctl.close()
+        bridge.close()
 
 
 def test_slow_subscriber_does_not_hold_the_run(service):

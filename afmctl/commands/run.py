@@ -204,7 +204,7 @@ def run(args: argparse.Namespace) -> int:
     config = load_config(args.config, overrides={"amplifier": {"port": args.port}} if args.port else None)
     scanner = None
     # this thread, the in-process simulator and the zenoh process: off the loop's CPU
-    cpu_pinning.pin_this_thread(cpu_pinning.plan_for(config.loop.cpu).others)
+    cpu_pinning.pin_this_thread(cpu_pinning.plan_for(config.loop).others)
     warning = link_warning(config)
     if warning:
         print(f"afmctl: warning: {warning}", file=sys.stderr)
