@@ -95,7 +95,7 @@ class DriftImageWatcher:
             log.warning("drift images: %s has no line rate; give a frame period", path)
             return
         if self._feeder is None:
-            meter = FrameDriftMeter(img.pixel_nm())
+            meter = FrameDriftMeter(img.pixel_nm(), level_lines=True)
             self._feeder = ImageDriftFeeder(meter, self._submit)
         t1 = self._t_last
         corr = self._mean_correction(t1 - period, t1)

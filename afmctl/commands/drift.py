@@ -262,7 +262,7 @@ def run_measure(args: argparse.Namespace) -> int:
         period = imgs[0].trace_nm.shape[0] / imgs[0].line_rate_Hz
     if not (np.isfinite(period) and 0 < period <= 1e6):
         raise AfmctlError(f"--frame-period-s: {period!r} s is outside the allowed range (0, 1e6] s")
-    meter = FrameDriftMeter(imgs[0].pixel_nm())
+    meter = FrameDriftMeter(imgs[0].pixel_nm(), level_lines=True)
     for k, im in enumerate(imgs):
         meter.add(im.trace_nm, k * period)
     f = meter.frames
