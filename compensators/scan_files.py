@@ -323,6 +323,7 @@ def _read_nanoscope(p: Path) -> ScanImage:
         raise ModelError(f"no height channel ({' or '.join(_NANOSCOPE_HEIGHTS)} with Line Direction Trace/Retrace)")
     trace, retrace = found.get((height, "trace")), found.get((height, "retrace"))
     first = trace if trace is not None else retrace
+    _check_nanoscope_shape(first.meta, np.shape(first.data))
     z, xy = _si_to_nm(first.si_unit_z), _si_to_nm(first.si_unit_xy)
     rate = _meta_value(first.meta, "Scan Rate")
     rate_Hz = None if rate is None else float(rate.split()[0]) if rate.split() else float("nan")
@@ -332,3 +333,23 @@ def _read_nanoscope(p: Path) -> ScanImage:
                      None if trace is None or retrace is None else np.asarray(retrace.data, dtype=np.float64) * z,
                      float(first.xreal) * xy, rate_Hz, float(first.yreal) * xy,
                      only_retrace=trace is None)
+
+
+def _check_nanoscope_shape(meta: dict[str, str], shape: tuple[int, ...]) -> None:
+    """The decoded image must have the lines × pixels its header states (``\\Number of lines``,
+    ``\\Samps/line``, or the ``\\Valid data len`` pair of a partial capture): a damaged field
+    otherwise lets the importer fall back to other header values."""
+    def ints(*keys: str) -> set[int]:
+        out = set()
+        for k in keys:
+            v = _meta_value(meta, k)
+            if v is not None and v.strip().isdigit():
+                out.add(int(v))
+        return out
+
+    valid = ints("Valid data len X", "Valid data len Y")
+    lines, pixels = ints("Number of lines") | valid, ints("Samps/line") | valid
+    if len(shape) != 2 or shape[0] not in lines or shape[1] not in pixels:
+        raise ModelError(f"header \\Samps/line {_meta_value(meta, 'Samps/line')!r}, \\Number of lines "
+                         f"{_meta_value(meta, 'Number of lines')!r} do not match the decoded image "
+                         f"{' × '.join(map(str, shape))}")
