@@ -292,6 +292,8 @@ def _read_ibw(p: Path) -> ScanImage:
     return ScanImage(str(p), layers["trace"] * 1e9, None if retrace is None else retrace * 1e9, size_nm, rate, height)
 
 
+#: longest time the Gwyddion converter may take for one Nanoscope file [s]
+_NANOSCOPE_TIMEOUT_S = 120.0
 #: Nanoscope height channels (``\@2:Image Data`` names), the first present is read
 _NANOSCOPE_HEIGHTS = ("Height Sensor", "Height")
 
@@ -313,8 +315,13 @@ def _read_nanoscope(p: Path) -> ScanImage:
     second]. Rows top line first; a retrace in spatial order (left to right) like the trace."""
     import gwyddionpy
 
+    try:
+        data = gwyddionpy.load(p, timeout=_NANOSCOPE_TIMEOUT_S)
+    except gwyddionpy.ConverterNotFoundError:
+        raise ModelError("reading Nanoscope files needs Gwyddion's gwyconvert helper: "
+                         "pip install 'gwyddionpy[converter]' (Linux x86-64)") from None
     found: dict[tuple[str, str], Any] = {}
-    for ch in gwyddionpy.load(p).channels.values():
+    for ch in data.channels.values():
         name, direction = _meta_value(ch.meta, "Image Data"), (_meta_value(ch.meta, "Line Direction") or "").lower()
         if name in _NANOSCOPE_HEIGHTS and direction in ("trace", "retrace"):
             found.setdefault((name, direction), ch)

@@ -67,3 +67,11 @@ def test_drift_measure_on_the_real_file_recovers_a_known_shift(tmp_path, capsys)
 def test_nanoscope_suffixes_are_image_files():
     assert all(is_image_file(f"a{s}") for s in (".spm", ".SPM", ".000", ".001", ".999", ".gwy", ".ibw"))
     assert not any(is_image_file(f"a{s}") for s in (".0001", ".00", ".csv", ".npz", ".a01"))
+
+
+def test_missing_converter_is_one_line_saying_what_to_install(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("GWYDDIONPY_CONVERT", str(tmp_path / "no-such-gwyconvert"))
+    rc = main(["drift", "measure", str(REAL), str(REAL), "--out", str(tmp_path / "d.csv")])
+    err = capsys.readouterr().err
+    assert rc == 2 and len(err.strip().splitlines()) == 1 and REAL.name in err
+    assert "gwyddionpy[converter]" in err
