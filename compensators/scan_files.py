@@ -312,7 +312,9 @@ def _read_nanoscope(p: Path) -> ScanImage:
     Gwyddion's Nanoscope importer through gwyddionpy; per channel its header fields
     ``\\@2:Image Data`` (height channel: "Height Sensor", else "Height"), ``\\Line Direction``
     (Trace / Retrace), ``\\Scan Size`` (→ ``xreal``, ``yreal``) and ``\\Scan Rate`` [Hz, lines per
-    second]. Rows top line first; a retrace in spatial order (left to right) like the trace."""
+    second]. Rows top line first (as Gwyddion presents them). The retrace is taken as stored in
+    spatial order (left to right) like the trace, as Nanoscope Analysis shows it; no real file
+    with both directions was available to confirm this (tests/data/jmarini-nanoscope is retrace only)."""
     import gwyddionpy
 
     try:
