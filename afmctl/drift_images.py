@@ -35,17 +35,24 @@ class FrameDriftMeter:
     """Phase correlation of each new frame with the previous one (``reference="previous"``,
     successive frames of the same area; the drift accumulates the steps) or with the first
     frame (``reference="first"``: no accumulation, for a sample that does not change).
-    ``pixel_nm`` = (row / y, column / x) size [nm]."""
+    ``pixel_nm`` = (row / y, column / x) size [nm]. ``level_lines`` subtracts each scan line's
+    median first (row alignment): an instrument's unflattened frames carry per-line offsets
+    (feedback, tilt) that otherwise pull the correlation towards zero shift — on the real
+    Nanoscope sample, a 5 × 3 px shift measured as 2.7 × 1.6 px without it, 5.0 × 3.0 with it
+    (tests/test_nanoscope_files.py)."""
 
     pixel_nm: tuple[float, float]
     upsample: int = 100
     reference: str = "previous"
+    level_lines: bool = False
     frames: list[FrameDrift] = field(default_factory=list)
     _last: np.ndarray | None = None
 
     def add(self, image_nm: np.ndarray, t_s: float) -> FrameDrift:
         """Measure a new frame (heights [nm], rows = slow axis) taken at ``t_s`` [s]."""
         img = np.asarray(image_nm, dtype=np.float64)
+        if self.level_lines:
+            img = img - np.median(img, axis=1, keepdims=True)
         if self._last is None:
             fd = FrameDrift(0, float(t_s), (0.0, 0.0), (0.0, 0.0))
         else:

@@ -1,7 +1,7 @@
 """``afmctl run --drift-images DIR``: while the controller scans, watch a directory for the AFM
-frames the acquisition software writes (.gwy, .gsf, .tif, .ibw; all of the same area), measure each
-new frame's drift by phase correlation (:mod:`afmctl.drift_images`) and hand it to the
-controller's Kalman filter (``compensation.drift.kalman = true``).
+frames the acquisition software writes (.gwy, .gsf, .tif, .ibw, Nanoscope .spm/.000–.999; all of
+the same area), measure each new frame's drift by phase correlation (:mod:`afmctl.drift_images`)
+and hand it to the controller's Kalman filter (``compensation.drift.kalman = true``).
 
 A frame shows the residual drift (drift − the correction applied while it was taken), so the
 watcher also listens to the controller's setpoints (a sink: ``corrected = target − drift
@@ -67,9 +67,9 @@ class DriftImageWatcher:
 
     # ---------------------------------------------------------------- watching
     def _frames(self) -> list[Path]:
-        from afmctl.compensators.scan_files import IMAGE_SUFFIXES
+        from afmctl.compensators.scan_files import is_image_file
 
-        return sorted(p for p in self.dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        return sorted(p for p in self.dir.iterdir() if is_image_file(p))
 
     def _run(self) -> None:
         while not self._stop.wait(self.poll_s):
@@ -95,7 +95,7 @@ class DriftImageWatcher:
             log.warning("drift images: %s has no line rate; give a frame period", path)
             return
         if self._feeder is None:
-            meter = FrameDriftMeter(img.pixel_nm())
+            meter = FrameDriftMeter(img.pixel_nm(), level_lines=True)
             self._feeder = ImageDriftFeeder(meter, self._submit)
         t1 = self._t_last
         corr = self._mean_correction(t1 - period, t1)

@@ -7,9 +7,10 @@ Two kinds of input:
   written by ``afmctl.sim_backend.image_scans``), read by :func:`load_scans_npz`;
 * AFM image files, one scan range per file, read with the formats' own libraries:
   Gwyddion ``.gwy`` (gwyfile), Gwyddion Simple Field ``.gsf`` (gsffile), TIFF ``.tif/.tiff``
-  (tifffile), Asylum Research Igor binary wave ``.ibw`` (igor2). Trace and retrace channels, the scan size [nm] and the line rate [Hz] come
-  from the file's metadata (see :func:`read_scan_image`). Asylum ``.ibw`` and Bruker
-  Nanoscope files are not read yet.
+  (tifffile), Asylum Research Igor binary wave ``.ibw`` (igor2), Bruker Nanoscope v5–v9
+  ``.spm`` / ``.000``–``.999`` (Gwyddion's Nanoscope importer, through gwyddionpy). Trace and
+  retrace channels, the scan size [nm] and the line rate [Hz] come from the file's metadata
+  (see :func:`read_scan_image`).
 
 An image file does not record the voltages of its pixels: the scan's lowest voltage
 ``scan_u_min_V`` and the nominal gain ``gain_nm_per_V`` (with which the instrument turned
@@ -33,7 +34,9 @@ from .input_checks import number_option
 
 log = logging.getLogger(__name__)
 
-IMAGE_SUFFIXES = (".gwy", ".gsf", ".tif", ".tiff", ".ibw")
+#: suffixes of the image files read (Nanoscope files also as ``.000``–``.999``: :func:`is_image_file`)
+IMAGE_SUFFIXES = (".gwy", ".gsf", ".tif", ".tiff", ".ibw", ".spm")
+_NANOSCOPE_NUMBERED = re.compile(r"^\.\d{3}$")
 _RATE_KEYS = re.compile(r"(line|scan)[ _]?rate", re.IGNORECASE)
 
 
@@ -48,6 +51,8 @@ class ScanImage:
     line_rate_Hz: float | None
     #: extent along the slow axis [nm]; None: square pixels
     scan_height_nm: float | None = None
+    #: the file holds only a retrace channel, given as ``trace_nm`` (enough for drift measurement)
+    only_retrace: bool = False
 
     def pixel_nm(self) -> tuple[float, float]:
         """Pixel size ``(along y / rows, along x / columns)`` [nm]."""
@@ -77,13 +82,23 @@ def load_scans_npz(path: str | Path) -> dict[str, np.ndarray]:
     return data
 
 
+def is_image_file(path: str | Path) -> bool:
+    """True for the suffixes :func:`read_scan_image` reads (:data:`IMAGE_SUFFIXES`, ``.000``–``.999``)."""
+    suffix = Path(path).suffix.lower()
+    return suffix in IMAGE_SUFFIXES or bool(_NANOSCOPE_NUMBERED.match(suffix))
+
+
 def read_scan_image(path: str | Path) -> ScanImage:
-    """Read one AFM image file by its suffix (:data:`IMAGE_SUFFIXES`)."""
+    """Read one AFM image file by its suffix (:data:`IMAGE_SUFFIXES`; Nanoscope also ``.000``–``.999``)."""
     p = Path(path)
     suffix = p.suffix.lower()
-    readers = {".gwy": _read_gwy, ".gsf": _read_gsf, ".tif": _read_tiff, ".tiff": _read_tiff, ".ibw": _read_ibw}
+    readers = {".gwy": _read_gwy, ".gsf": _read_gsf, ".tif": _read_tiff, ".tiff": _read_tiff, ".ibw": _read_ibw,
+               ".spm": _read_nanoscope}
+    if _NANOSCOPE_NUMBERED.match(suffix):
+        readers[suffix] = _read_nanoscope
     if suffix not in readers:
-        raise ModelError(f"{p}: unknown image format {suffix!r}; allowed: {', '.join(IMAGE_SUFFIXES)}, .npz")
+        raise ModelError(f"{p}: unknown image format {suffix!r}; allowed: {', '.join(IMAGE_SUFFIXES)}, "
+                         ".000–.999 (Nanoscope), .npz")
     if not p.is_file():
         raise ModelError(f"{p}: no such image file")
     try:
@@ -91,7 +106,8 @@ def read_scan_image(path: str | Path) -> ScanImage:
     except ModelError as err:
         raise ModelError(f"{p}: {err}") from None
     except Exception as err:  # noqa: BLE001 - a format library's own error on a damaged file
-        raise ModelError(f"{p}: not a readable {suffix} file ({type(err).__name__}: {err})") from None
+        detail = " ".join(str(err).split())[:300]   # one line: library messages may span several
+        raise ModelError(f"{p}: not a readable {suffix} file ({type(err).__name__}: {detail})") from None
     for name, arr in (("trace", img.trace_nm), ("retrace", img.retrace_nm)):
         if arr is not None and (arr.ndim != 2 or arr.shape[1] < 8 or not np.all(np.isfinite(arr))):
             raise ModelError(f"{p}: {name} channel: expected finite heights of shape (lines, pixels ≥ 8), "
@@ -193,6 +209,9 @@ def scans_from_images(paths: list[str | Path], *, gain_nm_per_V: Any, period_nm:
         raise ModelError(f"{paths[0]}: all images must have the same lines × pixels; got {sorted(px)}")
     ramps = []
     for im in images:
+        if im.only_retrace:
+            raise ModelError(f"{im.path}: only a retrace channel in the file; image identification needs the "
+                             "trace and the retrace of each line")
         if im.retrace_nm is None or im.retrace_nm.shape != im.trace_nm.shape:
             raise ModelError(f"{im.path}: no retrace channel of the trace's shape; both are needed")
         ramps.append(np.linspace(lo, lo + im.scan_size_nm / gain, im.trace_nm.shape[1]))
@@ -271,3 +290,75 @@ def _read_ibw(p: Path) -> ScanImage:
     rate = float(meta["ScanRate"]) if "ScanRate" in meta else None
     retrace = layers.get("retrace")
     return ScanImage(str(p), layers["trace"] * 1e9, None if retrace is None else retrace * 1e9, size_nm, rate, height)
+
+
+#: longest time the Gwyddion converter may take for one Nanoscope file [s]
+_NANOSCOPE_TIMEOUT_S = 120.0
+#: Nanoscope height channels (``\@2:Image Data`` names), the first present is read
+_NANOSCOPE_HEIGHTS = ("Height Sensor", "Height")
+
+
+def _meta_value(meta: dict[str, str], key: str) -> str | None:
+    """A header value by its key, ignoring case and a ``n:`` group prefix (``2:Image Data``)."""
+    want = key.lower()
+    for k, v in meta.items():
+        if k.lower() == want or k.lower().partition(":")[2] == want:
+            return v.strip().strip('"')
+    return None
+
+
+def _read_nanoscope(p: Path) -> ScanImage:
+    """Bruker Nanoscope v5–v9 (``.spm``, ``.000``…): the image data decoded (and scaled to m) by
+    Gwyddion's Nanoscope importer through gwyddionpy; per channel its header fields
+    ``\\@2:Image Data`` (height channel: "Height Sensor", else "Height"), ``\\Line Direction``
+    (Trace / Retrace), ``\\Scan Size`` (→ ``xreal``, ``yreal``) and ``\\Scan Rate`` [Hz, lines per
+    second]. Rows top line first (as Gwyddion presents them). The retrace is taken as stored in
+    spatial order (left to right) like the trace, as Nanoscope Analysis shows it; no real file
+    with both directions was available to confirm this (tests/data/jmarini-nanoscope is retrace only)."""
+    import gwyddionpy
+
+    try:
+        data = gwyddionpy.load(p, timeout=_NANOSCOPE_TIMEOUT_S)
+    except gwyddionpy.ConverterNotFoundError:
+        raise ModelError("reading Nanoscope files needs Gwyddion's gwyconvert helper: "
+                         "pip install 'gwyddionpy[converter]' (Linux x86-64)") from None
+    found: dict[tuple[str, str], Any] = {}
+    for ch in data.channels.values():
+        name, direction = _meta_value(ch.meta, "Image Data"), (_meta_value(ch.meta, "Line Direction") or "").lower()
+        if name in _NANOSCOPE_HEIGHTS and direction in ("trace", "retrace"):
+            found.setdefault((name, direction), ch)
+    height = next((h for h in _NANOSCOPE_HEIGHTS if any(k[0] == h for k in found)), None)
+    if height is None:
+        raise ModelError(f"no height channel ({' or '.join(_NANOSCOPE_HEIGHTS)} with Line Direction Trace/Retrace)")
+    trace, retrace = found.get((height, "trace")), found.get((height, "retrace"))
+    first = trace if trace is not None else retrace
+    _check_nanoscope_shape(first.meta, np.shape(first.data))
+    z, xy = _si_to_nm(first.si_unit_z), _si_to_nm(first.si_unit_xy)
+    rate = _meta_value(first.meta, "Scan Rate")
+    rate_Hz = None if rate is None else float(rate.split()[0]) if rate.split() else float("nan")
+    if rate_Hz is not None and not (np.isfinite(rate_Hz) and rate_Hz > 0):
+        raise ModelError(f"Scan Rate: {rate!r}; must be a positive number of Hz")
+    return ScanImage(str(p), np.asarray(first.data, dtype=np.float64) * z,
+                     None if trace is None or retrace is None else np.asarray(retrace.data, dtype=np.float64) * z,
+                     float(first.xreal) * xy, rate_Hz, float(first.yreal) * xy,
+                     only_retrace=trace is None)
+
+
+def _check_nanoscope_shape(meta: dict[str, str], shape: tuple[int, ...]) -> None:
+    """The decoded image must have the lines × pixels its header states (``\\Number of lines``,
+    ``\\Samps/line``, or the ``\\Valid data len`` pair of a partial capture): a damaged field
+    otherwise lets the importer fall back to other header values."""
+    def ints(*keys: str) -> set[int]:
+        out = set()
+        for k in keys:
+            v = _meta_value(meta, k)
+            if v is not None and v.strip().isdigit():
+                out.add(int(v))
+        return out
+
+    valid = ints("Valid data len X", "Valid data len Y")
+    lines, pixels = ints("Number of lines") | valid, ints("Samps/line") | valid
+    if len(shape) != 2 or shape[0] not in lines or shape[1] not in pixels:
+        raise ModelError(f"header \\Samps/line {_meta_value(meta, 'Samps/line')!r}, \\Number of lines "
+                         f"{_meta_value(meta, 'Number of lines')!r} do not match the decoded image "
+                         f"{' × '.join(map(str, shape))}")

@@ -52,13 +52,18 @@ def frame(drift_nm):
 
 
 def write(path, img):
-    import tifffile
     tmp = path.with_suffix(".part")
-    tifffile.imwrite(tmp, img, metadata={"scan_size_nm": SCAN_NM, "line_rate_Hz": 200.0})
+    if path.suffix == ".tif":
+        import tifffile
+        tifffile.imwrite(tmp, img, metadata={"scan_size_nm": SCAN_NM, "line_rate_Hz": 200.0})
+    else:                                   # Bruker Nanoscope, numbered as the instrument names them
+        from afmctl.sim_backend.nanoscope_writer import write_nanoscope
+        write_nanoscope(tmp, {"Trace": img}, scan_size_nm=SCAN_NM, line_rate_Hz=200.0)
     tmp.rename(path)                        # appears complete, as acquisition software should
 
 
-def test_frames_feed_the_kalman_filter_while_running(tmp_path):
+@pytest.mark.parametrize("names", [("f000.tif", "f001.tif"), ("frame.000", "frame.001")])
+def test_frames_feed_the_kalman_filter_while_running(tmp_path, names):
     cfg = load_config(text=BASE.format(dir=tmp_path, kalman="true"))
     frames = tmp_path / "frames"
     frames.mkdir()
@@ -70,10 +75,10 @@ def test_frames_feed_the_kalman_filter_while_running(tmp_path):
     watcher = DriftImageWatcher(ctl, frames, std_nm=0.5, poll_s=0.05)
     try:
         wait_until(lambda: ctl.stats()["samples"] > 600)
-        write(frames / "f000.tif", frame((0.0, 0.0)))
+        write(frames / names[0], frame((0.0, 0.0)))
         wait_until(lambda: watcher._feeder is not None and len(watcher._feeder.meter.frames) == 1, timeout_s=5)
         before = np.array(sink.drift[-1]["drift_nm"])
-        write(frames / "f001.tif", frame((30.0, -18.0)))     # the tip drifted by (+30, −18) nm
+        write(frames / names[1], frame((30.0, -18.0)))       # the tip drifted by (+30, −18) nm
         wait_until(lambda: len(watcher.measured) == 1, timeout_s=5)
         seq = ctl.stats()["samples"]
         wait_until(lambda: sink.drift[-1]["seq"] > seq + 50)

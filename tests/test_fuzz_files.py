@@ -230,6 +230,42 @@ def test_damaged_asylum_ibw_files(tmp_path, capsys):
         _assert_read_or_one_error_line(rc, cap.err, f, must_fail, name)
 
 
+def test_damaged_nanoscope_files(tmp_path, capsys):
+    """Bruker Nanoscope frames (the real sample file, tests/data/jmarini-nanoscope) truncated
+    anywhere, with bytes flipped in the header, altered header numbers or replaced: drift measure
+    either reads them or stops with one error line naming the file, never a traceback. A cut
+    anywhere leaves the data incomplete and must be refused."""
+    good = Path(__file__).parent / "data" / "jmarini-nanoscope" / "full_multiple_images.000"
+    valid = good.read_bytes()
+    rng = np.random.default_rng(13)
+    damaged = [("random bytes", rng.integers(0, 256, 300, dtype=np.uint8).tobytes(), True),
+               ("empty", b"", True),
+               ("header only", valid[:40960], True),
+               ("UTF-16 header", valid[:2000].decode("latin-1").encode("utf-16"), True)]
+    for cut in sorted(rng.integers(1, len(valid) - 1, 6)):
+        damaged.append((f"truncated at {cut}", valid[:cut], True))
+    flipped = bytearray(valid)
+    for i in rng.integers(0, 40960, 8):       # the text header
+        flipped[i] ^= 0xFF
+    damaged.append(("header bytes flipped", bytes(flipped), False))
+    # header fields altered in place (same length: the data offsets stay valid)
+    for field, bad, must_fail in ((b"Scan rate: 1.99943", b"Scan rate: nan    ", True),
+                                  (b"Scan rate: 1.99943", b"Scan rate: -2.0000", True),
+                                  (b"Samps/line: 512\r\n\\Number", b"Samps/line: 0  \r\n\\Number", True),
+                                  (b"Data offset: 40960", b"Data offset:940960", True),       # beyond the end
+                                  # an offset still inside the file reads other bytes: not told from a valid file
+                                  (b"Data offset: 40960", b"Data offset: 99999", False)):
+        assert len(field) == len(bad) and field in valid
+        damaged.append((f"{bad!r}", valid.replace(field, bad, 1), must_fail))
+    for name, content, must_fail in damaged:
+        f = tmp_path / "bad.001"
+        f.write_bytes(content)
+        capsys.readouterr()
+        rc = main(["drift", "measure", str(good), str(f), "--out", str(tmp_path / "d.csv")])
+        cap = capsys.readouterr()
+        _assert_read_or_one_error_line(rc, cap.err, f, must_fail, name)
+
+
 def _assert_read_or_one_error_line(rc: int, err: str, f, must_fail: bool, what: str) -> None:
     """A damaged input file is either read (exit 0) or refused with exit 2 and exactly one
     error line naming it; never a traceback; ``must_fail`` inputs must be refused."""

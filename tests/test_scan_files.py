@@ -10,6 +10,7 @@ from afmctl.cli import main
 from afmctl.compensators.base import ModelError
 from afmctl.compensators.models import load_model
 from afmctl.compensators.scan_files import read_scan_image, scans_from_images
+from afmctl.sim_backend.nanoscope_writer import LSB_NM
 
 GAIN = 80.0          # nm/V: the nominal gain turning a range's voltages into its scan size
 RANGES = (150.0, 120.0, 90.0, 60.0)
@@ -72,7 +73,17 @@ def write_ibw(path, scans, r):
     wave.save(str(path))
 
 
-WRITERS = {"gwy": (write_gwy, "r{}.gwy"), "gsf": (write_gsf, "r{}_trace.gsf"), "tiff": (write_tiff, "r{}.tif"), "ibw": (write_ibw, "r{}.ibw")}
+def write_spm(path, scans, r):
+    """Bruker Nanoscope v9 layout from the test-fixture generator (no library writes Nanoscope
+    files): trace and retrace height channels as int32 codes of 1e-6 nm."""
+    from afmctl.sim_backend.nanoscope_writer import write_nanoscope
+
+    tr, rt = _spatial(scans, r)
+    write_nanoscope(path, {"Trace": tr * 1e9, "Retrace": rt * 1e9}, scan_size_nm=RANGES[r] * GAIN, line_rate_Hz=2.0)
+
+
+WRITERS = {"gwy": (write_gwy, "r{}.gwy"), "gsf": (write_gsf, "r{}_trace.gsf"), "tiff": (write_tiff, "r{}.tif"),
+           "ibw": (write_ibw, "r{}.ibw"), "spm": (write_spm, "r{}.spm"), "nanoscope-numbered": (write_spm, "r.00{}")}
 
 
 def _write_all(tmp_path, scans, fmt):
@@ -89,7 +100,8 @@ def _write_all(tmp_path, scans, fmt):
 def test_each_format_reads_back_channels_size_and_rate(tmp_path, scans, fmt):
     paths = _write_all(tmp_path, scans, fmt)
     img = read_scan_image(paths[0])
-    tol = 1e-6 * np.ptp(scans.trace_nm) if fmt == "gsf" else 1e-9   # gsf stores float32
+    # gsf stores float32, Nanoscope int32 codes of LSB_NM (1e-6 nm)
+    tol = {"gsf": 1e-6 * np.ptp(scans.trace_nm), "spm": LSB_NM, "nanoscope-numbered": LSB_NM}.get(fmt, 1e-9)
     np.testing.assert_allclose(img.trace_nm, scans.trace_nm[0], atol=tol)
     np.testing.assert_allclose(img.retrace_nm[:, ::-1], scans.retrace_nm[0], atol=tol)
     assert img.scan_size_nm == pytest.approx(150.0 * GAIN)
@@ -98,7 +110,7 @@ def test_each_format_reads_back_channels_size_and_rate(tmp_path, scans, fmt):
     np.testing.assert_allclose(arrays["u_trace_V"], scans.u_trace_V, rtol=1e-12)
 
 
-@pytest.mark.parametrize("fmt", ["gsf", "gwy", "tiff", "ibw"])
+@pytest.mark.parametrize("fmt", ["gsf", "gwy", "tiff", "ibw", "spm"])
 def test_identify_from_image_files_equals_npz(tmp_path, scans, fmt, capsys):
     npz = scans.save_npz(tmp_path / "scans.npz")
     common = ["identify", "--model", "preisach", "--operators", "15"]

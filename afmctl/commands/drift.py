@@ -28,8 +28,10 @@ and the tip's drift since the first frame is written (the sample is taken to sta
 the tip drifts by +d, features appear at -d).
 
 Inputs:
-  IMG...                   two or more frames, in time order: .gwy, .gsf, .tif or Asylum .ibw (trace
-                           channel; pixel size from the scan size in the file's metadata)
+  IMG...                   two or more frames, in time order: .gwy, .gsf, .tif, Asylum .ibw or Bruker
+                           Nanoscope .spm/.000–.999 (trace channel, or the retrace of a retrace-only
+                           Nanoscope file; pixel size from the scan size in the file's metadata;
+                           each scan line is levelled by its median before the correlation)
   --frame-period-s S       time between frames (s); default: lines / line rate from the
                            file's metadata
 Output:
@@ -124,7 +126,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     pf.set_defaults(func=run_fit)
     pm = sub.add_parser("measure", help="drift between successive AFM frames of the same area (nm)",
                         description=MEASURE_DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
-    pm.add_argument("images", nargs="+", metavar="IMG", help="frames in time order (.gwy, .gsf, .tif, .ibw)")
+    pm.add_argument("images", nargs="+", metavar="IMG", help="frames in time order (.gwy, .gsf, .tif, .ibw, Nanoscope .spm/.000–.999)")
     pm.add_argument("--out", required=True, metavar="DRIFT.csv", help="output CSV t,x,y,dx_px,dy_px")
     pm.add_argument("--frame-period-s", type=float, default=None, metavar="S",
                     help="time between frames in s (default: lines / line rate from the metadata)")
@@ -262,7 +264,7 @@ def run_measure(args: argparse.Namespace) -> int:
         period = imgs[0].trace_nm.shape[0] / imgs[0].line_rate_Hz
     if not (np.isfinite(period) and 0 < period <= 1e6):
         raise AfmctlError(f"--frame-period-s: {period!r} s is outside the allowed range (0, 1e6] s")
-    meter = FrameDriftMeter(imgs[0].pixel_nm())
+    meter = FrameDriftMeter(imgs[0].pixel_nm(), level_lines=True)
     for k, im in enumerate(imgs):
         meter.add(im.trace_nm, k * period)
     f = meter.frames

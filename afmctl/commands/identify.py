@@ -22,7 +22,8 @@ Input:
                     holds/staircases of a few seconds for the creep-aware kinds (epi,
                     creep; non-uniform samples are resampled for them).
   --from-images F…  instead of --data: a .npz scan file (docs/SIM.md) or grating images,
-                    one .gwy/.gsf/.tif/.ibw per scan range, e.g. --from-images r150.gwy r140.gwy …
+                    one .gwy/.gsf/.tif/.ibw or Bruker Nanoscope .spm/.000… per scan range, each
+                    with trace and retrace, e.g. --from-images r150.gwy r140.gwy …
                     --param gain_nm_per_V=80 --param period_nm=278 (docs/REALDATA.md)
 Model kinds (--model):
   pi        Prandtl-Ishlinskii: play operators, constrained least squares (always invertible)
@@ -88,7 +89,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--from-images", metavar="SCANS", nargs="+",
                    help="instead of --data: identify without a position sensor from AFM images of a "
                         "calibration grating: one .npz of line images + voltage ramps (docs/SIM.md), or "
-                        "image files, one scan range each (.gwy, .gsf, .tif, Asylum .ibw with trace and retrace; "
+                        "image files, one scan range each (.gwy, .gsf, .tif, Asylum .ibw, Bruker Nanoscope .spm/.000–.999; "
+                        "each with trace and retrace; "
                         "needs --param gain_nm_per_V=… --param period_nm=…, optional scan_u_min_V, skip_lines)")
     p.add_argument("--out", required=True, metavar="MODEL.json", help="where to write the fitted model")
     p.add_argument("--operators", type=int, default=None, metavar="N",

@@ -54,7 +54,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.add_argument("--drift-images", metavar="DIR",
-                   help="watch DIR for new AFM frames of one area (.gwy/.gsf/.tif/.ibw) while scanning and feed "
+                   help="watch DIR for new AFM frames of one area (.gwy/.gsf/.tif/.ibw, Nanoscope .spm/.000–.999) while "
+                        "scanning and feed "
                         "their drift (phase correlation) to the Kalman filter (compensation.drift.kalman = true)")
     p.add_argument("--drift-image-std-nm", type=float, default=0.5, metavar="NM",
                    help="1-sigma of a frame's drift measurement (default 0.5 nm)")
