@@ -315,13 +315,15 @@ def _read_nanoscope(p: Path) -> ScanImage:
     second]. Rows top line first (as Gwyddion presents them). The retrace is taken as stored in
     spatial order (left to right) like the trace, as Nanoscope Analysis shows it; no real file
     with both directions was available to confirm this (tests/data/jmarini-nanoscope is retrace only)."""
-    import gwyddionpy
-
+    install = "pip install 'afmctl[nanoscope]' (Gwyddion's importer; Linux x86-64)"
+    try:
+        import gwyddionpy
+    except ImportError:
+        raise ModelError(f"reading Nanoscope files needs gwyddionpy: {install}") from None
     try:
         data = gwyddionpy.load(p, timeout=_NANOSCOPE_TIMEOUT_S)
     except gwyddionpy.ConverterNotFoundError:
-        raise ModelError("reading Nanoscope files needs Gwyddion's gwyconvert helper: "
-                         "pip install 'gwyddionpy[converter]' (Linux x86-64)") from None
+        raise ModelError(f"reading Nanoscope files needs Gwyddion's gwyconvert helper: {install}") from None
     found: dict[tuple[str, str], Any] = {}
     for ch in data.channels.values():
         name, direction = _meta_value(ch.meta, "Image Data"), (_meta_value(ch.meta, "Line Direction") or "").lower()

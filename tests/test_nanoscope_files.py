@@ -74,4 +74,4 @@ def test_missing_converter_is_one_line_saying_what_to_install(tmp_path, monkeypa
     rc = main(["drift", "measure", str(REAL), str(REAL), "--out", str(tmp_path / "d.csv")])
     err = capsys.readouterr().err
     assert rc == 2 and len(err.strip().splitlines()) == 1 and REAL.name in err
-    assert "gwyddionpy[converter]" in err
+    assert "afmctl[nanoscope]" in err
