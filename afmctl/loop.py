@@ -37,6 +37,12 @@ loop thread is in one of the modes of :class:`afmctl.loop_machine.Mode` (``run``
 ``settle``, ``finish``); :mod:`afmctl.loop_machine` holds the loop thread's tick methods,
 :mod:`afmctl.loop_stats` the timing histograms.
 
+Preview horizon: when the pipeline's inverse reads the target ``L`` samples ahead (a
+chain with a dynamics stage, :mod:`afmctl.preview`), the loop feeds it the trajectory ``L``
+samples ahead of the output; the output lags what the loop reads by the fixed
+:attr:`Controller.latency_s` (in :meth:`Controller.stats` and every status), and the run
+log records each output beside the target it aims at.
+
 Timing statistics (:meth:`Controller.stats`): lateness = how long after its deadline a
 tick started [s] (p50 and p99 from a histogram of every tick of the run — 0.5 µs bins
 below 2 ms, 100 µs bins above — and the max); a deadline is *missed* when a tick starts more than half a period late. When the loop falls more than
@@ -166,6 +172,19 @@ class Controller:
         self._done = threading.Event()
 
     # ------------------------------------------------------------------ public API
+    @property
+    def latency_samples(self) -> int:
+        """Preview horizon [samples]: the loop reads the trajectory this far ahead of its
+        output (the pipeline's dynamics inverse needs it; 0 without one)."""
+        return int(getattr(self.pipeline, "latency_samples", 0))
+
+    @property
+    def latency_s(self) -> float:
+        """The output's fixed lag behind the trajectory it reads [s]: ``latency_samples``
+        loop periods. A trajectory file is read ahead (its timeline is kept, the run takes
+        this much longer); live setpoints (queue mode, zenoh) reach the output this late."""
+        return self.latency_samples * self.dt_s
+
     @property
     def state(self) -> State:
         return self._state
@@ -417,6 +436,7 @@ class Controller:
             "dropped_records": self._dropped, "last_error": self._last_error,
             "missed_recent": [(int(k), float(v)) for k, v in list(self._missed_log)[-8:]],
             "T_C": self._T_C, "runlog_error": self.runlog_error,
+            "latency_samples": self.latency_samples, "latency_s": self.latency_s,
         }
 
     # ------------------------------------------------------------------ internals
