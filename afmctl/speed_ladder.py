@@ -122,8 +122,7 @@ def controller_errors_nm(folder: Path, scanner_json: Path, model: Path | None, r
     loop's statistics (lateness, missed deadlines)."""
     from .config import load_config
     from .loop import Controller
-    from .runlog import RunLogReader
-    from .simlink import replay_positions_nm, simulated_amplifier
+    from .simlink import simulated_amplifier
     name = f"ladder-{rate_Hz:g}-{'none' if model is None else model.stem}"
     channel = f"afmctl-{name}-{os.getpid()}"
     cfg = load_config(text=_config_text(folder, scanner_json, model, rate_Hz, loop_Hz, lines, channel, nm_per_V))
@@ -138,20 +137,39 @@ def controller_errors_nm(folder: Path, scanner_json: Path, model: Path | None, r
             stats = ctl.stats()
         finally:
             ctl.close()
+    err = runlog_errors_nm(cfg, path, rate_Hz)
+    info = {"loop_rate_Hz": loop_Hz, "lateness_p99_us": round(stats["lateness_p99_s"] * 1e6, 1),
+            "missed_deadlines": stats["missed_deadlines"], "samples": len(err),
+            "latency_s": stats["latency_s"], "slew_limited": stats["slew_limited"], "clamped": stats["clamped"]}
+    return err, info
+
+
+def runlog_errors_nm(cfg: Any, path: Path, rate_Hz: float) -> np.ndarray:
+    """Lateral errors [nm] (n, 2) of a raster run's log ``path`` (run with ``cfg``): its
+    voltages replayed through the simulated scanner (module docstring), against the target
+    each output aims at, over the central 80 % of each line after the first line (the
+    scanner settles onto the periodic raster path), from the end of the start ramp to the
+    end of the trajectory."""
+    from .runlog import RunLogReader
+    from .simlink import replay_positions_nm
     reader = RunLogReader(path)
     sp = reader.setpoints()
     ev = {e["event"]: e["seq"] for e in reader.events()}
     y = replay_positions_nm(cfg, sp)
     start = ev.get("ramp-done", ev.get("start", 0))
+    # with a preview horizon the first latency_samples outputs aim at the held start point
+    start += int(round(cfg.loop.rate_Hz / rate_Hz)) + _latency_samples(reader)
     sel = (sp["seq"] >= start) & (sp["seq"] < ev.get("end", len(sp)))
     sel &= central_mask(sp["target_nm"][:, 0])
-    # skip the first line (the scanner settles onto the periodic raster path)
-    t_line = loop_Hz / rate_Hz
-    sel &= sp["seq"] >= start + t_line
-    err = (y - sp["target_nm"])[sel][:, :2]
-    info = {"loop_rate_Hz": loop_Hz, "lateness_p99_us": round(stats["lateness_p99_s"] * 1e6, 1),
-            "missed_deadlines": stats["missed_deadlines"], "samples": int(sel.sum())}
-    return err, info
+    return (y - sp["target_nm"])[sel][:, :2]
+
+
+def _latency_samples(reader: Any) -> int:
+    """The run's preview horizon [samples] from its final stats event (0 if none)."""
+    for e in reversed(reader.events()):
+        if e.get("event") == "stats" and isinstance(e.get("detail"), dict):
+            return int(e["detail"].get("latency_samples", 0) or 0)
+    return 0
 
 
 def write_scanner_json(scanner_config: Any, path: Path) -> Path:
