@@ -13,6 +13,8 @@ each line (the part an AFM images), trace and retrace, in % of the line length. 
   loop period (:func:`afmctl.simlink.replay_positions_nm`) — what ``afmctl run`` reports
   as its tracking error. The replay takes the host's timing as ideal; the loop's lateness
   and missed deadlines are recorded beside each result;
+  A chain with a dynamics stage runs at :data:`PREVIEW_RATE_HZ`, the controller reading
+  the trajectory its preview latency ahead (:mod:`afmctl.preview`);
 * **offline** — the same pipeline over the whole target, the simulated scanner driven at
   its own time step (:func:`afmctl.sim_backend.imaging.raster_image`), for line rates the
   host loop cannot carry (50 lines/s needs ≥ 10 kHz output).
@@ -38,6 +40,11 @@ LINE_RATES_HZ: tuple[float, ...] = (1.0, 4.0, 16.0, 50.0)
 #: 1 kHz: a 1 kHz staircase of held setpoints drives the simulated scanner's 1 kHz
 #: structural mode at resonance (measured at 4 lines/s: 4.5 % max at 1 kHz, 1.6 % at 2 kHz)
 CONTROLLER_RATE_HZ: dict[float, float] = {1.0: 2000.0, 4.0: 2000.0, 16.0: 2000.0}
+#: loop rate for a chain with a dynamics stage (the controller reads the trajectory
+#: ahead, :mod:`afmctl.preview`): the dynamics inverse acts up to 0.45 / period, so it
+#: needs an output rate well above the 1 kHz mode (measured through ``afmctl run``,
+#: benchmarks/loop_preview.py: 2.15 % max at 16 lines/s at 10 kHz, 2.33 % at 5 kHz)
+PREVIEW_RATE_HZ: dict[float, float] = {1.0: 10000.0, 4.0: 10000.0, 16.0: 10000.0}
 LINE_NM = 4000.0        #: scan-line length [nm]
 ORIGIN_NM = 1000.0      #: start of the lines (x and y) [nm]
 CENTRAL = 0.8           #: fraction of each line scored
