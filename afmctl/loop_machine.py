@@ -477,9 +477,14 @@ class LoopMachine:
                 ctl._watchdog_trips += 1
                 ctl._set_state(State.HOLDING, "watchdog",
                                f"no trajectory sample for {self.watchdog.since(now):.3f} s")
-            if self.on_stall == "safe":
-                self.safety.ramp_step(self.safe_V, self.ramp_rate_V_per_s)
-                self._record()
+            self._stall_action()
+
+    def _stall_action(self) -> None:
+        """Holding (the trajectory stalled): with ``on_stall = "safe"`` one ramp step to the
+        safe value."""
+        if self.on_stall == "safe":
+            self.safety.ramp_step(self.safe_V, self.ramp_rate_V_per_s)
+            self._record()
 
     def _record(self) -> None:
         """Put the output just sent (and the sample it came from) into the ring buffer."""
