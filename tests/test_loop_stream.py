@@ -164,3 +164,51 @@ def test_no_trajectory_or_model_makes_the_queued_stream_exceed_limits_or_slew(tm
         assert all(0.0 <= u <= 120.0 for u in row)
         assert all(abs(u - p) <= SLEW_V_PER_S / RATE_HZ + 1e-9 for u, p in zip(row, prev))
         prev = row
+
+
+def _run_cli(tmp_path, output: str):
+    import json
+    import os
+    import subprocess
+    import sys
+    (tmp_path / "run.toml").write_text(f"""
+[amplifier]
+driver = "can"
+port = "virtual:afmctl-lstream-cli-{os.getpid()}-{output}"
+slew_V_per_s = 5000
+output = "{output}"
+low_water_s = 0.05
+high_water_s = 0.1
+[loop]
+rate_Hz = 1000
+[simulation]
+enabled = true
+[runlog]
+dir = "{tmp_path}"
+fsync = false
+[trajectory]
+kind = "raster"
+lines = 2
+line_rate_Hz = 5.0
+""")
+    res = subprocess.run([sys.executable, "-m", "afmctl", "run", "--config", str(tmp_path / "run.toml"), "--json"],
+                         capture_output=True, text=True, timeout=120)
+    return res, (json.loads(res.stdout) if res.returncode == 0 else None)
+
+
+def test_afmctl_run_streams_and_reports_the_fifo(tmp_path):
+    res, summary = _run_cli(tmp_path, "stream")
+    assert res.returncode == 0, res.stderr
+    assert summary["output"] == "stream" and summary["stream"]["underruns"] == 0
+    assert summary["stream"]["queued"] == summary["samples"] > 0
+
+
+def test_afmctl_run_refuses_wave_output_without_a_runner(tmp_path):
+    import importlib.util
+    if importlib.util.find_spec("afmctl.wave_run") is not None:
+        pytest.skip("a wave runner is installed (afmctl.wave_run): its own tests cover output = 'wave'")
+    res, _ = _run_cli(tmp_path, "wave")
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert res.stderr.strip().splitlines() == [
+        "afmctl: error: amplifier.output = 'wave': no wave-table runner in this installation "
+        "(afmctl.wave_run.WaveMachine); allowed here: 'setpoints', 'stream'"]

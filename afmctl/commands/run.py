@@ -99,6 +99,7 @@ def _summary(ctl, config, scanner) -> dict:
            "reconnects": st["reconnects"], "watchdog_trips": st["watchdog_trips"],
            "slew_limited": st["slew_limited"], "clamped": st["clamped"], "last_error": st["last_error"],
            "latency_samples": st["latency_samples"], "latency_s": st["latency_s"],
+           "output": st["output"], "stream": st["stream"],
            "runlog": str(ctl.runlog_path) if ctl.runlog_path else None,
            "runlog_error": ctl.runlog_error, "trajectory_error": ctl.trajectory_error}
     if scanner is not None and ctl.runlog_path is not None and ctl.runlog_error is None:
@@ -169,6 +170,11 @@ def _print_summary(summary: dict) -> None:
     print(f"errors            {summary['errors']} (faults {summary['faults']}, reconnects {summary['reconnects']}, "
           f"watchdog trips {summary['watchdog_trips']})")
     print(f"safety            slew-limited {summary['slew_limited']} samples, clamped {summary['clamped']}")
+    if summary.get("stream"):
+        st = summary["stream"]
+        print(f"stream            {st['queued']} samples queued; device underruns {st['underruns']}, lowest FIFO "
+              f"level {st['lowest_level']} samples (marks {st['low_water']}..{st['high_water']}); lateness above "
+              "= the producer's wake-ups")
     if summary.get("latency_samples"):
         print(f"preview latency   {summary['latency_samples']} samples = {summary['latency_s'] * 1e3:.3g} ms "
               "(the output lags the trajectory read)")
