@@ -45,6 +45,8 @@ CONTROLLER_RATE_HZ: dict[float, float] = {1.0: 2000.0, 4.0: 2000.0, 16.0: 2000.0
 #: needs an output rate well above the 1 kHz mode (measured through ``afmctl run``,
 #: benchmarks/loop_preview.py: 2.15 % max at 16 lines/s at 10 kHz, 2.33 % at 5 kHz)
 PREVIEW_RATE_HZ: dict[float, float] = {1.0: 10000.0, 4.0: 10000.0, 16.0: 10000.0}
+#: ``[amplifier]`` keys for device-timed output over CAN FD (10 samples per frame)
+STREAM_FD_TOML = 'output = "stream"\nlow_water_s = 0.1\nhigh_water_s = 0.2\n[amplifier.options]\nfd = true\n'
 LINE_NM = 4000.0        #: scan-line length [nm]
 ORIGIN_NM = 1000.0      #: start of the lines (x and y) [nm]
 CENTRAL = 0.8           #: fraction of each line scored
@@ -84,7 +86,9 @@ def offline_errors_nm(new_scanner: Callable[[], Any], make_compensator: Callable
 
 
 def _config_text(folder: Path, scanner_json: Path, model: Path | None, rate_Hz: float, loop_Hz: float,
-                 lines: int, channel: str, nm_per_V: Sequence[float]) -> str:
+                 lines: int, channel: str, nm_per_V: Sequence[float], amplifier_toml: str = "") -> str:
+    """The run's TOML; ``amplifier_toml``: more ``[amplifier]`` keys (and sub-tables), e.g.
+    :data:`STREAM_FD_TOML`."""
     comp = f'[compensation]\nscanner_model = "{model}"\n' if model is not None else ""
     return f"""
 [scanner.calibration.x]
@@ -97,6 +101,7 @@ nm_per_V = {nm_per_V[2]!r}
 driver = "can"
 port = "virtual:{channel}"
 slew_V_per_s = 100000
+{amplifier_toml}
 [loop]
 rate_Hz = {loop_Hz!r}
 [safety]

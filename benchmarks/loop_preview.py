@@ -39,7 +39,7 @@ from sections import write_section  # noqa: E402  (benchmarks/sections.py)
 
 NAME = "loop_preview"
 KINDS = ("preisach+creep", "preisach+creep+dynamics")
-LINES = {1.0: 3, 4.0: 4, 16.0: 8}
+LINES = {1.0: 3, 4.0: 4, 16.0: 8, 50.0: 12}
 AFMCTL = [sys.executable, "-m", "afmctl"]
 
 
@@ -54,11 +54,12 @@ def demo_models(work: Path) -> Path:
 
 
 def run_cell(work: Path, scanner_json: Path, model: Path, rate: float, loop_Hz: float,
-             gain: list[float]) -> dict:
+             gain: list[float], stream: bool = False) -> dict:
     """One ``afmctl run`` of raster lines; its error and loop figures."""
-    tag = f"{model.stem}-{rate:g}-{loop_Hz:g}"
+    tag = f"{model.stem}-{rate:g}-{loop_Hz:g}-{'stream' if stream else 'setpoints'}"
     channel = f"afmctl-bench-{tag}-{os.getpid()}"
-    text = sl._config_text(work, scanner_json, model, rate, loop_Hz, LINES.get(rate, 3), channel, gain)
+    text = sl._config_text(work, scanner_json, model, rate, loop_Hz, LINES.get(rate, 3), channel, gain,
+                           sl.STREAM_FD_TOML if stream else "")
     cfg_path = work / f"{tag}.toml"
     cfg_path.write_text(text, encoding="utf-8")
     log = work / f"{tag}.afmlog"
@@ -71,20 +72,23 @@ def run_cell(work: Path, scanner_json: Path, model: Path, rate: float, loop_Hz: 
     return {**sl.error_pct(err), "loop_rate_Hz": loop_Hz, "latency_s": summary["latency_s"],
             "lateness_p99_us": round(summary["lateness_p99_s"] * 1e6, 1),
             "missed_deadlines": summary["missed_deadlines"], "samples": summary["samples"],
-            "slew_limited": summary["slew_limited"], "clamped": summary["clamped"]}
+            "slew_limited": summary["slew_limited"], "clamped": summary["clamped"],
+            "output": summary["output"], "underruns": (summary["stream"] or {}).get("underruns"),
+            "lowest_level": (summary["stream"] or {}).get("lowest_level")}
 
 
 def table(results: dict) -> str:
-    head = ("| model | loop | lines/s | max / RMS % | latency | p99 late | missed | slew-lim. | clamped |\n"
-            "|---|---|---|---|---|---|---|---|---|\n")
+    head = ("| model | output | loop | lines/s | max / RMS % | latency | p99 late | missed | slew-lim. | clamped |"
+            " underruns / lowest FIFO |\n|---|---|---|---|---|---|---|---|---|---|---|\n")
     rows = []
-    for (kind, loop_Hz, rate), v in results.items():
+    for (kind, out, loop_Hz, rate), v in results.items():
         if "error" in v:
-            rows.append(f"| {kind} | {loop_Hz / 1e3:g} kHz | {rate:g} | failed: {v['error']} | | | | | |")
+            rows.append(f"| {kind} | {out} | {loop_Hz / 1e3:g} kHz | {rate:g} | failed: {v['error']} | | | | | | |")
             continue
-        rows.append(f"| {kind} | {loop_Hz / 1e3:g} kHz | {rate:g} | {v['max_error_pct']:.2f} / "
+        fifo = "—" if v["underruns"] is None else f"{v['underruns']} / {v['lowest_level']}"
+        rows.append(f"| {kind} | {out} | {loop_Hz / 1e3:g} kHz | {rate:g} | {v['max_error_pct']:.2f} / "
                     f"{v['rms_error_pct']:.2f} | {v['latency_s'] * 1e3:.3g} ms | {v['lateness_p99_us']:.0f} µs | "
-                    f"{v['missed_deadlines']} of {v['samples']} | {v['slew_limited']} | {v['clamped']} |")
+                    f"{v['missed_deadlines']} of {v['samples']} | {v['slew_limited']} | {v['clamped']} | {fifo} |")
     return head + "\n".join(rows) + "\n"
 
 
@@ -92,6 +96,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--loop-rates", type=float, nargs="+", default=[5000.0, 10000.0], help="loop rates [Hz]")
     ap.add_argument("--rates", type=float, nargs="+", default=[1.0, 4.0, 16.0], help="line rates [lines/s]")
+    ap.add_argument("--stream", action="store_true",
+                    help="also run each cell with output = stream over CAN FD (device-timed, 10 samples/frame)")
     ap.add_argument("--models", type=Path, help="folder of scanner_KIND.json (default: run the demo)")
     ap.add_argument("--no-write", action="store_true", help="do not update docs/BENCHMARKS.md")
     ap.add_argument("--json", type=Path, help="also write the results as JSON")
@@ -107,13 +113,15 @@ def main(argv: list[str] | None = None) -> int:
         for loop_Hz in args.loop_rates:
             for rate in args.rates:
                 for kind in KINDS:
-                    v = run_cell(work, scanner_json, models / f"scanner_{kind}.json", rate, loop_Hz, gain)
-                    results[(kind, loop_Hz, rate)] = v
-                    print(kind, f"{loop_Hz:g} Hz", f"{rate:g} lines/s", v, flush=True)
+                    for out in ("setpoints", "stream") if args.stream else ("setpoints",):
+                        v = run_cell(work, scanner_json, models / f"scanner_{kind}.json", rate, loop_Hz, gain,
+                                     stream=out == "stream")
+                        results[(kind, out, loop_Hz, rate)] = v
+                        print(kind, out, f"{loop_Hz:g} Hz", f"{rate:g} lines/s", v, flush=True)
     tab = table(results)
     print(tab)
     if args.json:
-        args.json.write_text(json.dumps({f"{k} {lh:g} {r:g}": v for (k, lh, r), v in results.items()}, indent=2),
+        args.json.write_text(json.dumps({f"{k} {o} {lh:g} {r:g}": v for (k, o, lh, r), v in results.items()}, indent=2),
                              encoding="utf-8")
     if not args.no_write:
         body = ("## Speed ladder through `afmctl run` (preview horizon in the loop)\n\n"
