@@ -174,3 +174,43 @@ line_rate_Hz = 10.0
                                    loop={"rate_Hz": RATE_HZ})).latency_samples
     assert summary["latency_samples"] == L and summary["latency_s"] == pytest.approx(L / RATE_HZ)
     assert f"reads the trajectory {L} samples" in res.stderr
+
+
+def test_stream_output_queues_the_same_read_ahead_samples(tmp_path, chain_file):
+    """output = "stream": the samples queued into the CAN amplifier's FIFO are the same
+    read-ahead pipeline outputs, logged beside the targets they aim at, all played."""
+    import uuid
+
+    from afmctl.drivers.can_amp import CANAmplifier
+    from afmctl.sim_backend.amplifiers.base import RecordingSink
+    from afmctl.sim_backend.testing import serve_can
+    channel = f"pstream-{uuid.uuid4().hex[:8]}"
+    cfg = make_config(tmp_path, f'[compensation.x]\nmodel = "{chain_file}"\n', loop={"rate_Hz": RATE_HZ},
+                      amplifier={"driver": "can", "port": f"virtual:{channel}", "output": "stream",
+                                 "slew_V_per_s": 1e5, "low_water_s": 0.05, "high_water_s": 0.1},
+                      safety={"slew_V_per_s": 1e5, "ramp_V_per_s": 2000, "watchdog_s": 0.05})
+    traj = smooth_x(400)
+    ref_pipe = build_pipeline(cfg)
+    L = ref_pipe.latency_samples
+    feed = np.concatenate([np.repeat(traj[:1], L, 0), traj, np.repeat(traj[-1:], L, 0)])
+    _, _, u_ref = ref_pipe.run(feed, cfg.compensation.temperature.T_C)
+    sink = RecordingSink(max_history=100_000)
+    with serve_can(channel, sink, record_seq=True) as sim:
+        amp = CANAmplifier.open(f"virtual:{channel}")
+        amp.connect()
+        try:
+            with Controller(cfg, amp) as ctl:
+                ctl.start(traj, runlog_path=tmp_path / "ps.afmlog")
+                assert ctl.wait(20)
+                st = ctl.stats()
+        finally:
+            amp.close()
+    assert ctl.state is State.STOPPED and st["latency_samples"] == L and st["stream"]["underruns"] == 0
+    log = RunLogReader(tmp_path / "ps.afmlog")
+    sp, ev = log.setpoints(), {e["event"]: e["seq"] for e in log.events()}
+    ramp_end, end = ev["ramp-done"], ev["end"]
+    assert end - ramp_end == len(traj) + L
+    np.testing.assert_array_equal(sp["u_V"][ramp_end:end], u_ref[L:])     # bit for bit (no limiting needed)
+    np.testing.assert_array_equal(sp["target_nm"][end - len(traj):end], traj)
+    assert len(sim.stream_log) == len(sp) == st["stream"]["queued"]
+    np.testing.assert_allclose(np.array(sim.stream_log)[:, 0], sp["u_V"][:, 0], atol=0.00125 + 1e-9)

@@ -3,7 +3,6 @@ stream (issue #12 item 4). Real parts: our CAN driver and the simulated amplifie
 python-can's ``virtual`` bus; the Controller with its pipeline, safety layer and run log."""
 from __future__ import annotations
 
-import threading
 import time
 import uuid
 
