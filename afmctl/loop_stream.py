@@ -34,6 +34,10 @@ from .loop_machine import FAULT_ERRORS, LoopMachine, Mode, State
 from .stream_producer import StreamProducer
 
 
+#: samples queued per driver call while topping up (a multiple of the CAN FD frame's 10)
+QUEUE_CHUNK = 50
+
+
 class StreamMachine(LoopMachine):
     """One stream-mode run of the loop thread of ``ctl`` (see the module docstring)."""
 
@@ -112,16 +116,24 @@ class StreamMachine(LoopMachine):
             self._update_stream_stats()
 
     def _top_up(self, n: int) -> None:
-        """Compute up to ``n`` samples and queue them (fewer when the trajectory has none now)."""
-        rows = []
+        """Compute up to ``n`` samples (fewer when the trajectory has none now) and queue them
+        in chunks of :data:`QUEUE_CHUNK` as they are computed, so that the FIFO fills while the
+        rest is still being computed."""
+        rows: list[tuple[float, float, float]] = []
         for _ in range(n):
             row = self._produce_one()
             if row is None:
                 break
             rows.append(row)
+            if len(rows) >= QUEUE_CHUNK:
+                self._queue(rows)
+                rows = []
         if rows:
-            self.ctl.amplifier.queue(rows)
-            self.producer._queued += len(rows)
+            self._queue(rows)
+
+    def _queue(self, rows: list[tuple[float, float, float]]) -> None:
+        self.ctl.amplifier.queue(rows)
+        self.producer._queued += len(rows)
 
     # ------------------------------------------------------------------ one sample
     def _produce_one(self) -> tuple[float, float, float] | None:
