@@ -29,6 +29,8 @@ import math
 import time
 from typing import Any
 
+import numpy as np
+
 from . import loop_stats
 from .loop_machine import FAULT_ERRORS, LoopMachine, Mode, State
 from .stream_producer import StreamProducer
@@ -52,6 +54,8 @@ class StreamMachine(LoopMachine):
         self.produced = 0                                  # samples computed since the stream began
         self.done = False                                  # nothing more to produce
         self.stall = getattr(ctl, "stream_stall_hook", None)  # test hook: called once per wake
+        #: whole chunks through pipeline.block (== step bit for bit) when no drift predictor
+        self.batch_ok = getattr(self.pipe, "drift", None) is None and getattr(self.pipe, "kalman", None) is None
 
     # ------------------------------------------------------------------ main loop
     def run(self) -> None:
@@ -120,16 +124,51 @@ class StreamMachine(LoopMachine):
         in chunks of :data:`QUEUE_CHUNK` as they are computed, so that the FIFO fills while the
         rest is still being computed."""
         rows: list[tuple[float, float, float]] = []
-        for _ in range(n):
-            row = self._produce_one()
-            if row is None:
-                break
-            rows.append(row)
+        left = n
+        while left > 0:
+            batch = self._produce_batch(min(left, QUEUE_CHUNK))
+            if batch is None:
+                row = self._produce_one()
+                if row is None:
+                    break
+                batch = [row]
+            rows.extend(batch)
+            left -= len(batch)
             if len(rows) >= QUEUE_CHUNK:
                 self._queue(rows)
                 rows = []
         if rows:
             self._queue(rows)
+
+    def _produce_batch(self, n: int) -> list[tuple[float, float, float]] | None:
+        """Fast path while playing the trajectory: up to ``n`` samples of the current block
+        through ``pipeline.block`` at once (bit for bit what ``step`` gives; only without a
+        drift predictor, whose heat input is the output itself), else None."""
+        ctl, pipe = self.ctl, self.pipe
+        if (not self.batch_ok or self.mode is not Mode.RUN or self.need_ramp or self.ramping
+                or self.cur is not None or not self.primed or ctl._state is not State.RUNNING or ctl._drift_meas):
+            return None
+        blk = self.blk
+        k = 0 if blk is None else min(n, (len(blk) - self.bi) // 3)
+        if k < 2:
+            return None
+        inp = np.asarray(blk[self.bi:self.bi + 3 * k], dtype=np.float64).reshape(k, 3)
+        self.bi += 3 * k
+        self.watchdog.feed(self.now_s)
+        if self.latency:
+            self.hold_left = self.latency
+        d, c, u = pipe.block(inp, self.T_C, np.zeros((k, 3)))
+        aims, out = self.aims, []
+        for tgt, cor, dd, uu in zip(inp.tolist(), c.tolist(), d.tolist(), u.tolist()):
+            tgt, cor, dd = tuple(tgt), tuple(cor), tuple(dd)
+            if self.latency:
+                self.last_in = tgt
+                aims.append((tgt, cor, dd))
+                tgt, cor, dd = aims.popleft()
+            self.last_tgt, self.last_cor, self.last_d = tgt, cor, dd
+            self.last_u_cmd = tuple(uu)
+            out.append(self._queue_row(self._limit_row(uu)))
+        return out
 
     def _queue(self, rows: list[tuple[float, float, float]]) -> None:
         self.ctl.amplifier.queue(rows)
