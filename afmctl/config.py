@@ -92,6 +92,24 @@ class AmplifierSection(_Strict):
     limits_V: dict[Axis, Limits] = Field(default_factory=dict,
                                          description="host voltage limits per axis [V] (default 0..150 V)")
     slew_V_per_s: float = Field(1000.0, gt=0, le=1e7, description="largest output slew rate [V/s]")
+    output: Literal["setpoints", "stream", "wave"] = Field(
+        "setpoints", description="how the loop reaches the amplifier: 'setpoints' (one setpoint per tick, the "
+                                 "host's timing), 'stream' (device-timed: samples queued ahead into the "
+                                 "amplifier's FIFO, driver 'can'), 'wave' (a wave table the device plays)")
+    low_water_s: float = Field(0.1, gt=0.0, le=10.0, description="output = 'stream': top the device FIFO up "
+                                                                 "when it holds less than this [s of samples]")
+    high_water_s: float = Field(0.2, gt=0.0, le=10.0, description="output = 'stream': fill the device FIFO to "
+                                                                  "this [s of samples]; > low_water_s")
+
+    @model_validator(mode="after")
+    def _stream_marks(self) -> "AmplifierSection":
+        if self.output == "stream":
+            if self.driver != "can":
+                raise ValueError(f"output = 'stream' needs a link that buffers: driver 'can' (got {self.driver!r})")
+            if not self.low_water_s < self.high_water_s:
+                raise ValueError(f"low_water_s {self.low_water_s:g} must be below high_water_s "
+                                 f"{self.high_water_s:g} [s]")
+        return self
 
     @field_validator("driver")
     @classmethod

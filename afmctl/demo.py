@@ -461,9 +461,8 @@ def ladder_compensators(ctx: DemoContext) -> dict[str, str | None]:
 def _ladder_cell(ctx: DemoContext, kind: str | None, rate: float, folder: Path, scanner_json: Path) -> dict[str, Any]:
     from . import speed_ladder as sl
     o = ctx.options
-    loop_Hz = sl.CONTROLLER_RATE_HZ.get(rate) if o.ladder_controller else None
-    if kind is not None and kind.endswith("+dynamics"):
-        loop_Hz = None    # the loop does not read the trajectory ahead yet (preview): offline
+    rates = sl.PREVIEW_RATE_HZ if kind is not None and kind.endswith("+dynamics") else sl.CONTROLLER_RATE_HZ
+    loop_Hz = rates.get(rate) if o.ladder_controller else None
     if loop_Hz is not None:
         gain = _new_scanner(ctx, drift=False).nominal_gain_nm_per_V()
         model = folder.parent / "models" / f"scanner_{kind}.json" if kind else None
@@ -584,7 +583,7 @@ def format_ladder(ladder: dict[str, Any]) -> str:
     head = "| lines/s | " + " | ".join(f"{k} max / rms [%]" for k in labels) + " | controller output |"
     lines = [head, "|" + "---|" * (len(labels) + 2)]
     for rate, row in ladder.items():
-        cells, loop = [], "—"
+        cells, loops = [], {}
         for k in labels:
             c = row.get(k, {})
             if "max_error_pct" not in c:
@@ -592,10 +591,12 @@ def format_ladder(ladder: dict[str, Any]) -> str:
                 continue
             text = f"{c['max_error_pct']:.2f} / {c['rms_error_pct']:.2f}"
             if c.get("path") == "controller":
-                loop = f"{c['loop_rate_Hz']:g} Hz"
+                loops.setdefault(f"{c['loop_rate_Hz']:g} Hz", []).append(k)
             else:
                 text += " (offline)"
             cells.append(text)
+        loop = "—" if not loops else next(iter(loops)) if len(loops) == 1 else "; ".join(
+            f"{r} ({', '.join(ks)})" for r, ks in loops.items())
         lines.append(f"| {rate} | " + " | ".join(cells) + f" | {loop} |")
     return "\n".join(lines)
 

@@ -37,6 +37,12 @@ loop thread is in one of the modes of :class:`afmctl.loop_machine.Mode` (``run``
 ``settle``, ``finish``); :mod:`afmctl.loop_machine` holds the loop thread's tick methods,
 :mod:`afmctl.loop_stats` the timing histograms.
 
+Preview horizon: when the pipeline's inverse reads the target ``L`` samples ahead (a
+chain with a dynamics stage, :mod:`afmctl.preview`), the loop feeds it the trajectory ``L``
+samples ahead of the output; the output lags what the loop reads by the fixed
+:attr:`Controller.latency_s` (in :meth:`Controller.stats` and every status), and the run
+log records each output beside the target it aims at.
+
 Timing statistics (:meth:`Controller.stats`): lateness = how long after its deadline a
 tick started [s] (p50 and p99 from a histogram of every tick of the run — 0.5 µs bins
 below 2 ms, 100 µs bins above — and the max); a deadline is *missed* when a tick starts more than half a period late. When the loop falls more than
@@ -133,6 +139,21 @@ def quiet_window_wait_s(now_s: float, deadline_s: float, period_s: float, spin_s
     return (start - phase) % period_s
 
 
+def wave_machine() -> type:
+    """The loop machine of ``amplifier.output = "wave"``: ``WaveMachine`` of
+    ``afmctl.wave_run`` (the wave-table runner; same interface as :class:`LoopMachine`), or
+    an :class:`AfmctlError` saying it is not available in this installation."""
+    try:
+        from . import wave_run  # type: ignore[attr-defined]
+    except ImportError:
+        wave_run = None
+    machine = getattr(wave_run, "WaveMachine", None)
+    if machine is None:
+        raise AfmctlError("amplifier.output = 'wave': no wave-table runner in this installation "
+                          "(afmctl.wave_run.WaveMachine); allowed here: 'setpoints', 'stream'")
+    return machine
+
+
 class Controller:
     """Fixed-rate feedforward controller; see the module docstring.
 
@@ -146,6 +167,9 @@ class Controller:
 
     status_interval_s = 0.5
     dispatch_interval_s = 0.02
+    #: test hook for ``amplifier.output = "stream"``: called once per producer wake-up on
+    #: the loop thread (tests inject host stalls there); None in use
+    stream_stall_hook: Any = None
 
     def __init__(self, config, amplifier, *, pipeline=None) -> None:
         self.config = config
@@ -156,6 +180,11 @@ class Controller:
             pipeline = build_pipeline(config)
         self.pipeline = pipeline
         axes = list(config.scanner.axes)
+        if config.amplifier.output == "wave":
+            wave_machine()      # refuse at once, before anything runs
+        if config.amplifier.output == "stream" and not hasattr(amplifier, "start_stream"):
+            raise AfmctlError(f"amplifier.output = 'stream': the {config.amplifier.driver} driver has no "
+                              "buffered stream; allowed with driver 'can'")
         self.safety = SafetyLayer(amplifier, axes, {a: config.limits(a) for a in axes},
                                   config.slew_V_per_s(), self.dt_s,
                                   {a: config.safety.safe_value(a) for a in axes})
@@ -193,6 +222,19 @@ class Controller:
         self.cpu_plan = cpu_pinning.plan_for(config.loop)
 
     # ------------------------------------------------------------------ public API
+    @property
+    def latency_samples(self) -> int:
+        """Preview horizon [samples]: the loop reads the trajectory this far ahead of its
+        output (the pipeline's dynamics inverse needs it; 0 without one)."""
+        return int(getattr(self.pipeline, "latency_samples", 0))
+
+    @property
+    def latency_s(self) -> float:
+        """The output's fixed lag behind the trajectory it reads [s]: ``latency_samples``
+        loop periods. A trajectory file is read ahead (its timeline is kept, the run takes
+        this much longer); live setpoints (queue mode, zenoh) reach the output this late."""
+        return self.latency_samples * self.dt_s
+
     @property
     def state(self) -> State:
         return self._state
@@ -444,6 +486,8 @@ class Controller:
             "dropped_records": self._dropped, "last_error": self._last_error,
             "missed_recent": [(int(k), float(v)) for k, v in list(self._missed_log)[-8:]],
             "T_C": self._T_C, "runlog_error": self.runlog_error,
+            "latency_samples": self.latency_samples, "latency_s": self.latency_s,
+            "output": self.config.amplifier.output, "stream": self._stream_stats,
         }
 
     # ------------------------------------------------------------------ internals
@@ -458,6 +502,8 @@ class Controller:
         self._errors = self._faults = self._reconnects = self._watchdog_trips = 0
         self._seq = self._tick = 0
         self._last_error: str | None = None
+        #: output = "stream": underruns, lowest_level, queued, ... (afmctl.loop_stream); else None
+        self._stream_stats: dict[str, Any] | None = None
         self.safety.slew_limited = self.safety.clamped = self.safety.nonfinite = 0
 
     def _set_state(self, state: State, event: str, detail: str | None = None) -> None:
@@ -511,7 +557,7 @@ class Controller:
                 self._event("realtime-refused", f"SCHED_FIFO {prio} not granted ({err}); normal scheduling")
                 log.warning("loop.realtime_priority %s not granted (%s)", prio, err)
         try:
-            LoopMachine(self).run()
+            self._machine_class()(self).run()
         except BaseException as err:  # never leave silently
             self._last_error = f"{type(err).__name__}: {err}"
             self._errors += 1
@@ -522,6 +568,16 @@ class Controller:
             self._deque.clear()         # nothing of this run is played by the next one
             if si is not None:
                 sys.setswitchinterval(old_switch)
+
+    def _machine_class(self) -> type:
+        """The loop thread's machine for ``amplifier.output``: setpoints (one per tick) or
+        stream (samples queued ahead into the device FIFO, :mod:`afmctl.loop_stream`)."""
+        if self.config.amplifier.output == "stream":
+            from .loop_stream import StreamMachine
+            return StreamMachine
+        if self.config.amplifier.output == "wave":
+            return wave_machine()
+        return LoopMachine
 
     def _apply_drift_measurement(self, item: tuple) -> None:
         """Loop thread: fuse one validated measurement (see :meth:`submit_drift_measurement`);

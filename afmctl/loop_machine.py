@@ -11,7 +11,12 @@ method of where it is:
 
   - :attr:`Mode.RUN` → :meth:`LoopMachine._tick_run`: the next trajectory sample through the
     compensation pipeline to the safety layer (first ramping to it at start and resume;
-    ``holding`` when the watchdog sees the trajectory stall);
+    ``holding`` when the watchdog sees the trajectory stall). With a preview horizon
+    (the pipeline's ``latency_samples`` = L > 0, a dynamics stage; :mod:`afmctl.preview`)
+    the pipeline is fed the trajectory L samples ahead of the output: the first sample L
+    extra times before the first output, the last one L extra times after the end (and in
+    queue mode when the segments pause), and each output is recorded beside the target it
+    aims at;
   - :attr:`Mode.SETTLE` → :meth:`LoopMachine._tick_settle`: reach the trajectory's last
     setpoint at the slew limit;
   - :attr:`Mode.FINISH` → :meth:`LoopMachine._tick_finish`: ramp to the safe value (or hold),
@@ -24,6 +29,7 @@ user code (the controller's dispatcher thread does that).
 """
 from __future__ import annotations
 
+import collections
 import enum
 import math
 import threading
@@ -109,6 +115,12 @@ class LoopMachine:
         self.T_C = 0.0
         self.spin_s = cfg.loop.spin_s
         self.resync_s = cfg.loop.resync_periods * self.period_s
+        # preview horizon (afmctl.preview): the pipeline's output lags its input by L samples
+        self.latency = int(getattr(pipe, "latency_samples", 0))
+        self.primed = False                 # the first sample was fed L extra times
+        self.aims: collections.deque = collections.deque()  # (tgt, cor, d) of the last L inputs
+        self.last_in = (0.0, 0.0, 0.0)      # the latest trajectory sample fed
+        self.hold_left = 0                  # held samples still to feed (drain the preview)
 
     # ------------------------------------------------------------------ main loop
     def run(self) -> None:
@@ -375,6 +387,9 @@ class LoopMachine:
             self.blk = None
             dq = ctl._deque
             item = dq.popleft() if dq else None
+            if item is END_OF_TRAJECTORY and not ctl._feed_error and self.hold_left > 0:
+                dq.appendleft(item)          # emit the last L outputs first
+                return self._feed_held()
             if item is END_OF_TRAJECTORY:
                 if ctl._feed_error:
                     ctl._errors += 1
@@ -385,6 +400,8 @@ class LoopMachine:
                 self._end_trajectory()
                 return False
             if item is None:
+                if ctl._queue_mode and self.hold_left > 0:
+                    return self._feed_held()    # live setpoints paused: the target holds
                 self._no_sample()
                 return False
             self.blk = blk = item
@@ -398,14 +415,53 @@ class LoopMachine:
             self.need_ramp = True
         if ctl._drift_meas:
             ctl._apply_drift_measurement(ctl._drift_meas.popleft())
+        if self.latency:
+            if not self.primed:
+                self._prime(rx, ry, rz)
+            self.hold_left = self.latency
+        self._compute(rx, ry, rz)
+        return True
+
+    def _compute(self, rx: float, ry: float, rz: float) -> None:
+        """Run one input sample through the pipeline into ``self.cur``; the record columns
+        (target, corrected, drift) are those of the input the output aims at (L samples
+        back with a preview horizon)."""
         pipe = self.pipe
         cur = self.cur = pipe.step(rx, ry, rz, self.T_C, self.u_prev)
         self.last_u_cmd = (cur[6], cur[7], cur[8])
         if self.has_kalman:
             self.last_s = pipe.drift_std_nm()
-        self.last_tgt = (rx, ry, rz)
-        self.last_cor = (cur[3], cur[4], cur[5])
-        self.last_d = (cur[0], cur[1], cur[2])
+        tgt, cor, d = (rx, ry, rz), (cur[3], cur[4], cur[5]), (cur[0], cur[1], cur[2])
+        if self.latency:
+            self.last_in = tgt
+            aims = self.aims
+            aims.append((tgt, cor, d))
+            tgt, cor, d = aims.popleft()
+        self.last_tgt = tgt
+        self.last_cor = cor
+        self.last_d = d
+
+    def _prime(self, rx: float, ry: float, rz: float) -> None:
+        """Before the first output: feed the first sample L times (the scanner held there
+        before the trajectory starts), so that the first output aims at it."""
+        pipe, T_C, u, L = self.pipe, self.T_C, self.u_prev, self.latency
+        aims = self.aims
+        if getattr(pipe, "drift", None) is None and getattr(pipe, "kalman", None) is None:
+            # block() gives the numbers of L step() calls, bit for bit, in a fraction of the time
+            d, c, _ = pipe.block(np.tile((rx, ry, rz), (L, 1)), T_C, np.tile(u, (L, 1)))
+            for k in range(L):
+                aims.append(((rx, ry, rz), tuple(c[k].tolist()), tuple(d[k].tolist())))
+        else:
+            for _ in range(L):
+                cur = pipe.step(rx, ry, rz, T_C, u)
+                aims.append(((rx, ry, rz), (cur[3], cur[4], cur[5]), (cur[0], cur[1], cur[2])))
+        self.primed = True
+
+    def _feed_held(self) -> bool:
+        """No new sample: feed the latest one again (the target holds), one of the L that
+        bring the output to it."""
+        self.hold_left -= 1
+        self._compute(*self.last_in)
         return True
 
     def _no_sample(self) -> None:
@@ -422,9 +478,14 @@ class LoopMachine:
                 ctl._watchdog_trips += 1
                 ctl._set_state(State.HOLDING, "watchdog",
                                f"no trajectory sample for {self.watchdog.since(now):.3f} s")
-            if self.on_stall == "safe":
-                self.safety.ramp_step(self.safe_V, self.ramp_rate_V_per_s)
-                self._record()
+            self._stall_action()
+
+    def _stall_action(self) -> None:
+        """Holding (the trajectory stalled): with ``on_stall = "safe"`` one ramp step to the
+        safe value."""
+        if self.on_stall == "safe":
+            self.safety.ramp_step(self.safe_V, self.ramp_rate_V_per_s)
+            self._record()
 
     def _record(self) -> None:
         """Put the output just sent (and the sample it came from) into the ring buffer."""

@@ -31,6 +31,8 @@ import numpy as np
 
 from afmctl.compensators.base import StreamingOperator
 
+from .preview import Delayed, equalise_latency
+
 log = logging.getLogger(__name__)
 
 
@@ -69,7 +71,12 @@ class CompensationPipeline:
             raise ValueError("inverses: one operator per axis x, y, z")
         if kalman is not None and drift is None:
             raise ValueError("kalman: needs a drift predictor")
-        self.inverses = list(inverses)
+        #: per axis, the inverse the pipeline steps; an axis whose preview latency is
+        #: shorter than the longest is fed its input that much later (:mod:`afmctl.preview`)
+        self.inverses, lat = equalise_latency(list(inverses))
+        #: samples by which every axis's output lags its target (the preview horizon the
+        #: loop reads ahead, :mod:`afmctl.preview`); 0 without a dynamics stage
+        self.latency_samples: int = lat
         #: per axis, a whole-target inverse nm → V within the amplifier's limits (or None),
         #: used by :meth:`block` with ``preview`` (see :func:`offline_inverse`)
         self.offline = list(offline) if offline is not None else [None, None, None]
@@ -171,9 +178,12 @@ class CompensationPipeline:
             if preview and n and self.offline[i] is not None:
                 u[:, i] = self.offline[i](np.ascontiguousarray(a[:, i]))
                 continue
-            lat = int(getattr(self.inverses[i], "latency_samples", 0)) if (preview and n) else 0
+            op = self.inverses[i]
+            if preview and isinstance(op, Delayed):
+                op = op.op    # the whole target is known: no need to wait for the longest preview
+            lat = int(getattr(op, "latency_samples", 0)) if (preview and n) else 0
             col = a[:, i] if lat == 0 else np.concatenate([a[lat:, i], np.full(min(lat, n), a[-1, i])])[:n]
-            u[:, i] = self.inverses[i].block(np.ascontiguousarray(col))
+            u[:, i] = op.block(np.ascontiguousarray(col))
         return d, c, u
 
     def describe(self) -> str:
@@ -267,8 +277,8 @@ def axis_inverses(config) -> tuple[list[StreamingOperator], dict[str, str], np.n
             inverses.append(op)
             prov[axis] = f"{_model_name(model)} from {Path(source).name}"
             lat = int(getattr(op, "latency_samples", 0))
-            if lat:   # the loop does not read the trajectory ahead yet: the output lags
-                prov[axis] += f" (preview inverse: output lags the target by {lat} samples, {lat * dt * 1e3:.3g} ms)"
+            if lat:   # the loop reads the trajectory this far ahead (afmctl.preview)
+                prov[axis] += f" (preview inverse: reads the target {lat} samples, {lat * dt * 1e3:.3g} ms, ahead)"
         else:
             cal = config.scanner.axis_spec(axis)
             inverses.append(LinearAxis(cal.nm_per_V, cal.offset_V))

@@ -13,6 +13,8 @@ each line (the part an AFM images), trace and retrace, in % of the line length. 
   loop period (:func:`afmctl.simlink.replay_positions_nm`) — what ``afmctl run`` reports
   as its tracking error. The replay takes the host's timing as ideal; the loop's lateness
   and missed deadlines are recorded beside each result;
+  A chain with a dynamics stage runs at :data:`PREVIEW_RATE_HZ`, the controller reading
+  the trajectory its preview latency ahead (:mod:`afmctl.preview`);
 * **offline** — the same pipeline over the whole target, the simulated scanner driven at
   its own time step (:func:`afmctl.sim_backend.imaging.raster_image`), for line rates the
   host loop cannot carry (50 lines/s needs ≥ 10 kHz output).
@@ -38,6 +40,13 @@ LINE_RATES_HZ: tuple[float, ...] = (1.0, 4.0, 16.0, 50.0)
 #: 1 kHz: a 1 kHz staircase of held setpoints drives the simulated scanner's 1 kHz
 #: structural mode at resonance (measured at 4 lines/s: 4.5 % max at 1 kHz, 1.6 % at 2 kHz)
 CONTROLLER_RATE_HZ: dict[float, float] = {1.0: 2000.0, 4.0: 2000.0, 16.0: 2000.0}
+#: loop rate for a chain with a dynamics stage (the controller reads the trajectory
+#: ahead, :mod:`afmctl.preview`): the dynamics inverse acts up to 0.45 / period, so it
+#: needs an output rate well above the 1 kHz mode (measured through ``afmctl run``,
+#: benchmarks/loop_preview.py: 2.15 % max at 16 lines/s at 10 kHz, 2.33 % at 5 kHz)
+PREVIEW_RATE_HZ: dict[float, float] = {1.0: 10000.0, 4.0: 10000.0, 16.0: 10000.0}
+#: ``[amplifier]`` keys for device-timed output over CAN FD (10 samples per frame)
+STREAM_FD_TOML = 'output = "stream"\nlow_water_s = 0.1\nhigh_water_s = 0.2\n[amplifier.options]\nfd = true\n'
 LINE_NM = 4000.0        #: scan-line length [nm]
 ORIGIN_NM = 1000.0      #: start of the lines (x and y) [nm]
 CENTRAL = 0.8           #: fraction of each line scored
@@ -77,7 +86,9 @@ def offline_errors_nm(new_scanner: Callable[[], Any], make_compensator: Callable
 
 
 def _config_text(folder: Path, scanner_json: Path, model: Path | None, rate_Hz: float, loop_Hz: float,
-                 lines: int, channel: str, nm_per_V: Sequence[float]) -> str:
+                 lines: int, channel: str, nm_per_V: Sequence[float], amplifier_toml: str = "") -> str:
+    """The run's TOML; ``amplifier_toml``: more ``[amplifier]`` keys (and sub-tables), e.g.
+    :data:`STREAM_FD_TOML`."""
     comp = f'[compensation]\nscanner_model = "{model}"\n' if model is not None else ""
     return f"""
 [scanner.calibration.x]
@@ -90,6 +101,7 @@ nm_per_V = {nm_per_V[2]!r}
 driver = "can"
 port = "virtual:{channel}"
 slew_V_per_s = 100000
+{amplifier_toml}
 [loop]
 rate_Hz = {loop_Hz!r}
 [safety]
@@ -122,8 +134,7 @@ def controller_errors_nm(folder: Path, scanner_json: Path, model: Path | None, r
     loop's statistics (lateness, missed deadlines)."""
     from .config import load_config
     from .loop import Controller
-    from .runlog import RunLogReader
-    from .simlink import replay_positions_nm, simulated_amplifier
+    from .simlink import simulated_amplifier
     name = f"ladder-{rate_Hz:g}-{'none' if model is None else model.stem}"
     channel = f"afmctl-{name}-{os.getpid()}"
     cfg = load_config(text=_config_text(folder, scanner_json, model, rate_Hz, loop_Hz, lines, channel, nm_per_V))
@@ -138,20 +149,39 @@ def controller_errors_nm(folder: Path, scanner_json: Path, model: Path | None, r
             stats = ctl.stats()
         finally:
             ctl.close()
+    err = runlog_errors_nm(cfg, path, rate_Hz)
+    info = {"loop_rate_Hz": loop_Hz, "lateness_p99_us": round(stats["lateness_p99_s"] * 1e6, 1),
+            "missed_deadlines": stats["missed_deadlines"], "samples": len(err),
+            "latency_s": stats["latency_s"], "slew_limited": stats["slew_limited"], "clamped": stats["clamped"]}
+    return err, info
+
+
+def runlog_errors_nm(cfg: Any, path: Path, rate_Hz: float) -> np.ndarray:
+    """Lateral errors [nm] (n, 2) of a raster run's log ``path`` (run with ``cfg``): its
+    voltages replayed through the simulated scanner (module docstring), against the target
+    each output aims at, over the central 80 % of each line after the first line (the
+    scanner settles onto the periodic raster path), from the end of the start ramp to the
+    end of the trajectory."""
+    from .runlog import RunLogReader
+    from .simlink import replay_positions_nm
     reader = RunLogReader(path)
     sp = reader.setpoints()
     ev = {e["event"]: e["seq"] for e in reader.events()}
     y = replay_positions_nm(cfg, sp)
     start = ev.get("ramp-done", ev.get("start", 0))
+    # with a preview horizon the first latency_samples outputs aim at the held start point
+    start += int(round(cfg.loop.rate_Hz / rate_Hz)) + _latency_samples(reader)
     sel = (sp["seq"] >= start) & (sp["seq"] < ev.get("end", len(sp)))
     sel &= central_mask(sp["target_nm"][:, 0])
-    # skip the first line (the scanner settles onto the periodic raster path)
-    t_line = loop_Hz / rate_Hz
-    sel &= sp["seq"] >= start + t_line
-    err = (y - sp["target_nm"])[sel][:, :2]
-    info = {"loop_rate_Hz": loop_Hz, "lateness_p99_us": round(stats["lateness_p99_s"] * 1e6, 1),
-            "missed_deadlines": stats["missed_deadlines"], "samples": int(sel.sum())}
-    return err, info
+    return (y - sp["target_nm"])[sel][:, :2]
+
+
+def _latency_samples(reader: Any) -> int:
+    """The run's preview horizon [samples] from its final stats event (0 if none)."""
+    for e in reversed(reader.events()):
+        if e.get("event") == "stats" and isinstance(e.get("detail"), dict):
+            return int(e["detail"].get("latency_samples", 0) or 0)
+    return 0
 
 
 def write_scanner_json(scanner_config: Any, path: Path) -> Path:

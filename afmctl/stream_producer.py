@@ -15,8 +15,10 @@ Statistics: ``host_lateness_s`` (how late the producer woke for a top-up, max), 
 ``underruns`` (ticks the amplifier found its FIFO empty) and the lowest FIFO level the
 amplifier reported [samples].
 
-Not yet wired into :class:`afmctl.loop.Controller` / ``afmctl run``: it is driven by a
-plain array of voltages (already compensated), see benchmarks/bench_stream.py.
+:meth:`StreamProducer.run` plays a plain array of voltages (already compensated; see
+benchmarks/bench_stream.py). The Controller (``afmctl run`` with ``[amplifier] output =
+"stream"``) uses its water marks, limiter, FIFO accounting and estop queueing from
+:class:`afmctl.loop_stream.StreamMachine`, computing the samples as it goes.
 """
 from __future__ import annotations
 

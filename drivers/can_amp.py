@@ -66,6 +66,8 @@ class CANAmplifier(Amplifier):
         self._stream_status_count = 0
         self._stream_seq = 0
         self.stream_rate_Hz: float | None = None
+        #: stream samples go as STREAM_XYZ_FD frames (CAN FD, several per frame)
+        self.stream_fd = False
         self._errors: list[ProtocolError] = []
         self._bus_error: Exception | None = None
         self._seq = 0
@@ -80,10 +82,16 @@ class CANAmplifier(Amplifier):
 
     @classmethod
     def open(cls, port: str, *, baudrate: int | None = None, timeout_s: float = 0.5,
-             write_timeout_s: float | None = None, **options: Any) -> "CANAmplifier":
-        """Connect on ``INTERFACE:CHANNEL`` (python-can); ``baudrate`` is the bus bitrate."""
-        return cls(CanTransport(port, **({"bitrate": baudrate} if baudrate else {})), timeout_s=timeout_s,
-                   **options)
+             write_timeout_s: float | None = None, fd: bool = False, **options: Any) -> "CANAmplifier":
+        """Connect on ``INTERFACE:CHANNEL`` (python-can); ``baudrate`` is the bus bitrate;
+        ``fd``: a CAN FD bus — the stream then sends STREAM_XYZ_FD frames of up to
+        :data:`~afmctl.drivers.codec_can.FD_SAMPLES` samples each ([amplifier.options] fd = true)."""
+        bus = {"bitrate": baudrate} if baudrate else {}
+        if fd:
+            bus["fd"] = True
+        amp = cls(CanTransport(port, **bus), timeout_s=timeout_s, **options)
+        amp.stream_fd = bool(fd)
+        return amp
 
     @property
     def axes(self) -> tuple[str, ...]:
@@ -259,12 +267,25 @@ class CANAmplifier(Amplifier):
     def _send_samples(self, rows: list[tuple[float, ...]]) -> None:
         lim = self._limits
         lows, highs = [lim[a].min_V for a in self.axes], [lim[a].max_V for a in self.axes]
+        if self.stream_fd:
+            self._send_sample_blocks(rows, lows, highs)
+            return
         fid = self._ids[codec.STREAM_SAMPLE]
         for row in rows:
             self.transport.send(fid, codec.encode_stream_sample(row, self._stream_seq, lows, highs), self.timeout_s)
             self._stream_seq = (self._stream_seq + 1) & 0xFFFF
             self._last.update(zip(self.axes, row))
             self.sent += 1
+
+    def _send_sample_blocks(self, rows: list[tuple[float, ...]], lows: list[float], highs: list[float]) -> None:
+        """The samples as STREAM_XYZ_FD frames of up to FD_SAMPLES each (CAN FD)."""
+        fid = codec.frame_id(codec.STREAM_SAMPLE_FD)
+        for k in range(0, len(rows), codec.FD_SAMPLES):
+            chunk = rows[k:k + codec.FD_SAMPLES]
+            self.transport.send(fid, codec.encode_stream_block(chunk, self._stream_seq, lows, highs), self.timeout_s)
+            self._stream_seq = (self._stream_seq + len(chunk)) & 0xFFFF
+            self._last.update(zip(self.axes, chunk[-1]))
+            self.sent += len(chunk)
 
     def buffer_status(self) -> BufferStatus:
         """Ask the amplifier for its FIFO level and underrun count."""

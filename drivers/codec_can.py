@@ -15,6 +15,7 @@ ERROR           amp      CODE, DETAIL, SEQ
 LIMITS          amp      MIN_V, X_MAX_V, Y_MAX_V, Z_MAX_V
 STREAM_CTRL     host     CMD (0 status/1 start/2 flush/3 drain), RATE_HZ, PREFILL
 STREAM_XYZ      host     X_V, Y_V, Z_V, SEQ (16 bit) — one sample for the stream FIFO
+STREAM_XYZ_FD   host     SEQ, COUNT, X0_V .. Z9_V — CAN FD (64 bytes): up to 10 samples
 STREAM_STATUS   amp      LEVEL, UNDERRUNS, PLAYED_SEQ, STREAM_STATE, CAPACITY_LOG2, OVERFLOWS
 ==============  =======  ==========================================================
 
@@ -35,6 +36,7 @@ from .errors import LimitError, ProtocolError
 DBC_RESOURCE = "afm_amplifier.dbc"
 SETPOINT, HEARTBEAT, STATUS, ERROR, LIMITS = "SETPOINT_XYZ", "HEARTBEAT", "STATUS", "ERROR", "LIMITS"
 STREAM_CTRL, STREAM_SAMPLE, STREAM_STATUS = "STREAM_CTRL", "STREAM_XYZ", "STREAM_STATUS"
+STREAM_SAMPLE_FD = "STREAM_XYZ_FD"
 CMD_STATUS, CMD_START, CMD_FLUSH, CMD_DRAIN = 0, 1, 2, 3
 STREAM_STATES = {0: "idle", 1: "armed", 2: "playing", 3: "draining", 4: "fault"}
 FLAG_REQ_STATUS = 0x01
@@ -123,6 +125,42 @@ def encode_stream_sample(values_V: Sequence[float], seq: int, lows_V: Sequence[f
     if not (lo <= x <= hi and lo <= y <= hi and lo <= z <= hi):
         raise LimitError(f"sample ({x}, {y}, {z}) V does not fit the CAN frame's range [{lo:g}, {hi:g}] V")
     return message(STREAM_SAMPLE).encode({"X_V": x, "Y_V": y, "Z_V": z, "SEQ": seq & 0xFFFF}, strict=False)
+
+
+#: samples one STREAM_XYZ_FD frame carries (CAN FD, 64 data bytes)
+FD_SAMPLES = 10
+
+
+def encode_stream_block(rows_V: Sequence[Sequence[float]], seq: int, lows_V: Sequence[float],
+                        highs_V: Sequence[float]) -> bytes:
+    """64 data bytes of STREAM_XYZ_FD (CAN FD): 1..:data:`FD_SAMPLES` consecutive samples
+    (rows x, y, z [V]), the first with ``seq`` (mod 65536); each value as sent lies in its
+    [low, high] and in the DBC's range, as for :func:`encode_stream_sample`; unused slots 0."""
+    n = len(rows_V)
+    if not 1 <= n <= FD_SAMPLES:
+        raise ProtocolError(f"STREAM_XYZ_FD: {n} samples; one frame carries 1..{FD_SAMPLES}")
+    lo, hi = setpoint_range_V()
+    sig: dict[str, float] = {"SEQ": seq & 0xFFFF, "COUNT": n}
+    for k in range(FD_SAMPLES):
+        if k < n:
+            x, y, z = (quantize_inside(v, a, b) for v, a, b in zip(rows_V[k], lows_V, highs_V))
+            if not (lo <= x <= hi and lo <= y <= hi and lo <= z <= hi):
+                raise LimitError(f"sample ({x}, {y}, {z}) V does not fit the CAN frame's range [{lo:g}, {hi:g}] V")
+        else:
+            x = y = z = 0.0
+        sig[f"X{k}_V"], sig[f"Y{k}_V"], sig[f"Z{k}_V"] = x, y, z
+    return message(STREAM_SAMPLE_FD).encode(sig, strict=False)
+
+
+def decode_stream_block(data: bytes) -> tuple[int, list[tuple[float, float, float]]]:
+    """STREAM_XYZ_FD data → (SEQ of the first sample, its COUNT samples x, y, z [V]);
+    a wrong length or a COUNT outside 1..:data:`FD_SAMPLES` → ProtocolError."""
+    sig = decode(STREAM_SAMPLE_FD, data)
+    n = int(sig["COUNT"])
+    if not 1 <= n <= FD_SAMPLES:
+        raise ProtocolError(f"STREAM_XYZ_FD: COUNT {n}, expected 1..{FD_SAMPLES}", data=bytes(data))
+    return int(sig["SEQ"]), [(float(sig[f"X{k}_V"]), float(sig[f"Y{k}_V"]), float(sig[f"Z{k}_V"]))
+                             for k in range(n)]
 
 
 def encode_stream_ctrl(cmd: int, rate_Hz: float = 0.0, prefill: int = 1) -> bytes:

@@ -54,7 +54,7 @@ class CanTransport:
         import can
         if self._bus is None:
             raise AmplifierConnectionError(f"CAN bus {self.url} is not open")
-        msg = can.Message(arbitration_id=frame_id, data=data, is_extended_id=False)
+        msg = can.Message(arbitration_id=frame_id, data=data, is_extended_id=False, is_fd=len(data) > 8)
         try:
             self._bus.send(msg, timeout=timeout_s)
         except can.CanOperationError as err:

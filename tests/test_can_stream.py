@@ -6,6 +6,7 @@ import threading
 import time
 import uuid
 
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -278,3 +279,57 @@ def test_simulator_stream_frames_on_the_raw_bus():
         send(bus, ctrl, CMD=0, RATE_HZ=0, PREFILL=0)
         st = recv(bus, "STREAM_STATUS")
         assert (st["STREAM_STATE"], st["LEVEL"]) == (4, 0) and sim.stream.played == 0
+
+
+# ---------------------------------------------------------------- CAN FD: several samples per frame
+def test_fd_block_codec_round_trip_on_plain_bytes():
+    from afmctl.drivers import codec_can as codec
+    rows = [(0.0025 * k, 10.0 + 0.0025 * k, 150.0) for k in range(7)]
+    data = codec.encode_stream_block(rows, 65533, [0.0] * 3, [150.0] * 3)
+    assert len(data) == 64
+    assert data[:3] == bytes([0xFD, 0xFF, 7])                  # SEQ 65533 little-endian, COUNT 7
+    assert data[3:5] == (0).to_bytes(2, "little")               # X0 = 0 V
+    assert data[5:7] == round(10.0 / 0.0025).to_bytes(2, "little")
+    assert data[3 + 6 * 7:] == bytes(64 - 3 - 6 * 7)            # unused slots are zero
+    seq, back = codec.decode_stream_block(data)
+    assert seq == 65533 and back == [pytest.approx(r, abs=1e-12) for r in rows]
+    with pytest.raises(codec.ProtocolError, match="1..10"):
+        codec.encode_stream_block([], 0, [0.0] * 3, [150.0] * 3)
+    with pytest.raises(codec.ProtocolError, match="COUNT 0"):
+        codec.decode_stream_block(bytes(64))
+    with pytest.raises(codec.LimitError):
+        codec.encode_stream_block([(float("nan"), 0.0, 0.0)], 0, [0.0] * 3, [150.0] * 3)
+    assert codec.message("STREAM_XYZ_FD").is_fd and not codec.message("STREAM_XYZ").is_fd
+
+
+def test_fd_stream_plays_every_sample_on_the_amplifier_clock():
+    """The driver with fd=True sends 10 samples per CAN FD frame; the simulated amplifier
+    plays them exactly as single-sample frames (seq, timing)."""
+    import uuid
+
+    from afmctl.drivers.can_amp import CANAmplifier
+    from afmctl.sim_backend.amplifiers.base import RecordingSink
+    from afmctl.sim_backend.testing import serve_can
+    channel = f"fd-{uuid.uuid4().hex[:8]}"
+    sink = RecordingSink(max_history=100_000)
+    with serve_can(channel, sink, record_seq=True) as sim:
+        amp = CANAmplifier.open(f"virtual:{channel}", fd=True)
+        amp.connect()
+        try:
+            rate, n = 10_000, 2_000
+            amp.start_stream(rate, prefill=500)
+            xs = 50.0 + 0.0025 * (np.arange(n) % 400)
+            for k in range(0, n, 250):
+                amp.queue([(float(x), 20.0, 30.0) for x in xs[k:k + 250]])
+            amp.drain_stream()
+            deadline = time.monotonic() + 10
+            while amp.buffer_status().state != "idle" and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert amp.sent == n
+        finally:
+            amp.close()
+    assert sim.seq_log == list(range(n)) and sim.gaps == 0 and sim.rejected == 0
+    played = [(t, v) for t, v in sink.history if t >= sim.stream.t0_s]
+    assert len(played) == n and sim.stream.underruns == 0
+    assert max(abs(t - (sim.stream.t0_s + k / rate)) for k, (t, _) in enumerate(played)) == 0.0
+    np.testing.assert_allclose([v["x"] for _, v in played], xs, atol=1e-9)

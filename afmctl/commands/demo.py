@@ -26,8 +26,9 @@ Run the whole job on a simulated scanner, in-process, in one to three minutes:
      (max_error_pct / rms_error_pct per compensator, errors in % of the scan range;
      speed_ladder: 4 um raster lines at 1, 4, 16 and 50 lines/s for none, the static
      model, the chain and the chain with dynamics, central 80 % of each line, 1-16
-     lines/s through the real controller (2 kHz) and the simulated CAN amplifier; 50
-     lines/s and the dynamics chain offline), and print the same tables.
+     lines/s through the real controller (2 kHz; the chain with dynamics at 10 kHz,
+     reading the trajectory its preview latency ahead) and the simulated CAN
+     amplifier; 50 lines/s offline), and print the same tables.
 
 Compensators that are not available in this installation are skipped with a message.
 """

@@ -98,7 +98,9 @@ def _summary(ctl, config, scanner) -> dict:
            "lateness_max_s": st["lateness_max_s"], "missed_deadlines": st["missed_deadlines"],
            "overruns": st["overruns"], "errors": st["errors"], "faults": st["faults"],
            "reconnects": st["reconnects"], "watchdog_trips": st["watchdog_trips"],
-           "slew_limited": st["slew_limited"], "last_error": st["last_error"],
+           "slew_limited": st["slew_limited"], "clamped": st["clamped"], "last_error": st["last_error"],
+           "latency_samples": st["latency_samples"], "latency_s": st["latency_s"],
+           "output": st["output"], "stream": st["stream"],
            "runlog": str(ctl.runlog_path) if ctl.runlog_path else None,
            "runlog_error": ctl.runlog_error, "trajectory_error": ctl.trajectory_error}
     if scanner is not None and ctl.runlog_path is not None and ctl.runlog_error is None:
@@ -168,6 +170,15 @@ def _print_summary(summary: dict) -> None:
     print(f"missed deadlines  {summary['missed_deadlines']} (> half a period late); overruns {summary['overruns']}")
     print(f"errors            {summary['errors']} (faults {summary['faults']}, reconnects {summary['reconnects']}, "
           f"watchdog trips {summary['watchdog_trips']})")
+    print(f"safety            slew-limited {summary['slew_limited']} samples, clamped {summary['clamped']}")
+    if summary.get("stream"):
+        st = summary["stream"]
+        print(f"stream            {st['queued']} samples queued; device underruns {st['underruns']}, lowest FIFO "
+              f"level {st['lowest_level']} samples (marks {st['low_water']}..{st['high_water']}); lateness above "
+              "= the producer's wake-ups")
+    if summary.get("latency_samples"):
+        print(f"preview latency   {summary['latency_samples']} samples = {summary['latency_s'] * 1e3:.3g} ms "
+              "(the output lags the trajectory read)")
     if summary.get("last_error"):
         print(f"last error        {summary['last_error']}")
     if summary.get("tracking"):
@@ -233,6 +244,10 @@ def run(args: argparse.Namespace) -> int:
         ctl.start(config.trajectory, runlog_path=args.log)
         # always, --quiet included: which axes are compensated, by which model, from which file
         print(f"afmctl: compensation {ctl.pipeline.describe()}", file=sys.stderr)
+        if ctl.latency_samples:   # always: the output lags the trajectory the loop reads
+            print(f"afmctl: preview: the loop reads the trajectory {ctl.latency_samples} samples "
+                  f"({ctl.latency_s * 1e3:.3g} ms) ahead; the output lags it by latency_s = {ctl.latency_s:.6g} s",
+                  file=sys.stderr)
         if not args.quiet:
             print(f"afmctl: running {config.trajectory.kind} on {config.amplifier.driver} "
                   f"{'(simulated) ' if scanner is not None else ''}at {config.loop.rate_Hz:g} Hz; "

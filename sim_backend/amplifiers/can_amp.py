@@ -17,7 +17,9 @@ exactly t0 + k / rate (see :mod:`.can_stream`); the scanner sink receives those 
 times, so the tip's timing does not depend on when the host sent the frames. A sample
 outside the range or while disabled stops the stream (ERROR 1 or 3, FIFO emptied, output
 holds); a full FIFO refuses a sample (ERROR 5). STREAM_STATUS answers every STREAM_CTRL
-and is sent every ``STATUS_PERIOD_S`` of play.
+and is sent every ``STATUS_PERIOD_S`` of play. On a CAN FD bus the host may send
+STREAM_XYZ_FD frames instead: up to 10 samples each (SEQ, SEQ+1, ...), played as if they
+came one STREAM_XYZ each.
 """
 from __future__ import annotations
 
@@ -36,7 +38,7 @@ log = logging.getLogger(__name__)
 
 #: the DBC's messages this amplifier receives and sends
 _MESSAGES = ("SETPOINT_XYZ", "HEARTBEAT", "STATUS", "ERROR", "LIMITS", "STREAM_CTRL", "STREAM_XYZ",
-             "STREAM_STATUS")
+             "STREAM_XYZ_FD", "STREAM_STATUS")
 #: how often a playing stream reports its FIFO [s of the amplifier clock]
 STATUS_PERIOD_S = 0.01
 
@@ -80,8 +82,11 @@ class SimCANAmplifier:
         self.db = load_database(dbc_path)
         self._msg = {name: self.db.get_message_by_name(name) for name in _MESSAGES}
         #: frame id -> message name, for the frames this amplifier receives
-        self._rx = {self._msg[n].frame_id: n for n in ("SETPOINT_XYZ", "HEARTBEAT", "STREAM_CTRL", "STREAM_XYZ")}
+        self._rx = {self._msg[n].frame_id: n for n in ("SETPOINT_XYZ", "HEARTBEAT", "STREAM_CTRL", "STREAM_XYZ",
+                                                       "STREAM_XYZ_FD")}
         self._bus_options = bus_options
+        #: sample slots of one STREAM_XYZ_FD frame (from the DBC: its X<k>_V signals)
+        self._fd_samples = sum(1 for sg in self._msg["STREAM_XYZ_FD"].signals if sg.name[0] == "X")
         self.outputs = {a: 0.0 for a in self.axes}
         self.enabled = True
         self.last_seq = 255
@@ -204,6 +209,14 @@ class SimCANAmplifier:
             self._setpoint(sig)
         elif name == "STREAM_XYZ":
             self._stream_sample(sig)
+        elif name == "STREAM_XYZ_FD":     # CAN FD: COUNT samples, SEQ, SEQ+1, ...
+            seq, n = int(sig["SEQ"]), int(sig["COUNT"])
+            if not 1 <= n <= self._fd_samples:
+                self.rejected += 1
+                return
+            for k in range(n):
+                self._stream_sample({"SEQ": (seq + k) & 0xFFFF, "X_V": sig[f"X{k}_V"], "Y_V": sig[f"Y{k}_V"],
+                                     "Z_V": sig[f"Z{k}_V"]})
         elif name == "STREAM_CTRL":
             self._stream_ctrl(sig)
         else:
