@@ -28,7 +28,7 @@ from __future__ import annotations
 import logging
 import math
 import threading
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -290,6 +290,36 @@ class Scanner:
                     raise ModelError(f"volts.{k}: {value!r} is not a finite voltage")
                 held[AXES.index(k)] = v
             self._held_V = held
+
+    def play(self, t_s: Sequence[float], rows_V: Sequence[Sequence[float]]) -> None:
+        """Sink for amplifiers that play on their own clock: the same as
+        ``apply({"x": r[0], "y": r[1], "z": r[2]}, t)`` for each time ``t`` [s] and row ``r``
+        [V] in order, simulated in one block (a buffered stream at 10 kHz hands over ~10
+        samples per millisecond; one :meth:`run` per sample would cost more than the period).
+        The held voltage of each stretch of whole ``config.dt_s`` samples is the one the
+        sequence of ``apply`` calls would hold there."""
+        t = np.asarray(t_s, dtype=np.float64).reshape(-1)
+        rows = np.asarray(rows_V, dtype=np.float64).reshape(-1, 3)
+        if t.shape[0] != rows.shape[0]:
+            raise ModelError(f"play: {t.shape[0]} times for {rows.shape[0]} rows of volts")
+        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(rows))):
+            raise ModelError("play: times [s] and volts must be finite")
+        if not len(rows):
+            return
+        with self._lock:
+            dt = self.config.dt_s
+            counts = []
+            t_cur = self.time_s
+            for t_k in t.tolist():                      # whole samples before each change, as advance()
+                n = int(math.floor((t_k - t_cur) / dt + 1e-9))
+                counts.append(max(n, 0))
+                if n > 0:
+                    t_cur += n * dt
+            before = np.vstack([self._held_V[None, :], rows[:-1]])    # held until each change
+            u = np.repeat(before, counts, axis=0)
+            for k in range(0, len(u), self.ADVANCE_CHUNK):
+                self.run(u[k:k + self.ADVANCE_CHUNK], dt)
+            self._held_V = rows[-1].copy()
 
     #: most samples simulated in one block by :meth:`advance`; a long idle gap is simulated
     #: in chunks of this size so that no single stretch of Python-level work (e.g. the

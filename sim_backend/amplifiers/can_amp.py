@@ -111,6 +111,8 @@ class SimCANAmplifier:
         #: guards the stream player (notifier thread pushes, player thread plays)
         self._stream_lock = threading.Condition()
         self.stream = StreamPlayer(self._play, capacity_log2=fifo_log2)
+        self._played_t: list[float] = []
+        self._played_V: list[tuple[float, float, float]] = []
         self._player: threading.Thread | None = None
         self._running = False
         self._last_stream_status_s = 0.0
@@ -225,7 +227,7 @@ class SimCANAmplifier:
             elif sig["REQ_STATE"] == 2:
                 self.enabled = False
                 with self._stream_lock:  # disabled outputs stop a stream where it stands
-                    self.stream.run_until(self.now())
+                    self._run_stream(self.now())
                     if self.stream.state is not StreamState.IDLE:
                         self.stream.flush()
             if sig["REQ_INFO"]:
@@ -269,10 +271,29 @@ class SimCANAmplifier:
 
     # -- buffered stream --
     def _play(self, values: tuple[float, float, float], t_s: float) -> None:
-        """One sample played by the stream at its tick time ``t_s`` (under the stream lock)."""
+        """One sample played by the stream at its tick time ``t_s`` (under the stream lock);
+        handed to the sink with the others of the same clock update by :meth:`_run_stream`."""
         self.outputs = dict(zip(self.axes, values))
-        if self.sink is not None:
-            self.sink.apply(dict(self.outputs), t_s)
+        self._played_t.append(t_s)
+        self._played_V.append(values)
+
+    def _run_stream(self, now_s: float) -> None:
+        """Play every tick due by ``now_s`` and hand the samples to the sink in one block
+        (``sink.play(t_s, rows_V)`` where the sink has it — the simulated scanner simulates a
+        block in one call, which 10 kHz needs — else one ``apply`` per sample)."""
+        self.stream.run_until(now_s)
+        if not self._played_t:
+            return
+        t, rows = self._played_t, self._played_V
+        self._played_t, self._played_V = [], []
+        if self.sink is None:
+            return
+        play = getattr(self.sink, "play", None)
+        if play is not None:
+            play(t, rows)
+        else:
+            for t_k, row in zip(t, rows):
+                self.sink.apply(dict(zip(self.axes, row)), t_k)
 
     def send_stream_status(self) -> None:
         st = self.stream.status()
@@ -283,7 +304,7 @@ class SimCANAmplifier:
     def _stream_ctrl(self, sig: dict) -> None:
         cmd = int(sig["CMD"])
         with self._stream_lock:
-            self.stream.run_until(self.now())
+            self._run_stream(self.now())
             if cmd == 1:
                 rate = float(sig["RATE_HZ"])
                 if rate < 1:
@@ -302,7 +323,7 @@ class SimCANAmplifier:
         values = (float(sig["X_V"]), float(sig["Y_V"]), float(sig["Z_V"]))
         with self._stream_lock:
             now = self.now()
-            self.stream.run_until(now)
+            self._run_stream(now)
             self.received += 1
             if self.record_seq:
                 self.seq_log.append(seq)
@@ -329,7 +350,7 @@ class SimCANAmplifier:
         with self._stream_lock:
             while self._running:
                 now = self.now()
-                self.stream.run_until(now)
+                self._run_stream(now)
                 nxt = self.stream.next_tick_s()
                 if nxt is not None and now - self._last_stream_status_s >= STATUS_PERIOD_S:
                     self._last_stream_status_s = now
