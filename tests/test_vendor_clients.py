@@ -83,6 +83,42 @@ def test_pipython_open_loop_get_set_limits_and_errors():
             assert server.sink.last["x"] == 10.0 and server.sink.last["y"] == 20.5
 
 
+def test_pipython_wave_generator_plays_on_the_simulated_servo_clock():
+    """PIPython's own wave calls: WAV_LIN, pitools.writewavepoints (WAV_PNT bunches), WSL,
+    WGC, WTR, TWC, WGO, qWGO, IsGeneratorRunning (#9), waitonwavegen, qWAV, qSPA."""
+    from pipython import pitools
+    with serve_pty("gcs") as server:
+        with _pipython(server.port) as pi:
+            pi.SVO(pi.axes, [False, False, False])
+            assert pi.qSPA(1, 0x0E000200)[1][0x0E000200] == pytest.approx(20e-6)   # servo update time [s]
+            pi.WAV_LIN(table=1, firstpoint=11, numpoints=80, append="X", speedupdown=0, amplitude=40.0,
+                       offset=10.0, seglength=100)
+            points = [20.0 + 0.1 * k for k in range(250)]
+            pitools.writewavepoints(pi, 2, points, bunchsize=60)
+            assert pi.qWAV([1, 2], [1, 1]) == {1: {1: 100.0}, 2: {1: 250.0}}
+            assert server.device.wave.tables[2] == pytest.approx(points)
+            pi.WSL([1, 2], [1, 2])
+            pi.WGC([1, 2], [2, 1])
+            pi.WTR([1, 2], [5, 10], [0, 0])
+            pi.TWC()
+            assert pi.qWSL([1, 2]) == {1: 1, 2: 2} and pi.qWGC([1, 2]) == {1: 2, 2: 1}
+            assert pi.qWTR([1, 2]) == {1: [5, 0], 2: [10, 0]}
+            before = len(server.sink.history)
+            pi.WGO([1, 2], [1, 1])
+            assert pi.qWGO([1, 2]) == {1: 1, 2: 1} and all(pi.IsGeneratorRunning().values())
+            pitools.waitonwavegen(pi, timeout=5, polldelay=0.01)
+            assert pi.qWGO([1, 2]) == {1: 0, 2: 0} and pi.qERR() == 0
+            assert pi.qVOL()[1] == pytest.approx(50.0) and pi.qVOL()[2] == pytest.approx(points[-1])
+    played = server.sink.history[before:]
+    t = [h[0] for h in played]
+    t0 = min(t)
+    # every output change lies on the 20 us servo grid (both generators start on one tick)
+    assert all(abs(ti / 20e-6 - round(ti / 20e-6)) < 1e-6 for ti in t)
+    assert max(t) - t0 == pytest.approx(249 * 10 * 20e-6, abs=1e-9)
+    xs = [h[1]["x"] for h in played]
+    assert min(xs) == 10.0 and max(xs) == 50.0
+
+
 # ------------------------------------------------------------ mdt69x → SimMDT693B
 def test_mdt69x_client_gets_sets_and_reads_limits_on_all_three_axes():
     import mdt69x

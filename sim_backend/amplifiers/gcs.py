@@ -111,6 +111,7 @@ class SimGCS(SimDevice):
                 self.wave.wav(args)
                 return b""
             if cmd in ("WSL", "WGC", "WGO"):
+                self._cmd_now = self.now()  # one WGO starts all its generators on one tick
                 for gen, val in self._int_pairs(args, 2):
                     {"WSL": self.wave.wsl, "WGC": self.wave.wgc}.get(cmd, self._wgo)(gen, val[0])
                 return b""
@@ -125,7 +126,7 @@ class SimGCS(SimDevice):
             return self._latch(err.code)
 
     def _wgo(self, gen: int, mode: int) -> None:
-        self.wave.wgo(gen, mode, self.now())
+        self.wave.wgo(gen, mode, self._cmd_now)
 
     @staticmethod
     def _int_pairs(args: list[str], width: int) -> list[tuple[int, list[int]]]:

@@ -8,7 +8,7 @@ point), ``WSL`` connects a generator to a table, ``WGC`` sets its cycles (0 = en
 ``WGO`` starts (mode bit 0: now) or stops (0) it, ``TWC`` clears the generator trigger
 points, the single byte ``#9`` (0x09) answers a hex mask of the running generators.
 
-Playback: generator g started at controller time t0 plays table point k of the whole run
+Playback: generator g started (at the first servo tick t0 at or after the ``WGO``) plays table point k of the whole run
 (cycles laid end to end) at exactly ``t0 + k * rate * servo_cycle_s``; :meth:`run_until` is
 called with the controller's clock and applies every overdue point with its own computed
 time, so the timing is that of the controller's servo clock, not of the caller.
@@ -158,7 +158,9 @@ class WaveGenerator:
             raise WaveError(17)  # only "start immediately" (bit 0) is simulated
         if not self.tables[g.table]:
             raise WaveError(17)
-        g.mode, g.t0_s, g.k, g.points = mode, now_s, 0, list(self.tables[g.table])
+        # the generator starts at the next tick of the servo clock (tick n at n * servo_cycle_s)
+        t0 = math.ceil(now_s / self.servo_cycle_s - 1e-9) * self.servo_cycle_s
+        g.mode, g.t0_s, g.k, g.points = mode, t0, 0, list(self.tables[g.table])
 
     def _gen(self, gen: int) -> Generator:
         if gen not in self.gens:
