@@ -217,6 +217,49 @@ def test_sensored_nv200_get_voltages_returns_volts(sensor):
             assert server.device.stored_writes == []  # cl and modsrc were 0: nothing written
 
 
+def _count_first_run(dev, n: int):
+    """Wrap the simulator's waveform output: remember when the first ``n`` samples played."""
+    inner = dev.wave.apply
+    dev.first_run_s = []
+
+    def apply(percent: float, t_s: float) -> None:
+        if len(dev.first_run_s) < n:
+            dev.first_run_s.append(t_s)
+        inner(percent, t_s)
+    return apply
+
+
+@pytest.mark.slow
+def test_nv200_library_waveform_generator_uploads_and_runs_on_the_simulated_clock(nv200_python):
+    """The library's WaveformGenerator: set_waveform (gbarb writes in % of the voltage range,
+    gtarb, goarb/gsarb/gearb), start(cycles) (gcarb, modsrc 3, grun), is_running, waiting."""
+    client = ROOT / "tests" / "vendor" / "nv200_wave_client.py"
+    with serve_pty("nv200") as server:
+        before = len(server.sink.history)
+        server.device.wave.apply = _count_first_run(server.device, 3 * 12)
+        res = subprocess.run([nv200_python, str(client), server.port, "3"], capture_output=True,
+                             text=True, timeout=120)
+        assert res.returncode == 0, res.stderr[-2000:]
+        out = json.loads(res.stdout.strip().splitlines()[-1])
+        dev = server.device
+    n, factor = out["points"], dev.wave.params["gtarb"]
+    assert out["loop"] == {"start_index": 0, "loop_start_index": 0, "loop_end_index": n - 1}
+    assert factor * 0.05 == pytest.approx(out["sample_time_ms"])
+    assert out["finished"] and not out["running_at_end"]
+    assert out["endless_running"] and not out["running_after_stop"]
+    assert dev.params["modsrc"] == 3 and dev.wave.played > 3 * n
+    want = [-20.0 + p / 100.0 * 150.0 for p in out["readback_pct"]]
+    assert want == pytest.approx(out["values_V"][:4], abs=1e-3)
+    played = server.sink.history[before:]
+    t = [h[0] for h in played]
+    step_s = factor * 50e-6
+    first = dev.first_run_s                                        # the 3-cycle run: 36 samples back to back
+    assert len(first) == 3 * n and first[-1] - first[0] == pytest.approx((3 * n - 1) * step_s, abs=1e-9)
+    assert all(abs(ti / step_s - round(ti / step_s)) < 1e-6 for ti in t)       # on the unit's sample clock
+    assert max(h[1]["x"] for h in played) == pytest.approx(50.0, abs=0.05)
+    assert min(h[1]["x"] for h in played) == pytest.approx(10.0, abs=0.05)
+
+
 def test_nv200_stored_settings_are_changed_only_when_needed_said_and_restored_on_request(caplog):
     with serve_pty("nv200") as server:
         server.device.params["cl"] = 1            # closed loop, analog input (power-up default)
