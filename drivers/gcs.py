@@ -16,32 +16,17 @@ plays the uploaded tables on the controller's servo clock (axis k on generator a
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
-
 import numpy as np
 
 from . import codec_gcs as codec
 from . import codec_gcs_wave as wcodec
 from .base import VoltageLimits
 from .errors import LimitError, ProtocolError
-from .wave_check import check_table
+from .wave_check import WaveStatus, check_table
 from .serial_amp import SerialAmplifier
 from .transport import SerialTransport
 
 _AXES = ("x", "y", "z")
-
-
-@dataclass(frozen=True)
-class WaveStatus:
-    """What the controller's wave generators do: ``running`` per axis, and the last start's
-    ``rate_Hz`` [points/s], ``divider`` (servo cycles per point), ``cycles`` and ``points``
-    per axis."""
-
-    running: dict[str, bool]
-    rate_Hz: float
-    divider: int
-    cycles: int
-    points: dict[str, int]
 
 
 class GCSAmplifier(SerialAmplifier):

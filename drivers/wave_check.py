@@ -1,14 +1,29 @@
-"""Checks of a whole wave table before any of it is sent: every sample finite and inside
+"""What the wave-table drivers (GCS, NV200) share: the status they report, and the checks
+of a whole wave table before any of it is sent: every sample finite and inside
 the limits, every step (from the present output to sample 0, between samples and — when it
 plays more than once — from the last sample back to the first) within ``max_step_V``."""
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
 from .base import VoltageLimits
 from .errors import LimitError
+
+
+@dataclass(frozen=True)
+class WaveStatus:
+    """What the controller's wave generators do: ``running`` per axis, and the last start's
+    ``rate_Hz`` [points/s], ``divider`` (servo cycles per point), ``cycles`` and ``points``
+    per axis."""
+
+    running: dict[str, bool]
+    rate_Hz: float
+    divider: int
+    cycles: int
+    points: dict[str, int]
 
 
 def check_table(axis: str, table_V: Sequence[float], limits: VoltageLimits, *, max_step_V: float | None,

@@ -189,7 +189,7 @@ def test_amp_wave_cli_uploads_and_plays_on_the_servo_clock(tmp_path, capsys):
         before = len(server.sink.history)
         assert main(base + ["--rate-Hz", "10000", "--cycles", "2"]) == 0
         out = capsys.readouterr().out
-        assert "played 400 points x 2 cycle(s) on x at 10000 Hz" in out and "every 5 servo cycle(s) of 20 us" in out
+        assert "played 400 points x 2 cycle(s) on x at 10000 Hz" in out and "every 5 tick(s) of 20 us" in out
         played = server.sink.history[before:]
         t = np.array([h[0] for h in played])
         assert np.allclose(np.diff(t) / 100e-6, np.round(np.diff(t) / 100e-6), atol=1e-6)   # on the 100 us grid

@@ -16,7 +16,7 @@ WAVE_LOW_S, WAVE_HIGH_S = 0.1, 0.3
 
 def add_parser(actions) -> None:
     w = actions.add_parser(
-        "wave", help="play a CSV of voltages on the amplifier's clock (buffered stream; driver can)",
+        "wave", help="play a CSV of voltages on the amplifier's clock (drivers can, gcs, nv200)",
         description="Play the rows of VOLTS.csv (columns t,u with --axis, or t,ux,uy,uz [V]; the t column "
                     "is not used) at --rate-Hz on the amplifier's own clock, --cycles times, through its "
                     "stream FIFO: host delays do not reach the output while the FIFO holds samples. "
@@ -25,7 +25,7 @@ def add_parser(actions) -> None:
                     "--driver can streams through the FIFO; --driver gcs uploads each column as a wave "
                     "table and plays it on the controller's servo clock — there --rate-Hz must be the "
                     "servo rate over a whole number (refused otherwise, naming the nearest rates). "
-                    "The NV200 buffer: not yet.")
+                    "--driver nv200 does the same with its 1024-sample waveform buffer (20 kHz clock).")
     w.add_argument("--file", required=True, metavar="VOLTS.csv")
     w.add_argument("--axis", choices=["x", "y", "z"], default="x", help="axis of a t,u file (default x)")
     w.add_argument("--rate-Hz", dest="rate_Hz", type=float, required=True, metavar="R",
@@ -69,7 +69,7 @@ def play(amp, loaded, args, check_file_limits, fmt) -> None:
         return play_table(amp, loaded, args, check_file_limits, fmt)
     if not hasattr(amp, "start_stream"):
         raise AfmctlError(f"--driver {amp.name}: no buffered stream in this driver yet; "
-                          "wave works with --driver can or gcs")
+                          "wave works with --driver can, gcs or nv200")
     check_file_limits(amp, loaded, args.file)
     rows = _rows(amp, loaded, args)
     rate = args.rate_Hz
@@ -127,6 +127,6 @@ def play_table(amp, loaded, args, check_file_limits, fmt) -> None:
         if any(st.running.values()):
             amp.stop_wave()
     print(f"played {len(values)} points x {args.cycles} cycle(s) on {', '.join(axes)} at {st.rate_Hz:g} Hz on the "
-          f"controller's servo clock (every {divider} servo cycle(s) of {cycle_s * 1e6:g} us): "
+          f"device's clock (every {divider} tick(s) of {cycle_s * 1e6:g} us): "
           f"{duration_s:.4f} s; host waited {time.perf_counter() - t0:.3f} s")
     print("final: " + fmt(amp.get_voltages()))
