@@ -101,6 +101,10 @@ class GCSAmplifier(SerialAmplifier):
             codec.check_error_reply(reply)
 
     def _write_setpoint(self, values: dict[str, float]) -> None:
+        playing = sorted(self._playing.intersection(values))
+        if playing:
+            raise LimitError(f"axis {playing[0]}: its wave generator runs; stop_wave(), or wait until "
+                             "wave_status() reports its end, before setting voltages")
         by_id = {self._ids[a]: v for a, v in values.items()}
         lows = {self._ids[a]: self._limits[a].min_V for a in values}
         highs = {self._ids[a]: self._limits[a].max_V for a in values}

@@ -138,6 +138,9 @@ class NV200(SerialAmplifier):
                 raise codec.error_from(reply)
 
     def _write_setpoint(self, values: dict[str, float]) -> None:
+        if self._playing:
+            raise LimitError("axis x: the waveform generator runs; stop_wave(), or wait until "
+                             "wave_status() reports its end, before setting voltages")
         lim = self._limits["x"]
         data = codec.encode_set(values["x"], lim.min_V, lim.max_V)
         self._drain()

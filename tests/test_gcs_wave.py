@@ -206,3 +206,15 @@ def test_amp_wave_cli_refuses_a_row_over_the_step_limit_naming_it(tmp_path, caps
         err = capsys.readouterr().err
         assert "row 4" in err and "exceeds --max-step 5 V" in err and "nothing was sent" in err
         assert server.device.wave.tables[1] == []
+
+
+def test_set_voltages_is_refused_on_an_axis_whose_generator_runs():
+    with serve_pty("gcs") as server, open_amplifier("gcs", server.port, max_step_V=1.0) as amp:
+        _ramp_to(amp, "x", 10.0)
+        amp.upload_wave("x", np.r_[np.linspace(10, 12, 5), np.linspace(12, 10, 5)[1:-1]])
+        amp.start_wave(divider=100, cycles=0)
+        with pytest.raises(LimitError, match="axis x: its wave generator runs"):
+            amp.set_voltages({"x": 10.5})
+        amp.set_voltages({"y": 0.5})                     # another axis is free
+        amp.stop_wave()
+        amp.set_voltages({"x": amp.last_output["x"]})
