@@ -5,7 +5,7 @@ simulated controller, which throttles itself to 115200 baud (8N1: 11,520 bytes/s
 figure of merit is bytes received by the simulator per second of upload (clock stops after
 the closing ``ERR?`` reply) over 11,520 bytes/s (target >= 90 %).
 
-Playback: the table plays at 10 kHz (divider 5 of the 20 us servo cycle). The times the
+Playback: the table plays at 10 kHz (divider 2 of the 50 us servo cycle). The times the
 simulator hands to its sink are computed on its servo clock (point k at t0 + k * 100 us);
 the benchmark reports their spacing error and how late, in wall-clock time on the
 simulator's own clock, each point was actually applied (the simulator thread's wake-up
@@ -99,7 +99,7 @@ one `ERR?` at the end) over a real pty to the simulator throttled to 115200 baud
 **{med['bytes']:.0f} bytes in {med['upload_s']:.3f} s = {med['of_ceiling'] * 100:.1f} % of the link's ceiling**
 (target >= 90 %; per run: {', '.join(f"{r['of_ceiling'] * 100:.1f} %" for r in runs)}).
 
-Playback at {RATE_HZ} Hz (divider 5 x 20 us servo cycle) of the {args.points} points ({med['played']:.0f} change
+Playback at {RATE_HZ} Hz (divider 2 x 50 us servo cycle) of the {args.points} points ({med['played']:.0f} change
 the output after rounding to 0.1 mV and reach the sink): every output time lies on the 100 us grid
 within {med['spacing_err_s']:.1e} s, first to last point {med['span_err_s']:.1e} s off (N-1) x 100 us
 (computed on the servo clock);

@@ -89,10 +89,10 @@ def test_sim_refuses_bad_wave_commands_with_gcs_errors():
 
 
 def test_lin_segment_rises_by_the_amplitude_with_smooth_ends():
-    seg = lin_segment(20, 10.0, 2.0, 11, 5, 0)
+    seg = lin_segment(20, 10.0, 2.0, 11, 4, 0)
     assert len(seg) == 20 and seg[:4] == [2.0] * 4 and seg[4] == 2.0 and seg[14] == 12.0 and seg[-1] == 12.0
     assert np.allclose(np.diff(seg[4:15]), 1.0)
-    smooth = np.array(lin_segment(100, 1.0, 0.0, 100, 1, 20))
+    smooth = np.array(lin_segment(100, 1.0, 0.0, 100, 0, 20))
     d = np.diff(smooth)
     assert smooth[0] == 0.0 and smooth[-1] == pytest.approx(1.0) and np.all(d >= 0)
     assert d[0] < d[50] / 10 and d[-1] < d[50] / 10          # accelerates, decelerates
@@ -113,7 +113,7 @@ def test_driver_uploads_plays_on_the_device_clock_and_reads_back():
         assert server.device.wave.tables[1] == pytest.approx(table, abs=0.5e-4)
         before = len(server.sink.history)
         st = amp.start_wave(rate_Hz=10_000, cycles=3)
-        assert st.divider == 5 and st.rate_Hz == 10_000 and st.cycles == 3
+        assert st.divider == 2 and st.rate_Hz == 10_000 and st.cycles == 3
         deadline = time.monotonic() + 5
         while amp.wave_status().running["x"]:
             assert time.monotonic() < deadline
@@ -147,7 +147,7 @@ def test_driver_refuses_a_table_naming_the_sample_before_sending_anything():
         amp.upload_wave("x", np.linspace(10.0, 15.0, 11))
         with pytest.raises(LimitError, match="wrap from sample 10 = 15 V to sample 0 = 10 V"):
             amp.start_wave(rate_Hz=1000, cycles=2)
-        with pytest.raises(LimitError, match="3000 Hz is not the servo rate 50000 Hz"):
+        with pytest.raises(LimitError, match="3000 Hz is not the servo rate 20000 Hz"):
             amp.start_wave(rate_Hz=3000)
         assert not server.device.wave.gens[1].mode
 
@@ -183,13 +183,13 @@ def test_amp_wave_cli_uploads_and_plays_on_the_servo_clock(tmp_path, capsys):
         base = ["amp", "--driver", "gcs", "--port", server.port, "--max-step", "5", "wave", "--file", path]
         assert main(base + ["--rate-Hz", "3000"]) == 2
         err = capsys.readouterr().err
-        assert "--rate-Hz: 3000 Hz is not the servo rate 50000 Hz over a whole number" in err
-        assert "3125 Hz or 2941.176471 Hz" in err and "nothing was sent" in err
+        assert "--rate-Hz: 3000 Hz is not the servo rate 20000 Hz over a whole number" in err
+        assert "3333.333333 Hz or 2857.142857 Hz" in err and "nothing was sent" in err
         assert server.device.wave.tables[1] == []
         before = len(server.sink.history)
         assert main(base + ["--rate-Hz", "10000", "--cycles", "2"]) == 0
         out = capsys.readouterr().out
-        assert "played 400 points x 2 cycle(s) on x at 10000 Hz" in out and "every 5 tick(s) of 20 us" in out
+        assert "played 400 points x 2 cycle(s) on x at 10000 Hz" in out and "every 2 tick(s) of 50 us" in out
         played = server.sink.history[before:]
         t = np.array([h[0] for h in played])
         assert np.allclose(np.diff(t) / 100e-6, np.round(np.diff(t) / 100e-6), atol=1e-6)   # on the 100 us grid

@@ -90,8 +90,8 @@ def test_pipython_wave_generator_plays_on_the_simulated_servo_clock():
     with serve_pty("gcs") as server:
         with _pipython(server.port) as pi:
             pi.SVO(pi.axes, [False, False, False])
-            assert pi.qSPA(1, 0x0E000200)[1][0x0E000200] == pytest.approx(20e-6)   # servo update time [s]
-            pi.WAV_LIN(table=1, firstpoint=11, numpoints=80, append="X", speedupdown=0, amplitude=40.0,
+            assert pi.qSPA(1, 0x0E000200)[1][0x0E000200] == pytest.approx(50e-6)   # servo update time [s]
+            pi.WAV_LIN(table=1, firstpoint=10, numpoints=80, append="X", speedupdown=0, amplitude=40.0,
                        offset=10.0, seglength=100)
             points = [20.0 + 0.1 * k for k in range(250)]
             pitools.writewavepoints(pi, 2, points, bunchsize=60)
@@ -112,9 +112,9 @@ def test_pipython_wave_generator_plays_on_the_simulated_servo_clock():
     played = server.sink.history[before:]
     t = [h[0] for h in played]
     t0 = min(t)
-    # every output change lies on the 20 us servo grid (both generators start on one tick)
-    assert all(abs(ti / 20e-6 - round(ti / 20e-6)) < 1e-6 for ti in t)
-    assert max(t) - t0 == pytest.approx(249 * 10 * 20e-6, abs=1e-9)
+    # every output change lies on the 50 us servo grid (both generators start on one tick)
+    assert all(abs(ti / 50e-6 - round(ti / 50e-6)) < 1e-6 for ti in t)
+    assert max(t) - t0 == pytest.approx(249 * 10 * 50e-6, abs=1e-9)
     xs = [h[1]["x"] for h in played]
     assert min(xs) == 10.0 and max(xs) == 50.0
 

@@ -44,7 +44,7 @@ def _num(tok: str) -> float | None:
 
 
 class SimGCS(SimDevice):
-    """``SimGCS(sink=None, now=None, vmin_V=0.0, vmax_V=120.0, servo_cycle_s=20e-6)``.
+    """``SimGCS(sink=None, now=None, vmin_V=0.0, vmax_V=120.0, servo_cycle_s=50e-6)``.
     ``inject_error(code)`` latches ``code`` (default 302) on the next command."""
 
     protocol = "gcs"

@@ -19,9 +19,9 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-#: the controller's servo cycle [s] unless given (an E-727 class controller: 50 kHz) — a
-#: simulator setting, read by hosts as parameter 0x0E000200 (SERVO_UPDATE_TIME)
-SERVO_CYCLE_S = 20e-6
+#: the controller's servo cycle [s] unless given: the E-727's servo update time per its user
+#: manual (E727T0005), read by hosts as parameter 0x0E000200 (SERVO_UPDATE_TIME)
+SERVO_CYCLE_S = 50e-6
 #: points one wave table holds (``WMS?``)
 MAX_POINTS = 262_144
 SERVO_UPDATE_TIME_PARAM = 0x0E000200
@@ -49,12 +49,13 @@ class Generator:
 
 
 def lin_segment(seg_len: int, amplitude: float, offset: float, n: int, first: int, speed: int) -> list[float]:
-    """A ``LIN`` segment: ``seg_len`` points, ``offset`` before point ``first`` (1-based), a
+    """A ``LIN`` segment: ``seg_len`` points, ``offset`` before point ``first`` (0-based, as in
+    the E-727 manual's ``WAV 2 & LIN 3000 -40 50 3000 0 650`` example), a
     rise by ``amplitude`` over ``n`` points, then ``offset + amplitude``. ``speed`` points at
     each end of the rise accelerate and decelerate at constant rate (velocity trapezoid)."""
-    if not (1 <= first and n >= 1 and first - 1 + n <= seg_len and 0 <= 2 * speed <= n):
+    if not (0 <= first and n >= 1 and first + n <= seg_len and 0 <= 2 * speed <= n):
         raise WaveError(17)
-    out = [offset] * (first - 1)
+    out = [offset] * first
     span = max(n - 1, 1)
     s = float(speed)
     for i in range(n):
