@@ -1,4 +1,5 @@
-"""Wave tables on the simulated PI GCS controller: upload throughput and playback timing.
+"""Wave tables on the simulated PI GCS controller and the NV200 waveform buffer: upload
+throughput and playback timing.
 
 Upload: ``GCSAmplifier.upload_wave`` writes an N-point table over a real pty to the
 simulated controller, which throttles itself to 115200 baud (8N1: 11,520 bytes/s). The
@@ -52,11 +53,11 @@ class LagSink:
         self.lag.append(self.now() - t_s)
 
 
-def one_run(n: int) -> dict:
+def one_run(n: int, protocol: str = "gcs") -> dict:
     sink = LagSink()
-    with serve_pty("gcs", sink, baud=BAUD) as server:
+    with serve_pty(protocol, sink, baud=BAUD) as server:
         sink.now = server.device.now
-        with open_amplifier("gcs", server.port, timeout_s=2.0, max_step_V=1.0) as amp:
+        with open_amplifier(protocol, server.port, timeout_s=2.0, max_step_V=1.0) as amp:
             for v in np.linspace(0.0, 20.0, 41)[1:]:
                 amp.set_voltages({"x": float(v)})
             table = 20.0 + 10.0 * np.sin(np.linspace(0.0, 2 * np.pi * 7, n, endpoint=False)) + 1e-3
@@ -85,11 +86,15 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--points", type=int, default=20_000, help="table length")
     ap.add_argument("--no-write", action="store_true", help="do not update docs/BENCHMARKS.md")
     args = ap.parse_args(argv)
-    runs = [one_run(args.points) for _ in range(args.reps)]
+    runs, nv = [], []
+    for _ in range(args.reps):  # the two devices alternated, so both see the same machine load
+        runs.append(one_run(args.points))
+        nv.append(one_run(1024, "nv200"))
     med = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
-    for r in runs:
+    mnv = {k: statistics.median(r[k] for r in nv) for k in nv[0]}
+    for r in runs + nv:
         print(r)
-    body = f"""## PI GCS wave tables on the simulated controller
+    body = f"""## Wave tables: PI GCS and NV200 on the simulated devices
 
 `.venv/bin/python benchmarks/bench_wave.py --reps {args.reps} --points {args.points}` — median of {args.reps} runs;
 CPython {platform.python_version()}, shared 2-core machine under load from other work.
@@ -106,6 +111,13 @@ within {med['spacing_err_s']:.1e} s, first to last point {med['span_err_s']:.1e}
 applied late, on the simulator's own clock, by median {med['lag_med_ms']:.2f} ms, p99
 {med['lag_p99_ms']:.2f} ms, max {med['lag_max_ms']:.2f} ms (the pty server thread polls the generator
 every 5 ms while the link is idle; the output times themselves do not depend on it).
+
+NV200 waveform buffer, all 1024 samples (`gbarb,i,p` lines written back to back, one `grun` read at
+the end), same link: **{mnv['bytes']:.0f} bytes in {mnv['upload_s']:.3f} s = {mnv['of_ceiling'] * 100:.1f} % of the
+ceiling** (per run: {', '.join(f"{r['of_ceiling'] * 100:.1f} %" for r in nv)}); played at {RATE_HZ} Hz (sampling
+factor 2 x 50 us): output times on the 100 us grid within {mnv['spacing_err_s']:.1e} s, applied late by median
+{mnv['lag_med_ms']:.2f} ms, max {mnv['lag_max_ms']:.2f} ms. (The vendor's `nv200` library waits 0.4 s for a
+possible error reply after every write, so the same upload through it takes about 1024 x 0.4 s = 7 min.)
 """
     if not args.no_write:
         _write_section("wave", body)
