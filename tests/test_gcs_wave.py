@@ -186,6 +186,8 @@ def test_amp_wave_cli_uploads_and_plays_on_the_servo_clock(tmp_path, capsys):
         assert "--rate-Hz: 3000 Hz is not the servo rate 20000 Hz over a whole number" in err
         assert "3333.333333 Hz or 2857.142857 Hz" in err and "nothing was sent" in err
         assert server.device.wave.tables[1] == []
+        assert main(base + ["--rate-Hz", "6666.666667"]) == 0           # 20 kHz / 3
+        assert "at 6666.67 Hz" in capsys.readouterr().out and server.device.wave.gens[1].rate == 3
         before = len(server.sink.history)
         assert main(base + ["--rate-Hz", "10000", "--cycles", "2"]) == 0
         out = capsys.readouterr().out

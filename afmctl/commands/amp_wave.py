@@ -29,15 +29,17 @@ def add_parser(actions) -> None:
     w.add_argument("--file", required=True, metavar="VOLTS.csv")
     w.add_argument("--axis", choices=["x", "y", "z"], default="x", help="axis of a t,u file (default x)")
     w.add_argument("--rate-Hz", dest="rate_Hz", type=float, required=True, metavar="R",
-                   help="samples per second, a whole number 1..1000000")
+                   help="samples per second, 1..1000000 (can: a whole number; gcs, nv200: the device "
+                        "clock over a whole number, e.g. 20000/3 = 6666.666667 on an E-727)")
     w.add_argument("--cycles", type=int, default=1, metavar="N", help="play the file N times (default 1)")
 
 
 def check_args(args) -> None:
     from ..errors import AfmctlError
     r = args.rate_Hz
-    if not (math.isfinite(r) and r == round(r) and 1 <= r <= 1_000_000):
-        raise AfmctlError(f"--rate-Hz: {r:g} must be a whole number of Hz in 1..1000000")
+    whole = getattr(args, "driver", "can") == "can"  # device clocks (gcs, nv200) check their own divider
+    if not (math.isfinite(r) and (r == round(r) or not whole) and 1 <= r <= 1_000_000):
+        raise AfmctlError(f"--rate-Hz: {r:g} must be a {'whole ' if whole else ''}number of Hz in 1..1000000")
     if not 1 <= args.cycles <= 1_000_000:
         raise AfmctlError(f"--cycles: {args.cycles} must be in 1..1000000")
 
