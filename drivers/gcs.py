@@ -7,12 +7,22 @@ reply when it has arrived (at most one check outstanding) — an error latched b
 device is raised as :class:`~afmctl.drivers.errors.ProtocolError` with its GCS code.
 Connect resynchronises on the reply to ``*IDN?`` (no fixed quiet window), so replies that
 arrive 100 ms late are fine.
+
+Wave tables (:mod:`.codec_gcs_wave`): :meth:`GCSAmplifier.upload_wave` checks a whole table
+(limits, ``max_step_V`` between samples and from the present output) before its first byte
+is sent, then writes it back to back with one ``ERR?`` at the end; :meth:`~GCSAmplifier.start_wave`
+plays the uploaded tables on the controller's servo clock (axis k on generator and table k).
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+import numpy as np
+
 from . import codec_gcs as codec
+from . import codec_gcs_wave as wcodec
 from .base import VoltageLimits
-from .errors import ProtocolError
+from .errors import LimitError, ProtocolError
+from .wave_check import WaveStatus, check_table
 from .serial_amp import SerialAmplifier
 from .transport import SerialTransport
 
@@ -34,6 +44,10 @@ class GCSAmplifier(SerialAmplifier):
         self._ids: dict[str, str] = {}
         self._check_outstanding = False
         self._since_check = 0
+        self._tables: dict[str, np.ndarray] = {}
+        self._servo_cycle_s: float | None = None
+        self._wave_run = (0.0, 0, 0)
+        self._playing: set[str] = set()
         super().__init__(transport, **options)
 
     @property
@@ -87,6 +101,10 @@ class GCSAmplifier(SerialAmplifier):
             codec.check_error_reply(reply)
 
     def _write_setpoint(self, values: dict[str, float]) -> None:
+        playing = sorted(self._playing.intersection(values))
+        if playing:
+            raise LimitError(f"axis {playing[0]}: its wave generator runs; stop_wave(), or wait until "
+                             "wave_status() reports its end, before setting voltages")
         by_id = {self._ids[a]: v for a, v in values.items()}
         lows = {self._ids[a]: self._limits[a].min_V for a in values}
         highs = {self._ids[a]: self._limits[a].max_V for a in values}
@@ -106,3 +124,101 @@ class GCSAmplifier(SerialAmplifier):
             codec.check_error_reply(reply)
         self._check()
         self._since_check = 0
+
+    # ---- wave generator ----
+    def _gen(self, axis: str) -> int:
+        if axis not in self._axes:
+            raise LimitError(f"axis {axis!r}: not one of {', '.join(self._axes)}")
+        return self._axes.index(axis) + 1
+
+    def servo_cycle_s(self) -> float:
+        """The controller's servo update time [s] (parameter 0x0E000200, read once)."""
+        with self._lock:
+            self._guard()
+            if self._servo_cycle_s is None:
+                reply = self._io(self._query, f"SPA? 1 {wcodec.SERVO_UPDATE_TIME_PARAM}")
+                self._servo_cycle_s = wcodec.parse_servo_cycle_s(reply)
+            return self._servo_cycle_s
+
+    def upload_wave(self, axis: str, table_V: Sequence[float]) -> int:
+        """Write ``table_V`` [V] as the wave table of ``axis``; returns the points written.
+        Every sample is checked (limits, ``max_step_V`` from the previous one and from the
+        present output) before anything is sent: :class:`LimitError` names the sample."""
+        gen = self._gen(axis)
+        with self._lock:
+            self._guard()
+            v = check_table(axis, table_V, self._limits[axis], max_step_V=self.max_step_V,
+                            start_V=self._last.get(axis))
+            lim = self._limits[axis]
+            lines = wcodec.encode_wav_pnt(gen, v, lim.min_V, lim.max_V)
+            self._io(self._send_checked, *lines)
+            self._tables[axis] = v
+            return len(v)
+
+    def _send_checked(self, *chunks: bytes) -> None:
+        """Write ``chunks`` back to back (one write each: the transport paces them to the
+        link, so no write outlasts its timeout), then one ``ERR?``."""
+        self._drain()
+        for data in chunks:
+            self.transport.write(data)
+        self._check()
+
+    def start_wave(self, rate_Hz: float | None = None, *, divider: int | None = None, cycles: int = 1,
+                   axes: Sequence[str] | None = None) -> WaveStatus:
+        """Play the uploaded tables of ``axes`` (default: all uploaded) ``cycles`` times
+        (0 = until :meth:`stop_wave`) at ``rate_Hz`` points/s — which must be the servo rate
+        over a whole number — or every ``divider`` servo cycles. The step from the present
+        output to sample 0, and the wrap when it plays more than once, are checked first."""
+        axes = list(axes if axes is not None else self._tables)
+        if not axes or any(a not in self._tables for a in axes):
+            raise LimitError("start_wave: upload a table for every axis first (upload_wave)")
+        if not (isinstance(cycles, int) and 0 <= cycles <= 2**31 - 1):
+            raise LimitError(f"cycles: {cycles!r} must be a whole number 0..2147483647 (0 = endless)")
+        cycle_s = self.servo_cycle_s()
+        if divider is None:
+            if rate_Hz is None:
+                raise LimitError("start_wave: give rate_Hz or divider")
+            try:
+                divider = wcodec.divider_for(rate_Hz, cycle_s)
+            except ValueError as err:
+                raise LimitError(f"rate_Hz: {err}") from None
+        if not (isinstance(divider, int) and 1 <= divider <= 2**31 - 1):
+            raise LimitError(f"divider: {divider!r} must be a whole number of servo cycles >= 1")
+        with self._lock:
+            self._guard()
+            for a in axes:
+                check_table(a, self._tables[a], self._limits[a], max_step_V=self.max_step_V,
+                            start_V=self._last.get(a), wraps=cycles != 1)
+            data = b"".join(wcodec.encode_start(self._gen(a), self._gen(a), divider, cycles) for a in axes)
+            self._io(self._send_checked, data)
+            self._wave_run = (1.0 / (divider * cycle_s), divider, cycles)
+            self._playing = set(axes)
+        return self.wave_status()
+
+    def wave_status(self) -> WaveStatus:
+        """Ask the controller (``#9``) which generators run; once an axis's generator has
+        stopped, its output is read back (``VOL?``) as the reference of the next step check."""
+        with self._lock:
+            self._guard()
+            mask = wcodec.parse_running(self._io(self._running_reply))
+            running = {a: bool(mask >> (self._gen(a) - 1) & 1) for a in self._axes}
+            done = [a for a in self._playing if not running[a]]
+            if done:
+                volts = self._io(self._read_voltages)
+                self._last.update({a: volts[a] for a in done})
+                self._measured.update(done)
+                self._playing -= set(done)
+        rate, div, cyc = self._wave_run
+        return WaveStatus(running, rate, div, cyc, {a: len(t) for a, t in self._tables.items()})
+
+    def _running_reply(self) -> bytes:
+        self._drain()
+        self.transport.write(wcodec.RUNNING)
+        return self.transport.read_frame(codec.split_reply)
+
+    def stop_wave(self) -> WaveStatus:
+        """Stop every wave generator now (``WGO g 0``); the outputs hold where they were."""
+        with self._lock:
+            self._guard()
+            self._io(self._send_checked, wcodec.encode_stop([self._gen(a) for a in self._axes]))
+        return self.wave_status()

@@ -23,11 +23,18 @@ from __future__ import annotations
 import logging
 from typing import Any
 
+from collections.abc import Sequence
+
+import numpy as np
+
+from . import codec_gcs_wave
 from . import codec_nv200 as codec
+from . import codec_nv200_wave as wcodec
 from .base import VoltageLimits
-from .errors import AmplifierError, ProtocolError
+from .errors import AmplifierError, LimitError, ProtocolError
 from .serial_amp import SerialAmplifier
 from .transport import SerialTransport
+from .wave_check import WaveStatus, check_table
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +64,9 @@ class NV200(SerialAmplifier):
         self.sensor = "none"
         #: stored settings changed at connect: name -> value found
         self.changed_settings: dict[str, int] = {}
+        self._table: np.ndarray | None = None
+        self._wave_run = (0.0, 0, 0)
+        self._playing = False
         super().__init__(transport, **options)
 
     @property
@@ -128,6 +138,9 @@ class NV200(SerialAmplifier):
                 raise codec.error_from(reply)
 
     def _write_setpoint(self, values: dict[str, float]) -> None:
+        if self._playing:
+            raise LimitError("axis x: the waveform generator runs; stop_wave(), or wait until "
+                             "wave_status() reports its end, before setting voltages")
         lim = self._limits["x"]
         data = codec.encode_set(values["x"], lim.min_V, lim.max_V)
         self._drain()
@@ -147,3 +160,84 @@ class NV200(SerialAmplifier):
                 log.info("nv200 on %s: restored %s", self.transport.url, self.changed_settings)
             except AmplifierError as err:
                 log.warning("nv200 on %s: could not restore %s: %s", self.transport.url, self.changed_settings, err)
+
+    # ---- arbitrary waveform generator (codec_nv200_wave) ----
+    def servo_cycle_s(self) -> float:
+        """The waveform generator's base sample time [s] (50 us)."""
+        return wcodec.BASE_SAMPLE_S
+
+    def upload_wave(self, axis: str, table_V: Sequence[float]) -> int:
+        """Write ``table_V`` [V] (at most 1024 samples) into the waveform buffer; every sample
+        is checked (limits, ``max_step_V``) before anything is sent. Returns the samples written."""
+        if axis != "x":
+            raise LimitError(f"axis {axis!r}: the NV200 drives x only")
+        with self._lock:
+            self._guard()
+            v = check_table(axis, table_V, self._limits["x"], max_step_V=self.max_step_V,
+                            start_V=self._last.get("x"))
+            if len(v) > wcodec.BUFFER_SIZE:
+                raise LimitError(f"wave table of axis x: {len(v)} samples, the NV200 buffer holds "
+                                 f"{wcodec.BUFFER_SIZE}; nothing was sent")
+            dev, lim = self._device_limits["x"], self._limits["x"]
+            lines = wcodec.encode_buffer(v, dev.min_V, dev.max_V, lim.min_V, lim.max_V)
+            self._io(self._send_synced, *lines)
+            self._table = v
+            return len(v)
+
+    def _send_synced(self, *chunks: bytes) -> None:
+        self._drain()
+        for data in chunks:
+            self.transport.write(data)
+        self._read("grun")  # every write before it was taken (errors come back as frames first)
+
+    def start_wave(self, rate_Hz: float | None = None, *, divider: int | None = None, cycles: int = 1,
+                   axes: Sequence[str] | None = None) -> WaveStatus:
+        """Play the uploaded buffer ``cycles`` times (0 = until :meth:`stop_wave`) at ``rate_Hz``
+        (20 kHz over a whole number) or a sample every ``divider`` x 50 us."""
+        if self._table is None or (axes is not None and list(axes) != ["x"]):
+            raise LimitError("start_wave: upload a table for axis x first (upload_wave)")
+        if not (isinstance(cycles, int) and 0 <= cycles <= 65535):
+            raise LimitError(f"cycles: {cycles!r} must be a whole number 0..65535 (0 = endless)")
+        if divider is None:
+            try:
+                divider = codec_gcs_wave.divider_for(float(rate_Hz or 0) or -1.0, wcodec.BASE_SAMPLE_S)
+            except (ValueError, ZeroDivisionError) as err:
+                raise LimitError(f"rate_Hz: {err}") from None
+        if not (isinstance(divider, int) and 1 <= divider <= wcodec.MAX_FACTOR):
+            raise LimitError(f"divider: {divider!r} must be a whole number 1..65535 of 50 us")
+        with self._lock:
+            self._guard()
+            check_table("x", self._table, self._limits["x"], max_step_V=self.max_step_V,
+                        start_V=self._last.get("x"), wraps=cycles != 1)
+            self._io(self._send_synced, wcodec.encode_start(len(self._table), divider, cycles))
+            self._wave_run = (1.0 / (divider * wcodec.BASE_SAMPLE_S), divider, cycles)
+            self._playing = True
+        return self.wave_status()
+
+    def wave_status(self) -> WaveStatus:
+        """``grun``: is the generator running? Once it has stopped, the serial setpoint takes
+        the output's last value and becomes the source again (``modsrc,0``)."""
+        with self._lock:
+            self._guard()
+            running = bool(self._io(self._read, "grun"))
+            if self._playing and not running:
+                self._io(self._hand_back)
+        rate, div, cyc = self._wave_run
+        return WaveStatus({"x": running}, rate, div, cyc, {"x": len(self._table) if self._table is not None else 0})
+
+    def _hand_back(self) -> None:
+        v = self._read_voltages()["x"]  # the end of the table, or wherever stop_wave left it
+        lim = self._limits["x"]
+        v = min(max(float(v), lim.min_V), lim.max_V)
+        self.transport.write(wcodec.encode_hand_back(v, lim.min_V, lim.max_V))
+        self._read("set")
+        self._last["x"] = v
+        self._measured.add("x")
+        self._playing = False
+
+    def stop_wave(self) -> WaveStatus:
+        """Stop the generator now (``grun,0``); the output holds where it was."""
+        with self._lock:
+            self._guard()
+            self._io(self._send_synced, codec.encode("grun,0"))
+        return self.wave_status()

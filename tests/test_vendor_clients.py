@@ -83,6 +83,42 @@ def test_pipython_open_loop_get_set_limits_and_errors():
             assert server.sink.last["x"] == 10.0 and server.sink.last["y"] == 20.5
 
 
+def test_pipython_wave_generator_plays_on_the_simulated_servo_clock():
+    """PIPython's own wave calls: WAV_LIN, pitools.writewavepoints (WAV_PNT bunches), WSL,
+    WGC, WTR, TWC, WGO, qWGO, IsGeneratorRunning (#9), waitonwavegen, qWAV, qSPA."""
+    from pipython import pitools
+    with serve_pty("gcs") as server:
+        with _pipython(server.port) as pi:
+            pi.SVO(pi.axes, [False, False, False])
+            assert pi.qSPA(1, 0x0E000200)[1][0x0E000200] == pytest.approx(50e-6)   # servo update time [s]
+            pi.WAV_LIN(table=1, firstpoint=10, numpoints=80, append="X", speedupdown=0, amplitude=40.0,
+                       offset=10.0, seglength=100)
+            points = [20.0 + 0.1 * k for k in range(250)]
+            pitools.writewavepoints(pi, 2, points, bunchsize=60)
+            assert pi.qWAV([1, 2], [1, 1]) == {1: {1: 100.0}, 2: {1: 250.0}}
+            assert server.device.wave.tables[2] == pytest.approx(points)
+            pi.WSL([1, 2], [1, 2])
+            pi.WGC([1, 2], [2, 1])
+            pi.WTR([1, 2], [5, 10], [0, 0])
+            pi.TWC()
+            assert pi.qWSL([1, 2]) == {1: 1, 2: 2} and pi.qWGC([1, 2]) == {1: 2, 2: 1}
+            assert pi.qWTR([1, 2]) == {1: [5, 0], 2: [10, 0]}
+            before = len(server.sink.history)
+            pi.WGO([1, 2], [1, 1])
+            assert pi.qWGO([1, 2]) == {1: 1, 2: 1} and all(pi.IsGeneratorRunning().values())
+            pitools.waitonwavegen(pi, timeout=5, polldelay=0.01)
+            assert pi.qWGO([1, 2]) == {1: 0, 2: 0} and pi.qERR() == 0
+            assert pi.qVOL()[1] == pytest.approx(50.0) and pi.qVOL()[2] == pytest.approx(points[-1])
+    played = server.sink.history[before:]
+    t = [h[0] for h in played]
+    t0 = min(t)
+    # every output change lies on the 50 us servo grid (both generators start on one tick)
+    assert all(abs(ti / 50e-6 - round(ti / 50e-6)) < 1e-6 for ti in t)
+    assert max(t) - t0 == pytest.approx(249 * 10 * 50e-6, abs=1e-9)
+    xs = [h[1]["x"] for h in played]
+    assert min(xs) == 10.0 and max(xs) == 50.0
+
+
 # ------------------------------------------------------------ mdt69x → SimMDT693B
 def test_mdt69x_client_gets_sets_and_reads_limits_on_all_three_axes():
     import mdt69x
@@ -179,6 +215,49 @@ def test_sensored_nv200_get_voltages_returns_volts(sensor):
             amp.set_voltages({"x": 52.0})
             assert amp.get_voltages() == {"x": 52.0}
             assert server.device.stored_writes == []  # cl and modsrc were 0: nothing written
+
+
+def _count_first_run(dev, n: int):
+    """Wrap the simulator's waveform output: remember when the first ``n`` samples played."""
+    inner = dev.wave.apply
+    dev.first_run_s = []
+
+    def apply(percent: float, t_s: float) -> None:
+        if len(dev.first_run_s) < n:
+            dev.first_run_s.append(t_s)
+        inner(percent, t_s)
+    return apply
+
+
+@pytest.mark.slow
+def test_nv200_library_waveform_generator_uploads_and_runs_on_the_simulated_clock(nv200_python):
+    """The library's WaveformGenerator: set_waveform (gbarb writes in % of the voltage range,
+    gtarb, goarb/gsarb/gearb), start(cycles) (gcarb, modsrc 3, grun), is_running, waiting."""
+    client = ROOT / "tests" / "vendor" / "nv200_wave_client.py"
+    with serve_pty("nv200") as server:
+        before = len(server.sink.history)
+        server.device.wave.apply = _count_first_run(server.device, 3 * 12)
+        res = subprocess.run([nv200_python, str(client), server.port, "3"], capture_output=True,
+                             text=True, timeout=120)
+        assert res.returncode == 0, res.stderr[-2000:]
+        out = json.loads(res.stdout.strip().splitlines()[-1])
+        dev = server.device
+    n, factor = out["points"], dev.wave.params["gtarb"]
+    assert out["loop"] == {"start_index": 0, "loop_start_index": 0, "loop_end_index": n - 1}
+    assert factor * 0.05 == pytest.approx(out["sample_time_ms"])
+    assert out["finished"] and not out["running_at_end"]
+    assert out["endless_running"] and not out["running_after_stop"]
+    assert dev.params["modsrc"] == 3 and dev.wave.played > 3 * n
+    want = [-20.0 + p / 100.0 * 150.0 for p in out["readback_pct"]]
+    assert want == pytest.approx(out["values_V"][:4], abs=1e-3)
+    played = server.sink.history[before:]
+    t = [h[0] for h in played]
+    step_s = factor * 50e-6
+    first = dev.first_run_s                                        # the 3-cycle run: 36 samples back to back
+    assert len(first) == 3 * n and first[-1] - first[0] == pytest.approx((3 * n - 1) * step_s, abs=1e-9)
+    assert all(abs(ti / 50e-6 - round(ti / 50e-6)) < 1e-6 for ti in t)       # on the unit's 50 us clock
+    assert max(h[1]["x"] for h in played) == pytest.approx(50.0, abs=0.05)
+    assert min(h[1]["x"] for h in played) == pytest.approx(10.0, abs=0.05)
 
 
 def test_nv200_stored_settings_are_changed_only_when_needed_said_and_restored_on_request(caplog):

@@ -35,7 +35,8 @@ Actions:
   set x=V [y=V z=V]         set some axes, then read back
   wave --file VOLTS.csv --rate-Hz R [--cycles N]
                             play the rows on the amplifier's own clock through its
-                            stream FIFO (driver can), N times; reports underruns
+                            stream FIFO (driver can) or as wave tables on the
+                            controller's servo clock (driver gcs), N times
   stream --file VOLTS.csv   send every row in order at the times of its t column (or
                             at --rate HZ rows per second), print the rate achieved and
                             warn when the link could not keep that timing. Columns t,u

@@ -1,5 +1,7 @@
-"""``afmctl amp ... wave``: play a file of voltages on the amplifier's own clock (buffered
-stream), ``--cycles`` times, and report what the amplifier says it played."""
+"""``afmctl amp ... wave``: play a file of voltages on the amplifier's own clock, ``--cycles``
+times, and report what the amplifier says it played: through the CAN amplifier's stream
+FIFO, or as wave tables uploaded whole to a PI GCS controller and played by its wave
+generator on its servo clock."""
 from __future__ import annotations
 
 import logging
@@ -14,25 +16,30 @@ WAVE_LOW_S, WAVE_HIGH_S = 0.1, 0.3
 
 def add_parser(actions) -> None:
     w = actions.add_parser(
-        "wave", help="play a CSV of voltages on the amplifier's clock (buffered stream; driver can)",
+        "wave", help="play a CSV of voltages on the amplifier's clock (drivers can, gcs, nv200)",
         description="Play the rows of VOLTS.csv (columns t,u with --axis, or t,ux,uy,uz [V]; the t column "
                     "is not used) at --rate-Hz on the amplifier's own clock, --cycles times, through its "
                     "stream FIFO: host delays do not reach the output while the FIFO holds samples. "
                     "Every row, the wrap from the last row to the first and the step from the present "
                     "output are checked against the limits and --max-step before anything is sent. "
-                    "Supported by --driver can (GCS wave tables and the NV200 buffer: not yet).")
+                    "--driver can streams through the FIFO; --driver gcs uploads each column as a wave "
+                    "table and plays it on the controller's servo clock — there --rate-Hz must be the "
+                    "servo rate over a whole number (refused otherwise, naming the nearest rates). "
+                    "--driver nv200 does the same with its 1024-sample waveform buffer (20 kHz clock).")
     w.add_argument("--file", required=True, metavar="VOLTS.csv")
     w.add_argument("--axis", choices=["x", "y", "z"], default="x", help="axis of a t,u file (default x)")
     w.add_argument("--rate-Hz", dest="rate_Hz", type=float, required=True, metavar="R",
-                   help="samples per second, a whole number 1..1000000")
+                   help="samples per second, 1..1000000 (can: a whole number; gcs, nv200: the device "
+                        "clock over a whole number, e.g. 20000/3 = 6666.666667 on an E-727)")
     w.add_argument("--cycles", type=int, default=1, metavar="N", help="play the file N times (default 1)")
 
 
 def check_args(args) -> None:
     from ..errors import AfmctlError
     r = args.rate_Hz
-    if not (math.isfinite(r) and r == round(r) and 1 <= r <= 1_000_000):
-        raise AfmctlError(f"--rate-Hz: {r:g} must be a whole number of Hz in 1..1000000")
+    whole = getattr(args, "driver", "can") == "can"  # device clocks (gcs, nv200) check their own divider
+    if not (math.isfinite(r) and (r == round(r) or not whole) and 1 <= r <= 1_000_000):
+        raise AfmctlError(f"--rate-Hz: {r:g} must be a {'whole ' if whole else ''}number of Hz in 1..1000000")
     if not 1 <= args.cycles <= 1_000_000:
         raise AfmctlError(f"--cycles: {args.cycles} must be in 1..1000000")
 
@@ -60,8 +67,11 @@ def play(amp, loaded, args, check_file_limits, fmt) -> None:
     """Stream the wave, keeping the FIFO between WAVE_LOW_S and WAVE_HIGH_S; print a summary.
     ``check_file_limits(amp, loaded, path)`` and ``fmt(volts)`` are ``afmctl amp``'s."""
     from ..errors import AfmctlError
+    if hasattr(amp, "upload_wave"):
+        return play_table(amp, loaded, args, check_file_limits, fmt)
     if not hasattr(amp, "start_stream"):
-        raise AfmctlError(f"--driver {amp.name}: no buffered stream in this driver yet; wave works with --driver can")
+        raise AfmctlError(f"--driver {amp.name}: no buffered stream in this driver yet; "
+                          "wave works with --driver can, gcs or nv200")
     check_file_limits(amp, loaded, args.file)
     rows = _rows(amp, loaded, args)
     rate = args.rate_Hz
@@ -87,4 +97,38 @@ def play(amp, loaded, args, check_file_limits, fmt) -> None:
           f"(schedule {len(rows) / rate:.3f} s)")
     if st.state == "fault":
         raise AfmctlError("the amplifier stopped the stream (fault); see the error above")
+    print("final: " + fmt(amp.get_voltages()))
+
+
+def play_table(amp, loaded, args, check_file_limits, fmt) -> None:
+    """Upload every column of the file as the wave table of its axis, play them together
+    ``--cycles`` times on the controller's servo clock, wait for the end, print a summary."""
+    from afmctl.drivers import codec_gcs_wave as wcodec
+
+    from ..errors import AfmctlError
+    axes, values, columns, _ = loaded
+    check_file_limits(amp, loaded, args.file)
+    _rows(amp, loaded, args)  # the wrap check (--cycles > 1) on the file's rows
+    cycle_s = amp.servo_cycle_s()
+    try:
+        divider = wcodec.divider_for(args.rate_Hz, cycle_s)
+    except ValueError as err:
+        raise AfmctlError(f"--rate-Hz: {err}; nothing was sent") from None
+    for k, axis in enumerate(axes):
+        amp.upload_wave(axis, values[:, k])
+    st = amp.start_wave(divider=divider, cycles=args.cycles, axes=axes)
+    duration_s = len(values) * args.cycles / st.rate_Hz
+    t0 = time.perf_counter()
+    try:
+        while any(st.running.values()):
+            if time.perf_counter() - t0 > duration_s + 5.0:
+                raise AfmctlError(f"the wave generator still runs {duration_s + 5.0:.1f} s after its start; stopped")
+            time.sleep(min(0.05, max(duration_s / 20, 0.005)))
+            st = amp.wave_status()
+    finally:
+        if any(st.running.values()):
+            amp.stop_wave()
+    print(f"played {len(values)} points x {args.cycles} cycle(s) on {', '.join(axes)} at {st.rate_Hz:g} Hz on the "
+          f"device's clock (every {divider} tick(s) of {cycle_s * 1e6:g} us): "
+          f"{duration_s:.4f} s; host waited {time.perf_counter() - t0:.3f} s")
     print("final: " + fmt(amp.get_voltages()))

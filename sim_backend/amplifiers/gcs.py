@@ -12,17 +12,27 @@ Position: ``POS?`` is the position the sensor reads, here linear over the voltag
 onto the travel ``TMN?``..``TMX?`` [µm]. ``MOV`` needs the servo on (error 5 otherwise,
 7 outside the travel); with the servo on it sets the target and the simulator puts the
 output voltage where that position lies (an ideal servo).
+
+Wave generator (see :mod:`.gcs_wave`): generator g drives axis g; with the servo off a
+table value is the output voltage [V], with it on a target position [µm]. Values are
+clamped to VMI..VMA (and recorded as requested). It plays on the controller's servo clock
+(``servo_cycle_s``, parameter 0x0E000200 via ``SPA?``): every command and every
+:meth:`SimGCS.poll` first applies the points that fell due, with their own times.
 """
 from __future__ import annotations
 
 from collections.abc import Callable
 
 from .base import SimDevice, Sink
+from .gcs_wave import SERVO_CYCLE_S, SERVO_UPDATE_TIME_PARAM, WaveError, WaveGenerator
 
 _AXIS = {"1": "x", "2": "y", "3": "z"}
 IDN = b"(c)2024 Physik Instrumente (PI) GmbH & Co. KG, E-727, SIM-afmctl, 01.00.00.00\n"
 _HELP = ("*IDN?", "CSV?", "ERR?", "HLP?", "SAI?", "SVO", "SVO?", "SVA", "SVA?", "VOL?", "VMA", "VMA?",
-         "VMI", "VMI?", "POS?", "MOV", "MOV?", "ONT?", "TMN?", "TMX?")
+         "VMI", "VMI?", "POS?", "MOV", "MOV?", "ONT?", "TMN?", "TMX?", "SPA?", "HPA?", "WAV", "WAV?", "WSL",
+         "WSL?", "WGC", "WGC?", "WTR", "WTR?", "WGO", "WGO?", "WMS?", "TWC", "#9")
+#: single-byte GCS commands (no LF): #9 asks which wave generators run
+_RUNNING_BYTE = 0x09
 
 
 def _num(tok: str) -> float | None:
@@ -34,14 +44,15 @@ def _num(tok: str) -> float | None:
 
 
 class SimGCS(SimDevice):
-    """``SimGCS(sink=None, now=None, vmin_V=0.0, vmax_V=120.0)``. ``inject_error(code)``
-    latches ``code`` (default 302) on the next command."""
+    """``SimGCS(sink=None, now=None, vmin_V=0.0, vmax_V=120.0, servo_cycle_s=50e-6)``.
+    ``inject_error(code)`` latches ``code`` (default 302) on the next command."""
 
     protocol = "gcs"
 
     def __init__(self, sink: Sink | None = None, *, now: Callable[[], float] | None = None,
-                 vmin_V: float = 0.0, vmax_V: float = 120.0) -> None:
+                 vmin_V: float = 0.0, vmax_V: float = 120.0, servo_cycle_s: float = SERVO_CYCLE_S) -> None:
         super().__init__(sink, now=now)
+        self.wave = WaveGenerator(self._wave_apply, generators=len(_AXIS), servo_cycle_s=servo_cycle_s)
         self.servo = {k: True for k in _AXIS}
         self.vmi = {k: vmin_V for k in _AXIS}
         self.vma = {k: vmax_V for k in _AXIS}
@@ -65,7 +76,105 @@ class SimGCS(SimDevice):
         self._latch(304)  # "received command is too long", read with ERR?
         return b""
 
+    def feed(self, data: bytes) -> bytes:
+        """Lines as :meth:`SimDevice.feed`; the byte 0x09 (``#9``) between lines is a
+        command on its own, answered at once with the running generators as hex."""
+        out = bytearray()
+        while (i := data.find(bytes((_RUNNING_BYTE,)))) >= 0:
+            out += super().feed(data[:i])
+            self.poll()
+            out += f"{self.wave.running_mask():X}\n".encode()
+            data = data[i + 1:]
+        return bytes(out + super().feed(data))
+
+    def poll(self) -> None:
+        """Play the wave points that fell due by now (the pty server calls this when idle)."""
+        self.wave.run_until(self.now())
+
+    def _wave_apply(self, gen: int, value: float, t_s: float) -> None:
+        key = str(gen)
+        axis = _AXIS[key]
+        if self.servo[key]:  # a position [µm] → the voltage that puts the ideal servo there
+            t0, t1 = self.travel_um
+            value = self.vmi[key] + (value - t0) / (t1 - t0) * (self.vma[key] - self.vmi[key])
+        self._requested(value, axis)
+        v = min(max(value, self.vmi[key]), self.vma[key])
+        if self.outputs[axis] != v:
+            self.outputs[axis] = v
+            if self.sink is not None:
+                self.sink.apply(dict(self.outputs), t_s)
+
+    def _wave_command(self, cmd: str, args: list[str]) -> bytes | None:
+        """The wave generator commands; None when ``cmd`` is not one."""
+        try:
+            if cmd == "WAV":
+                self.wave.wav(args)
+                return b""
+            if cmd in ("WSL", "WGC", "WGO"):
+                self._cmd_now = self.now()  # one WGO starts all its generators on one tick
+                for gen, val in self._int_pairs(args, 2):
+                    {"WSL": self.wave.wsl, "WGC": self.wave.wgc}.get(cmd, self._wgo)(gen, val[0])
+                return b""
+            if cmd == "WTR":
+                for gen, (rate, interp) in self._int_pairs(args, 3):
+                    self.wave.wtr(gen, rate, interp)
+                return b""
+            if cmd == "TWC":  # no trigger points are simulated (TWS is not): nothing to clear
+                return b""
+            return self._wave_query(cmd, args)
+        except WaveError as err:
+            return self._latch(err.code)
+
+    def _wgo(self, gen: int, mode: int) -> None:
+        self.wave.wgo(gen, mode, self._cmd_now)
+
+    @staticmethod
+    def _int_pairs(args: list[str], width: int) -> list[tuple[int, list[int]]]:
+        if not args or len(args) % width:
+            raise WaveError(1)
+        nums = [_num(a) for a in args]
+        if any(v is None or v != int(v) for v in nums):
+            raise WaveError(1)
+        ints = [int(v) for v in nums]  # type: ignore[arg-type]
+        return [(ints[i], ints[i + 1:i + width]) for i in range(0, len(ints), width)]
+
+    def _wave_query(self, cmd: str, args: list[str]) -> bytes | None:
+        w = self.wave
+        if cmd not in ("WSL?", "WGC?", "WGO?", "WTR?", "WAV?", "WMS?"):
+            return None
+        ids = [int(a) for a in args if a.isdigit()]
+        if len(ids) != len(args):
+            raise WaveError(1)
+        gens = ids or list(w.gens)
+        if cmd in ("WSL?", "WGC?", "WGO?", "WTR?"):
+            if any(g not in w.gens for g in gens):
+                raise WaveError(17)
+            field = {"WSL?": lambda g: str(g.table), "WGC?": lambda g: str(g.cycles),
+                     "WGO?": lambda g: str(g.mode), "WTR?": lambda g: f"{g.rate} {g.interpolation}"}[cmd]
+            return self._items([(str(k), field(w.gens[k])) for k in gens])
+        if cmd in ("WAV?", "WMS?"):
+            tables = ids[::2] if cmd == "WAV?" and ids else (ids or list(w.tables))
+            if any(t not in w.tables for t in tables) or (cmd == "WAV?" and any(p != 1 for p in ids[1::2])):
+                raise WaveError(17)
+            if cmd == "WAV?":
+                return self._items([(f"{t} 1", str(len(w.tables[t]))) for t in tables])
+            return self._items([(str(t), str(w.max_points)) for t in tables])
+        return None
+
+    def _spa_query(self, args: list[str]) -> bytes:
+        """``SPA? 1 0x0E000200`` → the servo update time [s]; other parameters: error 56."""
+        if len(args) != 2:
+            return self._latch(1)
+        try:
+            param = int(args[1], 0)
+        except ValueError:
+            return self._latch(1)
+        if args[0] not in _AXIS or param != SERVO_UPDATE_TIME_PARAM:
+            return self._latch(56)  # PI: unknown parameter
+        return self._items([(f"{args[0]} {args[1]}", f"{self.wave.servo_cycle_s:.9g}")])
+
     def command(self, line: bytes) -> bytes:
+        self.poll()
         self.commands += 1
         injected = self._take_injected()
         if injected is not None:
@@ -75,6 +184,13 @@ class SimGCS(SimDevice):
         except UnicodeDecodeError:
             return self._latch(1)
         cmd, args = tokens[0].upper(), tokens[1:]
+        if cmd == "SPA?":
+            return self._spa_query(args)
+        if cmd == "HPA?":  # the parameters this simulator knows: id= level max-item type group text
+            return b"0x0E000200=\t0\t1\tFLOAT\tservo\tservo update time [s]\n"
+        wave = self._wave_command(cmd, args)
+        if wave is not None:
+            return wave
         if cmd == "ERR?":
             code, self.error = self.error, 0
             return f"{code}\n".encode()

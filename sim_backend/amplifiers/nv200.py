@@ -12,7 +12,11 @@ Parameters: ``set``, ``meas``, ``avmin``/``avmax`` [V], ``posmin``/``posmax`` (t
 ``modsrc`` (1 at power-up: the setpoint follows the analog input until ``modsrc,0``),
 ``sr`` (slew rate in %/ms, 2000 = off), ``temp``, ``desc``, ``acserno``, ``acmeasure``,
 ``unitol``/``unitcl``, and the data recorder (``recsrc``, ``recast``, ``recstr``,
-``reclen``, ``recrun``, ``recout``) enough to read the piezo voltage.
+``reclen``, ``recrun``, ``recout``) enough to read the piezo voltage, and the arbitrary
+waveform generator (``gbarb``, ``goarb``, ``gsarb``, ``gearb``, ``gcarb``, ``gtarb``,
+``grun``; :mod:`.nv200_wave`), which drives the output while ``modsrc`` is 3: a buffer
+value p [%] is the voltage ``avmin + p/100 (avmax - avmin)`` in open loop. It plays on the
+unit's 50 us clock; every command and :meth:`SimNV200.poll` apply the samples due by then.
 
 ``meas`` is the piezo voltage without a sensor (``sensor="none"``) and the position in
 µm with one (linear over the voltage range); ``set`` outside ``avmin..avmax`` gives
@@ -23,13 +27,14 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from .base import SimDevice, Sink
+from .nv200_wave import BUFFER_SIZE, RANGES as WAVE_RANGES, WaveBuffer
 
 XON = b"\x11"
 DEVICE_TYPE = b"NV200/D_NET"
 SENSOR_BITS = {"none": 0, "strain gauge": 1, "capacitive": 2, "LVDT": 3}
 _READ_ONLY = {"meas", "avmin", "avmax", "stat", "temp", "desc", "acserno", "acmeasure", "posmin", "posmax",
               "unitol", "unitcl"}
-_INT = {"cl", "modsrc", "stat", "acmeasure", "recast", "recstr", "reclen", "recrun"}
+_INT = {"cl", "modsrc", "stat", "grun", "goarb", "gsarb", "gearb", "gcarb", "gtarb", "acmeasure", "recast", "recstr", "reclen", "recrun"}
 _RANGES = {"cl": (0, 1), "modsrc": (0, 3), "recast": (0, 2), "recstr": (1, 65535), "reclen": (0, 6144),
            "recrun": (0, 1), "sr": (0.0000008, 2000.0)}
 
@@ -46,6 +51,7 @@ class SimNV200(SimDevice):
                  avmin_V: float = -20.0, avmax_V: float = 130.0, sensor: str = "none",
                  posmax_um: float = 100.0) -> None:
         super().__init__(sink, now=now)
+        self.wave = WaveBuffer(self._wave_apply)
         if sensor not in SENSOR_BITS:
             raise ValueError(f"sensor must be one of {', '.join(SENSOR_BITS)}")
         self.sensor = sensor
@@ -91,7 +97,47 @@ class SimNV200(SimDevice):
     def empty_line(self) -> bytes:
         return DEVICE_TYPE + b"\r\n"
 
+    def poll(self) -> None:
+        """Play the waveform samples that fell due by now (the pty server calls this when idle)."""
+        self.wave.run_until(self.now())
+
+    def _wave_apply(self, percent: float, t_s: float) -> None:
+        if self.params["modsrc"] != 3:
+            return
+        lo, hi = self.params["avmin"], self.params["avmax"]
+        v = lo + percent / 100.0 * (hi - lo)
+        self._requested(v, "x")
+        v = min(max(v, lo), hi)
+        if self.outputs["x"] != v:
+            self.outputs["x"] = v
+            if self.sink is not None:
+                self.sink.apply(dict(self.outputs), t_s)
+
+    def _waveform(self, name: str, args: list[str]) -> bytes:
+        try:
+            nums = [float(a) for a in args]
+        except ValueError:
+            return self._error(1)
+        if any(v != v or abs(v) == float("inf") for v in nums):
+            return self._error(1)
+        if name == "gbarb":
+            if not nums or nums[0] != int(nums[0]) or not 0 <= nums[0] < BUFFER_SIZE or len(nums) > 2:
+                return self._error(4 if nums else 3)
+            i = int(nums[0])
+            if len(nums) == 1:
+                return f"gbarb,{i},{self.wave.values[i]:.3f}\r\n".encode() + XON
+            if not 0.0 <= nums[1] <= 100.0:
+                return self._error(4)
+            self.wave.values[i] = nums[1]
+            return b""
+        if not nums:
+            return self._reply(name, self.wave.params[name])
+        if len(nums) > 1 or nums[0] != int(nums[0]):
+            return self._error(5 if len(nums) > 1 else 4)
+        return b"" if self.wave.set(name, int(nums[0]), self.now()) else self._error(4)
+
     def command(self, line: bytes) -> bytes:
+        self.poll()
         self.commands += 1
         injected = self._take_injected()
         if injected is not None:
@@ -103,6 +149,8 @@ class SimNV200(SimDevice):
         name, args = fields[0].lower(), fields[1:]
         if name in ("recsrc", "recout", "recoutf"):
             return self._recorder(name, args)
+        if name == "gbarb" or name in WAVE_RANGES:
+            return self._waveform(name, args)
         if name not in self.params and name not in self.text and name not in _READ_ONLY:
             return self._error(2)
         if not args:

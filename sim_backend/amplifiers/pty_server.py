@@ -186,11 +186,14 @@ class PtyServer:
     def _rx_loop(self, stop: threading.Event, master: int) -> None:
         clock = _WireClock(self.baud)
         continuous = False
+        poll = getattr(self.device, "poll", None)
         while not stop.is_set():
             try:
-                ready, _, _ = select.select([master], [], [], 0.02)
+                ready, _, _ = select.select([master], [], [], 0.005 if poll else 0.02)
                 if not ready:
                     continuous = False
+                    if poll is not None:
+                        poll()  # a device with its own clock (a wave generator) plays on
                     continue
                 data = os.read(master, self._chunk)
             except BlockingIOError:
