@@ -59,13 +59,30 @@ def _check_data(t_s: Any, u_V: Any, y_nm: Any) -> tuple[np.ndarray, np.ndarray]:
     return u, y
 
 
-def identify_preisach(cls: type, t_s: Any, u_V: Any, y_nm: Any, n_operators: int | None = None, *,
-                      u_min_V: float | None = None, u_max_V: float | None = None, method: str = "auto",
-                      smoothing: float = 1e-4, max_rows: int = 200000, memory_depth: int | None = None,
-                      levels: int | None = None, fit_from_index: int = 0) -> Any:
+def identify_preisach(cls: type, t_s: Any, u_V: Any, y_nm: Any, n_operators: int | None = None,
+                      **options: Any) -> Any:
     """Fit ``cls`` (a :class:`~afmctl.compensators.preisach.PreisachModel`) to the data; see the
     module docstring. ``n_operators`` (or ``levels``) is the number of grid levels.
     ``fit_from_index`` (nnls only): samples before it only set the memory (a burn-in)."""
+    return _identify(cls, t_s, u_V, y_nm, n_operators, **options)[0]
+
+
+def identify_preisach_with_regressors(cls: type, t_s: Any, u_V: Any, y_nm: Any, regressors: np.ndarray,
+                                      n_operators: int | None = None, **options: Any) -> tuple[Any, np.ndarray]:
+    """Fit ``y ≈ y0 + Φ(u)·w + regressors·c`` with cell masses ``w ≥ 0`` and ``c ≥ 0``
+    jointly (method nnls): the model and ``c``. ``regressors`` has one row per sample, one
+    column per extra term (e.g. the creep corrections of a Preisach + creep chain, in nm)."""
+    Z = np.ascontiguousarray(check_finite("regressors", regressors), dtype=float)
+    if Z.ndim != 2 or Z.shape[0] != np.asarray(u_V).size:
+        raise ModelError(f"regressors: need one row per sample ({np.asarray(u_V).size}), got shape {Z.shape}")
+    return _identify(cls, t_s, u_V, y_nm, n_operators, method="nnls", regressors=Z, **options)
+
+
+def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n_operators: int | None = None, *,
+              u_min_V: float | None = None, u_max_V: float | None = None, method: str = "auto",
+              smoothing: float = 1e-4, max_rows: int = 200000, memory_depth: int | None = None,
+              levels: int | None = None, fit_from_index: int = 0,
+              regressors: np.ndarray | None = None) -> tuple[Any, np.ndarray]:
     u, y = _check_data(t_s, u_V, y_nm)
     L = n_operators if n_operators is not None else (levels if levels is not None else 32)
     if isinstance(L, bool) or not isinstance(L, (int, np.integer)) or not 1 <= int(L) <= 512:
@@ -107,17 +124,20 @@ def identify_preisach(cls: type, t_s: Any, u_V: Any, y_nm: Any, n_operators: int
     if chosen == "nnls" and L > _NNLS_MAX_LEVELS:
         raise ModelError(f"n_operators: {L} levels is too many for method=nnls (dense normal equations); "
                          f"allowed: 1..{_NNLS_MAX_LEVELS}, or first-order reversal data with method=for")
+    coef = np.zeros(0)
     if chosen == "for":
         w = _project_nonneg(G)
         model = cls.from_cell_masses(w, lo, hi, y0, fit_method="first-order reversal curves", **fields)
     else:
-        w, y0 = _nnls_fit(u, y, lo, hi, L, cap, smoothing, max_rows, fit_from_index)
+        w, y0, coef = _nnls_fit(u, y, lo, hi, L, cap, smoothing, max_rows, fit_from_index, regressors)
         model = cls.from_cell_masses(w, lo, hi, y0, fit_method=f"nnls (smoothing {smoothing:g})", **fields)
     r = (model.forward().block(u) - y)[fit_from_index:]
+    if coef.size:
+        r = r + (regressors @ coef)[fit_from_index:]
     model.fit_residual_nm = float(np.sqrt(np.mean(r * r)))
     model.fit_max_residual_nm = float(np.max(np.abs(r)))
     log.info("identify preisach: %s, %d levels, residual %.4g nm RMS", model.fit_method, L, model.fit_residual_nm)
-    return model
+    return model, coef
 
 
 # ------------------------------------------------------------------ first-order reversal curves
@@ -292,7 +312,11 @@ def _smoothness(L: int) -> np.ndarray:
 
 
 def _nnls_fit(u: np.ndarray, y: np.ndarray, lo: float, hi: float, L: int, cap: int, smoothing: float,
-              max_rows: int, fit_from_index: int = 0) -> tuple[np.ndarray, float]:
+              max_rows: int, fit_from_index: int = 0, extra: np.ndarray | None = None
+              ) -> tuple[np.ndarray, float, np.ndarray]:
+    """Cell masses ``w ≥ 0`` [nm], offset ``y0`` [nm] and the coefficients ``c ≥ 0`` of the
+    ``extra`` regressors (columns, one value per sample; none: an empty array) of
+    ``y ≈ y0 + Φ(u)·w + extra·c`` (regularised nonnegative least squares)."""
     from scipy.linalg import cholesky, solve_triangular
     from scipy.optimize import nnls
     n = u.shape[0] - fit_from_index
@@ -300,7 +324,9 @@ def _nnls_fit(u: np.ndarray, y: np.ndarray, lo: float, hi: float, L: int, cap: i
         rows = np.unique(np.linspace(0, n - 1, max_rows).round().astype(np.int64)) + fit_from_index
     else:
         rows = np.arange(fit_from_index, u.shape[0], dtype=np.int64)
-    nc = L * (L + 1) // 2
+    n_cells = L * (L + 1) // 2
+    ne = 0 if extra is None else extra.shape[1]
+    nc = n_cells + ne
     AtA = np.zeros((nc, nc))
     Atb = np.zeros(nc)
     Asum = np.zeros(nc)
@@ -310,6 +336,8 @@ def _nnls_fit(u: np.ndarray, y: np.ndarray, lo: float, hi: float, L: int, cap: i
     for s0 in range(0, rows.shape[0], chunk):
         r = rows[s0:s0 + chunk]
         F = _features(u, r, lo, hi, L, cap)
+        if ne:
+            F = np.hstack([F, extra[r]])
         AtA += F.T @ F
         Atb += F.T @ (ysel[s0:s0 + chunk] - ymean)
         Asum += F.sum(axis=0)
@@ -317,8 +345,14 @@ def _nnls_fit(u: np.ndarray, y: np.ndarray, lo: float, hi: float, L: int, cap: i
     mean_f = Asum / m
     # centre (y0 is free): A_c = A − 1·mean_f; Σ(y − ȳ) = 0 so A_cᵀ(y − ȳ) = Aᵀ(y − ȳ)
     AtA -= m * np.outer(mean_f, mean_f)
-    scale = float(np.trace(AtA)) / nc if np.trace(AtA) > 0 else 1.0
+    # unit-RMS regressor columns: one ridge and one scale for cells and extra regressors alike
+    col = np.sqrt(np.maximum(np.diag(AtA), 1e-300) / m)
+    col[:n_cells] = 1.0
+    AtA /= np.outer(col, col)
+    Atb /= col
+    scale = float(np.trace(AtA[:n_cells, :n_cells])) / n_cells if np.trace(AtA) > 0 else 1.0
     D = _smoothness(L)
+    D = np.hstack([D, np.zeros((D.shape[0], ne))])
     H = AtA + smoothing * scale * (D.T @ D) + 1e-9 * scale * np.eye(nc)
     try:
         R = cholesky(H, lower=False)
@@ -328,7 +362,8 @@ def _nnls_fit(u: np.ndarray, y: np.ndarray, lo: float, hi: float, L: int, cap: i
     # min ||R w − z||², R^T z = Atb
     z = solve_triangular(R, Atb, trans="T", lower=False)
     x, _ = nnls(R, z, maxiter=50 * nc)
+    x = x / col
     y0 = ymean - float(mean_f @ x)
     w = np.zeros((L, L))
-    w[np.tril_indices(L)] = x
-    return w, y0
+    w[np.tril_indices(L)] = x[:n_cells]
+    return w, y0, x[n_cells:]
