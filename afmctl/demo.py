@@ -8,9 +8,9 @@ A pipeline of small steps (each one a function of a shared :class:`DemoContext`)
    scanner drifts (``compensators.drift`` "physical_tube" transfer functions, gains
    multiplied by ``drift_gain`` — an exaggerated, badly insulated scanner, so that drift is
    visible next to hysteresis);
-2. **excite** — per lateral axis (the other axes at 0 V): two long dwells (creep),
-   first-order reversal curves 0 → α_k → 0 V with short dwells at the turns, and a decaying
-   sine; simulated at 10 kHz and averaged to 1 kHz (a sensor's output rate);
+2. **excite** — per lateral axis (the other axes at 0 V): what ``afmctl excite --kind
+   static`` and ``--kind creep`` write (major loop, reversal curves, a creep staircase);
+   simulated at 10 kHz and averaged to 1 kHz (a sensor's output rate);
 3. **identify** — each compensator kind (``pi``, ``epi``, ``preisach``, ``bouc-wen``, and
    the chain ``preisach+creep``, :class:`afmctl.compensators.chain.ChainModel`) as
    ``afmctl identify`` fits it; the x/y cross-coupling is estimated from the same runs
@@ -159,37 +159,13 @@ def step_setup(ctx: DemoContext) -> None:
 
 
 def excitation_voltage(dt_s: float, quick: bool) -> np.ndarray:
-    """The identification input [V]: two long dwells (creep), first-order reversal curves
-    0 → α_k → 0 V (α_k = 15…150 V, ramps at 600 V/s, a short dwell at every turning point)
-    and a decaying 2 Hz sine around 75 V."""
-    rate = 600.0
-    long_dwell = 4.0 if quick else 12.0
-    dwell = 0.2
-    parts: list[np.ndarray] = [np.zeros(int(0.05 / dt_s))]
-
-    def ramp(a: float, b: float) -> None:
-        n = max(int(abs(b - a) / rate / dt_s), 2)
-        parts.append(np.linspace(a, b, n)[1:])
-
-    def hold(v: float, seconds: float) -> None:
-        parts.append(np.full(int(seconds / dt_s), v))
-
-    ramp(0.0, 100.0)
-    hold(100.0, long_dwell)
-    ramp(100.0, 30.0)
-    hold(30.0, long_dwell)
-    ramp(30.0, 0.0)
-    hold(0.0, dwell)
-    for a in np.linspace(15.0, 150.0, 6 if quick else 12):
-        ramp(0.0, float(a))
-        hold(float(a), dwell)
-        ramp(float(a), 0.0)
-        hold(0.0, dwell)
-    dur = 1.5 if quick else 3.0
-    t = np.arange(int(dur / dt_s)) * dt_s
-    env = np.linspace(1.0, 0.1, t.size)
-    parts.append(75.0 - 75.0 * env * np.cos(2 * np.pi * 2.0 * t))
-    return np.clip(np.concatenate(parts), 0.0, 150.0)
+    """The identification input [V]: what ``afmctl excite --kind static`` and ``--kind creep``
+    write (major loop and first-order reversal curves at 150 V/s, then a staircase with
+    dwells), joined by a 1 s hold — the product's excitation (``--quick``: 6 reversal curves
+    each way and 1 s dwells instead of 12 and 2 s)."""
+    from .excitation import ExcitationSpec, concatenate, creep, static
+    spec = ExcitationSpec(u_min_V=0.0, u_max_V=150.0, rate_Hz=1.0 / dt_s, dwell_s=1.0 if quick else 2.0)
+    return concatenate([static(spec, n_reversals=6 if quick else 12), creep(spec)], spec)
 
 
 #: identification data: simulated at 10 kHz, averaged over 1 ms (what a sensor with a 1 kHz

@@ -2,30 +2,29 @@
 
 The workflow a user runs, through the command line (in-process ``afmctl.cli.main``):
 
-1. ``afmctl excite --kind static`` and ``--kind creep`` (2 kHz) and ``--kind dynamics``
-   (50 kHz), played through the default simulated scanner's x axis (the recording a
-   position sensor would give; the simulator has no CLI verb for offline playback);
-2. ``afmctl identify --model preisach`` on the static recording and
-   ``afmctl identify --model dynamics`` on the small-signal one; the creep stage after the
-   Preisach model is fitted with ``LinearCreepModel.identify`` on the Preisach output
-   (the composite ``preisach+creep+dynamics`` model file is another branch's work, so
-   that row composes the stages in Python);
+1. ``afmctl excite --kind all --rate-Hz 50000`` (major loop and reversal curves, a creep
+   staircase, a small-signal multisine; 54 s), played through the default simulated
+   scanner's x axis (the recording a position sensor would give; the simulator has no CLI
+   verb for offline playback);
+2. on that one recording: ``afmctl identify --model preisach``, ``--model dynamics`` and
+   ``--model preisach+creep+dynamics`` (the chain; its static stages alone, the chain
+   without its dynamics stage, are the ``preisach+creep`` row — ``identify --model
+   preisach+creep`` fits exactly those);
 3. 4 µm raster lines (x from 4 to 8 µm, trace and retrace, after a smooth approach and a
    0.3 s rest) sampled at 100 kHz, compensated by ``afmctl compensate`` with
    ``--model pre.json`` (static) and with ``--dynamics dyn.json --limits 0 150
-   --slew-V-per-s 10000`` (the amplifier's limits; the inverse's band limit is lowered
-   until the voltages fit);
+   --slew-V-per-s 10000`` (the amplifier's limits);
 4. the voltages run through a fresh default scanner; the error of the true x position is
    taken over the central 80 % of every trace and retrace, in % of the 4 µm line.
 
 Rows: ``none`` (nominal gain), ``preisach``, ``preisach+dynamics`` (``--dynamics``),
 ``preisach+creep`` and ``preisach+creep+dynamics`` (the chain files through
-``afmctl compensate``, same limits: the chain's one offline inverse). Writes its section of docs/BENCHMARKS.md between ``<!-- bench:speed_ladder -->``
-markers and the table as JSON.
+``afmctl compensate``, same limits: the chain's one offline inverse). Writes its section of
+docs/BENCHMARKS.md between ``<!-- bench:speed_ladder -->`` markers and the table as JSON.
 
     .venv/bin/python benchmarks/speed_ladder.py [--rates 1 4 16 50] [--no-write] [--json OUT.json]
 
-Takes about 3–5 minutes on one core (Preisach identification and 100 kHz CSV files).
+Takes about 3–4 minutes (the 2.7 M-row recording, three identifications, 100 kHz CSV files).
 """
 from __future__ import annotations
 
@@ -45,7 +44,6 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from afmctl.cli import main as afmctl  # noqa: E402
 from afmctl.compensators.chain import ChainModel  # noqa: E402
-from afmctl.compensators.creep import LinearCreepModel  # noqa: E402
 from afmctl.compensators.models import load_model, save_model  # noqa: E402
 from afmctl.datafiles import read_csv, write_csv  # noqa: E402
 from afmctl.sim_backend.scanner import Scanner, default_scanner_config  # noqa: E402
@@ -89,19 +87,15 @@ def record(kind: str, rate_Hz: float, work: Path) -> Path:
 
 
 def identify(work: Path) -> dict[str, Path]:
-    static, creep, dyn = record("static", 2000, work), record("creep", 2000, work), record("dynamics", 50_000, work)
-    paths = {"pre": work / "pre.json", "dyn": work / "dyn.json", "creep": work / "creep.json"}
-    cli("identify", "--model", "preisach", "--data", str(static), "--out", str(paths["pre"]),
+    data = record("all", 50_000, work)
+    paths = {k: work / f"{k}.json" for k in ("pre", "dyn", "chain", "chain_dyn")}
+    cli("identify", "--model", "preisach", "--data", str(data), "--out", str(paths["pre"]),
         "--param", "u_min_V=0", "--param", "u_max_V=150")
-    print(cli("identify", "--model", "dynamics", "--data", str(dyn), "--out", str(paths["dyn"])))
-    pre = load_model(paths["pre"])
-    d = read_csv(creep, ("t", "u", "y"))
-    cm = LinearCreepModel.identify(d["t"], pre.forward(None).block(d["u"]), d["y"])
-    paths["creep"].write_text(cm.model_dump_json(indent=2), encoding="utf-8")
-    # the chain model files (kind chain) that afmctl compensate inverts as one model
-    paths["chain"], paths["chain_dyn"] = work / "chain.json", work / "chain_dyn.json"
-    save_model(ChainModel(hysteresis=pre, creep=cm), paths["chain"])
-    save_model(ChainModel(hysteresis=pre, creep=cm, dynamics=load_model(paths["dyn"])), paths["chain_dyn"])
+    print(cli("identify", "--model", "dynamics", "--data", str(data), "--out", str(paths["dyn"])))
+    print(cli("identify", "--model", "preisach+creep+dynamics", "--data", str(data), "--out",
+              str(paths["chain_dyn"]), "--param", "u_min_V=0", "--param", "u_max_V=150"))
+    full = load_model(paths["chain_dyn"])
+    save_model(ChainModel(hysteresis=full.hysteresis, creep=full.creep), paths["chain"])
     return paths
 
 
@@ -185,8 +179,9 @@ def main(argv: list[str] | None = None) -> int:
                 "`.venv/bin/python benchmarks/speed_ladder.py` "
                 f"({time.perf_counter() - t0:.0f} s). Default simulated scanner, x axis, 4 µm lines "
                 "(4–8 µm), 100 kHz samples; max / RMS error over the central 80 % of every trace and "
-                "retrace, % of the line. Workflow through the CLI (excite → simulator → identify → "
-                "compensate; the `+creep` rows are chain model files). Amplifier limits "
+                "retrace, % of the line. Workflow through the CLI (`excite --kind all` at 50 kHz → "
+                "simulator → identify → compensate; the `+creep` rows are chain model files: "
+                "`identify --model preisach+creep+dynamics` and its static stages). Amplifier limits "
                 f"{LIMITS_V[0]:g}–{LIMITS_V[1]:g} V, {SLEW_V_PER_S:g} V/s.\n\n" + tab)
         write_section(NAME, body)
     return 0

@@ -66,14 +66,26 @@ def uniform_dt(t_s: np.ndarray) -> float:
 
 def small_signal_segment(u: np.ndarray, y: np.ndarray, t: np.ndarray, segment: Any
                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The part of the record to fit: ``segment="all"`` everything; ``"auto"`` the longest
-    run of samples whose input moves, but within 5 % of the input's span over 0.1 s
-    windows (the small-signal part of an ``afmctl excite --kind all`` recording; large
-    sweeps would show the hysteresis, dwells carry no information)."""
+    """The part of the record to fit: ``segment="all"`` everything; ``"auto"`` the
+    small-signal part (:func:`small_signal_bounds`), or everything when there is none."""
     if segment == "all":
         return u, y, t
     if segment != "auto":
         raise ModelError(f"segment: {segment!r}; allowed: auto, all")
+    bounds = small_signal_bounds(u, t)
+    if bounds is None:
+        return u, y, t
+    a, b = bounds
+    log.info("dynamics: fitting the small-signal part %.6g … %.6g s", t[a], t[b - 1])
+    return u[a:b], y[a:b], t[a:b]
+
+
+def small_signal_bounds(u: np.ndarray, t: np.ndarray) -> tuple[int, int] | None:
+    """``(start, stop)`` sample indices of the longest run of samples whose input moves, but
+    within 5 % of the input's span over 0.1 s windows (the small-signal part of an
+    ``afmctl excite --kind all`` recording; large sweeps would show the hysteresis, dwells
+    carry no information); None when the record has no such run of ≥ 256 samples, or is
+    all one."""
     from scipy.ndimage import maximum_filter1d, minimum_filter1d
 
     dt = float(t[1] - t[0])
@@ -82,15 +94,12 @@ def small_signal_segment(u: np.ndarray, y: np.ndarray, t: np.ndarray, segment: A
     span = float(np.ptp(u))
     ok = (local > 0) & (local <= 0.05 * span) if span > 0 else np.zeros(u.size, bool)
     if not np.any(ok) or np.all(ok):
-        return u, y, t
+        return None
     edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(np.int8), [0]])))
     starts, stops = edges[::2], edges[1::2]
     k = int(np.argmax(stops - starts))
     a, b = int(starts[k]), int(stops[k])
-    if b - a < 256:
-        return u, y, t
-    log.info("dynamics: fitting the small-signal part %.6g … %.6g s", t[a], t[b - 1])
-    return u[a:b], y[a:b], t[a:b]
+    return (a, b) if b - a >= 256 else None
 
 
 def measure_frf(u: np.ndarray, y: np.ndarray, dt_s: float, nperseg: int, f_min_Hz: float, f_max_Hz: float,

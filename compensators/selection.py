@@ -12,6 +12,15 @@ lies inside the training part's input range: RMS and max |prediction − measure
 is set by the sensor noise and spikes, and ranking by it picked a model with a worse held-out
 RMS *and* max on the real pea recording (docs/REALDATA.md). The winner is re-identified on
 the whole record and carries the table in its ``selection`` field.
+
+Linear dynamics: after the candidates, the best one is tried once more with a ``+dynamics``
+stage (unless a candidate already has one, or ``with_dynamics`` is off). Its static stages
+are fitted on the training part as above; the dynamics stage on the small-signal segment
+of the *whole* record (``afmctl excite --kind all`` puts that segment last, in the held-out
+part, and the dynamics kind finds it itself). A record without such a segment
+(:func:`~afmctl.compensators.dynamics_identify.small_signal_bounds`) is not tried. The dynamics matter wherever the held-out part moves
+fast (the multisine): a scanner whose amplifier bandwidth or structural mode shows there
+selects the ``+dynamics`` chain.
 """
 from __future__ import annotations
 
@@ -24,6 +33,7 @@ import numpy as np
 
 from .base import ModelError, check_finite
 from .chain import ChainModel, parse_structure
+from .dynamics_identify import small_signal_bounds
 from .input_checks import number_option
 
 log = logging.getLogger(__name__)
@@ -47,17 +57,36 @@ def scored_samples(u_V: np.ndarray, split: int, fit_from_index: int = 0) -> np.n
     return (u_V[split:] >= lo) & (u_V[split:] <= hi)
 
 
+def _with_dynamics(model: ChainModel, t: np.ndarray, u: np.ndarray, y: np.ndarray, k0: int,
+                   options: dict[str, Any]) -> ChainModel:
+    """``model`` (static stages) plus a dynamics stage fitted on the whole record after the
+    burn-in, from the static chain's output to ``y``."""
+    from .models import model_class
+    dt = float(np.median(np.diff(t)))
+    x = model.forward(dt).block(np.ascontiguousarray(u))
+    dyn = model_class("dynamics").identify(t[k0:], x[k0:], y[k0:], **dict(options.get("dynamics_options") or {}))
+    return ChainModel(hysteresis=model.hysteresis, creep=model.creep, dynamics=dyn)
+
+
 def score_candidate(structure: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, split: int,
-                    options: dict[str, Any] | None = None, fit_from_index: int = 0) -> dict[str, Any]:
+                    options: dict[str, Any] | None = None, fit_from_index: int = 0,
+                    dynamics_from_whole: bool = False) -> dict[str, Any]:
     """Identify ``structure`` on samples ``[fit_from_index:split]`` (the samples before
     ``fit_from_index`` only set the memory), predict all, score ``[split:]``.
+    ``dynamics_from_whole``: the structure's ``+dynamics`` stage is fitted on the whole
+    record instead (module docstring).
 
     Returns a table row: ``structure``, ``heldout_rms_nm``, ``heldout_max_nm``,
     ``heldout_rms_pct``, ``heldout_max_pct`` (% of the held-out span), ``train_rms_nm``;
     or ``structure`` and ``error`` (one line) when the fit fails."""
-    parse_structure(structure)
+    hyst_kind, stages = parse_structure(structure)
     try:
-        model = _fit(structure, t_s[:split], u_V[:split], y_nm[:split], options or {}, fit_from_index)
+        if dynamics_from_whole and "dynamics" in stages:
+            static = "+".join([hyst_kind, *[s for s in stages if s != "dynamics"]])
+            model = _fit(static, t_s[:split], u_V[:split], y_nm[:split], options or {}, fit_from_index)
+            model = _with_dynamics(model, t_s, u_V, y_nm, fit_from_index, options or {})
+        else:
+            model = _fit(structure, t_s[:split], u_V[:split], y_nm[:split], options or {}, fit_from_index)
         dt = float(np.median(np.diff(t_s)))
         pred = model.forward(dt).block(np.ascontiguousarray(u_V))
     except (ModelError, ValueError, np.linalg.LinAlgError) as err:
@@ -87,14 +116,15 @@ def _key(row: dict[str, Any], criterion: str = "rms") -> tuple[float, float]:
 
 def select_model(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates: Sequence[str] = DEFAULT_CANDIDATES,
                  holdout_fraction: float = 0.3, options: dict[str, Any] | None = None,
-                 fit_from_index: int = 0, criterion: str = "rms",
+                 fit_from_index: int = 0, criterion: str = "rms", with_dynamics: bool = True,
                  ) -> tuple[ChainModel, list[dict[str, Any]]]:
     """Score every candidate (module docstring), refit the best on all the data.
 
     ``t_s`` [s] uniformly sampled, ``u_V`` [V], ``y_nm`` [nm]. ``fit_from_index`` is a
     burn-in: the samples before it only set the models' memory; of the part after it, the
     first ``1 − holdout_fraction`` is fitted and the rest scored (the models run over the
-    whole record). ``criterion``: ``rms`` (default) or ``max`` held-out error. Returns the
+    whole record). ``criterion``: ``rms`` (default) or ``max`` held-out error.
+    ``with_dynamics``: also try the best candidate ``+dynamics`` (module docstring). Returns the
     best model (its ``selection`` field holds the table, best first) and the table."""
     t = check_finite("t_s", t_s).ravel()
     u = np.ascontiguousarray(check_finite("u_V", u_V).ravel())
@@ -123,6 +153,13 @@ def select_model(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates:
     if "error" in table[0]:
         raise ModelError("data: no candidate could be identified; " + "; ".join(
             f"{r['structure']}: {r['error']}" for r in table))
+    if with_dynamics and not any("dynamics" in parse_structure(c)[1] for c in candidates) \
+            and small_signal_bounds(u, t) is not None:
+        row = score_candidate(table[0]["structure"] + "+dynamics", t, u, y, split, options, k0,
+                              dynamics_from_whole=True)
+        log.info("auto: %s → %s", row["structure"], row)
+        table.append(row)
+        table.sort(key=lambda row: _key(row, criterion))
     best = _fit(table[0]["structure"], t, u, y, options or {}, k0)
     best.selection = table
     return best, table

@@ -43,8 +43,11 @@ Model kinds (--model):
             run over the whole record, so the burn-in sets their memory), print the
             table and keep the lowest held-out RMS (re-fitted on all the data); the
             table is stored in the model file. Excite the full voltage range in the
-            first 70 %. --param 'candidates=["pi","preisach+creep"]',
-            holdout_fraction=0.3, criterion=rms|max
+            first 70 % ('afmctl excite --kind all' does). The best is then tried
+            +dynamics (its dynamics from the record's small-signal part: record at a
+            rate that resolves the scanner's resonance, e.g. 50 kHz).
+            --param 'candidates=["pi","preisach+creep"]', holdout_fraction=0.3,
+            criterion=rms|max, with_dynamics=false
 Real recordings (--data):
   --burn-in auto    samples until the input has passed both its extremes only set the model's
                     memory (the state the recording started in is unknown); 'none' or SECONDS

@@ -44,11 +44,14 @@ def _fit(args: argparse.Namespace, t, u, y, fit_from: int):
         holdout = float(params.pop("holdout_fraction", 0.3))
         candidates = params.pop("candidates", None)
         criterion = params.pop("criterion", "rms")
+        with_dynamics = params.pop("with_dynamics", True)
+        if not isinstance(with_dynamics, bool):
+            raise AfmctlError(f"--param with_dynamics: {with_dynamics!r}; allowed true or false")
         if criterion not in CRITERIA:
             raise AfmctlError(f"--param criterion: {criterion!r}; allowed {', '.join(CRITERIA)} (held-out error)")
         kwargs = {"candidates": tuple(candidates)} if candidates else {}
         model, table = select_model(t, u, y, holdout_fraction=holdout, options=params, fit_from_index=fit_from,
-                                    criterion=criterion, **kwargs)
+                                    criterion=criterion, with_dynamics=with_dynamics, **kwargs)
         print(f"held-out prediction error (last {holdout:.0%} of {args.data} after the burn-in; % of its span; "
               f"ranked by {criterion}):")
         print(format_table(table))

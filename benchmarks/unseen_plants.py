@@ -1,0 +1,146 @@
+"""The speed-ladder workflow on simulated scanners afmctl was never tuned on.
+
+Per plant (x axis of a variant of the default scanner: other hysteresis, creep, amplifier
+and structural modes, see :data:`PLANTS`), through the command line as a user runs it:
+
+1. ``afmctl excite --kind all --rate-Hz 50000 --slew-V-per-s S`` → played through the plant
+   (the recording a position sensor would give);
+2. ``afmctl identify --model auto`` on that recording (the table it prints is kept);
+3. 4 µm raster lines at 1, 4, 10 and 50 lines/s compensated by ``afmctl compensate --model
+   auto.json --limits 0 150 --slew-V-per-s S --clip``, played through a fresh plant: max /
+   RMS error over the central 80 % of every trace and retrace, % of the line.
+
+    .venv/bin/python benchmarks/unseen_plants.py [--plants NAME ...] [--rates 1 4 10 50] [--no-write]
+
+Writes its section of docs/BENCHMARKS.md between ``<!-- bench:unseen_plants -->`` markers.
+About 3 minutes per plant.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import speed_ladder as sl  # noqa: E402
+from afmctl.datafiles import read_csv, write_csv  # noqa: E402
+from afmctl.sim_backend.config import (AmplifierConfig, CreepConfig, DynamicsConfig,  # noqa: E402
+                                       GaussianPreisachConfig, PreisachComponent, ScannerConfig)
+from afmctl.sim_backend.scanner import Scanner, default_scanner_config  # noqa: E402
+from sections import write_section  # noqa: E402  (benchmarks/sections.py)
+
+NAME = "unseen_plants"
+
+
+def _plant(hyst: GaussianPreisachConfig, creep: CreepConfig, amp: AmplifierConfig, modes: list[DynamicsConfig]
+           ) -> ScannerConfig:
+    cfg = default_scanner_config()
+    cfg.x.hysteresis, cfg.x.creep, cfg.x.amplifier = hyst, creep, amp
+    cfg.x.dynamics, cfg.x.extra_modes = modes[0], modes[1:]
+    return cfg
+
+
+def _gauss(linear: float, comps: list[tuple[float, float, float, float, float, float]]) -> GaussianPreisachConfig:
+    return GaussianPreisachConfig(linear_nm_per_V=linear, components=[
+        PreisachComponent(mass_nm=m, alpha_V=a, beta_V=b, sigma_alpha_V=sa, sigma_beta_V=sb, rho=r)
+        for m, a, b, sa, sb, r in comps])
+
+
+#: variant plants: name → (scanner config, description)
+PLANTS = {
+    "stiff": (_plant(_gauss(70.0, [(2500, 70, 40, 20, 20, 0.5), (1200, 120, 100, 15, 15, 0.6)]),
+                     CreepConfig(fraction=0.06, tau_min_s=0.02, tau_max_s=50.0, n_lags=4),
+                     AmplifierConfig(bandwidth_Hz=3000.0, slew_V_per_s=2.0e4),
+                     [DynamicsConfig(resonance_Hz=1600.0, quality_factor=30.0)]),
+              "narrower loop, 70 nm/V, creep 6 % (20 ms–50 s), 3 kHz amplifier, 1.6 kHz mode Q 30"),
+    "soft": (_plant(_gauss(35.0, [(3000, 45, 10, 30, 15, 0.2), (2500, 100, 50, 30, 30, 0.3),
+                                  (800, 140, 130, 10, 10, 0.8)]),
+                    CreepConfig(fraction=0.03, tau_min_s=0.005, tau_max_s=200.0, n_lags=6),
+                    AmplifierConfig(bandwidth_Hz=8000.0, slew_V_per_s=1.0e4),
+                    [DynamicsConfig(resonance_Hz=700.0, quality_factor=15.0),
+                     DynamicsConfig(resonance_Hz=2500.0, quality_factor=40.0)]),
+             "wide loop (≈ 18 %), 35 nm/V, creep 3 % (5 ms–200 s), 8 kHz amplifier, modes 0.7 kHz Q 15 + 2.5 kHz Q 40"),
+}
+
+
+def play_x(cfg: ScannerConfig, u_V: np.ndarray, dt_s: float) -> np.ndarray:
+    U = np.zeros((u_V.size, 3))
+    U[:, 0] = u_V
+    return Scanner(cfg).run(U, dt_s)[:, 0]
+
+
+def raster_for(cfg: ScannerConfig, rate: float) -> tuple[np.ndarray, int, int, int]:
+    """The speed ladder's raster scaled to this plant: 4 µm lines starting at a third of its
+    0–150 V range."""
+    lines = {1: 3, 4: 4, 10: 6, 16: 8, 50: 10}.get(int(rate), 4)
+    span = float(np.ptp(play_x(cfg, np.linspace(0.0, 150.0, 20000), 1e-3)))
+    tgt, start, n = sl.raster(rate, lines)
+    x0 = span / 3.0
+    out = tgt - sl.X0_NM + x0
+    na = int(0.2 / sl.DT_S)                       # the approach from 0 nm (sl.raster)
+    out[:na] = tgt[:na] * (x0 / sl.X0_NM)
+    return out, start, n, lines
+
+
+def one_plant(name: str, cfg: ScannerConfig, rates: list[float], work: Path) -> tuple[dict, str]:
+    slew = cfg.x.amplifier.effective_slew_V_per_s() or 1e5
+    exc = work / f"{name}_exc.csv"
+    sl.cli("excite", "--kind", "all", "--u-min-V", "0", "--u-max-V", "150", "--rate-Hz", "50000",
+           "--slew-V-per-s", f"{slew:g}", "--out", str(exc))
+    d = read_csv(exc, ("t", "u"))
+    data = work / f"{name}_data.csv"
+    write_csv(data, {"t": d["t"], "u": d["u"], "y": play_x(cfg, d["u"], 2e-5)})
+    model = work / f"{name}_auto.json"
+    t0 = time.perf_counter()
+    out = sl.cli("identify", "--model", "auto", "--data", str(data), "--out", str(model))
+    ident_s = time.perf_counter() - t0
+    selected = next(ln.split(":", 1)[1].strip() for ln in out.splitlines() if ln.startswith("selected"))
+    row = {}
+    for r in rates:
+        tgt, start, n, lines = raster_for(cfg, r)
+        target, volts = work / "target.csv", work / "volts.csv"
+        write_csv(target, {"t": np.arange(tgt.size) * sl.DT_S, "y": tgt})
+        sl.cli("compensate", "--model", str(model), "--target", str(target), "--out", str(volts),
+               "--limits", "0", "150", "--slew-V-per-s", f"{slew:g}", "--clip")
+        row[r] = sl.line_error_pct(play_x(cfg, read_csv(volts, ("t", "u"))["u"], sl.DT_S), tgt, start, n, lines)
+        print(f"{name} {r:g} lines/s: {row[r]['max_error_pct']:.2f} / {row[r]['rms_error_pct']:.2f} %", flush=True)
+    return row, f"{selected} (identify {ident_s:.0f} s)"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--plants", nargs="+", choices=sorted(PLANTS), default=sorted(PLANTS))
+    ap.add_argument("--rates", type=float, nargs="+", default=[1, 4, 10, 50], help="line rates [lines/s]")
+    ap.add_argument("--no-write", action="store_true", help="do not update docs/BENCHMARKS.md")
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    rows = {}
+    with tempfile.TemporaryDirectory(prefix="unseen-") as tmp:
+        for name in args.plants:
+            rows[name] = one_plant(name, PLANTS[name][0], args.rates, Path(tmp))
+    head = ("| plant | selected by `auto` | " + " | ".join(f"{r:g} lines/s" for r in args.rates) + " |\n|---|---|"
+            + "---|" * len(args.rates) + "\n")
+    body = "".join(f"| {n} | {sel} | " + " | ".join(f"{v[r]['max_error_pct']:.2f} / {v[r]['rms_error_pct']:.2f}"
+                                                    for r in args.rates) + " |\n" for n, (v, sel) in rows.items())
+    tab = head + body
+    print(tab)
+    if not args.no_write:
+        plants = "".join(f"- `{n}`: {PLANTS[n][1]}\n" for n in args.plants)
+        write_section(NAME, "## The speed-ladder workflow on plants afmctl was not tuned on\n\n"
+                      f"`.venv/bin/python benchmarks/unseen_plants.py` ({time.perf_counter() - t0:.0f} s). "
+                      "Variants of the default scanner's x axis; per plant, through the CLI: `excite --kind all` "
+                      "at 50 kHz → the plant → `identify --model auto` → `compensate --limits 0 150 "
+                      "--slew-V-per-s S --clip` → the plant. 4 µm lines from a third of the plant's range; max / "
+                      "RMS error over the central 80 % of every trace and retrace, % of the line.\n\n"
+                      + plants + "\n" + tab)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
