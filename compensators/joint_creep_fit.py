@@ -13,9 +13,12 @@ corrections evaluated on the previous round's hysteresis output ``ĥ``:
 
     y ≈ y0 + Φ(u)·w − Σ_k c_k·(ĥ − x_k(ĥ))
 
-which is linear in ``(y0, w, c)``. Because the creep fractions are small (a few % of a
-step), the error of using ``ĥ`` for ``h`` in the correction is second order, and two or
-three rounds reach the joint optimum. The lags start at rest at ``ĥ[0]``.
+which is linear in ``(y0, w, c)``. The first round takes the measured output itself for
+``ĥ`` (it differs from ``h`` by the creep, a few % of a step), each further round the
+previous round's hysteresis output; the rounds before the last fit a coarse grid (they only
+supply ``ĥ``). The error of using ``ĥ`` for ``h`` in the correction is second order, so two
+rounds (the default of :meth:`ChainModel.identify`) are enough. The lags start at rest at
+``ĥ[0]``.
 """
 from __future__ import annotations
 
@@ -30,13 +33,15 @@ from .creep import LinearCreepModel, log_spaced_time_constants
 log = logging.getLogger(__name__)
 
 #: rows of the joint least-squares problem (evenly spread over the record) unless
-#: ``max_rows`` is given: the 64-level fit costs ≈ 10 s per round at 50 000 rows
-JOINT_MAX_ROWS = 50_000
+#: ``max_rows`` is given: the 64-level fit costs ≈ 5 s per round at 20 000 rows
+JOINT_MAX_ROWS = 20_000
 #: density smoothing of the joint fit unless ``smoothing`` is given: lighter than the plain
 #: Preisach fit's 1e-4 — with the creep lags in the model the cell densities near the
 #: diagonal no longer absorb rate effects and need less damping (speed ladder, static
 #: floor at 16 lines/s: 0.65 % at 1e-4, 0.42 % at 1e-5; staircase 0.52 → 0.42 %)
 JOINT_SMOOTHING = 1e-5
+#: grid levels of the rounds before the last
+COARSE_LEVELS = 24
 
 
 def lag_corrections(h_nm: np.ndarray, dt_s: float, time_constants_s: np.ndarray) -> np.ndarray:
@@ -59,7 +64,7 @@ def fit_preisach_creep(hcls: Any, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.nda
 
     ``options`` go to the Preisach fit (grid range, smoothing, ...); ``creep_options``
     give the lags: ``n_operators``, ``tau_min_s``, ``tau_max_s`` [s]. ``rounds`` ≥ 1 joint
-    rounds after a first hysteresis-only fit. Data uniformly sampled."""
+    fits. Data uniformly sampled."""
     from .preisach_identify import identify_preisach_with_regressors
 
     dt = float(np.median(np.diff(t_s)))
@@ -70,11 +75,14 @@ def fit_preisach_creep(hcls: Any, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.nda
     if fit_from_index:
         opts["fit_from_index"] = fit_from_index
     h = np.asarray(y_nm, dtype=float)     # first round: the output itself stands in for ĥ
-    for r in range(max(1, int(rounds))):
+    n_rounds = max(1, int(rounds))
+    for r in range(n_rounds):
         if r:
             h = hyst.forward(dt).block(u_V)
+        # rounds before the last only supply ĥ: a coarse grid does (and costs a tenth)
+        levels = n_operators if r == n_rounds - 1 or n_operators is None else min(n_operators, COARSE_LEVELS)
         hyst, c = identify_preisach_with_regressors(hcls, t_s, u_V, y_nm, lag_corrections(h, dt, tau),
-                                                    n_operators=n_operators, **opts)
+                                                    n_operators=levels, **opts)
         log.info("joint preisach+creep round %d: creep fractions %s, residual %.4g nm RMS", r + 1,
                  np.array2string(c, precision=4), hyst.fit_residual_nm)
     if float(np.sum(c)) >= 1.0:
