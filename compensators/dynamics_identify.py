@@ -190,9 +190,28 @@ def fit_frf(frf: FRF, n_modes: int, n_lags: int, dt_s: float) -> tuple[np.ndarra
     return best.x, rms
 
 
+#: ``n_modes="auto"``: most modes tried, and the factor by which one more mode must lower
+#: the fit's RMS log error to be kept
+MAX_AUTO_MODES, MODE_GAIN = 3, 0.75
+
+
+def fit_mode_count(frf: FRF, n_lags: int, dt_s: float) -> tuple[int, np.ndarray, float]:
+    """Fit 1, 2, … :data:`MAX_AUTO_MODES` structural modes; keep adding one while it lowers
+    the RMS log error below :data:`MODE_GAIN` times the previous (a further mode that does
+    not explain the response is not kept). Returns the count, its parameters, its RMS."""
+    n, (x, rms) = 1, fit_frf(frf, 1, n_lags, dt_s)
+    while n < MAX_AUTO_MODES:
+        x2, rms2 = fit_frf(frf, n + 1, n_lags, dt_s)
+        if not rms2 < MODE_GAIN * rms:
+            break
+        n, x, rms = n + 1, x2, rms2
+    return n, x, rms
+
+
 def fit_dynamics(t_s: np.ndarray, u: np.ndarray, y_nm: np.ndarray, **options: Any) -> DynamicsFit:
     """Identify the dynamics; options (all optional): ``segment`` ("auto": the small-signal
-    part, see :func:`small_signal_segment`; "all"), ``n_modes`` (1), ``n_lags`` (1),
+    part, see :func:`small_signal_segment`; "all"), ``n_modes`` ("auto": as many as the
+    response shows, :func:`fit_mode_count`; or 0…6), ``n_lags`` (1),
     ``nperseg`` (samples per Welch segment, default the largest power of two ≤ N/4),
     ``f_min_Hz``, ``f_max_Hz`` (default 40 % of the sample rate), ``min_coherence`` (0.9)."""
     t = check_finite("t_s", t_s).ravel()
@@ -205,7 +224,8 @@ def fit_dynamics(t_s: np.ndarray, u: np.ndarray, y_nm: np.ndarray, **options: An
     if options.pop("n_operators", None) is not None:
         raise ModelError("--operators: not used by the dynamics model; use --param n_modes=N / n_lags=N")
     u, y, t = small_signal_segment(u, y, t, options.pop("segment", "auto"))
-    n_modes = int(number_option("n_modes", options.pop("n_modes", 1), lo=0, hi=6, integer=True))
+    modes_opt = options.pop("n_modes", "auto")
+    n_modes = None if modes_opt == "auto" else int(number_option("n_modes", modes_opt, lo=0, hi=6, integer=True))
     n_lags = int(number_option("n_lags", options.pop("n_lags", 1), lo=0, hi=4, integer=True))
     nps = 1 << int(math.floor(math.log2(max(16, t.size // 4))))
     nperseg = int(number_option("nperseg", options.pop("nperseg", nps), lo=16, hi=t.size, integer=True))
@@ -216,7 +236,10 @@ def fit_dynamics(t_s: np.ndarray, u: np.ndarray, y_nm: np.ndarray, **options: An
         raise ModelError(f"options: unknown option(s) {', '.join(sorted(options))}; allowed: segment, n_modes, n_lags, "
                          "nperseg, f_min_Hz, f_max_Hz, min_coherence")
     frf = measure_frf(u, y, dt, nperseg, f_min, f_max, min_coh)
-    x, rms = fit_frf(frf, n_modes, n_lags, dt)
+    if n_modes is None:
+        n_modes, x, rms = fit_mode_count(frf, n_lags, dt)
+    else:
+        x, rms = fit_frf(frf, n_modes, n_lags, dt)
     K, fm, zeta, fl, tau = _unpack(x, n_modes, n_lags)
     poles = []
     for f0, z in zip(fm, zeta):

@@ -67,7 +67,7 @@ Options:
                     preisach: u_min_V, u_max_V (grid range, default the data range),
                       method=auto|for|nnls, smoothing (1e-4), max_rows, memory_depth
                     bouc-wen: n (fix the exponent), max_rows (20000), u0_V
-                    dynamics: n_modes (1), n_lags (1), segment=auto|all, nperseg,
+                    dynamics: n_modes (auto: 1-3 as the response shows), n_lags (1), segment=auto|all, nperseg,
                       f_min_Hz, f_max_Hz, min_coherence (0.9)
                     e.g. --param min_slope_fraction=1e-3 --param 'thresholds=[0,10,20,30]'
 Output:
