@@ -149,7 +149,8 @@ class ChainModel(HysteresisModel):
         y = np.ascontiguousarray(check_finite("y_nm", y_nm).ravel())
         if self.dynamics is not None:
             return invert_within_limits(self.dynamics, y, dt_s, lambda: self.static_inverse(dt_s),
-                                        u_min_V, u_max_V, slew_V_per_s, u_start_V=u_start_V)
+                                        u_min_V, u_max_V, slew_V_per_s, u_start_V=u_start_V,
+                                        forward=lambda: self.forward(dt_s))
         u = self.static_inverse(dt_s).block(y)
         max_step = (slew_V_per_s or math.inf) * dt_s
         slew = float(np.max(np.abs(np.diff(u)))) / dt_s if u.size > 1 else 0.0

@@ -354,3 +354,27 @@ def test_chain_inverse_within_limits_ramps_from_the_resting_voltage(chain):
         assert np.max(np.abs(np.diff(res.u_V))) <= 1e4 * dt and 0.0 <= res.u_V.min() and res.u_V.max() <= 150.0
     # unlimited: the offline inverse is the same path with no limits
     np.testing.assert_array_equal(full.inverse_offline(tgt, dt), full.inverse_within_limits(tgt, dt).u_V)
+
+
+def test_when_nothing_fits_the_attempt_with_the_least_predicted_error_is_kept(chain):
+    """A 0.7 kHz mode and 50 lines/s through a 6 kV/s amplifier: no rounding and no band
+    limit fits the slew. The kept voltages are the attempt whose tip motion, predicted by the
+    chain through the rate limit, is closest to the target — not the most band-limited one,
+    which the search reaches last."""
+    from afmctl.compensators.dynamics import LinearDynamicsModel
+    from afmctl.compensators.dynamics_limits import invert_within_limits, rate_limit
+    dt, slew = 1e-5, 6e3
+    dyn = LinearDynamicsModel.from_modes([(700.0, 0.03)], real_poles_Hz=[6000.0])
+    full = ChainModel(hysteresis=chain.hysteresis, creep=chain.creep, dynamics=dyn)
+    tgt, keep = _raster_nm(50.0, dt, 4)
+
+    def tip_rms(u):
+        sent = rate_limit(u, 0.0, 150.0, slew * dt)[0]
+        e = full.forward(dt).block(sent) - tgt
+        return float(np.sqrt(np.mean(e * e)))
+
+    kept = full.inverse_within_limits(tgt, dt, 0.0, 150.0, slew)
+    last = invert_within_limits(dyn, tgt, dt, lambda: full.static_inverse(dt), 0.0, 150.0, slew)  # no forward
+    assert kept.slew_limited > 0 and np.max(np.abs(np.diff(kept.u_V))) <= slew * dt     # within the slew
+    assert last.bandwidth_Hz < kept.bandwidth_Hz or last.rounded_s != kept.rounded_s
+    assert tip_rms(kept.u_V) < 0.95 * tip_rms(last.u_V)     # measured 218 vs 242 nm
