@@ -1,8 +1,8 @@
 """Where the speed ladder's error comes from: the same models, played through plants that
 leave out one cause at a time.
 
-Identifies the models exactly as ``benchmarks/speed_ladder.py`` does (CLI: excite →
-default simulated scanner → identify), then, per line rate, the max / RMS error [% of the
+Identifies the models exactly as ``benchmarks/speed_ladder.py`` does (CLI: ``excite --kind
+all`` → default simulated scanner → identify), then, per line rate, the max / RMS error [% of the
 4 µm line, central 80 % of every trace and retrace] of the chain's offline inverse
 (``ChainModel.inverse_within_limits``, what ``afmctl compensate`` runs) on:
 
@@ -41,12 +41,11 @@ from afmctl.sim_backend.config import ExternalModelConfig  # noqa: E402
 from afmctl.sim_backend.scanner import Scanner, default_scanner_config  # noqa: E402
 from sections import write_section  # noqa: E402  (benchmarks/sections.py)
 
-NOTE = ("Reading: `static plant` is the hysteresis+creep model floor; `exact static` is what the "
-        "dynamics inverse and the slew limit leave when the static model is exact. At 50 lines/s the "
-        "gap between `static plant` and `full` is the static model's error at the turnarounds "
-        "ringing through the 1 kHz mode (Q 20), not the dynamics model: the static model is the "
-        "bottleneck at every rate. Rounding only the turnarounds (the default) instead of lowering "
-        "the whole band limit matters once the static model is good (last two columns).")
+NOTE = ("Reading: `static plant` is the hysteresis+creep model's own floor; `exact static` is what the "
+        "dynamics inverse and the slew limit leave when the static model is exact; the gap between `static "
+        "plant` and `full` is the static model's remaining error at the turnarounds ringing through the "
+        "1 kHz mode (Q 20). Rounding only the turnarounds (the default) instead of lowering the whole band "
+        "limit matters once the static model is good (last two columns).")
 
 
 def play(u_V: np.ndarray, static_plant: bool = False, exact_static: dict | None = None) -> np.ndarray:

@@ -108,12 +108,6 @@ def test_demo_speed_ladder_through_the_controller(demo_run):
         for label, cell in row.items():
             assert 0 < cell["rms_error_pct"] <= cell["max_error_pct"], (rate, label, cell)
             assert cell["path"] == ("offline" if rate == "50" else "controller")
-    # issue #11's targets, met even by the reduced demo's models (quick excitation):
-    # measured 0.71 / 0.69 / 0.66 % max, 0.37 / 0.37 / 0.39 % RMS, 1.31 % at 50 lines/s
-    dyn = {rate: row["chain+dynamics"] for rate, row in ladder.items()}
-    for rate in ("1", "4", "16"):
-        assert dyn[rate]["max_error_pct"] <= 1.0 and dyn[rate]["rms_error_pct"] <= 0.5, (rate, dyn[rate])
-    assert dyn["50"]["max_error_pct"] <= 2.0, dyn["50"]
             if label == "chain+dynamics" and rate != "50":   # the loop reads the trajectory ahead
                 assert cell["loop_rate_Hz"] == 10000.0 and cell["latency_s"] > 0, cell
         assert row["chain"]["model"] == "preisach+creep" and row["static"]["model"] == "pi"
@@ -122,6 +116,12 @@ def test_demo_speed_ladder_through_the_controller(demo_run):
     # both offline at 50 lines/s: the dynamics stage is no worse (13.5 % vs 3.6 % before #11's fix)
     fifty = ladder["50"]
     assert fifty["chain+dynamics"]["max_error_pct"] <= 1.1 * fifty["chain"]["max_error_pct"], fifty
+    # issue #11's targets, met even by the reduced demo's models (quick excitation):
+    # measured 0.71 / 0.69 / 0.66 % max, 0.37 / 0.37 / 0.39 % RMS, 1.31 % at 50 lines/s
+    dyn = {rate: row["chain+dynamics"] for rate, row in ladder.items()}
+    for rate in ("1", "4", "16"):
+        assert dyn[rate]["max_error_pct"] <= 1.0 and dyn[rate]["rms_error_pct"] <= 0.5, (rate, dyn[rate])
+    assert dyn["50"]["max_error_pct"] <= 2.0, dyn["50"]
     assert (out / "models" / "scanner_preisach+creep.json").exists()
     assert (out / "ladder" / "ladder-1-scanner_preisach+creep.afmlog").exists()
     png = (out / "demo_speed_ladder.png").read_bytes()
