@@ -36,8 +36,9 @@ Model kinds (--model):
             response (Welch) fitted by modes + lags + delay; the gain is printed
   KIND+creep[+dynamics]
             a chain (kind chain): hysteresis KIND (pi, epi, preisach, bouc-wen), then
-            linear creep, then linear dynamics, identified jointly (Hammerstein);
-            needs uniformly spaced samples
+            linear creep, then linear dynamics, identified jointly (Hammerstein):
+            hysteresis and creep on block means at <= 2 kHz, the dynamics at the
+            record's rate from its small-signal part; needs uniformly spaced samples
   auto      fit every candidate chain on the first 70 % of the data after the burn-in,
             score each by its prediction error on the last 30 % (held out; the models
             run over the whole record, so the burn-in sets their memory), print the
@@ -58,7 +59,8 @@ Real recordings (--data):
                     instead (afmctl excite --kind static|creep|dynamics)
 Options:
   --operators N     pi/epi: play operators (default 13, max 1000); creep: lags (default 4);
-                    preisach: grid levels (default 32; nnls up to 64, for up to 512);
+                    preisach: grid levels (default 32; nnls up to 64, for up to 512;
+                      in a preisach+creep chain 64, fitted jointly with the creep lags);
                     bouc-wen: ignored
   --param KEY=VALUE model-specific options, VALUE parsed as JSON when possible:
                     pi, epi: thresholds=[0,10,...] (V), min_slope_fraction (1e-3), max_rows
