@@ -44,8 +44,8 @@ from sections import write_section  # noqa: E402  (benchmarks/sections.py)
 NOTE = ("Reading: `static plant` is the hysteresis+creep model's own floor; `exact static` is what the "
         "dynamics inverse and the slew limit leave when the static model is exact; the gap between `static "
         "plant` and `full` is the static model's remaining error at the turnarounds ringing through the "
-        "1 kHz mode (Q 20). Rounding only the turnarounds (the default) instead of lowering the whole band "
-        "limit matters once the static model is good (last two columns).")
+        "1 kHz mode (Q 20). The last two columns compare rounding only the turnarounds (the default) with "
+        "lowering the whole band limit when the slew limit is met.")
 
 
 def play(u_V: np.ndarray, static_plant: bool = False, exact_static: dict | None = None) -> np.ndarray:
