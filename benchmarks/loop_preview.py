@@ -99,6 +99,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stream", action="store_true",
                     help="also run each cell with output = stream over CAN FD (device-timed, 10 samples/frame)")
     ap.add_argument("--models", type=Path, help="folder of scanner_KIND.json (default: run the demo)")
+    ap.add_argument("--sim-dt-s", type=float, default=None,
+                    help="the simulated scanner's integration step [s] (default its own, 1e-5); 1e-4 integrates "
+                         "a 10 kHz output once per sample, so the in-process simulator keeps up with a 10 kHz stream")
     ap.add_argument("--no-write", action="store_true", help="do not update docs/BENCHMARKS.md")
     ap.add_argument("--json", type=Path, help="also write the results as JSON")
     args = ap.parse_args(argv)
@@ -107,6 +110,8 @@ def main(argv: list[str] | None = None) -> int:
         work = Path(tmp)
         models = args.models or demo_models(work)
         scfg = default_scanner_config().model_copy(update={"drift": DriftConfig(kind="none")})
+        if args.sim_dt_s:
+            scfg = scfg.model_copy(update={"dt_s": args.sim_dt_s})
         scanner_json = sl.write_scanner_json(scfg, work / "scanner.json")
         gain = Scanner(scfg).nominal_gain_nm_per_V().tolist()
         results = {}
