@@ -138,8 +138,9 @@ def main(argv: list[str] | None = None) -> int:
                 "preview horizon (the output lags the trajectory read by it); `slew-lim.`/`clamped`: samples the "
                 "safety layer limited. `stream`: `output = \"stream\"` over CAN FD (10 samples per frame); "
                 "its error is that of the queued samples played on time, so a cell with device underruns "
-                "(the simulated amplifier, in the same process, did not keep up: its scanner costs ≈ 0.15 ms "
-                "per sample here) is not what that run's tip did.\n\n" + tab)
+                "(the simulated amplifier, in the same process, did not keep up) is not what that run's tip "
+                "did. `--sim-dt-s 1e-4` integrates the simulated scanner once per 10 kHz sample instead of ten "
+                "times (the mode and the amplifier are discretised exactly at either step).\n\n" + tab)
         write_section(NAME, body)
     return 0
 
