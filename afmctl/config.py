@@ -95,16 +95,22 @@ class AmplifierSection(_Strict):
     output: Literal["setpoints", "stream", "wave"] = Field(
         "setpoints", description="how the loop reaches the amplifier: 'setpoints' (one setpoint per tick, the "
                                  "host's timing), 'stream' (device-timed: samples queued ahead into the "
-                                 "amplifier's FIFO, driver 'can'), 'wave' (a wave table the device plays)")
-    low_water_s: float = Field(0.1, gt=0.0, le=10.0, description="output = 'stream': top the device FIFO up "
+                                 "amplifier's FIFO, driver 'can'), 'wave' (a finite trajectory computed whole "
+                                 "before the run, as `afmctl compensate` does, and played on the "
+                                 "amplifier's clock: wave generator of drivers 'gcs'/'nv200', stream "
+                                 "FIFO of 'can')")
+    low_water_s: float = Field(0.1, gt=0.0, le=10.0, description="output = 'stream'/'wave' on CAN: top the device FIFO up "
                                                                  "when it holds less than this [s of samples]")
-    high_water_s: float = Field(0.2, gt=0.0, le=10.0, description="output = 'stream': fill the device FIFO to "
+    high_water_s: float = Field(0.2, gt=0.0, le=10.0, description="output = 'stream'/'wave' on CAN: fill the device FIFO to "
                                                                   "this [s of samples]; > low_water_s")
 
     @model_validator(mode="after")
     def _stream_marks(self) -> "AmplifierSection":
-        if self.output == "stream":
-            if self.driver != "can":
+        if self.output == "wave" and self.driver not in ("can", "gcs", "nv200"):
+            raise ValueError(f"output = 'wave' needs a device clock: driver 'gcs', 'nv200' (wave generator) or "
+                             f"'can' (stream FIFO) (got {self.driver!r})")
+        if self.output in ("stream", "wave"):
+            if self.output == "stream" and self.driver != "can":
                 raise ValueError(f"output = 'stream' needs a link that buffers: driver 'can' (got {self.driver!r})")
             if not self.low_water_s < self.high_water_s:
                 raise ValueError(f"low_water_s {self.low_water_s:g} must be below high_water_s "

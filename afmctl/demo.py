@@ -439,11 +439,14 @@ def _ladder_cell(ctx: DemoContext, kind: str | None, rate: float, folder: Path, 
     o = ctx.options
     rates = sl.PREVIEW_RATE_HZ if kind is not None and kind.endswith("+dynamics") else sl.CONTROLLER_RATE_HZ
     loop_Hz = rates.get(rate) if o.ladder_controller else None
+    wave = ""
+    if loop_Hz is None and o.ladder_controller and rate in sl.WAVE_RATE_HZ:
+        loop_Hz, wave = sl.WAVE_RATE_HZ[rate], sl.WAVE_FD_TOML   # device-timed: computed whole, played by the amplifier
     if loop_Hz is not None:
         gain = _new_scanner(ctx, drift=False).nominal_gain_nm_per_V()
         model = folder.parent / "models" / f"scanner_{kind}.json" if kind else None
         err, info = sl.controller_errors_nm(folder, scanner_json, model, rate, loop_Hz, gain.tolist(),
-                                            lines=2)   # one settling line, one scored
+                                            lines=2 if not wave else 4, amplifier_toml=wave)   # first line settles
         return {**sl.error_pct(err), "path": "controller", **info}
     name = kind or "none"
 

@@ -139,21 +139,6 @@ def quiet_window_wait_s(now_s: float, deadline_s: float, period_s: float, spin_s
     return (start - phase) % period_s
 
 
-def wave_machine() -> type:
-    """The loop machine of ``amplifier.output = "wave"``: ``WaveMachine`` of
-    ``afmctl.wave_run`` (the wave-table runner; same interface as :class:`LoopMachine`), or
-    an :class:`AfmctlError` saying it is not available in this installation."""
-    try:
-        from . import wave_run  # type: ignore[attr-defined]
-    except ImportError:
-        wave_run = None
-    machine = getattr(wave_run, "WaveMachine", None)
-    if machine is None:
-        raise AfmctlError("amplifier.output = 'wave': no wave-table runner in this installation "
-                          "(afmctl.wave_run.WaveMachine); allowed here: 'setpoints', 'stream'")
-    return machine
-
-
 class Controller:
     """Fixed-rate feedforward controller; see the module docstring.
 
@@ -181,7 +166,8 @@ class Controller:
         self.pipeline = pipeline
         axes = list(config.scanner.axes)
         if config.amplifier.output == "wave":
-            wave_machine()      # refuse at once, before anything runs
+            from .wave_run import check_wave_config
+            check_wave_config(config, amplifier)   # refuse at once, before anything runs
         if config.amplifier.output == "stream" and not hasattr(amplifier, "start_stream"):
             raise AfmctlError(f"amplifier.output = 'stream': the {config.amplifier.driver} driver has no "
                               "buffered stream; allowed with driver 'can'")
@@ -225,7 +211,10 @@ class Controller:
     @property
     def latency_samples(self) -> int:
         """Preview horizon [samples]: the loop reads the trajectory this far ahead of its
-        output (the pipeline's dynamics inverse needs it; 0 without one)."""
+        output (the pipeline's dynamics inverse needs it; 0 without one, and 0 with
+        ``amplifier.output = "wave"``, whose table is computed from the whole trajectory)."""
+        if self.config.amplifier.output == "wave":
+            return 0
         return int(getattr(self.pipeline, "latency_samples", 0))
 
     @property
@@ -372,6 +361,9 @@ class Controller:
             it = iter(source)
         else:
             raise AfmctlError(f"start: unsupported trajectory source {type(source).__name__}")
+        if self._queue_mode and self.config.amplifier.output == "wave":
+            raise AfmctlError("start: amplifier.output = 'wave' plays a finite trajectory computed before the "
+                              "run; run-time segments (queue mode) need output = 'setpoints' or 'stream'")
         if not self._queue_mode:
             self._deque.clear()
         self._drift_meas.clear()        # measurements of a previous run refer to its filter
@@ -488,12 +480,16 @@ class Controller:
             "T_C": self._T_C, "runlog_error": self.runlog_error,
             "latency_samples": self.latency_samples, "latency_s": self.latency_s,
             "output": self.config.amplifier.output, "stream": self._stream_stats,
+            "wave": self._wave_stats,
         }
 
     # ------------------------------------------------------------------ internals
     def _reset_stats(self) -> None:
         """Zero every counter of :meth:`stats` (a new run starts from scratch)."""
         self._w = 0
+        #: ring rows the dispatcher has handed on (a producer that writes many rows at once
+        #: waits for it instead of overrunning the ring)
+        self._r_done = 0
         self._hist[:] = 0
         self._whist[:] = 0
         self._missed_log.clear()
@@ -504,6 +500,8 @@ class Controller:
         self._last_error: str | None = None
         #: output = "stream": underruns, lowest_level, queued, ... (afmctl.loop_stream); else None
         self._stream_stats: dict[str, Any] | None = None
+        #: output = "wave": samples, pad, played, ... (afmctl.wave_run); else None
+        self._wave_stats: dict[str, Any] | None = None
         self.safety.slew_limited = self.safety.clamped = self.safety.nonfinite = 0
 
     def _set_state(self, state: State, event: str, detail: str | None = None) -> None:
@@ -576,7 +574,8 @@ class Controller:
             from .loop_stream import StreamMachine
             return StreamMachine
         if self.config.amplifier.output == "wave":
-            return wave_machine()
+            from .wave_run import WaveMachine
+            return WaveMachine
         return LoopMachine
 
     def _apply_drift_measurement(self, item: tuple) -> None:
@@ -612,7 +611,7 @@ class Controller:
         try:
             while True:
                 alive = self._thread is not None and self._thread.is_alive()
-                r = self._dispatch_records(r)
+                r = self._r_done = self._dispatch_records(r)
                 self._check_runlog()
                 self._dispatch_events()
                 if time.monotonic() >= next_status:

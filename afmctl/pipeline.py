@@ -247,19 +247,18 @@ def _model_name(model: Any) -> str:
     return getattr(model, "structure", None) or model.kind
 
 
-def axis_inverses(config) -> tuple[list[StreamingOperator], dict[str, str], np.ndarray | None]:
-    """Per-axis inverse operators, their provenance and C⁻¹ (or None) from the
-    configuration's ``[compensation]``: ``[compensation.<axis>] model`` first, then the
-    axis of ``scanner_model``, else the linear calibration of ``[scanner.calibration]``."""
+def axis_models(config) -> tuple[list[tuple[Any, str | None]], np.ndarray | None, str | None]:
+    """Per axis x, y, z the model of the configuration's ``[compensation]`` and the file it
+    came from — ``[compensation.<axis>] model`` first, then the axis of ``scanner_model`` —
+    or ``(None, None)`` (the linear calibration); then C⁻¹ of the scanner model (None when
+    there is none or it is the identity) and the scanner model's file."""
     from afmctl.compensators.base import ModelError
     from afmctl.compensators.models import load_model
-    dt = config.dt_s
     comp = config.compensation
     scanner = None
     if comp.scanner_model is not None:
         scanner = load_model(comp.scanner_model, expect=("scanner",))
-    inverses: list[StreamingOperator] = []
-    prov: dict[str, str] = {}
+    models: list[tuple[Any, str | None]] = []
     for axis in ("x", "y", "z"):
         spec = comp.axis(axis)
         model, source = None, None
@@ -272,6 +271,22 @@ def axis_inverses(config) -> tuple[list[StreamingOperator], dict[str, str], np.n
                 model = model.axis(axis)
         elif scanner is not None and scanner.axis(axis) is not None:
             model, source = scanner.axis(axis), comp.scanner_model
+        models.append((model, source))
+    inv_c = None
+    if scanner is not None and not np.allclose(scanner.inverse_coupling(), np.eye(3)):
+        inv_c = scanner.inverse_coupling()
+    return models, inv_c, comp.scanner_model
+
+
+def axis_inverses(config) -> tuple[list[StreamingOperator], dict[str, str], np.ndarray | None]:
+    """Per-axis inverse operators, their provenance and C⁻¹ (or None) from the
+    configuration's ``[compensation]`` (:func:`axis_models`), else the linear calibration
+    of ``[scanner.calibration]``."""
+    dt = config.dt_s
+    models, inv_c, scanner_file = axis_models(config)
+    inverses: list[StreamingOperator] = []
+    prov: dict[str, str] = {}
+    for axis, (model, source) in zip(("x", "y", "z"), models):
         if model is not None:
             op = model.inverse(dt)
             inverses.append(op)
@@ -283,10 +298,8 @@ def axis_inverses(config) -> tuple[list[StreamingOperator], dict[str, str], np.n
             cal = config.scanner.axis_spec(axis)
             inverses.append(LinearAxis(cal.nm_per_V, cal.offset_V))
             prov[axis] = f"linear calibration {cal.nm_per_V:g} nm/V (uncompensated)"
-    inv_c = None
-    if scanner is not None and not np.allclose(scanner.inverse_coupling(), np.eye(3)):
-        inv_c = scanner.inverse_coupling()
-        prov["coupling"] = f"inverse 3x3 from {Path(comp.scanner_model).name}"
+    if inv_c is not None:
+        prov["coupling"] = f"inverse 3x3 from {Path(scanner_file).name}"
     return inverses, prov, inv_c
 
 

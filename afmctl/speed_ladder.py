@@ -47,6 +47,13 @@ CONTROLLER_RATE_HZ: dict[float, float] = {1.0: 2000.0, 4.0: 2000.0, 16.0: 2000.0
 PREVIEW_RATE_HZ: dict[float, float] = {1.0: 10000.0, 4.0: 10000.0, 16.0: 10000.0}
 #: ``[amplifier]`` keys for device-timed output over CAN FD (10 samples per frame)
 STREAM_FD_TOML = 'output = "stream"\nlow_water_s = 0.1\nhigh_water_s = 0.2\n[amplifier.options]\nfd = true\n'
+#: ``[amplifier]`` keys for ``output = "wave"`` over CAN FD: the whole trajectory computed
+#: before the run (:mod:`afmctl.wave_plan`) and played from the amplifier's FIFO on its clock
+WAVE_FD_TOML = 'output = "wave"\nlow_water_s = 0.1\nhigh_water_s = 0.2\n[amplifier.options]\nfd = true\n'
+#: line rates run through the controller with ``output = "wave"`` (the host loop cannot
+#: carry them sample by sample), at this output rate [Hz]: 50 lines/s of 200 points per
+#: line and direction at 20 kHz
+WAVE_RATE_HZ: dict[float, float] = {50.0: 20000.0}
 LINE_NM = 4000.0        #: scan-line length [nm]
 ORIGIN_NM = 1000.0      #: start of the lines (x and y) [nm]
 CENTRAL = 0.8           #: fraction of each line scored
@@ -128,16 +135,19 @@ mode = "trace-retrace"
 
 
 def controller_errors_nm(folder: Path, scanner_json: Path, model: Path | None, rate_Hz: float, loop_Hz: float,
-                         nm_per_V: Sequence[float], lines: int = 3) -> tuple[np.ndarray, dict[str, Any]]:
+                         nm_per_V: Sequence[float], lines: int = 3, amplifier_toml: str = ""
+                         ) -> tuple[np.ndarray, dict[str, Any]]:
     """Lateral errors [nm] (n, 2) over the central 80 % of ``lines`` raster lines at
     ``rate_Hz`` run by the real Controller at ``loop_Hz`` (module docstring), and the
-    loop's statistics (lateness, missed deadlines)."""
+    loop's statistics (lateness, missed deadlines). ``amplifier_toml``: more
+    ``[amplifier]`` keys, e.g. :data:`WAVE_FD_TOML`."""
     from .config import load_config
     from .loop import Controller
     from .simlink import simulated_amplifier
     name = f"ladder-{rate_Hz:g}-{'none' if model is None else model.stem}"
     channel = f"afmctl-{name}-{os.getpid()}"
-    cfg = load_config(text=_config_text(folder, scanner_json, model, rate_Hz, loop_Hz, lines, channel, nm_per_V))
+    cfg = load_config(text=_config_text(folder, scanner_json, model, rate_Hz, loop_Hz, lines, channel, nm_per_V,
+                                        amplifier_toml))
     path = folder / f"{name}.afmlog"
     path.unlink(missing_ok=True)        # a rerun of the demo replaces its ladder logs
     with simulated_amplifier(cfg) as (amp, _scanner):
@@ -152,7 +162,10 @@ def controller_errors_nm(folder: Path, scanner_json: Path, model: Path | None, r
     err = runlog_errors_nm(cfg, path, rate_Hz)
     info = {"loop_rate_Hz": loop_Hz, "lateness_p99_us": round(stats["lateness_p99_s"] * 1e6, 1),
             "missed_deadlines": stats["missed_deadlines"], "samples": len(err),
-            "latency_s": stats["latency_s"], "slew_limited": stats["slew_limited"], "clamped": stats["clamped"]}
+            "latency_s": stats["latency_s"], "slew_limited": stats["slew_limited"], "clamped": stats["clamped"],
+            "output": stats["output"]}
+    if stats["stream"] is not None:
+        info["underruns"] = stats["stream"]["underruns"]
     return err, info
 
 
@@ -177,10 +190,12 @@ def runlog_errors_nm(cfg: Any, path: Path, rate_Hz: float) -> np.ndarray:
 
 
 def _latency_samples(reader: Any) -> int:
-    """The run's preview horizon [samples] from its final stats event (0 if none)."""
+    """The run's preview horizon [samples] from its final stats event (0 if none); with
+    ``output = "wave"`` the held start of its table (the same number of samples)."""
     for e in reversed(reader.events()):
         if e.get("event") == "stats" and isinstance(e.get("detail"), dict):
-            return int(e["detail"].get("latency_samples", 0) or 0)
+            wave = e["detail"].get("wave") or {}
+            return int(e["detail"].get("latency_samples", 0) or 0) + int(wave.get("pad", 0) or 0)
     return 0
 
 

@@ -202,12 +202,8 @@ def test_afmctl_run_streams_and_reports_the_fifo(tmp_path):
     assert summary["stream"]["queued"] == summary["samples"] > 0
 
 
-def test_afmctl_run_refuses_wave_output_without_a_runner(tmp_path):
-    import importlib.util
-    if importlib.util.find_spec("afmctl.wave_run") is not None:
-        pytest.skip("a wave runner is installed (afmctl.wave_run): its own tests cover output = 'wave'")
-    res, _ = _run_cli(tmp_path, "wave")
-    assert res.returncode == 2 and "Traceback" not in res.stderr
-    assert res.stderr.strip().splitlines() == [
-        "afmctl: error: amplifier.output = 'wave': no wave-table runner in this installation "
-        "(afmctl.wave_run.WaveMachine); allowed here: 'setpoints', 'stream'"]
+def test_afmctl_run_plays_a_wave_through_the_fifo(tmp_path):
+    res, summary = _run_cli(tmp_path, "wave")
+    assert res.returncode == 0, res.stderr
+    assert summary["output"] == "wave" and summary["stream"]["underruns"] == 0
+    assert summary["stream"]["queued"] > 0

@@ -80,6 +80,10 @@ def link_warning(config) -> str | None:
     ceiling = LINK_CEILING_PER_S.get(driver)
     if ceiling is None or str(config.amplifier.port or "").startswith("socket://"):
         return None      # CAN and TCP links carry more than the loop's rate limit
+    if config.amplifier.output == "wave" and driver != "can":
+        return None      # the table is uploaded before it plays on the device's clock
+    if config.amplifier.output in ("stream", "wave") and config.amplifier.options.get("fd"):
+        return None      # CAN FD: 10 samples per frame
     if driver != "can":
         baud = config.amplifier.options.get("baudrate") or (config.simulation.baud if config.simulation.enabled
                                                             else 115200)
@@ -100,7 +104,7 @@ def _summary(ctl, config, scanner) -> dict:
            "reconnects": st["reconnects"], "watchdog_trips": st["watchdog_trips"],
            "slew_limited": st["slew_limited"], "clamped": st["clamped"], "last_error": st["last_error"],
            "latency_samples": st["latency_samples"], "latency_s": st["latency_s"],
-           "output": st["output"], "stream": st["stream"],
+           "output": st["output"], "stream": st["stream"], "wave": st["wave"],
            "runlog": str(ctl.runlog_path) if ctl.runlog_path else None,
            "runlog_error": ctl.runlog_error, "trajectory_error": ctl.trajectory_error}
     if scanner is not None and ctl.runlog_path is not None and ctl.runlog_error is None:
@@ -176,6 +180,10 @@ def _print_summary(summary: dict) -> None:
         print(f"stream            {st['queued']} samples queued; device underruns {st['underruns']}, lowest FIFO "
               f"level {st['lowest_level']} samples (marks {st['low_water']}..{st['high_water']}); lateness above "
               "= the producer's wake-ups")
+    if summary.get("wave"):
+        w = summary["wave"]
+        print(f"wave              {w['played']} of {w['samples']} table samples played on the {w['player']}; "
+              + "; ".join(w["inverse"]))
     if summary.get("latency_samples"):
         print(f"preview latency   {summary['latency_samples']} samples = {summary['latency_s'] * 1e3:.3g} ms "
               "(the output lags the trajectory read)")
@@ -244,7 +252,10 @@ def run(args: argparse.Namespace) -> int:
         ctl.start(config.trajectory, runlog_path=args.log)
         # always, --quiet included: which axes are compensated, by which model, from which file
         print(f"afmctl: compensation {ctl.pipeline.describe()}", file=sys.stderr)
-        if ctl.latency_samples:   # always: the output lags the trajectory the loop reads
+        if config.amplifier.output == "wave":
+            print("afmctl: wave: the whole trajectory is computed before it plays (as `afmctl compensate` "
+                  "does) and played on the amplifier's clock; the output does not lag it", file=sys.stderr)
+        elif ctl.latency_samples:   # always: the output lags the trajectory the loop reads
             print(f"afmctl: preview: the loop reads the trajectory {ctl.latency_samples} samples "
                   f"({ctl.latency_s * 1e3:.3g} ms) ahead; the output lags it by latency_s = {ctl.latency_s:.6g} s",
                   file=sys.stderr)
