@@ -1,0 +1,261 @@
+"""``[amplifier] output = "wave"``: a finite trajectory computed whole before the run and
+played on the amplifier's clock (issues #11 item 4 and #12 item 4). Real parts: our CAN
+driver and the simulated amplifier on python-can's ``virtual`` bus, our GCS driver and the
+simulated E-727 over a real pty; the Controller with its pipeline, safety layer and run log."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+import uuid
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from afmctl.compensators.chain import ChainModel
+from afmctl.compensators.dynamics import LinearDynamicsModel
+from afmctl.compensators.models import save_model
+from afmctl.compensators.pi import PIModel
+from afmctl.drivers.can_amp import CANAmplifier
+from afmctl.errors import AfmctlError
+from afmctl.hardware import open_driver
+from afmctl.loop import Controller, State
+from afmctl.pipeline import build_pipeline
+from afmctl.runlog import RunLogReader
+from afmctl.sim_backend.amplifiers.base import RecordingSink
+from afmctl.sim_backend.testing import serve_can, serve_pty
+from afmctl.testing import assert_no_threads_left, make_config
+from afmctl.wave_plan import driven_steps_ok, padded, plan_table
+
+RATE_HZ = 1000.0
+SLEW_V_PER_S = 2000.0     # 2 V per sample at 1 kHz
+NM_PER_V = 50.0
+
+
+@pytest.fixture(autouse=True)
+def no_leaked_threads():
+    yield
+    assert_no_threads_left("afmctl-")
+
+
+@pytest.fixture
+def chain_file(tmp_path):
+    """A pi+dynamics chain on x (1 kHz mode, ζ 0.03; real pole 3 kHz), 0..150 V."""
+    pi = PIModel(thresholds=[0.0, 20.0, 50.0], weights=[40.0, 6.0, 4.0], initial_state=[0.0] * 3)
+    dyn = LinearDynamicsModel.from_modes([(1000.0, 0.03)], real_poles_Hz=[3000.0])
+    path = tmp_path / "x_chain.json"
+    save_model(ChainModel(hysteresis=pi, dynamics=dyn), path)
+    return path
+
+
+def cfg_for(tmp_path, driver: str, port: str, toml: str = "", **loop):
+    cal = {a: {"nm_per_V": NM_PER_V} for a in "xyz"}
+    return make_config(tmp_path, toml, loop={"rate_Hz": RATE_HZ, **loop}, scanner={"calibration": cal},
+                       amplifier={"driver": driver, "port": port, "output": "wave",
+                                  "slew_V_per_s": SLEW_V_PER_S, "low_water_s": 0.1, "high_water_s": 0.2,
+                                  "limits_V": {a: {"min_V": 0.0, "max_V": 120.0} for a in "xyz"}},
+                       safety={"slew_V_per_s": SLEW_V_PER_S, "ramp_V_per_s": 1000.0, "watchdog_s": 0.2})
+
+
+def raster_nm(n: int, lines: int = 4) -> np.ndarray:
+    """x: a triangle 1000..5000 nm, ``lines`` trace+retrace pairs over ``n`` samples; y, z fixed."""
+    ph = (np.arange(n) * lines / n) % 1.0
+    x = 1000.0 + 4000.0 * (1.0 - np.abs(2.0 * ph - 1.0))
+    return np.column_stack([x, np.full(n, 1500.0), np.full(n, 1000.0)])
+
+
+@pytest.fixture
+def can_rig():
+    channel = f"wave-{uuid.uuid4().hex[:8]}"
+    sink = RecordingSink(max_history=1_000_000)
+    with serve_can(channel, sink, record_seq=True) as sim:
+        amp = CANAmplifier.open(f"virtual:{channel}")
+        amp.connect()
+        try:
+            yield channel, amp, sim, sink
+        finally:
+            amp.close()
+
+
+# ---------------------------------------------------------------------- the plan
+def test_the_table_is_the_chains_offline_inverse_of_the_padded_target(tmp_path, chain_file):
+    """The x column is exactly what ``afmctl compensate`` computes for the same target:
+    the chain's inverse within the limits over the target held ``pad`` samples before and
+    after (pad = the preview horizon); y, z the linear calibration."""
+    cfg = cfg_for(tmp_path, "can", "virtual:unused", f'[compensation.x]\nmodel = "{chain_file}"\n', rate_Hz=10000.0)
+    pipe = build_pipeline(cfg)
+    r = raster_nm(4000)
+    limits = {a: (0.0, 120.0) for a in "xyz"}
+    table = plan_table(cfg, pipe, r, 20.0, limits, SLEW_V_PER_S * cfg.dt_s)
+    assert table.pad == pipe.latency_samples > 0
+    model = ChainModel.model_validate_json(chain_file.read_text())
+    want = model.inverse_within_limits(padded(r, table.pad)[:, 0], cfg.dt_s, 0.0, 120.0, SLEW_V_PER_S)
+    np.testing.assert_array_equal(table.u_V[:, 0], want.u_V)
+    np.testing.assert_allclose(table.u_V[:, 1], 1500.0 / NM_PER_V)
+    assert len(table.report) == 1 and table.report[0].startswith("x: dynamics inverse band limit")
+    assert driven_steps_ok(table.u_V, "xyz", limits, SLEW_V_PER_S * cfg.dt_s, table.u_V[0])
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(x=st.lists(st.floats(-1e5, 1e5), min_size=1, max_size=60), step=st.floats(0.01, 20.0),
+       lo=st.floats(-50.0, 50.0), span=st.floats(1.0, 200.0))
+def test_no_target_makes_a_table_beyond_the_limits_or_the_slew(tmp_path, x, step, lo, span):
+    cfg = cfg_for(tmp_path, "can", "virtual:unused")
+    r = np.column_stack([np.repeat(x, 7), np.zeros(7 * len(x)), np.zeros(7 * len(x))])
+    limits = {"x": (lo, lo + span), "y": (0.0, 120.0), "z": (0.0, 120.0)}
+    table = plan_table(cfg, build_pipeline(cfg), r, 20.0, limits, step)
+    assert driven_steps_ok(table.u_V, "xyz", limits, step, table.u_V[0])
+
+
+# ---------------------------------------------------------------------- CAN FIFO
+def test_can_fifo_plays_the_table_on_its_clock_through_host_stalls(tmp_path, can_rig):
+    """1 kHz through the CAN amplifier's FIFO, the host stalled 20 ms once a second: zero
+    underruns, every row played exactly one period apart, and the run log holds what was
+    played at its play time."""
+    channel, amp, sim, sink = can_rig
+    cfg = cfg_for(tmp_path, "can", f"virtual:{channel}")
+    traj = raster_nm(2500)
+    stalls: list[float] = []
+    t_start = time.monotonic()
+
+    def stall() -> None:
+        if time.monotonic() - t_start >= len(stalls) + 0.5:
+            time.sleep(0.020)
+            stalls.append(time.monotonic())
+
+    with Controller(cfg, amp) as ctl:
+        ctl.stream_stall_hook = stall
+        ctl.start(traj, runlog_path=tmp_path / "w.afmlog")
+        assert ctl.wait(30)
+        stats = ctl.stats()
+    assert ctl.state is State.STOPPED, stats
+    assert len(stalls) >= 1
+    assert stats["output"] == "wave" and stats["stream"]["underruns"] == 0 and sim.stream.underruns == 0
+    assert stats["wave"]["played"] == stats["wave"]["samples"] == len(traj) and stats["latency_samples"] == 0
+    after = [(t, v) for t, v in sink.history if t >= sim.stream.t0_s]
+    out = after[:len(traj)]         # the FIFO's rows; then the host's finish ramp to 0 V
+    assert len(after) - len(traj) >= 30 and after[-1][1] == {"x": 0.0, "y": 0.0, "z": 0.0}   # y: 30 V at 1 V/ms
+    t0 = sim.stream.t0_s
+    assert max(abs(t - (t0 + k / RATE_HZ)) for k, (t, _) in enumerate(out)) == 0.0   # zero jitter
+    reader = RunLogReader(tmp_path / "w.afmlog")
+    sp, ev = reader.setpoints(), {e["event"]: e["seq"] for e in reader.events()}
+    rows = sp[(sp["seq"] >= ev["ramp-done"]) & (sp["seq"] < ev["end"])]
+    assert len(rows) == len(traj)
+    np.testing.assert_allclose(rows["u_V"][:, 0], [v["x"] for _, v in out], atol=0.00125 + 1e-9)
+    np.testing.assert_allclose(rows["u_V"][:, 0], traj[:, 0] / NM_PER_V)    # linear calibration
+    np.testing.assert_allclose(rows["target_nm"], traj)
+    np.testing.assert_allclose(np.diff(rows["t_s"]), 1.0 / RATE_HZ)          # t_s: the amplifier's clock
+
+
+def test_estop_flushes_the_fifo_and_ramps_within_the_slew_limit(tmp_path, can_rig):
+    channel, amp, sim, sink = can_rig
+    cfg = cfg_for(tmp_path, "can", f"virtual:{channel}")
+    with Controller(cfg, amp) as ctl:
+        ctl.start(raster_nm(20000, lines=10), runlog_path=tmp_path / "e.afmlog")
+        t0 = time.monotonic()
+        while (ctl.stats()["wave"] or {}).get("played", 0) < 1500 and time.monotonic() - t0 < 20:
+            time.sleep(0.01)
+        ctl.estop()
+        assert ctl.wait(30)
+        stats = ctl.stats()
+    assert ctl.state is State.STOPPED
+    assert 1500 <= stats["wave"]["played"] < 20000
+    reader = RunLogReader(tmp_path / "e.afmlog")
+    events = [e["event"] for e in reader.events()]
+    assert "estop-flush" in events and "wave-stopped" in events and "estop" in events
+    xs = np.array([v["x"] for _, v in sink.history])
+    assert np.all((xs >= 0.0) & (xs <= 120.0))
+    # every change the amplifier applied, FIFO and setpoints alike, within the slew limit
+    ts = np.array([t for t, _ in sink.history])
+    steps, dts = np.abs(np.diff(xs)), np.diff(ts)
+    assert np.all(steps <= SLEW_V_PER_S * np.maximum(dts, 1.0 / RATE_HZ) + 0.003)
+    assert abs(sink.last["x"] - 0.0) < 1e-6       # ramped to the safe value
+
+
+# ---------------------------------------------------------------------- GCS wave generator
+def test_gcs_wave_generator_plays_the_table_on_the_servo_clock(tmp_path):
+    """The simulated E-727 plays the uploaded table point k at t0 + k · divider · 50 µs;
+    what it played is what the run log holds."""
+    sink = RecordingSink(max_history=1_000_000)
+    with serve_pty("gcs", sink=sink, baud=921600) as srv:
+        cfg = cfg_for(tmp_path, "gcs", srv.port)
+        amp = open_driver(cfg, srv.port)
+        try:
+            traj = raster_nm(1200)
+            with Controller(cfg, amp) as ctl:
+                ctl.start(traj, runlog_path=tmp_path / "g.afmlog")
+                assert ctl.wait(60)
+                stats = ctl.stats()
+        finally:
+            amp.close()
+    assert ctl.state is State.STOPPED, stats
+    assert stats["wave"]["played"] == len(traj) and "wave generator" in stats["wave"]["player"]
+    reader = RunLogReader(tmp_path / "g.afmlog")
+    sp, ev = reader.setpoints(), {e["event"]: e["seq"] for e in reader.events()}
+    rows = sp[(sp["seq"] >= ev["ramp-done"]) & (sp["seq"] < ev["end"])]
+    np.testing.assert_allclose(rows["u_V"][:, 0], traj[:, 0] / NM_PER_V)
+    # the device's applications of x during the wave: one per point, on the servo clock
+    hist = [(t, v["x"]) for t, v in sink.history if "x" in v]
+    xs = np.array([x for _, x in hist])
+    k = int(np.flatnonzero(np.isclose(xs, rows["u_V"][1, 0]))[0])   # row 0 is where the approach ended
+    played = hist[k:k + len(rows) - 1]
+    np.testing.assert_allclose([x for _, x in played], rows["u_V"][1:, 0], atol=1e-3)
+    t = np.array([t for t, _ in played])
+    np.testing.assert_allclose(np.diff(t), 1.0 / RATE_HZ, atol=1e-9)
+
+
+# ---------------------------------------------------------------------- what is refused
+def _run_cli(tmp_path, body: str):
+    (tmp_path / "run.toml").write_text(body)
+    return subprocess.run([sys.executable, "-m", "afmctl", "run", "--config", str(tmp_path / "run.toml"), "--json"],
+                          capture_output=True, text=True, timeout=120)
+
+
+RUN_TOML = """
+[amplifier]
+driver = "{driver}"
+output = "wave"
+[loop]
+rate_Hz = {rate}
+[simulation]
+enabled = true
+[runlog]
+dir = "{dir}"
+fsync = false
+[trajectory]
+kind = "{kind}"
+{extra}
+"""
+
+
+@pytest.mark.parametrize("driver, rate, kind, extra, message", [
+    ("mdt693b", 1000, "raster", "", "field amplifier: Value error, output = 'wave' needs a device clock"),
+    ("gcs", 7000, "raster", "", "loop.rate_Hz: "),
+    ("gcs", 1000, "queue", "", "amplifier.output = 'wave' plays a finite trajectory"),
+    ("gcs", 1000, "raster", "[compensation.drift]\nenabled = true\nkalman = true\n",
+     "amplifier.output = 'wave': the table is computed before the run"),
+])
+def test_afmctl_run_refuses_what_a_wave_cannot_play(tmp_path, driver, rate, kind, extra, message):
+    res = _run_cli(tmp_path, RUN_TOML.format(driver=driver, rate=rate, kind=kind, extra=extra, dir=tmp_path))
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], lines
+
+
+def test_afmctl_run_plays_a_raster_as_a_gcs_wave(tmp_path):
+    res = _run_cli(tmp_path, RUN_TOML.format(driver="gcs", rate=2000, kind="raster", dir=tmp_path,
+                                             extra="lines = 2\nline_rate_Hz = 10.0\n[simulation.baud]\n")
+                   .replace("[simulation.baud]\n", "").replace("enabled = true", "enabled = true\nbaud = 921600"))
+    assert res.returncode == 0, res.stderr
+    summary = json.loads(res.stdout)
+    assert summary["output"] == "wave" and summary["wave"]["played"] == summary["wave"]["samples"] > 0
+    assert summary["state"] == "stopped" and summary["slew_limited"] == 0 and summary["clamped"] == 0
+
+
+def test_plan_refuses_a_kalman_filter(tmp_path):
+    cfg = cfg_for(tmp_path, "can", "virtual:unused", "[compensation.drift]\nenabled = true\nkalman = true\n")
+    with pytest.raises(AfmctlError, match="drift measurements cannot reach it"):
+        plan_table(cfg, build_pipeline(cfg), raster_nm(10), 20.0, {"x": (0.0, 120.0)}, 1.0)
