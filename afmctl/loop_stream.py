@@ -125,7 +125,7 @@ class StreamMachine(LoopMachine):
         rest is still being computed."""
         rows: list[tuple[float, float, float]] = []
         left = n
-        while left > 0:
+        while left > 0 and not self.done:     # done: the finish ramp has reached its goal
             batch = self._produce_batch(min(left, QUEUE_CHUNK))
             if batch is None:
                 row = self._produce_one()

@@ -95,6 +95,8 @@ def test_host_stalls_do_not_reach_the_tip_through_the_controller(tmp_path, rig):
     xs = np.array([v["x"] for _, v in out])
     np.testing.assert_allclose(xs, sp["u_V"][:, 0], atol=0.00125 + 1e-9)   # what was logged was played
     np.testing.assert_allclose(sp["t_s"], np.arange(len(sp)) / RATE_HZ)     # t_s: the amplifier's clock
+    # the stream ends with the sample at which the finish ramp reaches the safe value (0 V)
+    assert np.all(sp["u_V"][-1] == 0.0) and not np.all(sp["u_V"][-2] == 0.0)
     assert np.max(np.abs(np.diff(np.concatenate([[0.0], xs])))) <= SLEW_V_PER_S / RATE_HZ + 1e-9
     # the trajectory itself: linear calibration, so u = target / nm_per_V once the start ramp is done
     ev = {e["event"]: e["seq"] for e in RunLogReader(tmp_path / "s.afmlog").events()}
