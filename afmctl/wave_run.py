@@ -69,6 +69,9 @@ def check_wave_config(config, amplifier: Any) -> None:
         raise AfmctlError("amplifier.output = 'wave': the table is computed before the run, so drift "
                           "measurements cannot reach it; set compensation.drift.kalman = false or use "
                           "output = 'setpoints' or 'stream'")
+    rate = config.loop.rate_Hz
+    if not hasattr(amplifier, "upload_wave") and rate != round(rate):
+        raise AfmctlError(f"loop.rate_Hz: {rate:g} must be a whole number of Hz for the {driver} stream FIFO")
     if hasattr(amplifier, "upload_wave"):
         try:
             wcodec.divider_for(config.loop.rate_Hz, amplifier.servo_cycle_s())

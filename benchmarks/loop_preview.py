@@ -14,7 +14,13 @@ replay holds every voltage one loop period, so lateness shows here, not in the e
 samples the safety layer slew-limited or clamped, and the preview latency.
 
     .venv/bin/python benchmarks/loop_preview.py [--loop-rates 5000 10000] [--rates 1 4 16]
-        [--models DEMO_OUT/models] [--no-write] [--json OUT.json]
+        [--outputs setpoints stream wave-can wave-gcs] [--models DEMO_OUT/models] [--no-write] [--json OUT.json]
+
+Outputs: ``setpoints`` (one per loop tick, the host's timing), ``stream`` (the live
+producer into the CAN FD FIFO), ``wave-can`` (``output = "wave"``: the whole trajectory
+computed before the run, played from the CAN FD FIFO), ``wave-gcs`` (the same table
+uploaded to the simulated E-727 on a pty at 921600 baud and played by its wave generator
+on the 50 µs servo clock).
 
 Without ``--models`` it first runs ``afmctl demo --only preisach+creep+dynamics`` (≈ 1 min).
 """
@@ -53,13 +59,20 @@ def demo_models(work: Path) -> Path:
     return out / "models"
 
 
+#: ``[amplifier]`` keys per output
+OUTPUT_TOML = {"setpoints": "", "stream": sl.STREAM_FD_TOML, "wave-can": sl.WAVE_FD_TOML, "wave-gcs": 'output = "wave"\n'}
+
+
 def run_cell(work: Path, scanner_json: Path, model: Path, rate: float, loop_Hz: float,
-             gain: list[float], stream: bool = False) -> dict:
+             gain: list[float], output: str = "setpoints") -> dict:
     """One ``afmctl run`` of raster lines; its error and loop figures."""
-    tag = f"{model.stem}-{rate:g}-{loop_Hz:g}-{'stream' if stream else 'setpoints'}"
+    tag = f"{model.stem}-{rate:g}-{loop_Hz:g}-{output}"
     channel = f"afmctl-bench-{tag}-{os.getpid()}"
     text = sl._config_text(work, scanner_json, model, rate, loop_Hz, LINES.get(rate, 3), channel, gain,
-                           sl.STREAM_FD_TOML if stream else "")
+                           OUTPUT_TOML[output])
+    if output == "wave-gcs":     # the simulated E-727 on a pty instead of the CAN amplifier
+        text = text.replace('driver = "can"', 'driver = "gcs"').replace(f'port = "virtual:{channel}"', 'port = ""')
+        text = text.replace("[simulation]\nenabled = true", "[simulation]\nenabled = true\nbaud = 921600")
     cfg_path = work / f"{tag}.toml"
     cfg_path.write_text(text, encoding="utf-8")
     log = work / f"{tag}.afmlog"
@@ -96,8 +109,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--loop-rates", type=float, nargs="+", default=[5000.0, 10000.0], help="loop rates [Hz]")
     ap.add_argument("--rates", type=float, nargs="+", default=[1.0, 4.0, 16.0], help="line rates [lines/s]")
-    ap.add_argument("--stream", action="store_true",
-                    help="also run each cell with output = stream over CAN FD (device-timed, 10 samples/frame)")
+    ap.add_argument("--outputs", nargs="+", default=["setpoints"], choices=list(OUTPUT_TOML),
+                    help="how afmctl run reaches the amplifier (default setpoints; see above)")
     ap.add_argument("--models", type=Path, help="folder of scanner_KIND.json (default: run the demo)")
     ap.add_argument("--sim-dt-s", type=float, default=None,
                     help="the simulated scanner's integration step [s] (default its own, 1e-5); 1e-4 integrates "
@@ -118,9 +131,8 @@ def main(argv: list[str] | None = None) -> int:
         for loop_Hz in args.loop_rates:
             for rate in args.rates:
                 for kind in KINDS:
-                    for out in ("setpoints", "stream") if args.stream else ("setpoints",):
-                        v = run_cell(work, scanner_json, models / f"scanner_{kind}.json", rate, loop_Hz, gain,
-                                     stream=out == "stream")
+                    for out in args.outputs:
+                        v = run_cell(work, scanner_json, models / f"scanner_{kind}.json", rate, loop_Hz, gain, out)
                         results[(kind, out, loop_Hz, rate)] = v
                         print(kind, out, f"{loop_Hz:g} Hz", f"{rate:g} lines/s", v, flush=True)
     tab = table(results)
@@ -139,7 +151,10 @@ def main(argv: list[str] | None = None) -> int:
                 "safety layer limited. `stream`: `output = \"stream\"` over CAN FD (10 samples per frame); "
                 "its error is that of the queued samples played on time, so a cell with device underruns "
                 "(the simulated amplifier, in the same process, did not keep up) is not what that run's tip "
-                "did. `--sim-dt-s 1e-4` integrates the simulated scanner once per 10 kHz sample instead of ten "
+                "did. `wave-can` / `wave-gcs`: `output = \"wave\"`, the whole trajectory computed before the "
+                "run (as `afmctl compensate` does) and played from the CAN FD FIFO / by the simulated E-727's "
+                "wave generator (pty, 921600 baud); latency 0 (the table is aligned with the target). "
+                "`--sim-dt-s 1e-4` integrates the simulated scanner once per 10 kHz sample instead of ten "
                 "times (the mode and the amplifier are discretised exactly at either step).\n\n" + tab)
         write_section(NAME, body)
     return 0

@@ -128,3 +128,11 @@ def test_nk_imprint_example_script(tmp_path, capsys):
     lines = {ln.split(":")[0]: float(ln.split("rms ")[1].split(" nm")[0])
              for ln in capsys.readouterr().out.splitlines() if "rms" in ln}
     assert lines["PI inverse models"] < 0.6 * lines["linear calibration (no model)"]
+
+
+def test_sim_wave_gcs_example(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("AFMCTL_RUNLOG__DIR", str(tmp_path))
+    rc, s = _run([str(EXAMPLES / "sim_wave_gcs.toml")], capsys)
+    assert rc == 0 and s["state"] == "stopped" and s["errors"] == 0, s
+    assert s["output"] == "wave" and s["wave"]["played"] == s["wave"]["samples"] >= 10 / 50.0 * 20000
+    assert "wave generator" in s["wave"]["player"] and s["slew_limited"] == 0
