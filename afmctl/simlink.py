@@ -57,6 +57,10 @@ def simulated_amplifier(config) -> Iterator[tuple[Any, Any]]:
             server = stack.enter_context(testing.serve_pty(driver, sink=scanner, baud=config.simulation.baud))
             port = server.port
         from .hardware import open_driver
+        if driver != "can" and "baudrate" not in config.amplifier.options:
+            # the driver paces its writes to the simulated link's rate, as to a real port's
+            config = config.model_copy(update={"amplifier": config.amplifier.model_copy(
+                update={"options": {**config.amplifier.options, "baudrate": config.simulation.baud}})})
         amp = open_driver(config, port)
         stack.callback(amp.close)
         yield amp, scanner

@@ -12,11 +12,19 @@ through drift prediction, the inverse models and the safety layer to the amplifi
 loop.rate_Hz. Every setpoint is written to a crash-safe
 run log (runlog.dir; read it with `afmctl log show`).
 
+How the voltages reach the amplifier ([amplifier] output): "setpoints" (default) sends
+one per loop tick on the host's timing; "stream" (driver can) keeps the amplifier's FIFO
+filled ahead and the samples play on its clock; "wave" (drivers gcs, nv200, can)
+compensates the whole trajectory before the run, as `afmctl compensate` does, and the
+device plays it (wave table, waveform buffer or FIFO) — for line rates the host cannot
+carry (e.g. 50 lines/s at 20 kHz).
+
 Ctrl-C or SIGTERM ramps the output to the safe value and stops cleanly; a second Ctrl-C
 is an emergency stop (ramp at the slew limit).
 
 Examples:
   afmctl run --config examples/sim_inprocess.toml
+  afmctl run --config examples/sim_wave_gcs.toml        # 50 lines/s on a GCS wave table
   afmctl run --config examples/mdt693b_serial.toml --log runs/scan1.afmlog
   AFMCTL_AMPLIFIER__PORT=/dev/ttyUSB1 afmctl run --config examples/mdt693b_serial.toml
 

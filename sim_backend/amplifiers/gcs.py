@@ -59,6 +59,8 @@ class SimGCS(SimDevice):
         self.error = 0
         self.travel_um = (0.0, 100.0)
         self.target = {k: 0.0 for k in _AXIS}
+        #: while :meth:`poll` plays: the (t_s, [x, y, z] V) rows for the sink's play(), else None
+        self._played: list[tuple[float, list[float]]] | None = None
 
     def _latch(self, code: int) -> bytes:
         if self.error == 0:
@@ -88,8 +90,18 @@ class SimGCS(SimDevice):
         return bytes(out + super().feed(data))
 
     def poll(self) -> None:
-        """Play the wave points that fell due by now (the pty server calls this when idle)."""
-        self.wave.run_until(self.now())
+        """Play the wave points that fell due by now (the pty server calls this when idle),
+        handed to the sink in one block (``sink.play(t_s, rows_V)`` where the sink has it —
+        the simulated scanner simulates a block in one call, which 20 kHz on three axes
+        needs — else one ``apply`` per change)."""
+        play = getattr(self.sink, "play", None)
+        self._played = [] if play is not None else None
+        try:
+            self.wave.run_until(self.now())
+        finally:
+            played, self._played = self._played, None
+        if played:
+            play([t for t, _ in played], [row for _, row in played])
 
     def _wave_apply(self, gen: int, value: float, t_s: float) -> None:
         key = str(gen)
@@ -101,7 +113,9 @@ class SimGCS(SimDevice):
         v = min(max(value, self.vmi[key]), self.vma[key])
         if self.outputs[axis] != v:
             self.outputs[axis] = v
-            if self.sink is not None:
+            if self._played is not None:
+                self._played.append((t_s, [self.outputs[a] for a in "xyz"]))
+            elif self.sink is not None:
                 self.sink.apply(dict(self.outputs), t_s)
 
     def _wave_command(self, cmd: str, args: list[str]) -> bytes | None:
