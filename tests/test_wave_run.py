@@ -259,3 +259,37 @@ def test_plan_refuses_a_kalman_filter(tmp_path):
     cfg = cfg_for(tmp_path, "can", "virtual:unused", "[compensation.drift]\nenabled = true\nkalman = true\n")
     with pytest.raises(AfmctlError, match="drift measurements cannot reach it"):
         plan_table(cfg, build_pipeline(cfg), raster_nm(10), 20.0, {"x": (0.0, 120.0)}, 1.0)
+
+
+def test_nv200_waveform_buffer_plays_the_table(tmp_path):
+    """Driver nv200: the x column goes into the 1024-sample waveform buffer and plays on the
+    unit's 20 kHz clock (here every 4th tick: 5 kHz); a longer table is refused with one
+    line naming the buffer, nothing of it played."""
+    sink = RecordingSink(max_history=100_000)
+    with serve_pty("nv200", sink=sink) as srv:
+        cal = {"x": {"nm_per_V": NM_PER_V}}
+        cfg = make_config(tmp_path, "", loop={"rate_Hz": 5000.0}, scanner={"axes": ["x"], "calibration": cal},
+                          amplifier={"driver": "nv200", "port": srv.port, "output": "wave", "slew_V_per_s": 5e4},
+                          safety={"slew_V_per_s": 5e4, "ramp_V_per_s": 1000.0})
+        amp = open_driver(cfg, srv.port)
+        try:
+            traj = raster_nm(1000, lines=5)
+            with Controller(cfg, amp) as ctl:
+                ctl.start(traj, runlog_path=tmp_path / "n.afmlog")
+                assert ctl.wait(60)
+                stats = ctl.stats()
+            assert ctl.state is State.STOPPED and stats["wave"]["played"] == 1000, stats
+            reader = RunLogReader(tmp_path / "n.afmlog")
+            sp, ev = reader.setpoints(), {e["event"]: e["seq"] for e in reader.events()}
+            rows = sp[(sp["seq"] >= ev["ramp-done"]) & (sp["seq"] < ev["end"])]
+            np.testing.assert_allclose(rows["u_V"][:, 0], traj[:, 0] / NM_PER_V)
+            played = [t for t, v in sink.history if "x" in v][-1100:]
+            steps = np.diff(played)
+            assert np.sum(np.isclose(steps, 1 / 5000.0, atol=1e-9)) >= 990     # on the unit's clock
+            with Controller(cfg, amp) as ctl:
+                ctl.start(raster_nm(2000, lines=5), runlog_path=tmp_path / "n2.afmlog")
+                assert ctl.wait(60)
+                stats = ctl.stats()
+            assert stats["wave"]["played"] == 0 and "holds 1024" in stats["last_error"], stats
+        finally:
+            amp.close()
