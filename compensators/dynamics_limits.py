@@ -48,18 +48,20 @@ class LimitedInverse:
 
     def report(self) -> str:
         """One line for the user."""
+        fits = not (self.clipped or self.slew_limited)
+        aim = "to stay within the limits" if fits else "to come closer to the limits"
         if math.isfinite(self.bandwidth_Hz):
             txt = f"dynamics inverse band limit {self.bandwidth_Hz:.4g} Hz"
             if self.bandwidth_Hz < self.model_bandwidth_Hz:
-                txt += f" (lowered from {self.model_bandwidth_Hz:.4g} Hz to stay within the limits)"
+                txt += f" (lowered from {self.model_bandwidth_Hz:.4g} Hz {aim})"
             if self.rounded_s > 0:
-                txt += f", turnarounds rounded over {1e3 * self.rounded_s:.3g} ms (Gaussian σ) to stay within the limits"
+                txt += f", turnarounds rounded over {1e3 * self.rounded_s:.3g} ms (Gaussian σ) {aim}"
         else:   # a chain without dynamics: the static inverse alone
             txt = "static inverse"
         txt += f", fastest change {self.needed_slew_V_per_s:.4g} V/s"
         if self.clipped or self.slew_limited:
-            txt += (f"; NOT reachable: {self.clipped} samples clipped to the range, "
-                    f"{self.slew_limited} samples slew-limited")
+            txt += (f"; still beyond them, so clipped and rate-limited before sending: {self.clipped} "
+                    f"samples clipped to the range, {self.slew_limited} samples slew-limited")
         return txt
 
 
