@@ -365,13 +365,17 @@ class FifoPlayer:
             raise AfmctlError("amplifier.output = 'wave': the table breaks the limits or the slew limit "
                               "(a bug: nothing was sent)")
         n = len(table)
+        rows = table.u_V.copy()
+        held = getattr(amp, "last_output", {}) or {}
+        for k, a in enumerate("xyz"):       # an axis the scanner does not drive keeps its output
+            if a not in s.axes and a in held:
+                rows[:, k] = held[a]
         st = amp.start_stream(prod.rate_Hz, prefill=int(min(prod.high, n)))
         if prod.high > st.capacity:
             raise AfmctlError(f"amplifier.high_water_s: {prod.high} samples do not fit the amplifier's FIFO of "
                               f"{st.capacity} samples at {prod.rate_Hz:g} Hz")
         prod._queued = 0
         m.tick0 = ctl._tick + 1
-        rows = table.u_V
         next_wake = time.perf_counter()
         while prod._queued < n:
             if ctl._request is not None:

@@ -293,3 +293,19 @@ def test_nv200_waveform_buffer_plays_the_table(tmp_path):
             assert stats["wave"]["played"] == 0 and "holds 1024" in stats["last_error"], stats
         finally:
             amp.close()
+
+
+def test_an_axis_the_scanner_does_not_drive_keeps_its_output(tmp_path, can_rig):
+    channel, amp, sim, sink = can_rig
+    amp.set_voltages({"x": 0.0, "y": 0.0, "z": 20.0})
+    cal = {a: {"nm_per_V": NM_PER_V} for a in "xyz"}
+    cfg = make_config(tmp_path, "", loop={"rate_Hz": RATE_HZ}, scanner={"axes": ["x", "y"], "calibration": cal},
+                      amplifier={"driver": "can", "port": f"virtual:{channel}", "output": "wave",
+                                 "slew_V_per_s": SLEW_V_PER_S},
+                      safety={"slew_V_per_s": SLEW_V_PER_S, "ramp_V_per_s": 1000.0})
+    with Controller(cfg, amp) as ctl:
+        ctl.start(raster_nm(500), runlog_path=tmp_path / "xy.afmlog")
+        assert ctl.wait(30)
+        stats = ctl.stats()
+    assert ctl.state is State.STOPPED and stats["wave"]["played"] == 500, stats
+    assert all(v["z"] == 20.0 for _, v in sink.history if "z" in v)
