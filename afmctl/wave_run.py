@@ -175,7 +175,8 @@ class WaveMachine(LoopMachine):
         s.clamped += table.clamped
         s.slew_limited += table.slew_limited
         ctl._wave_stats = {"player": self.player.what, "samples": len(table), "pad": table.pad, "played": 0,
-                           "inverse": table.report}
+                           "inverse": table.report, "table_clamped": table.clamped,
+                           "table_slew_limited": table.slew_limited}
         ctl._event("wave", f"{self.player.what} at {ctl.config.loop.rate_Hz:g} Hz: {table.describe()}")
         return table
 

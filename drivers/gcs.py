@@ -59,8 +59,19 @@ class GCSAmplifier(SerialAmplifier):
         self._since_check = 0
 
     def _query(self, command: str) -> bytes:
+        self._settle()
         self.transport.write(codec.encode(command))
         return self.transport.read_frame(codec.split_reply)
+
+    def _settle(self) -> None:
+        """Take the replies already here and wait for the one to a pipelined ``ERR?`` still
+        on its way, so that the next query's reply is the next frame (a ``#9`` answered
+        with that ``ERR?``'s ``0`` would read as "no generator runs")."""
+        self._drain()
+        if self._check_outstanding:
+            reply = self.transport.read_frame(codec.split_reply)
+            self._check_outstanding = False
+            codec.check_error_reply(reply)
 
     def _check(self) -> None:
         codec.check_error_reply(self._query("ERR?"))
@@ -118,11 +129,7 @@ class GCSAmplifier(SerialAmplifier):
         self.transport.write(data)
 
     def _sync(self) -> None:
-        if self._check_outstanding:
-            reply = self.transport.read_frame(codec.split_reply)
-            self._check_outstanding = False
-            codec.check_error_reply(reply)
-        self._check()
+        self._check()       # settles a pipelined ERR? first
         self._since_check = 0
 
     # ---- wave generator ----
@@ -212,7 +219,7 @@ class GCSAmplifier(SerialAmplifier):
         return WaveStatus(running, rate, div, cyc, {a: len(t) for a, t in self._tables.items()})
 
     def _running_reply(self) -> bytes:
-        self._drain()
+        self._settle()
         self.transport.write(wcodec.RUNNING)
         return self.transport.read_frame(codec.split_reply)
 

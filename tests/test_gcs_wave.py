@@ -220,3 +220,23 @@ def test_set_voltages_is_refused_on_an_axis_whose_generator_runs():
         amp.set_voltages({"y": 0.5})                     # another axis is free
         amp.stop_wave()
         amp.set_voltages({"x": amp.last_output["x"]})
+
+
+@pytest.mark.parametrize("query", ["wave_status", "get_voltages"])
+def test_a_query_right_after_a_pipelined_error_check_reads_its_own_reply(query):
+    """Every setpoint carries an ``ERR?`` (check_every=1) whose reply is still on its way
+    (20 ms reply latency) when the next query is sent: the query must not take that ``0``
+    for its own answer (``#9`` read it as "no generator runs", and the next ``VOL?`` got the
+    ``#9`` reply)."""
+    with serve_pty("gcs", latency_s=0.02) as srv, \
+            open_amplifier("gcs", srv.port, check_every=1, timeout_s=1.0) as amp:
+        amp.set_voltages({"x": 10.0, "y": 10.0, "z": 10.0})
+        amp.flush()
+        amp.upload_wave("x", np.full(4000, 10.0))
+        amp.start_wave(divider=1, cycles=1, axes=["x"])      # plays 0.2 s
+        amp.set_voltages({"y": 11.0})                        # pipelines an ERR?
+        if query == "wave_status":
+            assert amp.wave_status().running["x"] is True
+        else:
+            assert amp.get_voltages()["y"] == pytest.approx(11.0)
+        assert amp.get_voltages()["x"] == pytest.approx(10.0)

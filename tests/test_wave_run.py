@@ -252,7 +252,9 @@ def test_afmctl_run_plays_a_raster_as_a_gcs_wave(tmp_path):
     assert res.returncode == 0, res.stderr
     summary = json.loads(res.stdout)
     assert summary["output"] == "wave" and summary["wave"]["played"] == summary["wave"]["samples"] > 0
-    assert summary["state"] == "stopped" and summary["slew_limited"] == 0 and summary["clamped"] == 0
+    assert summary["state"] == "stopped" and summary["clamped"] == 0
+    # the table needed no limiting (the host-timed approach and finish ramps may, after a late tick)
+    assert summary["wave"]["table_slew_limited"] == 0 and summary["wave"]["table_clamped"] == 0
 
 
 def test_plan_refuses_a_kalman_filter(tmp_path):
