@@ -70,7 +70,7 @@ class DemoOptions:
     seed: int = 0
     docs_dir: Path | None = None     #: also copy the PNGs here as demo_*.png
     speed_ladder: bool = True        #: the speed ladder (afmctl.speed_ladder) in metrics.json
-    ladder_controller: bool = True   #: its 1/4/16 lines/s rows through the real Controller
+    ladder_controller: bool = True   #: its rows through the real Controller (50 lines/s as a wave)
 
     def __post_init__(self) -> None:
         self.out = Path(self.out)

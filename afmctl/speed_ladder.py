@@ -15,9 +15,13 @@ each line (the part an AFM images), trace and retrace, in % of the line length. 
   and missed deadlines are recorded beside each result;
   A chain with a dynamics stage runs at :data:`PREVIEW_RATE_HZ`, the controller reading
   the trajectory its preview latency ahead (:mod:`afmctl.preview`);
+* **controller, wave** — for line rates the host loop cannot carry sample by sample
+  (:data:`WAVE_RATE_HZ`: 50 lines/s at 20 kHz) the same Controller with ``[amplifier]
+  output = "wave"`` (:mod:`afmctl.wave_run`): the whole raster compensated before the run
+  and played from the simulated amplifier's FIFO on its clock;
 * **offline** — the same pipeline over the whole target, the simulated scanner driven at
-  its own time step (:func:`afmctl.sim_backend.imaging.raster_image`), for line rates the
-  host loop cannot carry (50 lines/s needs ≥ 10 kHz output).
+  its own time step (:func:`afmctl.sim_backend.imaging.raster_image`), where the demo is
+  told not to run the controller.
 
 Each result records which path produced it (``"path"``) and the output rate.
 """
