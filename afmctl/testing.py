@@ -56,6 +56,23 @@ def describe(cond: Callable[[], object]) -> str:
     return name
 
 
+class HostStalls:
+    """A hook that stalls the thread calling it (``Controller.stream_stall_hook``: the
+    producer of a device-timed output) for ``stall_s`` [s] once every ``every_s`` [s], the
+    first ``first_s`` after it was made; :attr:`times` holds when each stall ended
+    (``time.monotonic``)."""
+
+    def __init__(self, stall_s: float = 0.020, every_s: float = 1.0, first_s: float = 0.5) -> None:
+        self.stall_s, self.every_s, self.first_s = stall_s, every_s, first_s
+        self.t0 = time.monotonic()
+        self.times: list[float] = []
+
+    def __call__(self) -> None:
+        if time.monotonic() - self.t0 >= self.first_s + self.every_s * len(self.times):
+            time.sleep(self.stall_s)
+            self.times.append(time.monotonic())
+
+
 def bridge_on_free_port(controller, scanner_name: str = "s1", server=None, *, attempts: int = 3,
                         **bridge_options):
     """A :class:`afmctl.zenoh_api.ZenohBridge` for ``controller`` listening on a fresh

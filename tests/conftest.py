@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 
+import pytest
+
 # Headless plotting everywhere in the test suite.
 os.environ.setdefault("MPLBACKEND", "Agg")
 
@@ -26,6 +28,13 @@ SLOW_FILES = frozenset({
 # equals step), config, the safety layer, the loop in-process, CLI offline basics, architecture.
 # The figure for the fast set is in docs/ARCHITECTURE.md ("Working on afmctl").
 SLOW_TESTS = frozenset({
+    "test_wave_run.py::test_can_fifo_plays_the_table_on_its_clock_through_host_stalls",
+    "test_wave_run.py::test_estop_flushes_the_fifo_and_ramps_within_the_slew_limit",
+    "test_wave_run.py::test_gcs_wave_generator_plays_the_table_on_the_servo_clock",
+    "test_wave_run.py::test_afmctl_run_refuses_what_a_wave_cannot_play",
+    "test_wave_run.py::test_afmctl_run_plays_a_raster_as_a_gcs_wave",
+    "test_wave_run.py::test_nv200_waveform_buffer_plays_the_table",
+    "test_wave_run.py::test_no_target_makes_a_table_beyond_the_limits_or_the_slew",
     "test_amp_cli.py::test_stream_keeps_the_time_column",
     "test_amp_cli.py::test_stream_three_axes_in_order_and_reports_the_rate",
     "test_amp_cli.py::test_stream_warns_when_the_rate_is_not_reached",
@@ -111,8 +120,22 @@ SLOW_TESTS = frozenset({
 
 
 def pytest_collection_modifyitems(config, items):
-    import pytest
     for item in items:
         name = f"{item.path.name}::{item.originalname}"
         if item.path.name in SLOW_FILES or name in SLOW_TESTS:
             item.add_marker(pytest.mark.slow)
+
+
+@pytest.fixture
+def chain_file(tmp_path):
+    """A pi+dynamics chain model file (1 kHz mode, ζ 0.03; real pole 3 kHz), 50 nm/V, 0..150 V:
+    a compensator with a preview horizon for loop and wave tests."""
+    from afmctl.compensators.chain import ChainModel
+    from afmctl.compensators.dynamics import LinearDynamicsModel
+    from afmctl.compensators.models import save_model
+    from afmctl.compensators.pi import PIModel
+    pi = PIModel(thresholds=[0.0, 20.0, 50.0], weights=[40.0, 6.0, 4.0], initial_state=[0.0] * 3)
+    dyn = LinearDynamicsModel.from_modes([(1000.0, 0.03)], real_poles_Hz=[3000.0])
+    path = tmp_path / "x_chain.json"
+    save_model(ChainModel(hysteresis=pi, dynamics=dyn), path)
+    return path

@@ -13,9 +13,6 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from afmctl.compensators.chain import ChainModel
-from afmctl.compensators.dynamics import LinearDynamicsModel
-from afmctl.compensators.models import save_model
-from afmctl.compensators.pi import PIModel
 from afmctl.loop import Controller, State
 from afmctl.pipeline import LinearAxis, build_pipeline
 from afmctl.preview import DelayLine, Delayed, equalise_latency
@@ -30,16 +27,6 @@ RATE_HZ = 2000.0
 def no_leaked_threads():
     yield
     assert_no_threads_left("afmctl-")
-
-
-@pytest.fixture
-def chain_file(tmp_path):
-    """A pi+dynamics chain (1 kHz mode, ζ 0.03; real pole 3 kHz), 50 nm/V, 0..150 V."""
-    pi = PIModel(thresholds=[0.0, 20.0, 50.0], weights=[40.0, 6.0, 4.0], initial_state=[0.0] * 3)
-    dyn = LinearDynamicsModel.from_modes([(1000.0, 0.03)], real_poles_Hz=[3000.0])
-    path = tmp_path / "x_chain.json"
-    save_model(ChainModel(hysteresis=pi, dynamics=dyn), path)
-    return path
 
 
 def cfg_for(tmp_path, chain_file, **loop):

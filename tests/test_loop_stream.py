@@ -3,7 +3,6 @@ stream (issue #12 item 4). Real parts: our CAN driver and the simulated amplifie
 python-can's ``virtual`` bus; the Controller with its pipeline, safety layer and run log."""
 from __future__ import annotations
 
-import time
 import uuid
 
 import numpy as np
@@ -17,7 +16,7 @@ from afmctl.loop import Controller, State
 from afmctl.runlog import RunLogReader
 from afmctl.sim_backend.amplifiers.base import RecordingSink
 from afmctl.sim_backend.testing import serve_can
-from afmctl.testing import assert_no_threads_left, make_config, wait_until
+from afmctl.testing import HostStalls, assert_no_threads_left, make_config, wait_until
 
 RATE_HZ = 1000.0
 SLEW_V_PER_S = 2000.0     # 2 V per sample at 1 kHz
@@ -70,21 +69,14 @@ def test_host_stalls_do_not_reach_the_tip_through_the_controller(tmp_path, rig):
     channel, amp, sim, sink = rig
     cfg = cfg_for(tmp_path, channel)
     traj = scan_nm(3000)
-    stalls: list[float] = []
-    t_start = time.monotonic()
-
-    def stall() -> None:
-        if time.monotonic() - t_start >= len(stalls) + 0.5:
-            time.sleep(0.020)
-            stalls.append(time.monotonic())
-
+    stall = HostStalls(stall_s=0.020, every_s=1.0)
     with Controller(cfg, amp) as ctl:
         ctl.stream_stall_hook = stall
         ctl.start(traj, runlog_path=tmp_path / "s.afmlog")
         assert ctl.wait(30)
         stats = ctl.stats()
     assert ctl.state is State.STOPPED, stats
-    assert len(stalls) >= 2
+    assert len(stall.times) >= 2
     assert stats["output"] == "stream" and stats["stream"]["underruns"] == 0 and sim.stream.underruns == 0
     assert stats["stream"]["lowest_level"] > 0
     sp = RunLogReader(tmp_path / "s.afmlog").setpoints()

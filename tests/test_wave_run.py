@@ -16,9 +16,6 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from afmctl.compensators.chain import ChainModel
-from afmctl.compensators.dynamics import LinearDynamicsModel
-from afmctl.compensators.models import save_model
-from afmctl.compensators.pi import PIModel
 from afmctl.drivers.can_amp import CANAmplifier
 from afmctl.errors import AfmctlError
 from afmctl.hardware import open_driver
@@ -27,7 +24,7 @@ from afmctl.pipeline import build_pipeline
 from afmctl.runlog import RunLogReader
 from afmctl.sim_backend.amplifiers.base import RecordingSink
 from afmctl.sim_backend.testing import serve_can, serve_pty
-from afmctl.testing import assert_no_threads_left, make_config
+from afmctl.testing import HostStalls, assert_no_threads_left, make_config
 from afmctl.wave_plan import driven_steps_ok, padded, plan_table
 
 RATE_HZ = 1000.0
@@ -39,16 +36,6 @@ NM_PER_V = 50.0
 def no_leaked_threads():
     yield
     assert_no_threads_left("afmctl-")
-
-
-@pytest.fixture
-def chain_file(tmp_path):
-    """A pi+dynamics chain on x (1 kHz mode, ζ 0.03; real pole 3 kHz), 0..150 V."""
-    pi = PIModel(thresholds=[0.0, 20.0, 50.0], weights=[40.0, 6.0, 4.0], initial_state=[0.0] * 3)
-    dyn = LinearDynamicsModel.from_modes([(1000.0, 0.03)], real_poles_Hz=[3000.0])
-    path = tmp_path / "x_chain.json"
-    save_model(ChainModel(hysteresis=pi, dynamics=dyn), path)
-    return path
 
 
 def cfg_for(tmp_path, driver: str, port: str, toml: str = "", **loop):
@@ -118,21 +105,14 @@ def test_can_fifo_plays_the_table_on_its_clock_through_host_stalls(tmp_path, can
     channel, amp, sim, sink = can_rig
     cfg = cfg_for(tmp_path, "can", f"virtual:{channel}")
     traj = raster_nm(2500)
-    stalls: list[float] = []
-    t_start = time.monotonic()
-
-    def stall() -> None:
-        if time.monotonic() - t_start >= len(stalls) + 0.5:
-            time.sleep(0.020)
-            stalls.append(time.monotonic())
-
+    stall = HostStalls(stall_s=0.020, every_s=1.0)
     with Controller(cfg, amp) as ctl:
         ctl.stream_stall_hook = stall
         ctl.start(traj, runlog_path=tmp_path / "w.afmlog")
         assert ctl.wait(30)
         stats = ctl.stats()
     assert ctl.state is State.STOPPED, stats
-    assert len(stalls) >= 1
+    assert len(stall.times) >= 1
     assert stats["output"] == "wave" and stats["stream"]["underruns"] == 0 and sim.stream.underruns == 0
     assert stats["wave"]["played"] == stats["wave"]["samples"] == len(traj) and stats["latency_samples"] == 0
     after = [(t, v) for t, v in sink.history if t >= sim.stream.t0_s]
