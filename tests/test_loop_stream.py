@@ -3,19 +3,16 @@ stream (issue #12 item 4). Real parts: our CAN driver and the simulated amplifie
 python-can's ``virtual`` bus; the Controller with its pipeline, safety layer and run log."""
 from __future__ import annotations
 
-import uuid
 
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from afmctl.drivers.can_amp import CANAmplifier
 from afmctl.errors import AfmctlError
 from afmctl.loop import Controller, State
 from afmctl.runlog import RunLogReader
-from afmctl.sim_backend.amplifiers.base import RecordingSink
-from afmctl.sim_backend.testing import serve_can
+from afmctl.sim_backend.testing import can_rig
 from afmctl.testing import HostStalls, assert_no_threads_left, make_config, wait_until
 
 RATE_HZ = 1000.0
@@ -31,15 +28,8 @@ def no_leaked_threads():
 
 @pytest.fixture
 def rig():
-    channel = f"lstream-{uuid.uuid4().hex[:8]}"
-    sink = RecordingSink(max_history=1_000_000)
-    with serve_can(channel, sink, record_seq=True) as sim:
-        amp = CANAmplifier.open(f"virtual:{channel}")
-        amp.connect()
-        try:
-            yield channel, amp, sim, sink
-        finally:
-            amp.close()
+    with can_rig("lstream") as parts:
+        yield parts
 
 
 def cfg_for(tmp_path, channel, **amplifier):

@@ -8,7 +8,6 @@ import json
 import subprocess
 import sys
 import time
-import uuid
 
 import numpy as np
 import pytest
@@ -16,14 +15,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from afmctl.compensators.chain import ChainModel
-from afmctl.drivers.can_amp import CANAmplifier
 from afmctl.errors import AfmctlError
 from afmctl.hardware import open_driver
 from afmctl.loop import Controller, State
 from afmctl.pipeline import build_pipeline
 from afmctl.runlog import RunLogReader
 from afmctl.sim_backend.amplifiers.base import RecordingSink
-from afmctl.sim_backend.testing import serve_can, serve_pty
+from afmctl.sim_backend.testing import can_rig as sim_can_rig, serve_pty
 from afmctl.testing import HostStalls, assert_no_threads_left, make_config
 from afmctl.wave_plan import driven_steps_ok, padded, plan_table
 
@@ -56,15 +54,8 @@ def raster_nm(n: int, lines: int = 4) -> np.ndarray:
 
 @pytest.fixture
 def can_rig():
-    channel = f"wave-{uuid.uuid4().hex[:8]}"
-    sink = RecordingSink(max_history=1_000_000)
-    with serve_can(channel, sink, record_seq=True) as sim:
-        amp = CANAmplifier.open(f"virtual:{channel}")
-        amp.connect()
-        try:
-            yield channel, amp, sim, sink
-        finally:
-            amp.close()
+    with sim_can_rig("wave") as parts:
+        yield parts
 
 
 # ---------------------------------------------------------------------- the plan
