@@ -282,3 +282,20 @@ def test_an_axis_the_scanner_does_not_drive_keeps_its_output(tmp_path, can_rig):
         stats = ctl.stats()
     assert ctl.state is State.STOPPED and stats["wave"]["played"] == 500, stats
     assert all(v["z"] == 20.0 for _, v in sink.history if "z" in v)
+
+
+def test_a_drift_predictor_is_in_the_table(tmp_path):
+    """With drift prediction on, each row aims at the target less the predicted drift, the
+    heat input being the table's own voltages (one sample late, as in the loop)."""
+    toml = "[compensation.drift]\nenabled = true\n[compensation.temperature]\nsource = \"constant\"\nT_C = 25.0\n"
+    cfg = cfg_for(tmp_path, "can", "virtual:unused", toml)
+    pipe = build_pipeline(cfg)
+    r = raster_nm(3000)
+    table = plan_table(cfg, pipe, r, 25.0, {a: (0.0, 120.0) for a in "xyz"}, 5.0)
+    assert np.any(table.drift_nm != 0.0)
+    np.testing.assert_allclose(table.corrected_nm, table.target_nm - table.drift_nm)
+    # what the loop computes sample by sample with u_sent = its previous output
+    pipe.reset()
+    d, c, u = pipe.run(r, 25.0)
+    np.testing.assert_allclose(table.drift_nm, d, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(table.u_V, u, rtol=1e-6, atol=1e-9)
