@@ -107,26 +107,29 @@ class WaveMachine(LoopMachine):
             if targets is not None and ctl._request is None:
                 self.phase = Phase.PLAN
                 self.table = self._plan(targets)
+                self.player.check(self.table)
                 self.phase = Phase.APPROACH
                 if self._approach():
                     self.phase = Phase.PLAY
                     self.player.play(self.table)
+        except (AfmctlError, LimitError) as err:
+            self._refused(err)          # the table cannot be played: nothing of it was
         except FAULT_ERRORS as err:
-            if isinstance(err, LimitError):   # the driver refused the table: nothing of it was played
-                ctl._errors += 1
-                ctl._last_error = error_line(err)
-                ctl._event("wave-refused", ctl._last_error)
-            else:
-                ctl._enter_fault(err)
-                self.in_fault = True
-                self._end_of_run()
-                return
-        except AfmctlError as err:
-            ctl._errors += 1
-            ctl._last_error = error_line(err)
-            ctl._event("wave-error", ctl._last_error)
+            ctl._enter_fault(err)
+            self.in_fault = True
+            self._end_of_run()
+            return
         self.phase = Phase.FINISH
         self._finish()
+
+    def _refused(self, err: BaseException) -> None:
+        """The trajectory cannot be played as a wave (too long for the device, refused by the
+        driver's checks, a plan that cannot be made): say so, as a trajectory error (``afmctl
+        run`` exits 2), and finish from where the output is."""
+        ctl = self.ctl
+        ctl._errors += 1
+        ctl._last_error = ctl._feed_error = error_line(err)
+        ctl._event("wave-refused", ctl._last_error)
 
     def _collect(self) -> np.ndarray | None:
         """Phase ``collect``: every trajectory sample from the feeder, (N, 3) [nm]; None when
@@ -148,10 +151,9 @@ class WaveMachine(LoopMachine):
             n += len(item) // 3
             if n > MAX_TABLE_SAMPLES:
                 ctl._feed_stop = True
-                ctl._errors += 1
-                ctl._last_error = (f"amplifier.output = 'wave': the trajectory has more than {MAX_TABLE_SAMPLES} "
-                                   "samples at the loop period (shorten it or lower loop.rate_Hz)")
-                ctl._event("wave-error", ctl._last_error)
+                self._refused(AfmctlError(f"amplifier.output = 'wave': the trajectory has more than "
+                                          f"{MAX_TABLE_SAMPLES} samples at the loop period (shorten it or lower "
+                                          "loop.rate_Hz)"))
                 return None
         if ctl._feed_error:
             ctl._errors += 1
@@ -332,6 +334,17 @@ class TablePlayer:
             st = amp.wave_status()
         m.played_to(n, "end")
 
+    def check(self, table: WaveTable) -> None:
+        """Before the approach: the table fits the device's wave tables (:class:`AfmctlError`
+        naming the capacity: nothing is sent)."""
+        for a in self.m.safety.axes:
+            capacity = self.amp.wave_capacity(a)
+            if len(table) > capacity:
+                raise AfmctlError(f"amplifier.output = 'wave': the trajectory makes {len(table)} samples at "
+                                  f"{self.m.ctl.config.loop.rate_Hz:g} Hz, the {self.m.ctl.config.amplifier.driver} "
+                                  f"wave table of axis {a} holds {capacity} (shorten the trajectory or lower "
+                                  "loop.rate_Hz)")
+
     def _check(self, table: WaveTable) -> None:
         s = self.m.safety
         limits = {a: (s.lo[i], s.hi[i]) for i, a in enumerate(s.axes)}
@@ -357,6 +370,9 @@ class FifoPlayer:
         self.max_step_V = self.prod.max_step_V
         self.poll_s = max(min(self.prod.high - self.prod.low, self.prod.low) / cfg.loop.rate_Hz / 4, 0.0005)
         self.stall = getattr(ctl, "stream_stall_hook", None)
+
+    def check(self, table: WaveTable) -> None:
+        """Any length fits: the FIFO is refilled as it plays."""
 
     def play(self, table: WaveTable) -> None:
         m, amp, prod, ctl = self.m, self.amp, self.prod, self.m.ctl

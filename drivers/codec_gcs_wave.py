@@ -69,6 +69,15 @@ def parse_running(reply: bytes) -> int:
         raise ProtocolError("#9 reply is not a hex bit mask", data=bytes(reply)) from None
 
 
+def parse_table_capacity(reply: bytes, table: int) -> int:
+    """``WMS? <table>`` reply ``<table>=<points>`` → the most points the table takes."""
+    items = parse_items(reply)
+    value = items.get(str(table))
+    if value is None or not (1 <= value <= 2**31 - 1) or value != int(value):
+        raise ProtocolError(f"WMS? reply holds no point count for table {table}", data=bytes(reply))
+    return int(value)
+
+
 def parse_servo_cycle_s(reply: bytes) -> float:
     """``1 0x0E000200=2e-05`` → 2e-05 s; refuses values outside 1 µs..1 s."""
     items = parse_items(reply)

@@ -46,6 +46,7 @@ class GCSAmplifier(SerialAmplifier):
         self._since_check = 0
         self._tables: dict[str, np.ndarray] = {}
         self._servo_cycle_s: float | None = None
+        self._capacity: dict[str, int] = {}
         self._wave_run = (0.0, 0, 0)
         self._playing: set[str] = set()
         super().__init__(transport, **options)
@@ -147,15 +148,30 @@ class GCSAmplifier(SerialAmplifier):
                 self._servo_cycle_s = wcodec.parse_servo_cycle_s(reply)
             return self._servo_cycle_s
 
-    def upload_wave(self, axis: str, table_V: Sequence[float]) -> int:
-        """Write ``table_V`` [V] as the wave table of ``axis``; returns the points written.
-        Every sample is checked (limits, ``max_step_V`` from the previous one and from the
-        present output) before anything is sent: :class:`LimitError` names the sample."""
+    def wave_capacity(self, axis: str) -> int:
+        """The most points the wave table of ``axis`` takes (``WMS?``, read once)."""
         gen = self._gen(axis)
         with self._lock:
             self._guard()
+            if axis not in self._capacity:
+                reply = self._io(self._query, f"WMS? {gen}")
+                self._capacity[axis] = wcodec.parse_table_capacity(reply, gen)
+            return self._capacity[axis]
+
+    def upload_wave(self, axis: str, table_V: Sequence[float]) -> int:
+        """Write ``table_V`` [V] as the wave table of ``axis``; returns the points written.
+        Every sample is checked (limits, ``max_step_V`` from the previous one and from the
+        present output) and the length against :meth:`wave_capacity` before anything is
+        sent: :class:`LimitError` names the sample or the capacity."""
+        gen = self._gen(axis)
+        with self._lock:        # re-entrant: wave_capacity() takes it too
+            self._guard()
             v = check_table(axis, table_V, self._limits[axis], max_step_V=self.max_step_V,
                             start_V=self._last.get(axis))
+            capacity = self.wave_capacity(axis)
+            if len(v) > capacity:
+                raise LimitError(f"wave table of axis {axis}: {len(v)} points, the controller's table holds "
+                                 f"{capacity} (WMS?); nothing was sent")
             lim = self._limits[axis]
             lines = wcodec.encode_wav_pnt(gen, v, lim.min_V, lim.max_V)
             self._io(self._send_checked, *lines)

@@ -166,6 +166,10 @@ class NV200(SerialAmplifier):
         """The waveform generator's base sample time [s] (50 us)."""
         return wcodec.BASE_SAMPLE_S
 
+    def wave_capacity(self, axis: str = "x") -> int:
+        """The most samples the waveform buffer takes (1024)."""
+        return wcodec.BUFFER_SIZE
+
     def upload_wave(self, axis: str, table_V: Sequence[float]) -> int:
         """Write ``table_V`` [V] (at most 1024 samples) into the waveform buffer; every sample
         is checked (limits, ``max_step_V``) before anything is sent. Returns the samples written."""

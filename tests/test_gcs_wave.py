@@ -240,3 +240,12 @@ def test_a_query_right_after_a_pipelined_error_check_reads_its_own_reply(query):
         else:
             assert amp.get_voltages()["y"] == pytest.approx(11.0)
         assert amp.get_voltages()["x"] == pytest.approx(10.0)
+
+
+def test_driver_refuses_a_table_longer_than_the_controller_holds():
+    from afmctl.sim_backend.amplifiers.gcs_wave import MAX_POINTS
+    with serve_pty("gcs") as server, open_amplifier("gcs", server.port) as amp:
+        assert amp.wave_capacity("x") == MAX_POINTS
+        with pytest.raises(LimitError, match=f"{MAX_POINTS + 1} points, the controller's table holds {MAX_POINTS}"):
+            amp.upload_wave("x", np.zeros(MAX_POINTS + 1))
+        assert server.device.wave.tables[1] == []
