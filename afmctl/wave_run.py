@@ -313,7 +313,13 @@ class TablePlayer:
         axes = list(m.safety.axes)
         self._check(table)
         for a in axes:
+            if ctl._request is not None:      # a stop during the upload: nothing is started
+                ctl._event("wave-stopped", f"{ctl._request} while the table was uploaded: not started")
+                return
             amp.upload_wave(a, table.u_V[:, "xyz".index(a)])
+        if ctl._request is not None:
+            ctl._event("wave-stopped", f"{ctl._request} while the table was uploaded: not started")
+            return
         divider = wcodec.divider_for(ctl.config.loop.rate_Hz, amp.servo_cycle_s())
         m.tick0 = ctl._tick + 1
         t0 = time.perf_counter()

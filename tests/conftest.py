@@ -34,6 +34,8 @@ SLOW_TESTS = frozenset({
     "test_wave_run.py::test_afmctl_run_refuses_what_a_wave_cannot_play",
     "test_wave_run.py::test_afmctl_run_plays_a_raster_as_a_gcs_wave",
     "test_wave_run.py::test_nv200_waveform_buffer_plays_the_table",
+    "test_wave_run.py::test_a_stop_during_the_upload_starts_nothing",
+    "test_wave_run.py::test_an_axis_the_scanner_does_not_drive_keeps_its_output",
     "test_wave_run.py::test_no_target_makes_a_table_beyond_the_limits_or_the_slew",
     "test_amp_cli.py::test_stream_keeps_the_time_column",
     "test_amp_cli.py::test_stream_three_axes_in_order_and_reports_the_rate",

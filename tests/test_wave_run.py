@@ -301,3 +301,26 @@ def test_a_drift_predictor_is_in_the_table(tmp_path):
     d, c, u = pipe.run(r, 25.0)
     np.testing.assert_allclose(table.drift_nm, d, rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(table.u_V, u, rtol=1e-6, atol=1e-9)
+
+
+def test_a_stop_during_the_upload_starts_nothing(tmp_path):
+    """Ctrl-C while a long table goes over a 115200-baud link: the generators are never
+    started, the output finishes from where it was."""
+    with serve_pty("gcs", baud=115200) as srv:
+        cfg = cfg_for(tmp_path, "gcs", srv.port)
+        amp = open_driver(cfg, srv.port)
+        try:
+            with Controller(cfg, amp) as ctl:
+                ctl.start(raster_nm(8000), runlog_path=tmp_path / "s.afmlog")
+                t0 = time.monotonic()
+                while srv.device.wave.tables[1] == [] and time.monotonic() - t0 < 20:
+                    time.sleep(0.01)
+                ctl.stop()
+                assert ctl.wait(60)
+                stats = ctl.stats()
+        finally:
+            amp.close()
+    assert ctl.state is State.STOPPED and stats["wave"]["played"] == 0
+    events = [(e["event"], e.get("detail") or "") for e in RunLogReader(tmp_path / "s.afmlog").events()]
+    assert any(ev == "wave-stopped" and "not started" in d for ev, d in events), events
+    assert all(g.played == 0 for g in srv.device.wave.gens.values())
