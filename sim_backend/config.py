@@ -92,6 +92,11 @@ class GaussianPreisachConfig(_VoltageSpan):
     n_grid: int = Field(151, ge=3, le=2001, description="grid nodes per axis of the Everett table")
     linear_nm_per_V: float = Field(50.0, description="reversible (anhysteretic) sensitivity [nm/V]")
     components: list[PreisachComponent] = Field(default_factory=list)
+    rate_lag_s: float = Field(0.0, ge=0.0, le=1.0, description=(
+        "rate-dependent hysteresis: the hysteretic (Preisach) part sees the voltage through a "
+        "first-order lag of this time constant [s] while the reversible part follows it at once, "
+        "so the loop widens with the input rate (extra phase ≈ 2π·f·rate_lag_s at f); 0 = "
+        "rate-independent"))
 
 
 class ExternalModelConfig(_Strict):

@@ -198,6 +198,8 @@ class AxisPlant:
         self.extra_states = [np.array([h0, 0.0]) for _ in self.cfg.extra_modes]
         self.u_piezo_V = self.u_min_V
         self.y_nm = h0
+        #: the lagged voltage [V] the Preisach part of a rate-dependent hysteresis last saw
+        self.rate_state = self.u_min_V
 
     # ------------------------------------------------------------------ simulation
     def run(self, u_V: np.ndarray, dt_s: float, return_voltage: bool = False):
@@ -208,7 +210,7 @@ class AxisPlant:
         v = np.empty_like(u)
         amp_k = K.amplifier_nb if self.fast else K.amplifier_py
         amp_k(u, v, self.amp_state, self.u_min_V, self.u_max_V, self.lsb_V, max_step, a_lp)
-        h = self._hyst(float(dt_s)).block(v)
+        h = self._hysteresis_of(v, float(dt_s))
         y = np.empty_like(u)
         post_k = K.creep_dynamics_nb if self.fast else K.creep_dynamics_py
         post_k(h, y, a_c, g_c, self.creep_state, ad, bd, self.mode_state, use_dyn)
@@ -220,6 +222,20 @@ class AxisPlant:
             self.u_piezo_V = float(v[-1])
             self.y_nm = float(y[-1])
         return (y, v) if return_voltage else y
+
+    def _hysteresis_of(self, v: np.ndarray, dt_s: float) -> np.ndarray:
+        """The hysteresis stage for piezo voltages ``v`` [V]; with ``rate_lag_s`` > 0 the
+        Preisach part sees ``v`` through an exact first-order lag (state carried) and the
+        reversible part ``linear_nm_per_V`` follows ``v`` directly (rate-dependent
+        hysteresis: the loop widens as the input gets faster)."""
+        tau = 0.0 if self._external else float(self.cfg.hysteresis.rate_lag_s)
+        if tau <= 0.0 or v.size == 0:
+            return self._hyst(dt_s).block(v)
+        from scipy.signal import lfilter
+        a = math.exp(-dt_s / tau)
+        lagged, zf = lfilter([1.0 - a], [1.0, -a], v, zi=[a * self.rate_state])
+        self.rate_state = float(zf[0]) / a
+        return self._hyst(dt_s).block(lagged) + self.cfg.hysteresis.linear_nm_per_V * (v - lagged)
 
     def static_gain_nm_per_V(self) -> float:
         """Mean sensitivity over the full range on the major ascending branch [nm/V]
