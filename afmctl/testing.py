@@ -2,8 +2,9 @@
 ophyd-async does). Simulated devices to test against live in :mod:`afmctl.sim_backend.testing`."""
 from __future__ import annotations
 
+import contextlib
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +55,27 @@ def describe(cond: Callable[[], object]) -> str:
         start = source.find("lambda")
         return source[start:] if start >= 0 else source
     return name
+
+
+@contextlib.contextmanager
+def can_rig(prefix: str = "rig", *, fd: bool = False, max_history: int = 1_000_000) -> Iterator[tuple[str, Any, Any, Any]]:
+    """The simulated CAN amplifier on a fresh python-can ``virtual`` channel, recording every
+    output (:class:`afmctl.sim_backend.amplifiers.base.RecordingSink`), with our CAN driver
+    connected to it: yields ``(channel, amplifier, simulator, sink)``; closed on exit."""
+    import uuid
+
+    from afmctl.drivers.can_amp import CANAmplifier
+    from afmctl.sim_backend.amplifiers.base import RecordingSink
+    from afmctl.sim_backend.testing import serve_can
+    channel = f"{prefix}-{uuid.uuid4().hex[:8]}"
+    sink = RecordingSink(max_history=max_history)
+    with serve_can(channel, sink, record_seq=True) as sim:
+        amp = CANAmplifier.open(f"virtual:{channel}", fd=fd)
+        amp.connect()
+        try:
+            yield channel, amp, sim, sink
+        finally:
+            amp.close()
 
 
 class HostStalls:

@@ -66,6 +66,11 @@ PLANTS = {
                     [DynamicsConfig(resonance_Hz=700.0, quality_factor=15.0),
                      DynamicsConfig(resonance_Hz=2500.0, quality_factor=40.0)]),
              "wide loop (≈ 18 %), 35 nm/V, creep 3 % (5 ms–200 s), 8 kHz amplifier, modes 0.7 kHz Q 15 + 2.5 kHz Q 40"),
+    "rate-dependent": (_plant(default_scanner_config().x.hysteresis.model_copy(update={"rate_lag_s": 2e-4}),
+                              CreepConfig(), AmplifierConfig(bandwidth_Hz=5000.0, slew_V_per_s=1.0e4),
+                              [DynamicsConfig(resonance_Hz=1000.0, quality_factor=20.0)]),
+                       "the default x axis with rate-dependent hysteresis (the Preisach part lags the "
+                       "voltage by 0.2 ms: the loop 41 % wider at 100 Hz than at 1 Hz)"),
 }
 
 

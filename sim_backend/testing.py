@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from .amplifiers.base import RecordingSink
 
@@ -40,26 +40,6 @@ def serve_can(channel: str = "afm0", sink=None, *, interface: str = "virtual", *
     amp = SimCANAmplifier(channel, sink, interface=interface, **options)
     with amp:
         yield amp
-
-
-@contextlib.contextmanager
-def can_rig(prefix: str = "rig", *, fd: bool = False, max_history: int = 1_000_000
-            ) -> Iterator[tuple[str, Any, "SimCANAmplifier", RecordingSink]]:
-    """A simulated CAN amplifier on a fresh ``virtual`` channel (recording every output in a
-    :class:`RecordingSink`) with our CAN driver connected to it: yields ``(channel,
-    amplifier, simulator, sink)``; both are closed on exit."""
-    import uuid
-
-    from afmctl.drivers.can_amp import CANAmplifier
-    channel = f"{prefix}-{uuid.uuid4().hex[:8]}"
-    sink = RecordingSink(max_history=max_history)
-    with serve_can(channel, sink, record_seq=True) as sim:
-        amp = CANAmplifier.open(f"virtual:{channel}", fd=fd)
-        amp.connect()
-        try:
-            yield channel, amp, sim, sink
-        finally:
-            amp.close()
 
 
 def open_fds() -> set[int]:

@@ -12,8 +12,7 @@ from hypothesis import strategies as st
 from afmctl.errors import AfmctlError
 from afmctl.loop import Controller, State
 from afmctl.runlog import RunLogReader
-from afmctl.sim_backend.testing import can_rig
-from afmctl.testing import HostStalls, assert_no_threads_left, make_config, wait_until
+from afmctl.testing import HostStalls, assert_no_threads_left, can_rig, make_config, wait_until
 
 RATE_HZ = 1000.0
 SLEW_V_PER_S = 2000.0     # 2 V per sample at 1 kHz

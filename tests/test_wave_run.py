@@ -21,8 +21,9 @@ from afmctl.loop import Controller, State
 from afmctl.pipeline import build_pipeline
 from afmctl.runlog import RunLogReader
 from afmctl.sim_backend.amplifiers.base import RecordingSink
-from afmctl.sim_backend.testing import can_rig as sim_can_rig, serve_pty
+from afmctl.sim_backend.testing import serve_pty
 from afmctl.testing import HostStalls, assert_no_threads_left, make_config
+from afmctl.testing import can_rig as can_rig_on_a_fresh_channel
 from afmctl.wave_plan import driven_steps_ok, padded, plan_table
 
 RATE_HZ = 1000.0
@@ -54,7 +55,7 @@ def raster_nm(n: int, lines: int = 4) -> np.ndarray:
 
 @pytest.fixture
 def can_rig():
-    with sim_can_rig("wave") as parts:
+    with can_rig_on_a_fresh_channel("wave") as parts:
         yield parts
 
 
