@@ -1,0 +1,73 @@
+"""``afmctl identify --from-images`` for the kinds with linear dynamics (``dynamics``,
+``preisach+dynamics``): grating scans at several line rates, no position sensor
+(:mod:`afmctl.compensators.image_dynamics`; file convention in docs/SIM.md)."""
+from __future__ import annotations
+
+import argparse
+import logging
+
+log = logging.getLogger(__name__)
+
+#: --model values identified from scans at several line rates
+STRUCTURES = ("dynamics", "preisach+dynamics")
+#: --param keys of the dynamics part (the rest go to the Preisach identification)
+DYNAMICS_PARAMS = ("static_max_Hz", "gain_nm_per_V", "n_modes", "n_lags", "f_max_Hz", "static_error_nm")
+
+
+def wants_rates(args: argparse.Namespace) -> bool:
+    """True when ``identify`` should take this path: ``--from-images`` with a model that
+    has linear dynamics."""
+    return getattr(args, "from_images", None) is not None and "dynamics" in str(args.model).split("+")
+
+
+def _options(args: argparse.Namespace) -> tuple[dict, dict]:
+    from afmctl.compensators.input_checks import number_option
+
+    from .identify_io import parse_params
+    params = parse_params(args.param)
+    dyn = {k: params.pop(k) for k in DYNAMICS_PARAMS if k in params}
+    limits = {"static_max_Hz": (1e-6, 1e4, False), "gain_nm_per_V": (1e-6, 1e6, False), "n_lags": (0, 4, True),
+              "f_max_Hz": (1.0, 1e6, False), "static_error_nm": (1e-6, 1e4, False)}
+    for k, (lo, hi, integer) in limits.items():
+        if k in dyn:
+            dyn[k] = number_option(k, dyn[k], lo=lo, hi=hi, integer=integer)
+    if "n_modes" in dyn and dyn["n_modes"] == "auto":
+        dyn["n_modes"] = None
+    elif "n_modes" in dyn:
+        dyn["n_modes"] = int(number_option("n_modes", dyn["n_modes"], lo=0, hi=6, integer=True))
+    return dyn, params
+
+
+def run_from_rate_images(args: argparse.Namespace) -> int:
+    """Load the ``.npz`` scan files, identify, print the summary and the response per line
+    rate, save."""
+    from afmctl.compensators.base import ModelError
+    from afmctl.compensators.image_dynamics import identify_from_rate_scans
+    from afmctl.compensators.scan_files import load_scans_npz
+
+    from ..errors import AfmctlError
+    from .identify_io import _save
+    if args.data is not None:
+        raise AfmctlError("--data: give either --data DATA.csv or --from-images SCANS, not both")
+    if args.model not in STRUCTURES:
+        raise AfmctlError(f"--model {args.model}: from grating images at several line rates the kinds are "
+                          f"{', '.join(STRUCTURES)} (a creep stage is not identified from images)")
+    bad = [p for p in args.from_images if not str(p).lower().endswith(".npz")]
+    if bad:
+        raise AfmctlError(f"{bad[0]}: the dynamics are identified from .npz scan files (pixel voltages and "
+                          "line_rate_Hz; docs/SIM.md), not from image files")
+    dyn, params = _options(args)
+    parts = [load_scans_npz(p) for p in args.from_images]
+    where = ", ".join(str(p) for p in args.from_images)
+    try:
+        model = identify_from_rate_scans(parts, args.model, n_operators=args.operators, **dyn, **params)
+    except TypeError as err:
+        raise AfmctlError(f"--param: not accepted by --model {args.model} from images ({err})") from None
+    except ModelError as err:
+        raise ModelError(f"{where}: {err}") from None
+    except (ValueError, ArithmeticError) as err:  # incl. numpy.linalg.LinAlgError
+        raise ModelError(f"{where}: the image-based identification failed ({err})") from None
+    _save(model, args.out)
+    print(model.summary())
+    print(f"written          : {args.out}")
+    return 0
