@@ -15,7 +15,8 @@ DC gain. Per line rate ``f_L`` [lines/s]:
    (half-way between the line's 5th and 95th percentiles) at the grating's edges; each
    crossing, interpolated between pixel centres, gives a time ``t_k`` [s]. Pixel i of a
    line is centred at ``t = (i + ½)/(2·P·f_L)`` after the line start (trace pixels
-   0…P−1, then the retrace's in time order), lines back to back.
+   0…P−1, then the retrace's in time order), lines back to back. Edges within 5 % of a
+   half-line of the turnarounds are left out (the tip may reverse there).
 2. *Static prediction*: ``s(t)`` [nm] is the static model run over the commanded voltages
    of all the lines, one value per pixel centre, linearly interpolated to ``t_k``; its
    Fourier coefficients over the last line, ``S_n`` (n = 1…N), describe the periodic part.
@@ -28,10 +29,16 @@ DC gain. Per line rate ``f_L`` [lines/s]:
 4. *Harmonics*: with ``e_k = x_k − s(t_k)`` and, in periodic steady state,
    ``e(t) = (D − 1)[s](t) ≈ c + c_R·[right edge] + b·t + Σ_n 2·Re(H_n·S_n·e^{j2πn f_L t})``,
    ``H_n = G(j2πn f_L) − 1``, linear least squares over all edges of trace and retrace
-   gives ``H_n``; ``c`` takes the unknown offset, ``b`` slow creep/drift. Edges whose
-   residual exceeds 4× the robust RMS are dropped and the fit repeated.
+   gives ``H_n``; ``c`` takes the unknown offset, ``b`` slow creep/drift. Solved for the
+   harmonics with ``|S_n| ≥ 0.3·static_error_nm`` (the lowest ``(edges per line/1.5 − 3)/2``
+   of them: two unknowns each), for ``E_n = H_n·S_n`` with a ridge ``RIDGE·edges·Σ|E_n|²``: no edge is
+   seen at a turnaround, so a comb of odd harmonics (a spike at each turnaround) is
+   otherwise nearly invisible. Edges whose residual exceeds 4× the robust RMS are dropped
+   and the fit repeated.
 5. *Response*: ``G_n = 1 + H_n`` with its standard error from the least-squares
-   covariance; harmonics with a relative error below ``max_rel_error`` are kept, weighted
+   covariance and the static model's assumed error ``static_error_nm/|S_n|``, read only at
+   the triangle's own (odd) harmonics (``|S_n| ≥ ½·|S_1|/n²`` and ``≥ static_error_nm``);
+   those with a relative error below ``max_rel_error`` are kept, weighted
    ``min(1, 0.01/rel_err)`` (as √coherence), and all line rates together are fitted by
    :func:`afmctl.compensators.dynamics_identify.fit_frf` (modes, first-order lags, delay;
    :func:`~afmctl.compensators.dynamics_identify.fit_mode_count` for the number of modes).
@@ -65,7 +72,7 @@ MAX_LINE_RATE_HZ = 10_000.0
 EXCITED = 0.3
 
 #: ridge on the harmonics' coefficients, per edge (:func:`solve_harmonics`)
-RIDGE = 1e-3
+RIDGE = 1e-2
 
 #: static model: voltages (one per pixel centre) [V], pixel period [s] → positions [nm]
 StaticFn = Callable[[np.ndarray, float], np.ndarray]
@@ -203,9 +210,15 @@ def harmonics_of(s_line: np.ndarray, n_max: int) -> np.ndarray:
 
 def excited_harmonics(S: np.ndarray, floor_nm: float, most: int) -> np.ndarray:
     """Harmonic numbers (1-based) whose static coefficient ``|S_n|`` is at least
-    ``floor_nm`` [nm] (the triangle's odd harmonics; the even ones come only from the
-    hysteresis' asymmetry), the lowest ``most`` of them."""
+    ``floor_nm`` [nm], the lowest ``most`` of them (the unknowns of step 4)."""
     return (np.flatnonzero(np.abs(S) >= floor_nm) + 1)[:max(0, most)]
+
+
+def triangle_harmonics(n: np.ndarray, S: np.ndarray, floor_nm: float) -> np.ndarray:
+    """Harmonics ``n`` the response is read at: a triangle's own (odd) harmonics,
+    ``|S_n| ≥ ½·|S_1|/n²``, and at least ``floor_nm`` [nm]. The even ones come from the
+    hysteresis' asymmetry alone; the static model knows them too poorly to divide by."""
+    return (np.abs(S) >= 0.5 * np.abs(S[0]) / n.astype(np.float64) ** 2) & (np.abs(S) >= floor_nm)
 
 
 def periodic_part(n: np.ndarray, S: np.ndarray, H: np.ndarray, f_L: float, t_s: np.ndarray) -> np.ndarray:
@@ -292,7 +305,7 @@ def rate_response(scan: RateScan, static: StaticFn, prior: Callable[[np.ndarray]
     H, se, rms, keep = best
     G = 1.0 + H
     se = np.hypot(se, static_error_nm / np.maximum(np.abs(S), 1e-12))
-    rel = np.where(np.abs(S) >= static_error_nm, se / np.maximum(np.abs(G), 1e-12), np.inf)
+    rel = np.where(triangle_harmonics(n, S, static_error_nm), se / np.maximum(np.abs(G), 1e-12), np.inf)
     log.info("image dynamics: %g lines/s, %d edges (%d kept), %d harmonics, residual RMS %.3g nm",
              f_L, t.size, int(np.count_nonzero(keep)), n.size, rms)
     return RateResponse(f_L, f_n, G, rel, int(np.count_nonzero(keep)), rms)
@@ -310,7 +323,6 @@ def _place_and_solve(scan: RateScan, s: np.ndarray, s_t: np.ndarray, t: np.ndarr
     for _ in range(iterations):
         p = s_t + periodic_part(n, S, H, f_L, t)
         x, right = assign_positions(p, _velocity(s, n, S, H, f_L, t, t_px), sign, scan.period_nm)
-        x = x + retrace_shift(t, x - s_t, right, n, S, f_L, scan.period_nm)
         e = x - s_t
         H, se, resid = solve_harmonics(t, e, right, n, S, f_L, np.ones(t.size, bool))
         rms = float(np.median(np.abs(resid)) * 1.4826)
@@ -320,22 +332,6 @@ def _place_and_solve(scan: RateScan, s: np.ndarray, s_t: np.ndarray, t: np.ndarr
             break
         x_prev = x
     return H, se, float(np.sqrt(np.mean(resid[keep] ** 2))), keep
-
-
-def retrace_shift(t: np.ndarray, e: np.ndarray, right: np.ndarray, n: np.ndarray, S: np.ndarray, f_L: float,
-                  period_nm: float) -> np.ndarray:
-    """The whole number of grating periods (−1, 0, +1) by which the retrace's edges are
-    placed relative to the trace's [nm per edge]. A period's step between trace and
-    retrace is, to the harmonics, just another response; the placement kept is the one
-    whose response moves the tip least (smallest ``Σ|H_n S_n|²``)."""
-    ret = (np.mod(t * f_L, 1.0) >= 0.5).astype(np.float64)
-    best = None
-    for k in (0, -1, 1):
-        H, _, _ = solve_harmonics(t, e + k * period_nm * ret, right, n, S, f_L, np.ones(t.size, bool))
-        energy = float(np.sum(np.abs(H * S) ** 2))
-        if best is None or energy < best[0]:
-            best = (energy, k)
-    return best[1] * period_nm * ret
 
 
 def _velocity(s: np.ndarray, n: np.ndarray, S: np.ndarray, H: np.ndarray, f_L: float, t: np.ndarray,
@@ -368,6 +364,13 @@ def _fit(frf: FRF, n_modes: int | None, n_lags: int, dt_s: float) -> tuple[int, 
     return n_modes, x, rms
 
 
+def _unit_response(x: np.ndarray, n_modes: int, n_lags: int) -> Callable[[np.ndarray], np.ndarray]:
+    """``f_Hz → G`` of a fitted parameter vector with its static gain divided out."""
+    from .dynamics_identify import model_response
+
+    return lambda f: model_response(x, f, n_modes, n_lags) / math.exp(x[0])
+
+
 def identify_dynamics(scans: list[RateScan], static: StaticFn, *, n_modes: int | None = None, n_lags: int = 1,
                       f_max_Hz: float = 3000.0, max_rel_error: float = 0.2, static_error_nm: float = 1.0) -> tuple[Any, list[RateResponse]]:
     """Steps 1–5 of the module docstring over the line rates of ``scans`` (slowest
@@ -375,7 +378,6 @@ def identify_dynamics(scans: list[RateScan], static: StaticFn, *, n_modes: int |
     :class:`~afmctl.compensators.dynamics.LinearDynamicsModel` and the per-rate
     responses."""
     from .dynamics import LinearDynamicsModel
-    from .dynamics_identify import model_response
 
     if not scans:
         raise ModelError("line_rate_Hz: no scan range faster than the static ones; the dynamics need grating "
@@ -390,8 +392,7 @@ def identify_dynamics(scans: list[RateScan], static: StaticFn, *, n_modes: int |
         frf = response_frf(responses, max_rel_error)
         if frf.f_Hz.size >= 8:
             fitted = _fit(frf, n_modes, n_lags, dt)
-            nm, x = fitted[0], fitted[1]
-            prior = (lambda x, nm: lambda f: model_response(x, f, nm, n_lags) / math.exp(x[0]))(x, nm)
+            prior = _unit_response(fitted[1], fitted[0], n_lags)
     if fitted is None:
         raise ModelError(f"trace_nm/retrace_nm: only {frf.f_Hz.size} harmonics measured with a relative error "
                          f"< {max_rel_error:g}; need ≥ 8 (more line rates, or larger scan ranges)")

@@ -23,13 +23,17 @@ from .samples import Grating1D
 
 log = logging.getLogger(__name__)
 
-#: line rates [lines/s] of the default dynamics scans: harmonics near a 0.5–2 kHz mode at
-#: low orders (50: 19th/21st, 100: 9th/11th) and the lag/delay at the lower rates
-DEFAULT_RATES_HZ = (10.0, 25.0, 50.0, 100.0)
+#: line rates [lines/s] of the default dynamics scans (the divisors of 600 from 10 to 100):
+#: harmonics near a 0.5–2 kHz mode at low orders, closely spaced from rate to rate so that
+#: some fall within a lightly damped mode's peak, and the lag/delay at the lower rates.
+#: Each is simulated with 600/rate samples per pixel, so all share one simulation step and
+#: the scanner's drift predictor runs on unbroken
+DEFAULT_RATES_HZ = (10.0, 12.0, 15.0, 20.0, 24.0, 25.0, 30.0, 40.0, 50.0, 60.0, 75.0, 100.0)
+#: samples per pixel × line rate [lines/s] of the simulation (rates that divide it share
+#: one step, 1/(2·pixels·600) s; others get the nearest step below that)
+STEP_LINES_PER_S = 600.0
 #: the ramp's slope stays below this fraction of the amplifier's slew limit
 SLEW_MARGIN = 0.9
-#: largest simulation step [s] (the pixel is split into as many samples as that needs)
-MAX_DT_S = 2.5e-6
 
 
 def ramp_span_V(line_rate_Hz: float, u_min_V: float, u_max_V: float, slew_V_per_s: float | None) -> float:
@@ -77,7 +81,7 @@ def scan_grating_rates(scanner: Any, sample: Any | None = None, *, axis: Literal
         hi = ramp_span_V(float(rate), u_min_V, u_max_V, slew)
         if not lim[ia, 0] <= u_min_V < hi <= lim[ia, 1]:
             raise ModelError(f"u_min_V/u_max_V: {u_min_V:g}…{hi:g} V outside {lim[ia, 0]:g}…{lim[ia, 1]:g} V")
-        spp = max(1, math.ceil(1.0 / (2.0 * rate * pixels * MAX_DT_S)))
+        spp = max(1, math.ceil(STEP_LINES_PER_S / rate - 1e-9))
         dt = 1.0 / (2.0 * rate * pixels * spp)
         u_px[r], line = line_voltages(u_min_V, hi, pixels, spp)
         u, pos, h = scan_lines(scanner, sample, line, lines, ia, float(lim[1 - ia, 0]), dt, pixels, spp)

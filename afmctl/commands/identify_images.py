@@ -42,7 +42,7 @@ def run_from_rate_images(args: argparse.Namespace) -> int:
     """Load the ``.npz`` scan files, identify, print the summary and the response per line
     rate, save."""
     from afmctl.compensators.base import ModelError
-    from afmctl.compensators.image_dynamics import identify_from_rate_scans
+    from afmctl.compensators.image_dynamics import STATIC_MAX_LINE_RATE_HZ, identify_from_rate_scans, split_scans
     from afmctl.compensators.scan_files import load_scans_npz
 
     from ..errors import AfmctlError
@@ -58,6 +58,11 @@ def run_from_rate_images(args: argparse.Namespace) -> int:
                           "line_rate_Hz; docs/SIM.md), not from image files")
     dyn, params = _options(args)
     parts = [load_scans_npz(p) for p in args.from_images]
+    for path, part in zip(args.from_images, parts):
+        try:
+            split_scans(part, float(dyn.get("static_max_Hz", STATIC_MAX_LINE_RATE_HZ)))
+        except ModelError as err:
+            raise ModelError(f"{path}: {err}") from None
     where = ", ".join(str(p) for p in args.from_images)
     try:
         model = identify_from_rate_scans(parts, args.model, n_operators=args.operators, **dyn, **params)
