@@ -1,21 +1,22 @@
-"""Sensorless dynamics: the chain preisach+dynamics identified from grating images at
-several line rates vs the same chain identified with a position sensor.
+"""Sensorless chains: preisach[+creep]+dynamics identified from grating images (slow
+scans and scans at several line rates) vs the same chains identified with a position
+sensor.
 
 On the default simulated scanner (x axis):
 
 * **images** — slow grating scans (15 ranges at 1 line/s, :func:`scan_grating_lines`) for
-  the Preisach stage, and scans at 10, 25, 50 and 100 lines/s (:func:`scan_grating_rates`)
-  for the dynamics (:mod:`afmctl.compensators.image_dynamics`); no sensor;
+  the Preisach stage (and the creep stage, :mod:`afmctl.compensators.image_creep`), and
+  scans at 10…100 lines/s (:func:`scan_grating_rates`) for the dynamics
+  (:mod:`afmctl.compensators.image_dynamics`); no sensor;
 * **sensor** — the demo's quick static + creep excitation (1 kHz sensor) for the Preisach
   (and creep) stage and its small-signal multisine at 10 kHz for the dynamics (what
-  ``afmctl identify`` fits): the same structure preisach+dynamics, and the product's best
-  preisach+creep+dynamics (creep is not identified from images).
+  ``afmctl identify`` fits), preisach+dynamics and preisach+creep+dynamics.
 
 Each chain compensates 4 µm raster lines offline (:func:`afmctl.speed_ladder.offline_errors_nm`,
 the chain's offline inverse within 0…150 V); the table gives the x error over the central
 80 % of every trace and retrace, % of the line.
 
-    .venv/bin/python benchmarks/image_dynamics.py [--rates 16 50] [--no-write]
+    .venv/bin/python benchmarks/image_dynamics.py [--rates 1 4 16 50] [--no-write]
 
 Writes its section of docs/BENCHMARKS.md between ``<!-- bench:image_dynamics -->`` markers.
 """
@@ -38,16 +39,17 @@ from afmctl.sim_backend.scanner import Scanner, ScannerConfig, default_scanner_c
 TRUE_MODE = (1000.0, 1.0 / (2 * 20.0))
 
 
-def image_chain(cfg: ScannerConfig) -> Any:
-    """preisach+dynamics from simulated grating images only (x axis)."""
-    from afmctl.compensators.image_dynamics import identify_from_rate_scans
+def image_chain(cfg: ScannerConfig, creep: bool = False) -> Any:
+    """preisach[+creep]+dynamics from simulated grating images only (x axis)."""
+    from afmctl.compensators.image_chain import identify_from_rate_scans
     from afmctl.sim_backend.image_scans import scan_grating_lines
     from afmctl.sim_backend.rate_scans import scan_grating_rates
     sc = Scanner(cfg)
     slow = scan_grating_lines(sc, lines_per_range=4, keep_truth=False)
     sc.reset()
     fast = scan_grating_rates(sc, keep_truth=False)
-    return identify_from_rate_scans([slow.arrays(), fast.arrays()], "preisach+dynamics", n_operators=15)
+    structure = "preisach+creep+dynamics" if creep else "preisach+dynamics"
+    return identify_from_rate_scans([slow.arrays(), fast.arrays()], structure, n_operators=15)
 
 
 def sensor_chain(cfg: ScannerConfig, creep: bool = False) -> Any:
@@ -104,12 +106,13 @@ def mode_of(chain: Any) -> tuple[float, float]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--rates", type=float, nargs="+", default=[16.0, 50.0])
+    ap.add_argument("--rates", type=float, nargs="+", default=[1.0, 4.0, 16.0, 50.0])
     ap.add_argument("--no-write", action="store_true")
     a = ap.parse_args(argv)
     cfg = default_scanner_config()
     rows = []
     for name, build in (("images, preisach+dynamics (no sensor)", image_chain),
+                        ("images, preisach+creep+dynamics (no sensor)", lambda c: image_chain(c, creep=True)),
                         ("sensor, preisach+dynamics", sensor_chain),
                         ("sensor, preisach+creep+dynamics", lambda c: sensor_chain(c, creep=True))):
         t0 = time.perf_counter()

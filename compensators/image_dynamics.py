@@ -147,6 +147,7 @@ def split_scans(scans: Mapping[str, Any], static_max_Hz: float = STATIC_MAX_LINE
     if slow.size:
         static = {k: (s[k][slow] if k in ("u_trace_V", "u_retrace_V", "trace_nm", "retrace_nm") else s[k])
                   for k in s}
+        static["line_rate_Hz"] = rates[slow]
     fast = [RateScan(np.concatenate([s["u_trace_V"][r], s["u_retrace_V"][r]]), s["trace_nm"][r],
                      s["retrace_nm"][r], float(rates[r]), period, skip)
             for r in np.flatnonzero(rates > static_max_Hz)]
@@ -231,8 +232,8 @@ def assign_positions(p_nm: np.ndarray, v: np.ndarray, sign: np.ndarray, period_n
                      ) -> tuple[np.ndarray, np.ndarray]:
     """Grating positions of edges predicted at ``p_nm`` moving with velocity sign ``v``:
     rising height while moving +x (or falling while moving −x) is a line's left edge.
-    Returns the lattice positions ``m·period`` [nm] (offset per side removed) and 1.0 for
-    right edges."""
+    Returns the positions ``φ_side + m·period`` [nm] (``φ_side`` the predictions' mean
+    phase for each side) and 1.0 for right edges."""
     right = (sign * np.sign(v) < 0).astype(np.float64)
     x = np.empty_like(p_nm)
     for side in (0.0, 1.0):
@@ -241,7 +242,7 @@ def assign_positions(p_nm: np.ndarray, v: np.ndarray, sign: np.ndarray, period_n
             continue
         ang = 2 * math.pi * p_nm[k] / period_nm
         phi = math.atan2(np.mean(np.sin(ang)), np.mean(np.cos(ang))) * period_nm / (2 * math.pi)
-        x[k] = np.round((p_nm[k] - phi) / period_nm) * period_nm
+        x[k] = phi + np.round((p_nm[k] - phi) / period_nm) * period_nm
     return x, right
 
 
@@ -406,52 +407,3 @@ def identify_dynamics(scans: list[RateScan], static: StaticFn, *, n_modes: int |
     model = LinearDynamicsModel(poles_rad_per_s=[(float(p.real), float(p.imag)) for p in poles],
                                 delay_s=max(0.0, tau), fit_info=info)
     return model, responses
-
-
-# --------------------------------------------------------------------------- models
-def static_function(model: Any | None, gain_nm_per_V: float | None = None) -> StaticFn:
-    """The static stage as :data:`StaticFn`: a hysteresis (or chain without dynamics)
-    model's forward operator run over the voltages, or, without a model, the linear
-    ``gain_nm_per_V`` [nm/V]."""
-    if model is None:
-        if gain_nm_per_V is None:
-            raise ModelError("gain_nm_per_V: needed without slow scans for the static model (nm/V, > 0)")
-        g = float(gain_nm_per_V)
-        return lambda u, dt: g * np.asarray(u, dtype=np.float64)
-    return lambda u, dt: model.forward(dt).block(np.ascontiguousarray(u, dtype=np.float64))
-
-
-def identify_from_rate_scans(parts: list[Mapping[str, Any]], structure: str = "preisach+dynamics",
-                             n_operators: int | None = None, static_max_Hz: float = STATIC_MAX_LINE_RATE_HZ,
-                             gain_nm_per_V: float | None = None, n_modes: int | None = None, n_lags: int = 1,
-                             f_max_Hz: float = 3000.0, static_error_nm: float = 1.0, **options: Any) -> Any:
-    """Scan files' arrays (one mapping per file) at several line rates → a model:
-    ``structure`` "dynamics" (the static
-    part linear, ``gain_nm_per_V``, or fitted as a Preisach model to the slow ranges and
-    used only to read the fast ones) or "preisach+dynamics" (a chain: Preisach from the
-    ranges scanned at ≤ ``static_max_Hz`` lines/s, :mod:`image_identify`; dynamics from
-    the faster ones). ``options`` go to the Preisach identification. The slow ranges
-    must all be in one file."""
-    from .chain import ChainModel
-    from .image_identify import identify_from_images
-
-    if structure not in ("dynamics", "preisach+dynamics"):
-        raise ModelError(f"model: {structure!r}; from images at several line rates: dynamics, preisach+dynamics")
-    split = [split_scans(p, static_max_Hz) for p in parts]
-    slows = [sl for sl, _ in split if sl is not None]
-    fast = [sc for _, fs in split for sc in fs]
-    if len(slows) > 1:
-        raise ModelError(f"line_rate_Hz: {len(slows)} files hold slow scans (≤ {static_max_Hz:g} lines/s); "
-                         "give the static scans in one file")
-    slow = slows[0] if slows else None
-    hyst = None
-    if slow is not None and (structure != "dynamics" or gain_nm_per_V is None):
-        hyst = identify_from_images(slow, kind="preisach", n_operators=n_operators, **options)
-    elif structure != "dynamics":
-        raise ModelError(f"line_rate_Hz: no scan range at ≤ {static_max_Hz:g} lines/s for the Preisach stage; "
-                         "add slow scans (e.g. 1 line/s) or use --model dynamics with gain_nm_per_V")
-    dyn, _ = identify_dynamics(fast, static_function(hyst, gain_nm_per_V), n_modes=n_modes, n_lags=n_lags,
-                               f_max_Hz=f_max_Hz, static_error_nm=static_error_nm)
-    if structure == "dynamics":
-        return dyn
-    return ChainModel(hysteresis=hyst, dynamics=dyn)

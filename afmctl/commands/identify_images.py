@@ -1,6 +1,8 @@
-"""``afmctl identify --from-images`` for the kinds with linear dynamics (``dynamics``,
-``preisach+dynamics``): grating scans at several line rates, no position sensor
-(:mod:`afmctl.compensators.image_dynamics`; file convention in docs/SIM.md)."""
+"""``afmctl identify --from-images`` for the chains and the linear dynamics (``dynamics``,
+``preisach+dynamics``, ``preisach+creep``, ``preisach+creep+dynamics``): slow grating
+scans for the static stages, scans at several line rates for the dynamics, no position
+sensor (:mod:`afmctl.compensators.image_dynamics`, :mod:`afmctl.compensators.image_creep`;
+file convention in docs/SIM.md)."""
 from __future__ import annotations
 
 import argparse
@@ -8,16 +10,15 @@ import logging
 
 log = logging.getLogger(__name__)
 
-#: --model values identified from scans at several line rates
-STRUCTURES = ("dynamics", "preisach+dynamics")
 #: --param keys of the dynamics part (the rest go to the Preisach identification)
 DYNAMICS_PARAMS = ("static_max_Hz", "gain_nm_per_V", "n_modes", "n_lags", "f_max_Hz", "static_error_nm")
 
 
 def wants_rates(args: argparse.Namespace) -> bool:
-    """True when ``identify`` should take this path: ``--from-images`` with a model that
-    has linear dynamics."""
-    return getattr(args, "from_images", None) is not None and "dynamics" in str(args.model).split("+")
+    """True when ``identify`` should take this path: ``--from-images`` with a chain or a
+    model with linear dynamics (``--model auto`` is refused by the chain path)."""
+    parts = str(args.model).split("+")
+    return getattr(args, "from_images", None) is not None and ("dynamics" in parts or len(parts) > 1)
 
 
 def _options(args: argparse.Namespace) -> tuple[dict, dict]:
@@ -42,16 +43,17 @@ def run_from_rate_images(args: argparse.Namespace) -> int:
     """Load the ``.npz`` scan files, identify, print the summary and the response per line
     rate, save."""
     from afmctl.compensators.base import ModelError
-    from afmctl.compensators.image_dynamics import STATIC_MAX_LINE_RATE_HZ, identify_from_rate_scans, split_scans
+    from afmctl.compensators.image_chain import IMAGE_STRUCTURES, identify_from_rate_scans
+    from afmctl.compensators.image_dynamics import STATIC_MAX_LINE_RATE_HZ, split_scans
     from afmctl.compensators.scan_files import load_scans_npz
 
     from ..errors import AfmctlError
     from .identify_io import _save
     if args.data is not None:
         raise AfmctlError("--data: give either --data DATA.csv or --from-images SCANS, not both")
-    if args.model not in STRUCTURES:
-        raise AfmctlError(f"--model {args.model}: from grating images at several line rates the kinds are "
-                          f"{', '.join(STRUCTURES)} (a creep stage is not identified from images)")
+    if args.model not in IMAGE_STRUCTURES:
+        raise AfmctlError(f"--model {args.model}: from grating images the chains are {', '.join(IMAGE_STRUCTURES)} "
+                          "(or a single kind: pi, epi, preisach, bouc-wen, creep)")
     bad = [p for p in args.from_images if not str(p).lower().endswith(".npz")]
     if bad:
         raise AfmctlError(f"{bad[0]}: the dynamics are identified from .npz scan files (pixel voltages and "
