@@ -122,11 +122,11 @@ def main(argv: list[str] | None = None) -> int:
         errs = {r: x_errors_pct(cfg, chain, r) for r in a.rates}
         rows.append((name, f, z, took, errs))
         print(name, f"mode {f:.1f} Hz ζ {z:.4f}", f"{took:.1f} s", errs, flush=True)
-    head = "| chain identified from | mode found | identify [s] | " + " | ".join(
+    head = "| chain identified from | mode found | " + " | ".join(
         f"{r:g} lines/s max / RMS %" for r in a.rates) + " |"
-    lines = [head, "|" + "---|" * (3 + len(a.rates))]
+    lines = [head, "|" + "---|" * (2 + len(a.rates))]
     for name, f, z, took, errs in rows:
-        lines.append(f"| {name} | {f:.1f} Hz, ζ {z:.4f} | {took:.1f} | " + " | ".join(
+        lines.append(f"| {name} | {f:.1f} Hz, ζ {z:.4f} | " + " | ".join(
             f"{errs[r]['max_error_pct']:.2f} / {errs[r]['rms_error_pct']:.2f}" for r in a.rates) + " |")
     body = ("Default simulated scanner, x axis (true mode 1000 Hz, ζ 0.025; amplifier 5 kHz), 4 µm raster "
             "lines compensated offline, error over the central 80 % of each line, % of the line. "

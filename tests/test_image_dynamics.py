@@ -136,7 +136,9 @@ def test_cli_identifies_from_images_and_bad_input_is_one_line(tmp_path, capsys):
             (["--model", "dynamics", "--from-images", str(fast)], "gain_nm_per_V: needed"),
             (["--model", "pi+creep+dynamics", "--from-images", str(slow), str(fast)],
              "from grating images the chains are dynamics, preisach+dynamics, preisach+creep"),
-            (["--model", "dynamics", "--from-images", str(fast), "--param", "n_lags=9"], "n_lags")):
+            (["--model", "dynamics", "--from-images", str(fast), "--param", "n_lags=9"], "n_lags"),
+            (["--model", "preisach+dynamics", "--from-images", str(slow), str(tmp_path / "r1.gwy")],
+             "r1.gwy: the dynamics are identified from .npz scan files")):
         rc = main(["identify", *args, "--out", str(tmp_path / "x.json")])
         err = capsys.readouterr().err
         assert rc == 2 and needle in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
