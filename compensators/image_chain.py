@@ -19,15 +19,25 @@ log = logging.getLogger(__name__)
 
 
 def static_function(model: Any | None, gain_nm_per_V: float | None = None) -> StaticFn:
-    """The static stage as :data:`StaticFn`: a hysteresis (or chain without dynamics)
-    model's forward operator run over the voltages, or, without a model, the linear
+    """The static stages as :data:`StaticFn`: a hysteresis model's forward operator run over
+    the voltages; a hysteresis + creep chain's with the creep lags starting at rest at the
+    mean hysteresis output (in the periodic steady state of a line repeated many times, a
+    lag much slower than a line sits at the mean of its input; started at rest at 0 it
+    would still be rising through the fast scan); without a model, the linear
     ``gain_nm_per_V`` [nm/V]."""
     if model is None:
         if gain_nm_per_V is None:
             raise ModelError("gain_nm_per_V: needed without slow scans for the static model (nm/V, > 0)")
         g = float(gain_nm_per_V)
         return lambda u, dt: g * np.asarray(u, dtype=np.float64)
-    return lambda u, dt: model.forward(dt).block(np.ascontiguousarray(u, dtype=np.float64))
+    creep = getattr(model, "creep", None)
+    if creep is None:
+        return lambda u, dt: model.forward(dt).block(np.ascontiguousarray(u, dtype=np.float64))
+
+    def run(u: np.ndarray, dt: float) -> np.ndarray:
+        h = model.hysteresis.forward(dt).block(np.ascontiguousarray(u, dtype=np.float64))
+        return creep.model_copy(update={"initial_V": float(np.mean(h))}).forward(dt).block(h)
+    return run
 
 
 #: the --model structures identified from images (slow scans and/or scans at several rates)

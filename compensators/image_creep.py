@@ -15,7 +15,9 @@ is run on it:
 3. every grating edge of every line (mid-height crossings,
    :func:`~afmctl.compensators.image_dynamics.scan_edges`) is placed on the grating
    lattice from ``s`` (:func:`~afmctl.compensators.image_dynamics.assign_positions`):
-   the tip's true position ``x_k`` at ``t_k``;
+   the tip's true position ``x_k`` at ``t_k``; where ``s`` is off by more than half a
+   period (strong creep) the placement jumps by a period, which is undone from edge to
+   edge in time order (:func:`unwrap_periods`);
 4. ``y(t) = s(t) + r(t)``, ``r`` the residual ``x_k − s(t_k)`` (outliers beyond 5 robust
    σ dropped) interpolated linearly between edges — the part of the motion the static
    model misses (creep, the hysteresis' misfit), which is smooth, while ``s`` carries the
@@ -76,7 +78,7 @@ def virtual_record(scans: Mapping[str, Any], static: Any) -> tuple[np.ndarray, n
     sk = np.interp(tk, t, s)
     v = np.interp(tk, t[:-1] + 0.5 * T, np.diff(s))
     x, _ = assign_positions(sk, v, sign, seq[0].period_nm)
-    r = x - sk
+    r = unwrap_periods(x - sk, seq[0].period_nm)
     dev = np.abs(r - np.median(r))
     ok = dev <= 5.0 * (1.4826 * float(np.median(dev)) + 1e-9)
     r -= float(np.median(r[ok][:3]))      # the scan starts at rest: y = s at the first edges
@@ -84,6 +86,14 @@ def virtual_record(scans: Mapping[str, Any], static: Any) -> tuple[np.ndarray, n
     log.info("creep from images: %d edges (%d kept), residual to the static model %.3g nm RMS",
              tk.size, int(np.count_nonzero(ok)), float(np.sqrt(np.mean(r[ok] ** 2))))
     return t, u, y
+
+
+def unwrap_periods(r_nm: np.ndarray, period_nm: float) -> np.ndarray:
+    """Residuals of consecutive edges (time order) with whole-period jumps removed: the
+    motion the static model misses changes little from one edge to the next, so a jump of
+    about a period is an edge placed on the wrong grating line."""
+    jumps = np.round(np.diff(r_nm) / period_nm)
+    return r_nm - period_nm * np.concatenate([[0.0], np.cumsum(jumps)])
 
 
 def identify_static_chain(scans: Mapping[str, Any], n_operators: int | None = None, **options: Any) -> Any:

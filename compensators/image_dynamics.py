@@ -24,8 +24,9 @@ DC gain. Per line rate ``f_L`` [lines/s]:
    one offset for the left and one for the right edges of the grating's lines). The
    integer ``m_k`` and the edge's side come from the predicted position
    ``p(t) = s(t) + ê(t)`` and its direction of motion (ê: the response found so far,
-   from the slower line rates at first, then iterated), so ringing that reverses the
-   tip is followed.
+   from the slower line rates at first, then iterated; the static prediction alone is
+   tried too and the placement with the smaller residual wins), so ringing that
+   reverses the tip is followed.
 4. *Harmonics*: with ``e_k = x_k − s(t_k)`` and, in periodic steady state,
    ``e(t) = (D − 1)[s](t) ≈ c + c_R·[right edge] + b·t + Σ_n 2·Re(H_n·S_n·e^{j2πn f_L t})``,
    ``H_n = G(j2πn f_L) − 1``, linear least squares over all edges of trace and retrace
@@ -42,6 +43,9 @@ DC gain. Per line rate ``f_L`` [lines/s]:
    ``min(1, 0.01/rel_err)`` (as √coherence), and all line rates together are fitted by
    :func:`afmctl.compensators.dynamics_identify.fit_frf` (modes, first-order lags, delay;
    :func:`~afmctl.compensators.dynamics_identify.fit_mode_count` for the number of modes).
+   A line rate whose edges fit their harmonics more than 4× worse than the median of the
+   rates kept before it (and worse than 10 nm RMS) is left out: its edges were placed on
+   the wrong grating lines; ``fit_info`` names it.
 
 Pure numerics: arrays in, a :class:`~afmctl.compensators.dynamics.LinearDynamicsModel`
 out. Scan arrays are those of the ``--from-images`` file (:mod:`image_identify`), with
@@ -275,11 +279,12 @@ def solve_harmonics(t: np.ndarray, e: np.ndarray, right: np.ndarray, n: np.ndarr
     return E / S, se, resid
 
 
-def rate_response(scan: RateScan, static: StaticFn, prior: Callable[[np.ndarray], np.ndarray] | None,
+def rate_response(scan: RateScan, static: StaticFn, priors: list[Callable[[np.ndarray], np.ndarray]],
                   f_max_Hz: float, static_error_nm: float = 1.0, iterations: int = 6) -> RateResponse:
-    """Steps 1–4 of the module docstring for one line rate. ``prior(f_Hz)`` is the
-    response known so far (complex G), used to place the edges on the grating first (the
-    static prediction alone is tried too; the placement with the smaller residual wins).
+    """Steps 1–4 of the module docstring for one line rate. ``priors`` are candidates
+    ``f_Hz → G`` for the response known so far, used to place the edges on the grating
+    first (the static prediction alone is tried too; the placement with the smallest
+    residual wins).
     ``static_error_nm`` [nm] is the static model's error per harmonic assumed in the
     relative error of ``G`` (it keeps out harmonics the triangle barely excites)."""
     f_L, T, P2 = scan.line_rate_Hz, scan.pixel_s, 2 * scan.pixels
@@ -300,7 +305,7 @@ def rate_response(scan: RateScan, static: StaticFn, prior: Callable[[np.ndarray]
     t_px = (np.arange(s.size) + 0.5) * T
     s_t = np.interp(t, t_px, s)
     f_n = f_L * n
-    starts = [np.zeros(n.size, complex)] + ([prior(f_n) - 1.0] if prior is not None else [])
+    starts = [np.zeros(n.size, complex)] + [prior(f_n) - 1.0 for prior in priors]
     best = min((_place_and_solve(scan, s, s_t, t, t_px, sign, n, S, H0, iterations) for H0 in starts),
                key=lambda r: r[2] * (1.0 + 4.0 * (1.0 - np.mean(r[3]))))
     H, se, rms, keep = best
@@ -358,6 +363,20 @@ def response_frf(responses: list[RateResponse], max_rel_error: float) -> FRF:
     return FRF(f[ok][o], G[ok][o], w)
 
 
+#: a line rate whose edges fit its harmonics this many times worse than the median of the
+#: rates kept so far (and worse than REJECT_FLOOR_NM) is left out: its edges were placed on
+#: the wrong grating lines (ringing the response known so far did not predict)
+REJECT_FACTOR, REJECT_FLOOR_NM = 4.0, 10.0
+
+
+def placed_well(r: RateResponse, kept: list[RateResponse]) -> bool:
+    """False when ``r``'s residual marks a failed placement (:data:`REJECT_FACTOR`); the
+    first two rates are always kept."""
+    if len(kept) < 2:
+        return True
+    return not (r.rms_nm > REJECT_FLOOR_NM and r.rms_nm > REJECT_FACTOR * float(np.median([q.rms_nm for q in kept])))
+
+
 def _fit(frf: FRF, n_modes: int | None, n_lags: int, dt_s: float) -> tuple[int, np.ndarray, float]:
     if n_modes is None:
         return fit_mode_count(frf, n_lags, dt_s)
@@ -386,14 +405,22 @@ def identify_dynamics(scans: list[RateScan], static: StaticFn, *, n_modes: int |
     order = sorted(scans, key=lambda sc: sc.line_rate_Hz)
     dt = min(sc.pixel_s for sc in order)
     responses: list[RateResponse] = []
-    prior = None
+    priors: list[Callable[[np.ndarray], np.ndarray]] = []
     fitted = None
+    rejected: list[float] = []
     for sc in order:
-        responses.append(rate_response(sc, static, prior, f_max_Hz, static_error_nm))
+        r = rate_response(sc, static, priors, f_max_Hz, static_error_nm)
+        if not placed_well(r, responses):
+            log.warning("image dynamics: %g lines/s left out: the edges fit the harmonics to %.3g nm RMS only "
+                        "(the others to %.3g nm); the ringing was not followed", r.line_rate_Hz, r.rms_nm,
+                        float(np.median([q.rms_nm for q in responses])))
+            rejected.append(r.line_rate_Hz)
+            continue
+        responses.append(r)
         frf = response_frf(responses, max_rel_error)
         if frf.f_Hz.size >= 8:
             fitted = _fit(frf, n_modes, n_lags, dt)
-            prior = _unit_response(fitted[1], fitted[0], n_lags)
+            priors = [_unit_response(fitted[1], fitted[0], n_lags)]
     if fitted is None:
         raise ModelError(f"trace_nm/retrace_nm: only {frf.f_Hz.size} harmonics measured with a relative error "
                          f"< {max_rel_error:g}; need ≥ 8 (more line rates, or larger scan ranges)")
@@ -401,6 +428,7 @@ def identify_dynamics(scans: list[RateScan], static: StaticFn, *, n_modes: int |
     poles, tau, K = poles_of(x, nm, n_lags)
     info: dict[str, float | str] = {
         "source": "grating images", "line_rates_Hz": ", ".join(f"{r.line_rate_Hz:g}" for r in responses),
+        "rates_left_out_Hz": ", ".join(f"{f:g}" for f in rejected) or "none",
         "static_gain_y_per_u": K, "fit_rms_log": rms, "f_min_Hz": float(frf.f_Hz[0]),
         "f_max_Hz": float(frf.f_Hz[-1]), "bins": float(frf.f_Hz.size), "fitted_delay_s": tau,
     }
