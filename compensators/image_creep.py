@@ -96,14 +96,17 @@ def unwrap_periods(r_nm: np.ndarray, period_nm: float) -> np.ndarray:
     return r_nm - period_nm * np.concatenate([[0.0], np.cumsum(jumps)])
 
 
-def identify_static_chain(scans: Mapping[str, Any], n_operators: int | None = None, **options: Any) -> Any:
-    """preisach+creep from the slow scans: the images' Preisach model
-    (:func:`~afmctl.compensators.image_identify.identify_from_images`), the virtual record,
-    and :meth:`ChainModel.identify` on it. ``options`` go to both Preisach fits."""
+def identify_static_chain(scans: Mapping[str, Any], n_operators: int | None = None, first: Any = None,
+                          **options: Any) -> Any:
+    """preisach+creep from the slow scans: the images' Preisach model ``first`` (fitted
+    here by :func:`~afmctl.compensators.image_identify.identify_from_images` when None),
+    the virtual record, and :meth:`ChainModel.identify` on it. ``options`` go to both
+    Preisach fits."""
     from .chain import ChainModel
     from .image_identify import identify_from_images
 
-    first = identify_from_images(scans, kind="preisach", n_operators=n_operators, **options)
+    if first is None:
+        first = identify_from_images(scans, kind="preisach", n_operators=n_operators, **options)
     t, u, y = virtual_record(scans, first)
     opts = dict(options)
     opts.setdefault("u_min_V", float(first.voltage_range_V()[0]) if first.voltage_range_V() else float(u.min()))

@@ -62,7 +62,7 @@ def test_image_chain_compensates_raster_lines_close_to_the_sensor_chain(bench, c
 @pytest.mark.parametrize("rate, limit", [(1.0, 0.35), (4.0, 0.5), (16.0, 1.05), (50.0, 2.0)])
 def test_image_creep_chain_compensates_raster_lines(bench, chains, rate, limit):
     """preisach+creep+dynamics from images only, measured x max / RMS %: 0.27 / 0.11 at
-    1 line/s, 0.42 / 0.15 at 4, 0.96 / 0.32 at 16, 1.82 / 0.72 at 50 (the sensor's
+    1 line/s, 0.42 / 0.15 at 4, 0.95 / 0.32 at 16, 1.82 / 0.72 at 50 (the sensor's
     preisach+creep+dynamics: 0.68, 0.62, 0.70, 1.19 % max; without creep from images
     1.83, 1.40, 1.01, 1.21)."""
     cfg, _, _, img_creep = chains
