@@ -392,7 +392,8 @@ def _unit_response(x: np.ndarray, n_modes: int, n_lags: int) -> Callable[[np.nda
 
 
 def identify_dynamics(scans: list[RateScan], static: StaticFn, *, n_modes: int | None = None, n_lags: int = 1,
-                      f_max_Hz: float = 3000.0, max_rel_error: float = 0.2, static_error_nm: float = 1.0) -> tuple[Any, list[RateResponse]]:
+                      f_max_Hz: float = 3000.0, max_rel_error: float = 0.2, static_error_nm: float = 1.0
+                      ) -> tuple[Any, list[RateResponse]]:
     """Steps 1–5 of the module docstring over the line rates of ``scans`` (slowest
     first, each placed with the model fitted on the slower ones). Returns the
     :class:`~afmctl.compensators.dynamics.LinearDynamicsModel` and the per-rate
