@@ -184,6 +184,19 @@ def _initial(frf: FRF, n_modes: int, n_lags: int, lag_Hz: float, dt_s: float) ->
     return np.array(x0), np.array(lb), np.array(ub)
 
 
+def poles_of(x: np.ndarray, n_modes: int, n_lags: int) -> tuple[np.ndarray, float, float]:
+    """The fitted structure's poles [rad/s] (modes as conjugate pairs, then the lags),
+    its delay τ [s] and static gain K for the parameter vector ``x``."""
+    K, fm, zeta, fl, tau = _unpack(x, n_modes, n_lags)
+    poles = []
+    for f0, z in zip(fm, zeta):
+        wn = 2 * math.pi * f0
+        re, im = -z * wn, wn * math.sqrt(max(0.0, 1 - z * z))
+        poles += [complex(re, im), complex(re, -im)]
+    poles += [complex(-2 * math.pi * f0, 0.0) for f0 in fl]
+    return np.array(poles, dtype=complex), tau, K
+
+
 def fit_frf(frf: FRF, n_modes: int, n_lags: int, dt_s: float) -> tuple[np.ndarray, float]:
     """Least-squares fit of the structure to ``frf`` from a few starting lags; returns the
     best parameter vector and its RMS complex log error (≈ relative error)."""
@@ -257,13 +270,7 @@ def fit_dynamics(t_s: np.ndarray, u: np.ndarray, y_nm: np.ndarray, **options: An
         n_modes, x, rms = fit_mode_count(frf, n_lags, dt)
     else:
         x, rms = fit_frf(frf, n_modes, n_lags, dt)
-    K, fm, zeta, fl, tau = _unpack(x, n_modes, n_lags)
-    poles = []
-    for f0, z in zip(fm, zeta):
-        wn = 2 * math.pi * f0
-        re, im = -z * wn, wn * math.sqrt(max(0.0, 1 - z * z))
-        poles += [complex(re, im), complex(re, -im)]
-    poles += [complex(-2 * math.pi * f0, 0.0) for f0 in fl]
+    poles, tau, K = poles_of(x, n_modes, n_lags)
     info: dict[str, float | str] = {
         "static_gain_y_per_u": K, "fit_rms_log": rms, "f_min_Hz": float(frf.f_Hz[0]),
         "f_max_Hz": float(frf.f_Hz[-1]), "bins": float(frf.f_Hz.size), "sample_rate_Hz": fs,
@@ -271,4 +278,4 @@ def fit_dynamics(t_s: np.ndarray, u: np.ndarray, y_nm: np.ndarray, **options: An
     }
     log.info("dynamics fit: %d modes, %d lags, delay %.3g µs, RMS log error %.3g over %d bins",
              n_modes, n_lags, tau * 1e6, rms, frf.f_Hz.size)
-    return DynamicsFit(np.array(poles), np.zeros(0, complex), max(0.0, tau - 0.5 * dt), info)
+    return DynamicsFit(poles, np.zeros(0, complex), max(0.0, tau - 0.5 * dt), info)

@@ -43,7 +43,7 @@ class GratingScans:
     retrace_nm: np.ndarray
     skip_lines: int
     axis: str
-    line_rate_Hz: float
+    line_rate_Hz: float | np.ndarray  # lines/s; one per range for scans at several rates
     truth: dict[str, np.ndarray] = field(default_factory=dict)
 
     def arrays(self) -> dict[str, Any]:
@@ -56,7 +56,7 @@ class GratingScans:
             "retrace_nm": self.retrace_nm,
             "skip_lines": np.int64(self.skip_lines),
             "axis": np.str_(self.axis),
-            "line_rate_Hz": np.float64(self.line_rate_Hz),
+            "line_rate_Hz": np.asarray(self.line_rate_Hz, dtype=np.float64),
         }
 
     def save_npz(self, path: str | Path) -> Path:
@@ -97,22 +97,13 @@ def scan_grating_lines(scanner: Any, sample: Any | None = None, *, axis: Literal
     retrace = np.empty((R, lines_per_range, pixels))
     t_all, u_all, y_all = [], [], []
     t0 = scanner.time_s
-    std = scanner.config.noise.height_std_nm
     for r, hi in enumerate(ranges_V):
         if not lim[ia, 0] <= lo < hi <= lim[ia, 1]:
             raise ModelError(f"ranges_V: {hi} V outside {lo}…{lim[ia, 1]} V")
         ramp = np.linspace(lo, float(hi), pixels)
         ut[r] = ramp
         line = np.repeat(np.concatenate([ramp, ramp[::-1]]), spp)
-        u = np.empty((line.size * lines_per_range, 3))
-        u[:, ia] = np.tile(line, lines_per_range)
-        u[:, io] = u_other
-        u[:, 2] = lim[2, 0]
-        pos = scanner.run(u, dt)
-        h = sample.height_nm(pos[:, 0], pos[:, 1]) + (pos[:, 2] - pos[0, 2])
-        if std > 0:
-            h = h + scanner.rng.normal(0.0, std, h.shape)
-        h = h.reshape(lines_per_range, 2, pixels, spp).mean(axis=3)
+        u, pos, h = scan_lines(scanner, sample, line, lines_per_range, ia, u_other, dt, pixels, spp)
         trace[r] = h[:, 0]
         retrace[r] = h[:, 1]
         if keep_truth:
@@ -124,6 +115,25 @@ def scan_grating_lines(scanner: Any, sample: Any | None = None, *, axis: Literal
         truth = {"t_s": np.concatenate(t_all), "u_V": np.concatenate(u_all), "y_nm": np.concatenate(y_all)}
     log.info("identification scans on %s: %d ranges × %d lines × %d px", axis, R, lines_per_range, pixels)
     return GratingScans(period, ut, ut[:, ::-1].copy(), trace, retrace, skip_lines, axis, float(line_rate_Hz), truth)
+
+
+def scan_lines(scanner: Any, sample: Any, line_V: np.ndarray, lines: int, axis_index: int, u_other_V: float,
+               dt_s: float, pixels: int, spp: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Scan ``lines`` repeats of one line's voltages ``line_V`` (trace then retrace, ``spp``
+    samples per pixel) on axis ``axis_index``, the other lateral axis at ``u_other_V`` and
+    z at its lowest voltage, z in surface mode. Returns the voltages (N, 3) [V], the
+    positions (N, 3) [nm] and the pixel heights (lines, 2, pixels) [nm] with the scanner's
+    height noise."""
+    u = np.empty((line_V.size * lines, 3))
+    u[:, axis_index] = np.tile(line_V, lines)
+    u[:, 1 - axis_index] = u_other_V
+    u[:, 2] = scanner.voltage_limits_V()[2, 0]
+    pos = scanner.run(u, dt_s)
+    h = sample.height_nm(pos[:, 0], pos[:, 1]) + (pos[:, 2] - pos[0, 2])
+    std = scanner.config.noise.height_std_nm
+    if std > 0:
+        h = h + scanner.rng.normal(0.0, std, h.shape)
+    return u, pos, h.reshape(lines, 2, pixels, spp).mean(axis=3)
 
 
 def identify_axes_from_images(scanner: Any, axes: tuple[str, ...] = ("x", "y"), *, n_operators: int = DEFAULT_LEVELS,

@@ -25,6 +25,17 @@ Input:
                     one .gwy/.gsf/.tif/.ibw or Bruker Nanoscope .spm/.000… per scan range, each
                     with trace and retrace, e.g. --from-images r150.gwy r140.gwy …
                     --param gain_nm_per_V=80 --param period_nm=278 (docs/REALDATA.md)
+  --from-images SLOW.npz FAST.npz with --model dynamics, preisach+dynamics,
+                    preisach+creep or preisach+creep+dynamics: without a sensor, the
+                    linear dynamics from grating scans at several line rates (phase lag
+                    and ringing in trace vs retrace) and the creep from the slow scans
+                    (docs/SIM.md). Each .npz records line_rate_Hz (lines/s, one per scan
+                    range or one for all, > 0 … 10000); ranges at <= 2 lines/s (--param
+                    static_max_Hz=…) give the Preisach (+creep) stages, the faster ones
+                    (e.g. 10 … 100) the dynamics. --param gain_nm_per_V=… (dynamics
+                    without slow scans: a linear static part), n_modes (auto), n_lags
+                    (1), f_max_Hz (3000), static_error_nm (1: harmonics weaker than
+                    this are not used)
 Model kinds (--model):
   pi        Prandtl-Ishlinskii: play operators, constrained least squares (always invertible)
   epi       extended PI: PI + inflexion creep C(u,t) = (1-exp(-lambda t)) a b^u, needs dwells
@@ -118,6 +129,9 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import AfmctlError
     from afmctl.compensators.models import model_class
 
+    from .identify_images import run_from_rate_images, wants_rates
+    if wants_rates(args):
+        return run_from_rate_images(args)
     if args.model == "auto" or "+" in args.model:
         from .identify_chain import run_chain
         return run_chain(args)
