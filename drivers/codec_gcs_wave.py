@@ -9,7 +9,9 @@ servo clock), as PIPython issues the commands and PI's GCS manuals describe them
 * ``WGO <gen> 1`` starts now, ``WGO <gen> 0`` stops; the single byte 0x09 (``#9``) is
   answered with the running generators as a hex bit mask (bit 0 = generator 1).
 * ``SPA? 1 0x0E000200`` reads the servo update time [s]; ``WMS? <table>`` the most points
-  a table takes; ``WAV? <table> 1`` the points it holds.
+  a table takes; ``WAV? <table> 1`` the points it holds; ``WOS? <gen>`` the output offset
+  the generator adds to every wave value (E-727 manual: output = WOS offset + wave value;
+  it can be stored in the controller's non-volatile memory).
 """
 from __future__ import annotations
 
@@ -48,10 +50,21 @@ def encode_wav_pnt(table: int, values_V: Sequence[float], lo_V: float, hi_V: flo
     return lines
 
 
-def encode_start(gen: int, table: int, divider: int, cycles: int) -> bytes:
-    """Connect, set cycles and table rate, start now: four commands in one write."""
-    return (encode(f"WSL {gen} {table}") + encode(f"WGC {gen} {cycles}")
-            + encode(f"WTR {gen} {divider} 0") + encode(f"WGO {gen} 1"))
+def encode_start(gens: Sequence[int], divider: int, cycles: int) -> bytes:
+    """Connect each generator to its own table, set cycles and table rate, then start them
+    all with one ``WGO`` (they start on the same servo tick): one write."""
+    setup = b"".join(encode(f"WSL {g} {g}") + encode(f"WGC {g} {cycles}") + encode(f"WTR {g} {divider} 0")
+                     for g in gens)
+    return setup + encode("WGO " + " ".join(f"{g} 1" for g in gens))
+
+
+def parse_offsets(reply: bytes, gens: Sequence[int]) -> dict[int, float]:
+    """``1=0.0000`` lines → ``{gen: offset V}`` for every one of ``gens``."""
+    items = parse_items(reply)
+    missing = [g for g in gens if str(g) not in items]
+    if missing:
+        raise ProtocolError(f"WOS? reply holds no offset for generator {missing[0]}", data=bytes(reply))
+    return {g: items[str(g)] for g in gens}
 
 
 def encode_stop(gens: Sequence[int]) -> bytes:

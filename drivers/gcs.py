@@ -212,11 +212,23 @@ class GCSAmplifier(SerialAmplifier):
             for a in axes:
                 check_table(a, self._tables[a], self._limits[a], max_step_V=self.max_step_V,
                             start_V=self._last.get(a), wraps=cycles != 1)
-            data = b"".join(wcodec.encode_start(self._gen(a), self._gen(a), divider, cycles) for a in axes)
-            self._io(self._send_checked, data)
+            self._check_no_offset(axes)
+            self._io(self._send_checked, wcodec.encode_start([self._gen(a) for a in axes], divider, cycles))
             self._wave_run = (1.0 / (divider * cycle_s), divider, cycles)
             self._playing = set(axes)
         return self.wave_status()
+
+    def _check_no_offset(self, axes: Sequence[str]) -> None:
+        """Refuse to start when a generator adds an output offset (``WOS``): the tables were
+        checked against the limits as they are. The driver does not change the setting (it
+        may be stored in the controller); the user sets it to 0 (``WOS <gen> 0``)."""
+        gens = [self._gen(a) for a in axes]
+        offsets = wcodec.parse_offsets(self._io(self._query, "WOS? " + " ".join(map(str, gens))), gens)
+        for a, g in zip(axes, gens):
+            if offsets[g] != 0.0:
+                raise LimitError(f"wave generator {g} (axis {a}) adds an output offset WOS of {offsets[g]:g} V to "
+                                 "every table value, so the checked table would not be what plays; set it to 0 "
+                                 f"(WOS {g} 0) first; nothing was started")
 
     def wave_status(self) -> WaveStatus:
         """Ask the controller (``#9``) which generators run; once an axis's generator has

@@ -249,3 +249,22 @@ def test_driver_refuses_a_table_longer_than_the_controller_holds():
         with pytest.raises(LimitError, match=f"{MAX_POINTS + 1} points, the controller's table holds {MAX_POINTS}"):
             amp.upload_wave("x", np.zeros(MAX_POINTS + 1))
         assert server.device.wave.tables[1] == []
+
+
+def test_generators_start_on_one_tick_and_an_output_offset_is_refused():
+    """All axes start with one WGO (the same servo tick, whatever the link's speed), and a
+    generator with an output offset (WOS, which the controller adds to every wave value and
+    may have stored) is refused before anything starts; the driver does not change it."""
+    sink = RecordingSink(max_history=100_000)
+    with serve_pty("gcs", sink=sink, baud=115200) as server, open_amplifier("gcs", server.port) as amp:
+        for a in "xyz":
+            amp.upload_wave(a, np.zeros(200))
+        server.device.wave_offset_V[2] = 5.0
+        with pytest.raises(LimitError, match=r"generator 2 \(axis y\) adds an output offset WOS of 5 V"):
+            amp.start_wave(divider=1, cycles=1)
+        assert not any(g.mode for g in server.device.wave.gens.values())
+        assert server.device.wave_offset_V[2] == 5.0
+        server.device.wave_offset_V[2] = 0.0
+        amp.start_wave(divider=1, cycles=1)
+        t0 = {g: gen.t0_s for g, gen in server.device.wave.gens.items()}
+        assert t0[1] == t0[2] == t0[3] > 0

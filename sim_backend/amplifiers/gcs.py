@@ -30,7 +30,7 @@ _AXIS = {"1": "x", "2": "y", "3": "z"}
 IDN = b"(c)2024 Physik Instrumente (PI) GmbH & Co. KG, E-727, SIM-afmctl, 01.00.00.00\n"
 _HELP = ("*IDN?", "CSV?", "ERR?", "HLP?", "SAI?", "SVO", "SVO?", "SVA", "SVA?", "VOL?", "VMA", "VMA?",
          "VMI", "VMI?", "POS?", "MOV", "MOV?", "ONT?", "TMN?", "TMX?", "SPA?", "HPA?", "WAV", "WAV?", "WSL",
-         "WSL?", "WGC", "WGC?", "WTR", "WTR?", "WGO", "WGO?", "WMS?", "TWC", "#9")
+         "WSL?", "WGC", "WGC?", "WTR", "WTR?", "WGO", "WGO?", "WMS?", "TWC", "WOS", "WOS?", "#9")
 #: single-byte GCS commands (no LF): #9 asks which wave generators run
 _RUNNING_BYTE = 0x09
 
@@ -61,6 +61,8 @@ class SimGCS(SimDevice):
         self.target = {k: 0.0 for k in _AXIS}
         #: while :meth:`poll` plays: the (t_s, [x, y, z] V) rows for the sink's play(), else None
         self._played: list[tuple[float, list[float]]] | None = None
+        #: per generator the output offset added to every wave value (``WOS``; 0 at power-on)
+        self.wave_offset_V = {int(k): 0.0 for k in _AXIS}
 
     def _latch(self, code: int) -> bytes:
         if self.error == 0:
@@ -106,6 +108,7 @@ class SimGCS(SimDevice):
     def _wave_apply(self, gen: int, value: float, t_s: float) -> None:
         key = str(gen)
         axis = _AXIS[key]
+        value += self.wave_offset_V[gen]     # generator output = WOS offset + wave value
         if self.servo[key]:  # a position [µm] → the voltage that puts the ideal servo there
             t0, t1 = self.travel_um
             value = self.vmi[key] + (value - t0) / (t1 - t0) * (self.vma[key] - self.vmi[key])
@@ -135,9 +138,22 @@ class SimGCS(SimDevice):
                 return b""
             if cmd == "TWC":  # no trigger points are simulated (TWS is not): nothing to clear
                 return b""
+            if cmd == "WOS":
+                return self._wos(args)
             return self._wave_query(cmd, args)
         except WaveError as err:
             return self._latch(err.code)
+
+    def _wos(self, args: list[str]) -> bytes:
+        """``WOS <gen> <offset V> ...``: the generator's output offset."""
+        if not args or len(args) % 2 or any(not a.isdigit() for a in args[::2]):
+            raise WaveError(1)
+        for g, v in zip(args[::2], args[1::2]):
+            value = _num(v)
+            if int(g) not in self.wave_offset_V or value is None:
+                raise WaveError(17)
+            self.wave_offset_V[int(g)] = float(value)
+        return b""
 
     def _wgo(self, gen: int, mode: int) -> None:
         self.wave.wgo(gen, mode, self._cmd_now)
@@ -154,9 +170,14 @@ class SimGCS(SimDevice):
 
     def _wave_query(self, cmd: str, args: list[str]) -> bytes | None:
         w = self.wave
-        if cmd not in ("WSL?", "WGC?", "WGO?", "WTR?", "WAV?", "WMS?"):
+        if cmd not in ("WSL?", "WGC?", "WGO?", "WTR?", "WAV?", "WMS?", "WOS?"):
             return None
         ids = [int(a) for a in args if a.isdigit()]
+        if cmd == "WOS?":
+            gens = ids or list(self.wave_offset_V)
+            if len(ids) != len(args) or any(g not in self.wave_offset_V for g in gens):
+                raise WaveError(17)
+            return self._items([(str(g), f"{self.wave_offset_V[g]:.4f}") for g in gens])
         if len(ids) != len(args):
             raise WaveError(1)
         gens = ids or list(w.gens)
