@@ -109,9 +109,9 @@ class AmplifierSection(_Strict):
         if self.output == "wave" and self.driver not in ("can", "gcs", "nv200"):
             raise ValueError(f"output = 'wave' needs a device clock: driver 'gcs', 'nv200' (wave generator) or "
                              f"'can' (stream FIFO) (got {self.driver!r})")
-        if self.output in ("stream", "wave"):
-            if self.output == "stream" and self.driver != "can":
-                raise ValueError(f"output = 'stream' needs a link that buffers: driver 'can' (got {self.driver!r})")
+        if self.output == "stream" and self.driver != "can":
+            raise ValueError(f"output = 'stream' needs a link that buffers: driver 'can' (got {self.driver!r})")
+        if self.output in ("stream", "wave") and self.driver == "can":
             if not self.low_water_s < self.high_water_s:
                 raise ValueError(f"low_water_s {self.low_water_s:g} must be below high_water_s "
                                  f"{self.high_water_s:g} [s]")

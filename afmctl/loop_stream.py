@@ -85,7 +85,7 @@ class StreamMachine(LoopMachine):
     def _start_stream(self) -> None:
         prod = self.producer
         st = self.ctl.amplifier.start_stream(prod.rate_Hz, prefill=prod.high)
-        capacity = 1 << int(getattr(st, "capacity_log2", 16))
+        capacity = int(st.capacity)
         if prod.high > capacity:
             raise ValueError(f"amplifier.high_water_s: {prod.high} samples do not fit the amplifier's FIFO of "
                              f"{capacity} samples at {prod.rate_Hz:g} Hz")

@@ -39,9 +39,12 @@ from .pipeline import axis_models
 
 log = logging.getLogger(__name__)
 
-#: longest table [samples] (about 80 MB of rows; a GCS controller or NV200 holds far less
-#: and says so when the table is uploaded)
+#: longest table [samples] (about 0.2 GB of rows with their targets; a GCS controller or an
+#: NV200 holds far less and the player says so before anything is sent)
 MAX_TABLE_SAMPLES = 2_000_000
+#: why a Kalman drift filter and a wave do not go together
+KALMAN_REFUSAL = ("amplifier.output = 'wave': the table is computed before the run, so drift measurements "
+                  "cannot reach it; set compensation.drift.kalman = false or use output = 'setpoints' or 'stream'")
 
 
 @dataclass
@@ -96,7 +99,8 @@ def _offline_inverses(config, limits_V: dict[str, tuple[float, float]], slew_V_p
             continue
         lo, hi = limits_V[axis]
 
-        def invert(y: np.ndarray, model: Any = model, axis: str = axis, lo: float = lo, hi: float = hi) -> np.ndarray:
+        def invert(y: np.ndarray, model: Any = model, axis: str = axis, lo: float = lo,
+                   hi: float = hi) -> np.ndarray:
             res = model.inverse_within_limits(y, dt, lo, hi, slew_V_per_s)
             report.append(f"{axis}: {res.report()}")
             return res.u_V
@@ -113,9 +117,7 @@ def plan_table(config, pipeline, targets_nm: np.ndarray, T_C: float | np.ndarray
     or per target sample. ``limits_V``: ``{axis: (lo, hi)}`` of the driven axes [V];
     ``max_step_V``: largest change between rows [V] (the slew limit per sample)."""
     if getattr(pipeline, "kalman", None) is not None:
-        raise AfmctlError("amplifier.output = 'wave': the table is computed before the run, so drift "
-                          "measurements cannot reach it; set compensation.drift.kalman = false or use "
-                          "output = 'setpoints' or 'stream'")
+        raise AfmctlError(KALMAN_REFUSAL)
     r = np.asarray(targets_nm, dtype=np.float64)
     if r.ndim != 2 or r.shape[1] != 3 or len(r) == 0:
         raise AfmctlError(f"amplifier.output = 'wave': the trajectory must be positions (N, 3) [nm], got {r.shape}")

@@ -254,6 +254,8 @@ class GCSAmplifier(SerialAmplifier):
     def stop_wave(self) -> WaveStatus:
         """Stop every wave generator now (``WGO g 0``); the outputs hold where they were."""
         with self._lock:
-            self._guard()
-            self._io(self._send_checked, wcodec.encode_stop([self._gen(a) for a in self._axes]))
+            # no _guard() and the stop written first: an estop must reach the generators even
+            # with an error latched or a stray reply waiting
+            self._io(self.transport.write, wcodec.encode_stop([self._gen(a) for a in self._axes]))
+            self._io(self._check)
         return self.wave_status()

@@ -258,3 +258,24 @@ def test_a_link_that_cannot_be_made_raises_and_leaks_nothing(tmp_path):
         with pytest.raises(OSError):
             server.start()
         server.stop()
+
+
+def test_the_recorder_writes_a_played_block_and_hands_it_on(tmp_path):
+    """A wave generator's block (``play``) is recorded row by row (``afmctl sim --record``)
+    and reaches the inner sink, whose ``play`` simulates it in one call."""
+    from afmctl.sim_backend.amplifiers.base import CsvRecorder
+
+    class Inner:
+        def __init__(self):
+            self.blocks = []
+
+        def play(self, t, rows):
+            self.blocks.append((list(t), [list(r) for r in rows]))
+
+    inner = Inner()
+    rec = CsvRecorder(str(tmp_path / "rec.csv"), inner)
+    rec.play([0.1, 0.2], [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    rec.close()
+    lines = (tmp_path / "rec.csv").read_text().splitlines()
+    assert lines[-2:] == ["0.1,1.0,2.0,3.0", "0.2,4.0,5.0,6.0"]
+    assert inner.blocks == [([0.1, 0.2], [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])]

@@ -325,3 +325,72 @@ def test_a_stop_during_the_upload_starts_nothing(tmp_path):
     events = [(e["event"], e.get("detail") or "") for e in RunLogReader(tmp_path / "s.afmlog").events()]
     assert any(ev == "wave-stopped" and "not started" in d for ev, d in events), events
     assert all(g.played == 0 for g in srv.device.wave.gens.values())
+
+
+def test_a_driver_error_while_the_fifo_plays_stops_the_stream(tmp_path, can_rig):
+    """The driver refuses a block in the middle of the play: the FIFO is flushed at once (no
+    host ramp mixes with samples still playing), the run ends in fault, the output holds."""
+    from afmctl.drivers.errors import LimitError
+    from afmctl.sim_backend.amplifiers.can_stream import StreamState
+    channel, amp, sim, sink = can_rig
+    cfg = cfg_for(tmp_path, "can", f"virtual:{channel}")
+    real_queue, calls = amp.queue, []
+
+    def failing_queue(rows):
+        calls.append(len(rows))
+        if len(calls) == 3:
+            raise LimitError("refused (injected)")
+        return real_queue(rows)
+
+    amp.queue = failing_queue
+    with Controller(cfg, amp) as ctl:
+        ctl.start(raster_nm(3000), runlog_path=tmp_path / "f.afmlog")
+        assert ctl.wait(30)
+        stats = ctl.stats()
+    assert ctl.state is State.FAULT and "refused (injected)" in stats["last_error"], stats
+    assert sim.stream.state is StreamState.IDLE
+    ts = np.array([t for t, _ in sink.history])
+    xs = np.array([v["x"] for _, v in sink.history])
+    assert np.all(np.abs(np.diff(xs)) <= SLEW_V_PER_S * np.maximum(np.diff(ts), 1.0 / RATE_HZ) + 0.003)
+
+
+def test_a_stop_during_a_gcs_wave_records_only_what_played_and_finishes_from_there(tmp_path):
+    sink = RecordingSink(max_history=1_000_000)
+    with serve_pty("gcs", sink=sink, baud=921600, latency_s=0.02) as srv:
+        cfg = cfg_for(tmp_path, "gcs", srv.port)
+        amp = open_driver(cfg, srv.port)
+        try:
+            with Controller(cfg, amp) as ctl:
+                traj = raster_nm(6000, lines=3)
+                ctl.start(traj, runlog_path=tmp_path / "st.afmlog")
+                t0 = time.monotonic()
+                while (ctl.stats()["wave"] or {}).get("played", 0) < 1500 and time.monotonic() - t0 < 30:
+                    time.sleep(0.005)
+                ctl.stop()
+                assert ctl.wait(60)
+                stats = ctl.stats()
+        finally:
+            amp.close()
+    assert ctl.state is State.STOPPED and 1500 <= stats["wave"]["played"] < 6000, stats
+    reader = RunLogReader(tmp_path / "st.afmlog")
+    sp, ev = reader.setpoints(), {e["event"]: e["seq"] for e in reader.events()}
+    rows = sp[(sp["seq"] >= ev["ramp-done"]) & (sp["seq"] < ev["wave-stopped"])]
+    played_x = np.array([v["x"] for _, v in sink.history if "x" in v])
+    first = int(np.flatnonzero(np.isclose(played_x, rows["u_V"][1, 0], atol=1e-3))[0])
+    device_rows = len(played_x) - first          # what the generator applied from row 1 on
+    assert len(rows) - 1 <= device_rows                      # nothing recorded that did not play
+    finish = sp[sp["seq"] >= ev["wave-stopped"]]
+    np.testing.assert_allclose(finish["target_nm"][0], rows["target_nm"][-1])   # aims where it stopped
+
+
+def test_a_fifo_too_small_for_the_water_marks_is_refused_before_anything_moves(tmp_path, can_rig):
+    channel, amp, sim, sink = can_rig
+    cfg = cfg_for(tmp_path, "can", f"virtual:{channel}")
+    cfg = cfg.model_copy(update={"amplifier": cfg.amplifier.model_copy(update={"low_water_s": 5.0,
+                                                                               "high_water_s": 6.0})})
+    n_before = len(sink.history)
+    with Controller(cfg, amp) as ctl:
+        ctl.start(raster_nm(500), runlog_path=tmp_path / "c.afmlog")
+        assert ctl.wait(30)
+    assert "do not fit the amplifier's FIFO" in (ctl.trajectory_error or "")
+    assert len(sink.history) == n_before      # no approach, no stream

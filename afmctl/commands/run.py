@@ -190,8 +190,8 @@ def _print_summary(summary: dict) -> None:
               "= the producer's wake-ups")
     if summary.get("wave"):
         w = summary["wave"]
-        print(f"wave              {w['played']} of {w['samples']} table samples played on the {w['player']}; "
-              + "; ".join(w["inverse"]))
+        print(f"wave              {w['played']} of {w['samples']} table samples played on the {w['player']}"
+              + "".join(f"; {r}" for r in w["inverse"]))
     if summary.get("latency_samples"):
         print(f"preview latency   {summary['latency_samples']} samples = {summary['latency_s'] * 1e3:.3g} ms "
               "(the output lags the trajectory read)")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Protocol
 
 
@@ -68,6 +68,22 @@ class CsvRecorder:
                 self.count += 1
         if self.inner is not None:
             self.inner.apply(volts, t_s)
+
+    def play(self, t_s: Sequence[float], rows_V: Sequence[Sequence[float]]) -> None:
+        """Clock-timed rows x, y, z [V] (a wave generator's or stream's block): one CSV row
+        each, then the whole block to the inner sink (its ``play`` if it has one)."""
+        with self._lock:
+            if not self._file.closed:
+                for t, row in zip(t_s, rows_V):
+                    self._held.update(zip("xyz", (float(v) for v in row)))
+                    self._file.write(f"{float(t)!r},{self._held['x']!r},{self._held['y']!r},{self._held['z']!r}\n")
+                    self.count += 1
+        inner = self.inner
+        if inner is not None and hasattr(inner, "play"):
+            inner.play(t_s, rows_V)
+        elif inner is not None:
+            for t, row in zip(t_s, rows_V):
+                inner.apply(dict(zip("xyz", row)), t)
 
     def __getattr__(self, name: str):
         # the rest of the sink's interface (advance, position_nm, ...) is the inner sink's
