@@ -204,6 +204,16 @@ class LoopMachine:
             ctl._enter_fault(err)
             self.next_attempt_s = time.perf_counter() + self.reconnect_interval_s
 
+    def _synced_or_ended(self) -> bool:
+        """Read the device's output back (:meth:`_sync_at_start`); with the link down, end
+        the run in fault at once and return False (machines that do not reconnect)."""
+        self._sync_at_start()
+        if self.ctl._state is State.FAULT:
+            self.in_fault = True
+            self._end_of_run()
+            return False
+        return True
+
     def _take_request(self) -> None:
         """A request (any thread) switches to :attr:`Mode.FINISH`: ``stop`` (ramp or hold as
         ``safety.on_finish`` says), ``estop`` (ramp at the slew limit), ``runlog-error``

@@ -60,10 +60,7 @@ class StreamMachine(LoopMachine):
     # ------------------------------------------------------------------ main loop
     def run(self) -> None:
         ctl = self.ctl
-        self._sync_at_start()
-        if ctl._state is State.FAULT:
-            self.in_fault = True
-            self._end_of_run()
+        if not self._synced_or_ended():
             return
         try:
             self._start_stream()

@@ -94,10 +94,7 @@ class WaveMachine(LoopMachine):
         """The phases in order (module docstring); returns when the run has ended."""
         ctl = self.ctl
         self.T_C = ctl._T_C
-        self._sync_at_start()
-        if ctl._state is State.FAULT:
-            self.in_fault = True
-            self._end_of_run()
+        if not self._synced_or_ended():
             return
         try:
             self._collect_plan_play()
