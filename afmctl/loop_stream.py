@@ -40,6 +40,25 @@ from .stream_producer import StreamProducer
 QUEUE_CHUNK = 50
 
 
+def sleep_to_next_wake(ctl: Any, next_wake_s: float, poll_s: float) -> float:
+    """A producer's wait: sleep until ``next_wake_s + poll_s`` (perf_counter [s]), count how
+    late it woke in the controller's lateness histogram (host lateness) and, more than a poll
+    period late, as a missed deadline (the schedule then restarts from now). Returns the
+    wake-up time the next wait starts from."""
+    perf = time.perf_counter
+    next_wake_s += poll_s
+    rem = next_wake_s - perf()
+    if rem > 0:
+        time.sleep(rem)
+    late = max(perf() - next_wake_s, 0.0)
+    loop_stats.add(ctl._hist, late)
+    ctl._late_max = max(ctl._late_max, late)
+    if late > poll_s:
+        ctl._missed += 1
+        next_wake_s = perf()
+    return next_wake_s
+
+
 class StreamMachine(LoopMachine):
     """One stream-mode run of the loop thread of ``ctl`` (see the module docstring)."""
 
@@ -104,16 +123,7 @@ class StreamMachine(LoopMachine):
                 self._top_up(prod.high - level)
             if self.stall is not None:
                 self.stall()
-            next_wake += self.poll_s
-            rem = next_wake - perf()
-            if rem > 0:
-                time.sleep(rem)
-            late = max(perf() - next_wake, 0.0)
-            loop_stats.add(ctl._hist, late)
-            ctl._late_max = max(ctl._late_max, late)
-            if late > self.poll_s:
-                ctl._missed += 1
-                next_wake = perf()
+            next_wake = sleep_to_next_wake(ctl, next_wake, self.poll_s)
             self._update_stream_stats()
 
     def _top_up(self, n: int) -> None:
@@ -297,12 +307,7 @@ class StreamMachine(LoopMachine):
         return True
 
     def _update_stream_stats(self) -> None:
-        prod = self.producer
-        prod._played()          # the latest STREAM_STATUS the driver received (no I/O)
-        st = prod.stats
-        self.ctl._stream_stats = {"underruns": st.underruns, "lowest_level": st.lowest_level,
-                                  "queued": prod._queued, "low_water": prod.low, "high_water": prod.high,
-                                  "estop_ramp_samples": st.ramp_samples}
+        self.ctl._stream_stats = self.producer.status()
 
     def _end_of_run(self) -> None:
         ctl = self.ctl

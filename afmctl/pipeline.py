@@ -88,6 +88,9 @@ class CompensationPipeline:
         self.inv_coupling = None if inv_coupling is None else np.asarray(inv_coupling, dtype=np.float64).copy()
         #: axis → "preisach+creep from x.json" / "linear calibration 80 nm/V"; "coupling" when used
         self.provenance: dict[str, str] = dict(provenance or {})
+        #: per axis x, y, z the model its inverse came from, or None (the linear calibration,
+        #: or not known: :func:`build_pipeline` fills it in) — for whole-trajectory planning
+        self.models: list[Any] = [None, None, None]
         self._u_prev = np.zeros(3)
 
     def reset(self) -> None:
@@ -278,12 +281,13 @@ def axis_models(config) -> tuple[list[tuple[Any, str | None]], np.ndarray | None
     return models, inv_c, comp.scanner_model
 
 
-def axis_inverses(config) -> tuple[list[StreamingOperator], dict[str, str], np.ndarray | None]:
+def axis_inverses(config, found: tuple | None = None
+                  ) -> tuple[list[StreamingOperator], dict[str, str], np.ndarray | None]:
     """Per-axis inverse operators, their provenance and C⁻¹ (or None) from the
-    configuration's ``[compensation]`` (:func:`axis_models`), else the linear calibration
-    of ``[scanner.calibration]``."""
+    configuration's ``[compensation]`` (``found``: what :func:`axis_models` returned, else
+    it is called), else the linear calibration of ``[scanner.calibration]``."""
     dt = config.dt_s
-    models, inv_c, scanner_file = axis_models(config)
+    models, inv_c, scanner_file = found if found is not None else axis_models(config)
     inverses: list[StreamingOperator] = []
     prov: dict[str, str] = {}
     for axis, (model, source) in zip(("x", "y", "z"), models):
@@ -306,7 +310,8 @@ def axis_inverses(config) -> tuple[list[StreamingOperator], dict[str, str], np.n
 def build_pipeline(config) -> CompensationPipeline:
     """The pipeline described by an :class:`afmctl.config.Config`."""
     dt = config.dt_s
-    inverses, prov, inv_c = axis_inverses(config)
+    found = axis_models(config)
+    inverses, prov, inv_c = axis_inverses(config, found)
     for axis, text in prov.items():
         log.info("compensation %s: %s", axis, text)
     drift = None
@@ -319,4 +324,6 @@ def build_pipeline(config) -> CompensationPipeline:
         from afmctl.compensators.drift_kalman import DriftKalman
         kalman = DriftKalman(dt, config.compensation.drift.kalman_params())
         log.info("drift: Kalman bias filter on (%s)", kalman.params)
-    return CompensationPipeline(inverses, drift, kalman, inv_coupling=inv_c, provenance=prov)
+    pipe = CompensationPipeline(inverses, drift, kalman, inv_coupling=inv_c, provenance=prov)
+    pipe.models = [model for model, _source in found[0]]
+    return pipe

@@ -92,6 +92,15 @@ class StreamProducer:
             out.append(tuple(s.xyz(new, fill=0.0)))
         return out
 
+    def status(self) -> dict:
+        """The FIFO figures of ``Controller.stats()["stream"]``: device ``underruns``, the
+        ``lowest_level`` [samples] reported while playing, samples ``queued``, the water marks
+        [samples] and the estop ramp's length, from the latest STREAM_STATUS (no I/O)."""
+        self._played()
+        st = self.stats
+        return {"underruns": st.underruns, "lowest_level": st.lowest_level, "queued": self._queued,
+                "low_water": self.low, "high_water": self.high, "estop_ramp_samples": st.ramp_samples}
+
     def _played(self) -> int:
         """Samples the amplifier has played, from its last STREAM_STATUS (SEQ unwrapped)."""
         st = self.amp.latest_buffer_status()

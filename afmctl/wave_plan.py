@@ -53,7 +53,8 @@ class WaveTable:
 
     ``target_nm`` (N, 3) what each row aims at; ``corrected_nm`` (N, 3) after the drift
     correction; ``drift_nm`` (N, 3) the predicted drift; ``u_V`` (N, 3) the voltages x, y,
-    z (undriven axes 0); ``T_C`` (N,) the ambient temperature assumed [°C]; ``pad`` rows of held start (and end) point around the trajectory;
+    z (undriven axes 0); ``T_C`` (N,) the ambient temperature assumed [°C]; ``pad`` rows of
+    held start (and end) point around the trajectory;
     ``report`` one line per axis on how its inverse fitted the limits; ``clamped`` /
     ``slew_limited`` samples the final safety pass changed."""
 
@@ -87,13 +88,14 @@ def padded(targets_nm: np.ndarray, pad: int) -> np.ndarray:
     return np.concatenate([np.repeat(t[:1], pad, axis=0), t, np.repeat(t[-1:], pad, axis=0)])
 
 
-def _offline_inverses(config, limits_V: dict[str, tuple[float, float]], slew_V_per_s: float,
-                      report: list[str]) -> list[Callable[[np.ndarray], np.ndarray] | None]:
-    """Per axis x, y, z a whole-target inverse nm → V within that axis's limits (a model
-    with a dynamics stage), else None; each call appends its report line."""
+def _offline_inverses(config, models: Sequence[Any], limits_V: dict[str, tuple[float, float]],
+                      slew_V_per_s: float, report: list[str]) -> list[Callable[[np.ndarray], np.ndarray] | None]:
+    """Per axis x, y, z a whole-target inverse nm → V within that axis's limits (``models``:
+    the axis's model, one with a dynamics stage), else None; each call appends its report
+    line."""
     dt = config.dt_s
     out: list[Callable[[np.ndarray], np.ndarray] | None] = []
-    for axis, (model, _source) in zip("xyz", axis_models(config)[0]):
+    for axis, model in zip("xyz", models):
         if model is None or getattr(model, "dynamics", None) is None or axis not in limits_V:
             out.append(None)
             continue
@@ -131,8 +133,11 @@ def plan_table(config, pipeline, targets_nm: np.ndarray, T_C: float | np.ndarray
          else np.full(len(tgt), float(T)))
     report: list[str] = []
     slew = max_step_V / config.dt_s
+    models = getattr(pipeline, "models", None)
+    if not any(m is not None for m in models or ()):   # a pipeline not built from the config
+        models = [model for model, _source in axis_models(config)[0]]
     pipe = copy.copy(pipeline)
-    pipe.offline = _offline_inverses(config, limits_V, slew, report)
+    pipe.offline = _offline_inverses(config, models, limits_V, slew, report)
     u_sent = np.zeros_like(tgt)
     passes = 2 if getattr(pipe, "drift", None) is not None else 1
     for _ in range(passes):

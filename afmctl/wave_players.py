@@ -26,8 +26,8 @@ from typing import Any
 from afmctl.drivers import codec_gcs_wave as wcodec
 from afmctl.drivers.errors import LimitError
 
-from . import loop_stats
 from .errors import AfmctlError
+from .loop_stream import sleep_to_next_wake
 from .stream_producer import StreamProducer
 from .wave_plan import WaveTable, driven_steps_ok
 
@@ -70,7 +70,16 @@ class WavePlayer:
         raise NotImplementedError
 
     def abort(self) -> None:
-        """Stop the device's playback now (an error ends the run); best effort."""
+        """Stop the device's playback now (an error ends the run); best effort: the device
+        may be gone."""
+        if self.started:
+            try:
+                self._stop_device()
+            except Exception:  # noqa: BLE001 - best effort
+                pass
+
+    def _stop_device(self) -> None:
+        """The device-specific part of :meth:`abort`."""
 
 
 class TablePlayer(WavePlayer):
@@ -136,12 +145,8 @@ class TablePlayer(WavePlayer):
             return False
         return True
 
-    def abort(self) -> None:
-        if self.started:
-            try:
-                self.amp.stop_wave()
-            except Exception:  # noqa: BLE001 - best effort: the device may be gone
-                pass
+    def _stop_device(self) -> None:
+        self.amp.stop_wave()
 
 
 class FifoPlayer(WavePlayer):
@@ -184,7 +189,7 @@ class FifoPlayer(WavePlayer):
             self.m.record_played(prod._played())
             if self.stall is not None:
                 self.stall()
-            next_wake = self._sleep(next_wake)
+            next_wake = sleep_to_next_wake(ctl, next_wake, self.poll_s)
             self._stats()
         self._drain(n)
 
@@ -212,21 +217,6 @@ class FifoPlayer(WavePlayer):
             raise AfmctlError("the amplifier stopped the stream (fault)")
         self.m.played_to(n, "end")
 
-    def _sleep(self, next_wake: float) -> float:
-        """Wait for the next wake-up; count how late it came (host lateness)."""
-        ctl = self.ctl
-        next_wake += self.poll_s
-        rem = next_wake - time.perf_counter()
-        if rem > 0:
-            time.sleep(rem)
-        late = max(time.perf_counter() - next_wake, 0.0)
-        loop_stats.add(ctl._hist, late)
-        ctl._late_max = max(ctl._late_max, late)
-        if late > self.poll_s:
-            ctl._missed += 1
-            next_wake = time.perf_counter()
-        return next_wake
-
     def _flush(self, why: str) -> None:
         """Empty the FIFO at once (the output holds where playing stopped); the rows the
         amplifier reported played go into the run log, the others never do."""
@@ -237,17 +227,8 @@ class FifoPlayer(WavePlayer):
                         f"FIFO flushed: table rows from about {played} on were not played")
         self.m.played_to(played, why)
 
-    def abort(self) -> None:
-        if self.started:
-            try:
-                self.amp.flush_stream()
-            except Exception:  # noqa: BLE001 - best effort: the device may be gone
-                pass
+    def _stop_device(self) -> None:
+        self.amp.flush_stream()
 
     def _stats(self) -> None:
-        prod = self.prod
-        prod._played()
-        st = prod.stats
-        self.ctl._stream_stats = {"underruns": st.underruns, "lowest_level": st.lowest_level,
-                                  "queued": prod._queued, "low_water": prod.low, "high_water": prod.high,
-                                  "estop_ramp_samples": 0}
+        self.ctl._stream_stats = self.prod.status()

@@ -200,26 +200,15 @@ class WaveMachine(LoopMachine):
 
     def _finish(self) -> None:
         """Phase ``finish``: the setpoint loop's finish mode from the read-back output (ramp
-        to the safe value or hold; an estop ramps at the slew limit)."""
-        ctl = self.ctl
-        self.mode = Mode.FINISH
-        req = ctl._request
-        self.finish_hold = self.on_finish == "hold" and req in (None, "stop")
-        if req == "estop":
-            self.finish_rate_V_per_s = self.safety.slew_V_per_s
-        if req is not None:
-            ctl._event({"estop": "estop", "runlog-error": "safe-stop"}.get(req, "stop"),
-                       "the run log cannot be written: ramping to the safe value" if req == "runlog-error" else None)
+        to the safe value or hold; an estop ramps at the slew limit). A pending request is
+        taken as the setpoint loop takes it (:meth:`LoopMachine._take_request`: mode, rate,
+        hold and event); so are requests during the finish."""
+        if self.ctl._request is not None:
+            self._take_request()
+        else:
+            self.mode = Mode.FINISH
+            self.finish_hold = self.on_finish == "hold"
         LoopMachine.run(self)
-
-    def _take_request(self) -> None:
-        """Requests were taken by the phases before ``finish``; an estop during the finish
-        ramp raises its rate to the slew limit."""
-        ctl = self.ctl
-        if ctl._request == "estop" and self.finish_rate_V_per_s != self.safety.slew_V_per_s:
-            self.finish_rate_V_per_s = self.safety.slew_V_per_s
-            self.finish_hold = False
-            ctl._event("estop")
 
     # ------------------------------------------------------------------ ends
     def _refused(self, err: BaseException) -> None:
