@@ -28,7 +28,7 @@ from afmctl.compensators.temperature import T_MAX_C, T_MIN_C
 from afmctl.drivers.registry import driver_names
 
 from .errors import AfmctlError
-from .zenoh_config import ZenohSettings
+from .zenoh_api.settings import ZenohSettings
 
 AXES = ("x", "y", "z")
 Axis = Literal["x", "y", "z"]
@@ -239,7 +239,7 @@ class CompensationSection(_Strict):
 
 # --------------------------------------------------------------------------- safety
 class SafetySection(_Strict):
-    """Limits applied last, to every value sent to the amplifier (afmctl.safety)."""
+    """Limits applied last, to every value sent to the amplifier (afmctl.control.safety)."""
 
     limits_V: dict[Axis, Limits] = Field(default_factory=dict,
                                          description="extra (tighter) voltage limits per axis [V]")
@@ -362,7 +362,7 @@ TrajectorySpec = Annotated[
 
 # --------------------------------------------------------------------------- run log, simulation
 class RunLogSection(_Strict):
-    """Crash-safe log of every setpoint, drift estimate and state change (afmctl.runlog)."""
+    """Crash-safe log of every setpoint, drift estimate and state change (afmctl.control.runlog)."""
 
     enabled: bool = True
     dir: Path = Field(Path("runs"), description="directory for run logs (RUN-NAME.afmlog)")
