@@ -1,34 +1,50 @@
 # Two entry points for a fresh clone: `make demo` and `make test`.
-# Both create .venv with python3 (>= 3.11) and install afmctl into it.
+# Both create .venv with python3 (>= 3.11) and install afmctl into it, editable:
+# `make demo` with its runtime dependencies only, `make test` adds the `test` extra (pytest,
+# hypothesis, playwright, mypy, the vendors' client libraries, Gwyddion's converter) on top.
+# Two stamps, so a demo environment never receives the test tools.
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
-STAMP := $(VENV)/.installed
+RUNTIME_STAMP := $(VENV)/.installed-runtime
+TEST_STAMP := $(VENV)/.installed-test
 
-.PHONY: demo test test-fast bench clean
+# setuptools prints one notice with every editable install whose packages come from several
+# folders (package-dir maps drivers/, compensators/, sim_backend/ into afmctl): "Editable
+# installation ... folders in your working directory with the same name as your package may
+# take precedence during imports". The only such folder is afmctl/ itself, the package's own
+# source, so the notice is filtered; every other setuptools warning still shows.
+PIP := PYTHONWARNINGS="ignore:Editable installation:UserWarning" $(BIN)/python -m pip
+
+.PHONY: demo test test-fast typecheck bench clean
 
 # First run: say what is happening, show pip's progress, then compile numba's kernels into
 # their cache once, with a progress bar (python -m afmctl.kernels), instead of a silent first demo.
-$(STAMP): pyproject.toml
+$(RUNTIME_STAMP): pyproject.toml
 	@echo "afmctl: setting up $(VENV): installing afmctl and its dependencies, then compiling its numba kernels (first time only, a few minutes)"
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install --progress-bar on -e ".[test]"
+	$(PIP) install --progress-bar on -e .
 	$(BIN)/python -m afmctl.kernels
-	touch $(STAMP)
+	touch $(RUNTIME_STAMP)
 
-demo: $(STAMP)
+$(TEST_STAMP): $(RUNTIME_STAMP)
+	@echo "afmctl: adding the test tools to $(VENV)"
+	$(PIP) install --progress-bar on -e ".[test]"
+	touch $(TEST_STAMP)
+
+demo: $(RUNTIME_STAMP)
 	$(BIN)/afmctl demo --out demo-out
 
-test: $(STAMP)
+test: $(TEST_STAMP)
 	$(BIN)/python -m pytest -q
 
 # The inner loop: everything but the tests marked `slow` (tests/conftest.py), on two worker
 # processes (pytest-xdist): under a minute on 2 cores (docs/ARCHITECTURE.md, "Working on afmctl").
-test-fast: $(STAMP)
+test-fast: $(TEST_STAMP)
 	$(BIN)/python -m pytest -q -m "not slow" -n 2
 
-bench: $(STAMP)
+bench: $(TEST_STAMP)
 	$(BIN)/python benchmarks/run_all.py
 
 clean:

@@ -71,6 +71,36 @@ def test_mdt_readback_is_measured_at_0_1_V_and_compatibility_mode(mdt):
     assert ask(port, b"FOO\r") == b"CMD_NOT_DEFINED>"
 
 
+def test_mdt_panel_and_master_scan_replies(mdt):
+    server, port = mdt
+    ask(port, b"ECHO=0\r")
+    assert ask(port, b"INTENSITY?\r") == b"15\r>"             # bare integers, like the limits
+    assert ask(port, b"intensity=4\r") == b">"
+    assert ask(port, b"INTENSITY?\r") == b"4\r>"
+    assert ask(port, b"INTENSITY=16\r") == b"CMD_NOT_DEFINED>"   # 0..15
+    assert ask(port, b"MSENABLE?\r") == b"0\r>"
+    assert ask(port, b"MSENABLE=2\r") == b"CMD_NOT_DEFINED>"
+    assert ask(port, b"ROTARYMODE=2\r") == b">" and ask(port, b"ROTARYMODE?\r") == b"2\r>"
+    assert ask(port, b"PUSHDISABLE=1\r") == b">" and ask(port, b"PUSHDISABLE?\r") == b"1\r>"
+    assert ask(port, b"friendly=Stage B\r") == b">"             # the name keeps its case
+    assert ask(port, b"FRIENDLY?\r") == b"Stage B\r>"
+    assert b"Name: Stage B\r" in ask(port, b"ID?\r")
+    assert ask(port, b"FRIENDLY=a>b\r") == b"CMD_NOT_DEFINED>"  # no prompt characters in a name
+    help_reply = ask(port, b"?\r")
+    assert help_reply.count(b">") == 1 and b"MSENABLE?" in help_reply and b"INTENSITY?" in help_reply
+    ask(port, b"XYZVOLTAGE=10,20,140\r")
+    assert ask(port, b"MSVOLTAGE=30\r") == b">"                 # held until master scan is on
+    assert server.sink.last == {"x": 10.0, "y": 20.0, "z": 140.0}
+    assert ask(port, b"MSENABLE=1\r") == b">" and ask(port, b"MSENABLE?\r") == b"1\r>"
+    assert server.sink.last == {"x": 40.0, "y": 50.0, "z": 150.0}  # added, each within its limits
+    assert ask(port, b"XVOLTAGE?\r") == b"[ 40.0]\r>" and ask(port, b"MSVOLTAGE?\r") == b"[ 30.0]\r>"
+    assert ask(port, b"YVOLTAGE=5\r") == b">" and server.sink.last["y"] == 35.0
+    assert ask(port, b"MSVOLTAGE=500\r") == b">" and ask(port, b"MSVOLTAGE?\r") == b"[150.0]\r>"
+    assert ask(port, b"MSENABLE=0\r") == b">"
+    assert server.sink.last == {"x": 10.0, "y": 5.0, "z": 140.0}
+    assert server.device.requested_V["master"] == (30.0, 500.0)
+
+
 def test_mdt_clamps_to_its_limits(mdt):
     server, port = mdt
     ask(port, b"ECHO=0\r")

@@ -13,9 +13,11 @@ from __future__ import annotations
 import contextlib
 import glob
 import importlib.util
+import inspect
 import json
 import logging
 import os
+import select
 import shutil
 import subprocess
 import sys
@@ -23,6 +25,7 @@ import time
 from pathlib import Path
 
 import pytest
+import serial
 
 from afmctl.drivers.registry import open_amplifier
 from afmctl.sim_backend.testing import serve_pty
@@ -139,6 +142,150 @@ def test_mdt69x_client_gets_sets_and_reads_limits_on_all_three_axes():
             assert server.sink.last == {"x": 100.0, "y": 100.0, "z": 100.0}
         finally:
             c.close()
+
+
+@contextlib.contextmanager
+def _afmctl_sim(*args: str):
+    """``afmctl sim`` as a subprocess (its first line is the pty path); stopped at the end."""
+    proc = subprocess.Popen([sys.executable, "-m", "afmctl", "sim", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    try:
+        ready, _, _ = select.select([proc.stdout], [], [], 120)
+        assert ready, "afmctl sim printed nothing"
+        yield proc.stdout.readline().strip()
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def _approx(v: float):
+    return lambda r: r == pytest.approx(v, abs=0.05)   # read-back: the measured output at 0.1 V
+
+
+def _mdt69x_steps(c, compat: bool) -> list[tuple[str, tuple, object]]:
+    """(method, arguments, expected result or a check on it), in order: every call of the
+    ``mdt69x`` Controller that behaves the same in both modes, from power-up settings."""
+    S, F = c.SUCCESS, c.FAIL
+    return [
+        ("get_compatibility", (), c.COMPATIBILITY_ON if compat else c.COMPATIBILITY_OFF),
+        ("get_echo_status", (), c.ECHO_OFF),
+        ("get_switch_limit", (), 150.0),
+        ("get_serial_number", (), "SIM00001"),
+        ("set_name", ("stage 7",), S),
+        ("get_name", (), lambda r: r.strip() == "stage 7"),   # the client keeps the line's CR
+        ("get_id", (), lambda r: r is None and c._model == "Model MDT693B" and c._name.strip() == "stage 7"
+         and c._serial_number.strip() == "SIM00001" and c._voltage_range == "150V"),
+        ("get_available_commands", (), lambda r: any(ln.startswith("MSENABLE?") for ln in c._commands)),
+        ("get_intensity", (), 15),
+        ("set_intensity", (7,), S),
+        ("get_intensity", (), 7),
+        ("set_intensity", (99,), S),                              # the client sends 15 instead
+        ("get_intensity", (), 15),
+        ("get_rotary_mode", (), c.ROTARY_MODE_DEFAULT),
+        ("set_rotary_mode", (c.ROTARY_MODE_FINE,), S),
+        ("get_rotary_mode", (), c.ROTARY_MODE_FINE),
+        # not a mode: not defined, which compatibility mode answers with the bare prompt
+        ("set_rotary_mode", (9,), S if compat else F),
+        ("get_rotary_mode", (), c.ROTARY_MODE_FINE),
+        ("set_rotary_mode", (c.ROTARY_MODE_DEFAULT,), S),
+        ("get_push_mode", (), 0),                                 # PUSHDISABLE? 0 (the client calls it OFF)
+        ("disable_push_mode", (), S),
+        ("get_push_mode", (), 1),
+        ("enable_push_mode", (), S),
+        ("get_push_mode", (), 0),
+        ("set_x_voltage", (10.0,), S), ("set_y_voltage", (11.0,), S), ("set_z_voltage", (12.0,), S),
+        ("get_x_voltage", (), _approx(10.0)), ("get_y_voltage", (), _approx(11.0)),
+        ("get_z_voltage", (), _approx(12.0)),
+        ("get_xyz_voltage", (), lambda r: r == pytest.approx([10.0, 11.0, 12.0], abs=0.05)),
+        ("set_all_voltage", (5.0,), S),
+        ("get_xyz_voltage", (), lambda r: r == pytest.approx([5.0, 5.0, 5.0], abs=0.05)),
+        ("set_xyz_voltage", (20.0, 21.0, 22.0), S),
+        ("get_xyz_voltage", (), lambda r: r == pytest.approx([20.0, 21.0, 22.0], abs=0.05)),
+        ("get_master_scan_state", (), c.MASTER_SCAN_OFF),
+        # the client refuses until its own enable_master_scan() (its disable never clears that)
+        ("set_master_voltage", (30.0,), S if c._master_scan_enabled else 0),
+        ("enable_master_scan", (), S),
+        ("get_master_scan_state", (), c.MASTER_SCAN_ON),
+        ("set_master_voltage", (30.0,), S),
+        ("get_master_voltage", (), _approx(30.0)),
+        ("get_x_voltage", (), _approx(50.0)),                     # master scan adds to every channel
+        ("get_xyz_voltage", (), lambda r: r == pytest.approx([50.0, 51.0, 52.0], abs=0.05)),
+        ("disable_master_scan", (), S),
+        ("get_master_scan_state", (), c.MASTER_SCAN_OFF),
+        ("get_z_voltage", (), _approx(22.0)),
+        ("get_x_voltage_min", (), 0.0), ("get_y_voltage_min", (), 0.0), ("get_z_voltage_min", (), 0.0),
+        ("get_x_voltage_max", (), 150.5), ("get_y_voltage_max", (), 150.5), ("get_z_voltage_max", (), 150.5),
+        ("get_sys_voltage_max", (), 150.5),
+        ("set_x_voltage_max", (100.0,), S), ("set_y_voltage_max", (101.0,), S), ("set_z_voltage_max", (102.0,), S),
+        ("get_x_voltage_max", (), 100.0), ("get_y_voltage_max", (), 101.0), ("get_z_voltage_max", (), 102.0),
+        ("set_x_voltage", (120.0,), S),
+        ("get_x_voltage", (), _approx(100.0)),                    # clamped by the new limit
+        ("set_x_voltage_min", (3.0,), S), ("set_y_voltage_min", (4.0,), S),
+        ("get_x_voltage_min", (), 3.0), ("get_y_voltage_min", (), 4.0),
+        ("set_z_voltage_min", (6.0,), S),                         # the client sends SYSMIN= here
+        ("get_x_voltage_min", (), 6.0), ("get_sys_voltage_min", (), 6.0),
+        ("set_sys_voltage_max", (90.0,), S),
+        ("get_sys_voltage_max", (), 90.0), ("get_y_voltage_max", (), 90.0),
+        ("restore_all", (), S),
+        ("get_x_voltage_max", (), 150.5), ("get_z_voltage_min", (), 0.0),
+        ("set_echo_off", (), S),
+    ]
+
+
+def _run_steps(c, steps) -> set[str]:
+    for k, (name, args, want) in enumerate(steps):
+        got = getattr(c, name)(*args)
+        ok = want(got) if callable(want) else got == want
+        assert ok, f"step {k}: {name}{args} returned {got!r}, expected {want!r}"
+    return {name for name, _, _ in steps}
+
+
+def test_mdt69x_client_passes_every_call_it_has_against_afmctl_sim(capsys):
+    """Every public method of ``mdt69x.Controller``, in MDT693A compatibility mode (where the
+    client puts the unit) and in the normal mode, against ``afmctl sim``; a method this table
+    does not call fails the test (a new client version must be covered)."""
+    import mdt69x
+    public = {n for n, f in inspect.getmembers(mdt69x.Controller, inspect.isfunction) if not n.startswith("_")}
+    with _afmctl_sim("--protocol", "mdt693b") as port:
+        c = mdt69x.Controller(port)   # probes with an empty line, then echo off and cm=1
+        try:
+            called = _run_steps(c, _mdt69x_steps(c, compat=True))
+            assert c.set_compatibility_off() == c.SUCCESS
+            called |= _run_steps(c, _mdt69x_steps(c, compat=False))
+            assert c.set_compatibility_on() == c.SUCCESS and c.get_compatibility() == c.COMPATIBILITY_ON
+            called |= {"set_compatibility_off", "set_compatibility_on"}
+        finally:
+            c.close()
+        called.add("close")
+    printed = capsys.readouterr().out
+    assert "Model MDT693B" in printed and "INTENSITY?" in printed and "Master Scan not enabled" in printed
+    assert public - called == set(), f"mdt69x calls not exercised: {sorted(public - called)}"
+
+
+def test_herosdevices_mdt69xb_wire_format():
+    """What herosdevices' MDT693B/MDT694B driver sends and parses (read from its source; the
+    package itself pulls in GPIO/laser SDKs, so its bytes are replayed here): ``echo=0`` at
+    connect, lower-case ``xvoltage=``/``xmin=``/``xmax=`` sets, and queries read up to the
+    first CR, brackets stripped for the voltages."""
+    with serve_pty("mdt693b") as server:
+        with serial.serial_for_url(server.port, baudrate=115200, timeout=1.0) as port:
+            def send(cmd: str) -> bytes:
+                port.reset_input_buffer()
+                port.write(cmd.encode("ascii") + b"\r")
+                return port.read_until(b"\r") if cmd.endswith("?") else port.read_until(b">")
+
+            send("echo=0")
+            for ax, v in zip("xyz", (12.5, 40.0, 99.9)):
+                assert send(f"{ax}voltage={v}") == b">"
+                assert float(send(f"{ax}voltage?").decode().strip("[]\r")) == pytest.approx(v, abs=0.05)
+                assert send(f"{ax}max=120") == b">" and send(f"{ax}min=2") == b">"
+                assert float(send(f"{ax}max?").decode().rstrip()) == 120.0
+                assert float(send(f"{ax}min?").decode().rstrip()) == 2.0
+        assert server.sink.last == pytest.approx({"x": 12.5, "y": 40.0, "z": 99.9})
 
 
 def test_our_driver_after_a_client_left_the_unit_in_compatibility_mode():

@@ -38,6 +38,7 @@ def test_wheel_holds_one_top_level_package_with_every_module(wheel):
     tops = {n.split("/")[0] for n in names if not n.split("/")[0].endswith(".dist-info")}
     assert tops == {"afmctl"}
     assert "afmctl/drivers/afm_amplifier.dbc" in names
+    assert {f"afmctl/view/static/{f}" for f in ("index.html", "view.js", "plot.js", "view.css")} <= set(names)
     # every source module is in it (a subpackage missing from pyproject's `packages` would not be)
     expected = {str(Path(*m.split(".")) / "__init__.py") if p.name == "__init__.py"
                 else str(Path(*m.split(".")).with_suffix(".py"))

@@ -15,6 +15,9 @@ MDT693A compatibility mode (``cm=1``, ``cm?``): prompt ``*``; short commands ``X
 (limits), ``%`` (VLIMIT), ``E<0|1>`` (echo), ``I`` (ID); the long commands still work. An
 undefined command is answered by the prompt alone in that mode (as client libraries
 expect), ``CMD_NOT_DEFINED>`` otherwise.
+
+Display intensity, master scan (``MSENABLE``, ``MSVOLTAGE``: added to every channel), the
+rotary knob, the friendly name and the command list (``?``): :mod:`.mdt_panel`.
 """
 from __future__ import annotations
 
@@ -22,6 +25,7 @@ import re
 from collections.abc import Callable
 
 from .base import SimDevice, Sink
+from .mdt_panel import FrontPanel
 
 _NUM = r"\s*([+-]?(?:\d+(?:\.\d*)?|\.\d+))\s*"
 _SET = re.compile(rb"([XYZ])VOLTAGE=" + _NUM.encode())
@@ -61,6 +65,9 @@ class SimMDT693B(SimDevice):
         self._default_max = max_V
         self.min_V = {a: 0.0 for a in self.axes}
         self.max_V = {a: max_V for a in self.axes}
+        #: the channel voltages as set (the output adds the master scan voltage) [V]
+        self.set_V = {a: 0.0 for a in self.axes}
+        self.panel = FrontPanel()
 
     def restore(self) -> None:
         self.min_V = {a: 0.0 for a in self.axes}
@@ -75,9 +82,20 @@ class SimMDT693B(SimDevice):
 
     def _clamp(self, axis: str, v: float) -> float:
         self._requested(v, axis)
-        lo = self.min_V[axis]
-        hi = min(self.max_V[axis], self.vlimit_V)
-        return min(max(v, lo), hi)
+        return self._limit(axis, v)
+
+    def _limit(self, axis: str, v: float) -> float:
+        return min(max(v, self.min_V[axis]), min(self.max_V[axis], self.vlimit_V))
+
+    def _set_channels(self, volts: dict[str, float]) -> None:
+        """Channel voltages as set (already clamped) → the outputs: each plus the master
+        scan voltage, held inside the channel's limits."""
+        self.set_V.update(volts)
+        offset = self.panel.master_offset_V()
+        self._apply({a: self._limit(a, v + offset) if offset else v for a, v in volts.items()})
+
+    def _master_changed(self) -> None:
+        self._set_channels(dict(self.set_V))
 
     def reply(self, line: bytes) -> bytes:
         return (line + b"\r" if self.echo else b"") + self.command(line)
@@ -103,11 +121,12 @@ class SimMDT693B(SimDevice):
         if self._take_injected() is not None:
             return self._undefined()
         cmd = line.strip().upper()
-        for handler in (self._voltages, self._limits, self._system, self._compat_command):
+        for handler in (self._voltages, self._limits, self._system, self._compat_command, self._panel):
             out = handler(cmd)
             if out is not None:
                 return out
-        return self._undefined()
+        named = self.panel.set_name(line)
+        return self._ok() if named else self._undefined()
 
     def _axis(self, letter: bytes) -> str | None:
         a = {b"X": "x", b"Y": "y", b"Z": "z"}.get(letter)
@@ -118,18 +137,18 @@ class SimMDT693B(SimDevice):
             a = self._axis(m.group(1))
             if a is None:
                 return self._undefined()
-            self._apply({a: self._clamp(a, float(m.group(2)))})
+            self._set_channels({a: self._clamp(a, float(m.group(2)))})
             return self._ok()
         if len(cmd) == 9 and cmd[1:] == b"VOLTAGE?" and self._axis(cmd[:1]):
             return self._readback([self._axis(cmd[:1])])  # type: ignore[list-item]
         if self.channels == 3 and (m := _SET3.fullmatch(cmd)):
-            self._apply({a: self._clamp(a, float(m.group(k + 1))) for k, a in enumerate(self.axes)})
+            self._set_channels({a: self._clamp(a, float(m.group(k + 1))) for k, a in enumerate(self.axes)})
             return self._ok()
         if self.channels == 3 and cmd == b"XYZVOLTAGE?":
             return self._readback(list(self.axes))
         if m := _ALL.fullmatch(cmd):
             v = float(m.group(1))
-            self._apply({a: self._clamp(a, v) for a in self.axes})
+            self._set_channels({a: self._clamp(a, v) for a in self.axes})
             return self._ok()
         return None
 
@@ -171,7 +190,7 @@ class SimMDT693B(SimDevice):
         if cmd in (b"ID?", b"I"):
             model = "MDT693B" if self.channels == 3 else "MDT694B"
             lines = [f"Model {model}", "Firmware Version: 1.09", f"Voltage Range: {self.vlimit_V:.0f}V",
-                     "Serial Number: SIM00001", "Name: afmctl-sim"]
+                     "Serial Number: SIM00001", f"Name: {self.panel.name}"]
             return b"\r\n\r" + "\r".join(lines).encode() + b"\r\n" + self.prompt
         if cmd == b"SERIAL?":
             return b"SIM00001\r\n" + self.prompt
@@ -179,6 +198,24 @@ class SimMDT693B(SimDevice):
             self.restore()
             return self._ok()
         return None
+
+    def _panel(self, cmd: bytes) -> bytes | None:
+        """Display, master scan, rotary knob, command list (:mod:`.mdt_panel`)."""
+        body = self.panel.query(cmd)
+        if body is not None:
+            return self._ok(body)
+        if cmd == b"FRIENDLY?":
+            return self._ok(self.panel.name.encode())
+        was = self.panel.master_offset_V()
+        done = self.panel.set_int(cmd)
+        if done is None and (v := self.panel.master_voltage(cmd)) is not None:
+            self._requested(v, "master")
+            self.panel.master_V, done = min(max(v, 0.0), self.vlimit_V), True
+        if done is None:
+            return None
+        if self.panel.master_offset_V() != was:
+            self._master_changed()
+        return self._ok() if done else self._undefined()
 
     def _compat_command(self, cmd: bytes) -> bytes | None:
         """MDT693A short commands (compatibility mode only)."""
@@ -189,7 +226,7 @@ class SimMDT693B(SimDevice):
             axes = list(self.axes) if m.group(1) == b"A" else [self._axis(m.group(1))]
             if None in axes:
                 return self._undefined()
-            self._apply({a: self._clamp(a, v) for a in axes})  # type: ignore[misc]
+            self._set_channels({a: self._clamp(a, v) for a in axes})  # type: ignore[misc]
             return self._ok()
         if len(cmd) in (2, 3) and cmd[1:2] == b"R" and cmd[2:] in (b"", b"?") and self._axis(cmd[:1]):
             return self._readback([self._axis(cmd[:1])])  # type: ignore[list-item]
