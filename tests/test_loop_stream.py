@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from afmctl.errors import AfmctlError
 from afmctl.control.controller import Controller, State
 from afmctl.control.runlog import RunLogReader
+from afmctl.control.transitions import Event, Phase
 from afmctl.testing import HostStalls, assert_no_threads_left, can_rig, make_config, wait_until
 
 RATE_HZ = 1000.0
@@ -98,6 +99,9 @@ def test_estop_flushes_and_ramps_within_the_slew_limit_through_the_controller(tm
         assert ctl.wait(20)
         stats = ctl.stats()
     assert stats["stream"]["estop_ramp_samples"] > 0
+    # the stream machine's phases: the estop came while playing samples, the run stopped
+    assert [t[:2] for t in ctl._fsm.trail if t[1] is Event.ESTOP] == [(Phase.RUN, Event.ESTOP)]
+    assert ctl._fsm.phase is Phase.STOPPED
     events = [e["event"] for e in RunLogReader(tmp_path / "e.afmlog").events()]
     assert "estop" in events and "estop-flush" in events
     for a in "xyz":

@@ -330,6 +330,8 @@ max_V = {hi}
     ctl.close()
     assert amp.violations == []
     assert ctl.state in (State.STOPPED, State.FAULT)
+    # the loop ended in the terminal phase of its transition table that the state publishes
+    assert ctl._fsm.phase.value == ctl.state.value, list(ctl._fsm.trail)
     if amp.sent_at_action is not None:     # stopped during a fault: nothing sent after it
         assert len(amp.received) == amp.sent_at_action and ctl.state is State.STOPPED
 

@@ -22,6 +22,7 @@ from afmctl.control.pipeline import build_pipeline
 from afmctl.control.runlog import RunLogReader
 from afmctl.sim_backend.amplifiers.base import RecordingSink
 from afmctl.sim_backend.testing import serve_pty
+from afmctl.control.transitions import Event, Phase
 from afmctl.testing import HostStalls, assert_no_threads_left, make_config
 from afmctl.testing import can_rig as can_rig_on_a_fresh_channel
 from afmctl.control.wave_plan import driven_steps_ok, padded, plan_table
@@ -135,6 +136,8 @@ def test_estop_flushes_the_fifo_and_ramps_within_the_slew_limit(tmp_path, can_ri
         stats = ctl.stats()
     assert ctl.state is State.STOPPED
     assert 1500 <= stats["wave"]["played"] < 20000
+    assert [t[:2] for t in ctl._fsm.trail if t[1] is Event.ESTOP] == [(Phase.PLAY, Event.ESTOP)]
+    assert ctl._fsm.phase is Phase.STOPPED
     reader = RunLogReader(tmp_path / "e.afmlog")
     events = [e["event"] for e in reader.events()]
     assert "estop-flush" in events and "wave-stopped" in events and "estop" in events
@@ -322,6 +325,8 @@ def test_a_stop_during_the_upload_starts_nothing(tmp_path):
         finally:
             amp.close()
     assert ctl.state is State.STOPPED and stats["wave"]["played"] == 0
+    assert [t[:2] for t in ctl._fsm.trail if t[1] is Event.STOP] == [(Phase.UPLOAD, Event.STOP)]
+    assert ctl._fsm.phase is Phase.STOPPED
     events = [(e["event"], e.get("detail") or "") for e in RunLogReader(tmp_path / "s.afmlog").events()]
     assert any(ev == "wave-stopped" and "not started" in d for ev, d in events), events
     assert all(g.played == 0 for g in srv.device.wave.gens.values())
@@ -348,6 +353,7 @@ def test_a_driver_error_while_the_fifo_plays_stops_the_stream(tmp_path, can_rig)
         assert ctl.wait(30)
         stats = ctl.stats()
     assert ctl.state is State.FAULT and "refused (injected)" in stats["last_error"], stats
+    assert ctl._fsm.phase is Phase.FAULT
     assert sim.stream.state is StreamState.IDLE
     ts = np.array([t for t, _ in sink.history])
     xs = np.array([v["x"] for _, v in sink.history])
@@ -372,6 +378,7 @@ def test_a_stop_during_a_gcs_wave_records_only_what_played_and_finishes_from_the
         finally:
             amp.close()
     assert ctl.state is State.STOPPED and 1500 <= stats["wave"]["played"] < 6000, stats
+    assert [t[:2] for t in ctl._fsm.trail if t[1] is Event.STOP] == [(Phase.PLAY, Event.STOP)]
     reader = RunLogReader(tmp_path / "st.afmlog")
     sp, ev = reader.setpoints(), {e["event"]: e["seq"] for e in reader.events()}
     rows = sp[(sp["seq"] >= ev["ramp-done"]) & (sp["seq"] < ev["wave-stopped"])]

@@ -176,6 +176,8 @@ class Controller:
                                   {a: config.safety.safe_value(a) for a in axes})
         self._state = State.IDLE
         self._request: str | None = None
+        #: the running machine's phase machine (afmctl.control.transitions), None before a run
+        self._fsm: Any = None
         self._sinks: list[Any] = []
         self._deque: collections.deque = collections.deque()
         self._queue_mode = False
