@@ -22,7 +22,22 @@ def wait_for(cond: Callable[[], object], timeout_s: float = 10.0, interval_s: fl
 
 def assert_no_threads_left(prefix: str = "afmctl-", timeout_s: float = 2.0) -> None:
     """Fail unless every thread whose name starts with ``prefix`` (the controller's,
-    the run log's, the zenoh bridge's) has ended within ``timeout_s`` seconds."""
+    the run log's, the zenoh bridge's) has ended within ``timeout_s`` seconds. What leaked is
+    stopped before the failure is raised (:func:`stop_leaked_threads`), so that one leak
+    does not starve the tests after it."""
+    leaked, survivors = stop_leaked_threads(prefix, timeout_s)
+    if leaked:
+        raise AssertionError(f"threads left running: {leaked}"
+                             + (f"; still running after stopping them: {survivors}" if survivors else
+                                "; stopped them"))
+
+
+def stop_leaked_threads(prefix: str = "afmctl-", timeout_s: float = 2.0,
+                        join_s: float = 5.0) -> tuple[list[str], list[str]]:
+    """Wait up to ``timeout_s`` [s] for the threads named ``prefix``… to end; then close
+    every started controller still running (:meth:`afmctl.control.controller.Controller.close`:
+    stop, then estop) and join what is left for up to ``join_s`` [s]. Returns (names of the
+    threads that had leaked, names of those still alive after all that)."""
     import threading
     left: list[str] = []
 
@@ -30,8 +45,19 @@ def assert_no_threads_left(prefix: str = "afmctl-", timeout_s: float = 2.0) -> N
         left[:] = [t.name for t in threading.enumerate() if t.name.startswith(prefix)]
         return not left
 
-    if not wait_for(none_left, timeout_s, 0.02):
-        raise AssertionError(f"threads left running: {left}")
+    if wait_for(none_left, timeout_s, 0.02):
+        return [], []
+    leaked = list(left)
+    from afmctl.control.controller import started_controllers
+    for ctl in started_controllers():
+        if ctl.running:
+            ctl.close(timeout=join_s)
+    deadline = time.monotonic() + join_s
+    for t in threading.enumerate():
+        if t.name.startswith(prefix) and t is not threading.current_thread():
+            t.join(max(deadline - time.monotonic(), 0.0))
+    none_left()
+    return leaked, list(left)
 
 
 def wait_until(cond: Callable[[], object], timeout_s: float = 5.0, interval_s: float = 0.005,

@@ -128,6 +128,37 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.slow)
 
 
+@pytest.hookimpl(hookwrapper=True, tryfirst=True)
+def pytest_runtest_makereport(item, call):
+    """Keep each phase's report on the item (``item.rep_call``): the leak check below needs
+    to know whether the test itself failed."""
+    outcome = yield
+    rep = outcome.get_result()
+    setattr(item, "rep_" + rep.when, rep)
+
+
+@pytest.fixture
+def no_leaked_threads(request):
+    """After the test: every ``afmctl-`` thread (controller loop, dispatcher, feeder,
+    reconnect, run log, zenoh bridge) must have ended. What leaked is stopped (running
+    controllers closed: stop, then estop; threads joined) before anything is reported, so
+    that a leak cannot starve the tests after it; then a test that passed fails on the leak
+    (a teardown error), and a test that already failed is not failed twice (the leak is
+    added to its report). Use with ``pytestmark = pytest.mark.usefixtures("no_leaked_threads")``."""
+    yield
+    from afmctl.testing import stop_leaked_threads
+    leaked, survivors = stop_leaked_threads("afmctl-")
+    if not leaked:
+        return
+    msg = (f"threads left running: {leaked}; "
+           + (f"still running after stopping them: {survivors}" if survivors else "stopped them"))
+    rep = getattr(request.node, "rep_call", None)
+    if rep is not None and rep.failed:
+        request.node.add_report_section("teardown", "leaked threads", msg)
+        return
+    pytest.fail(msg, pytrace=False)
+
+
 @pytest.fixture
 def chain_file(tmp_path):
     """A pi+dynamics chain model file (1 kHz mode, ζ 0.03; real pole 3 kHz), 50 nm/V, 0..150 V:

@@ -18,15 +18,12 @@ from afmctl.control.pipeline import LinearAxis, build_pipeline
 from afmctl.control.preview import DelayLine, Delayed, equalise_latency
 from afmctl.control.runlog import RunLogReader
 from afmctl.simulation.link import RecordingAmplifier
-from afmctl.testing import assert_no_threads_left, make_config, wait_until
+from afmctl.testing import make_config, wait_until
 
 RATE_HZ = 2000.0
 
 
-@pytest.fixture(autouse=True)
-def no_leaked_threads():
-    yield
-    assert_no_threads_left("afmctl-")
+pytestmark = pytest.mark.usefixtures("no_leaked_threads")   # tests/conftest.py
 
 
 def cfg_for(tmp_path, chain_file, **loop):

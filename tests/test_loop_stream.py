@@ -13,17 +13,14 @@ from afmctl.errors import AfmctlError
 from afmctl.control.controller import Controller, State
 from afmctl.control.runlog import RunLogReader
 from afmctl.control.transitions import Event, Phase
-from afmctl.testing import HostStalls, assert_no_threads_left, can_rig, make_config, wait_until
+from afmctl.testing import HostStalls, can_rig, make_config, wait_until
 
 RATE_HZ = 1000.0
 SLEW_V_PER_S = 2000.0     # 2 V per sample at 1 kHz
 NM_PER_V = 50.0
 
 
-@pytest.fixture(autouse=True)
-def no_leaked_threads():
-    yield
-    assert_no_threads_left("afmctl-")
+pytestmark = pytest.mark.usefixtures("no_leaked_threads")   # tests/conftest.py
 
 
 @pytest.fixture

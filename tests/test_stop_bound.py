@@ -19,7 +19,7 @@ import pytest
 from afmctl.control.controller import Controller, State
 from afmctl.control.transitions import Event, Phase
 from afmctl.simulation.link import RecordingAmplifier
-from afmctl.testing import assert_no_threads_left, make_config, wait_until
+from afmctl.testing import make_config, wait_until
 
 RATE_HZ = 1000.0
 RAMP_V_PER_S = 200.0
@@ -27,10 +27,7 @@ SLEW_V_PER_S = 2000.0
 SLACK_S = 2.0           # on top of the stated bound: a loaded machine, never a timing figure
 
 
-@pytest.fixture(autouse=True)
-def no_leaked_threads():
-    yield
-    assert_no_threads_left("afmctl-")
+pytestmark = pytest.mark.usefixtures("no_leaked_threads")   # tests/conftest.py
 
 
 def cfg_for(tmp_path, **safety):
@@ -230,3 +227,50 @@ def test_max_reconnects_ends_in_fault(tmp_path):
     fired = [t[1] for t in ctl._fsm.trail]
     assert fired.count(Event.RECONNECT_FAILED) == 2 and fired[-1] is Event.RECONNECTS_EXHAUSTED
     time.sleep(0.01)
+
+
+# ---------------------------------------------------------------- close() from every phase
+def _running_in(tmp_path, phase: Phase):
+    """A controller running and in ``phase`` (and its amplifier)."""
+    slow_finish = phase is Phase.FINISH
+    cfg = cfg_for(tmp_path, reconnect_interval_s=30.0 if phase is Phase.RETRY else 0.01,
+                  ramp_V_per_s=5.0 if slow_finish else RAMP_V_PER_S)
+    g = cfg.scanner.axis_spec("x").nm_per_V
+    amp = BlockingAmplifier(block_reconnect=phase is Phase.RECONNECT)
+    ctl = Controller(cfg, amp)
+    if phase in (Phase.RETRY, Phase.RECONNECT):
+        amp.fail_after = 20
+    if phase is Phase.HOLD:
+        ctl.start(None)
+    else:
+        n = 300 if slow_finish else 20000      # FINISH: 10 V to ramp down at 5 V/s after the end
+        ctl.start(np.column_stack([np.full(n, 10.0 * g), np.zeros(n), np.zeros(n)]))
+    wait_until(lambda: ctl._fsm is not None and ctl._fsm.phase is phase, 20.0, what=f"phase {phase.value}")
+    return ctl, amp
+
+
+@pytest.mark.parametrize("phase", [Phase.RAMP, Phase.RUN, Phase.HOLD, Phase.FINISH, Phase.RETRY, Phase.RECONNECT],
+                         ids=lambda p: p.value)
+def test_close_ends_every_thread_from_every_phase(tmp_path, phase):
+    """close() without a stop first: the loop ends (a finish ramp slower than half the timeout
+    is turned into an estop) and every thread of the controller is joined."""
+    ctl, amp = _running_in(tmp_path, phase)
+    if phase is Phase.RECONNECT:
+        amp.release.set()           # the driver call returns (within its own timeout)
+    assert ctl.close(timeout=1.0 if phase is Phase.FINISH else 10.0) == []
+    assert not ctl.running and ctl._fsm.phase in (Phase.STOPPED, Phase.FAULT)
+    assert amp.violations == []
+    if phase is Phase.FINISH:       # escalated: the slow ramp was finished at the slew limit
+        assert "estop" in [t[1].value for t in ctl._fsm.trail]
+
+
+def test_close_reports_a_driver_call_that_does_not_return(tmp_path, caplog):
+    """A reconnect blocked in the driver beyond close()'s timeout: the loop and dispatcher
+    end, close() names the reconnect thread it could not join (and logs it); once the
+    driver returns, the thread ends."""
+    ctl, amp = _running_in(tmp_path, Phase.RECONNECT)
+    left = ctl.close(timeout=0.3)
+    assert left == ["afmctl-reconnect"]
+    assert "afmctl-reconnect" in caplog.text and not ctl.running
+    amp.release.set()
+    wait_until(lambda: not ctl._rc_thread.is_alive(), 5.0)
