@@ -60,6 +60,40 @@ def stop_leaked_threads(prefix: str = "afmctl-", timeout_s: float = 2.0,
     return leaked, list(left)
 
 
+#: Device-timed output (stream, FIFO wave) in tests: the most underruns a test tolerates, as a
+#: fraction of the samples played. An underrun is the host late beyond the FIFO's low water
+#: mark: on a quiet machine there are none (docs/BENCHMARKS.md measures that); on a loaded
+#: 2-core machine a few happen (6 of ~10,000 samples seen, issue #22), and they are safe (the
+#: output holds for a tick). Tests check what must hold whatever the load — limits, slew,
+#: every played sample logged, samples on the device's clock — and bound this count only.
+MAX_UNDERRUN_FRACTION = 0.05
+
+
+def assert_few_underruns(underruns: int, samples: int) -> None:
+    """Fail when ``underruns`` exceeds :data:`MAX_UNDERRUN_FRACTION` of ``samples``."""
+    allowed = int(MAX_UNDERRUN_FRACTION * samples)
+    if not 0 <= underruns <= allowed:
+        raise AssertionError(f"{underruns} underruns in {samples} samples; at most {allowed} "
+                             f"({MAX_UNDERRUN_FRACTION:.0%}) expected even on a loaded machine")
+
+
+def ticks_on_the_device_clock(times_s: Any, t0_s: float, rate_Hz: float) -> int:
+    """Device-timed output as a simulator recorded it: every time [s] must be one of the
+    device's ticks ``t0_s + k / rate_Hz`` (k integer, increasing, from 0; 1 ns tolerance for
+    the float sum) — zero jitter by construction of the device clock. Returns the ticks
+    skipped between the first and the last sample (each an underrun: the output held)."""
+    import numpy as np
+    t = np.asarray(times_s, dtype=np.float64)
+    if len(t) == 0:
+        return 0
+    k = np.rint((t - t0_s) * rate_Hz)
+    off = np.abs(t - (t0_s + k / rate_Hz))
+    if k[0] < 0 or np.any(np.diff(k) < 1) or off.max() > 1e-9:
+        raise AssertionError(f"samples off the device clock: first tick {k[0]:g}, smallest tick step "
+                             f"{np.diff(k).min() if len(k) > 1 else 1:g}, largest offset {off.max():.3g} s")
+    return int(k[-1] - k[0] + 1 - len(k))
+
+
 def wait_until(cond: Callable[[], object], timeout_s: float = 5.0, interval_s: float = 0.005,
                what: str | None = None) -> None:
     """Like :func:`wait_for`, but raise ``AssertionError`` naming what was awaited (``what``,
