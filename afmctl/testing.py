@@ -62,11 +62,14 @@ def stop_leaked_threads(prefix: str = "afmctl-", timeout_s: float = 2.0,
 
 #: Device-timed output (stream, FIFO wave) in tests: the most underruns a test tolerates, as a
 #: fraction of the samples played. An underrun is the host late beyond the FIFO's low water
-#: mark: on a quiet machine there are none (docs/BENCHMARKS.md measures that); on a loaded
-#: 2-core machine a few happen (6 of ~10,000 samples seen, issue #22), and they are safe (the
-#: output holds for a tick). Tests check what must hold whatever the load — limits, slew,
-#: every played sample logged, samples on the device's clock — and bound this count only.
-MAX_UNDERRUN_FRACTION = 0.05
+#: mark, and it is safe (the output holds for a tick). On a quiet machine there are none
+#: (docs/BENCHMARKS.md measures that); on a loaded 2-core machine there are some: 6 of
+#: ~10,000 samples (issue #22), and on the shared development machine at a load average of 12
+#: 171 of 3,119 samples (5.5 %) without and 671 (21.5 %) with a CPU hog on one core
+#: (tests/test_loop_stream.py's 20 ms host stalls at 1 kHz, 2026-11-26). Tests check what must
+#: hold whatever the load — limits, slew, every played sample logged, samples on the device's
+#: clock — and bound this count only against a producer that does not keep up at all.
+MAX_UNDERRUN_FRACTION = 0.5
 
 
 def assert_few_underruns(underruns: int, samples: int) -> None:

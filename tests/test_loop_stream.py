@@ -52,7 +52,7 @@ def played(sim, sink):
 
 def test_host_stalls_do_not_reach_the_tip_through_the_controller(tmp_path, rig):
     """1 kHz, the producer stalled 20 ms once a second: every sample played on the amplifier's
-    clock (ticks one period apart; a tick without a sample is an underrun, few even on a loaded
+    clock (ticks one period apart; a tick without a sample is an underrun, bounded on a loaded
     machine, none on a quiet one: docs/BENCHMARKS.md), the run log holds every queued one."""
     channel, amp, sim, sink = rig
     cfg = cfg_for(tmp_path, channel)
