@@ -16,7 +16,7 @@ TEST_STAMP := $(VENV)/.installed-test
 # source, so the notice is filtered; every other setuptools warning still shows.
 PIP := PYTHONWARNINGS="ignore:Editable installation:UserWarning" $(BIN)/python -m pip
 
-.PHONY: demo test test-fast typecheck bench clean
+.PHONY: demo test test-fast typecheck fuzz bench clean
 
 # First run: say what is happening, show pip's progress, then compile numba's kernels into
 # their cache once, with a progress bar (python -m afmctl.kernels), instead of a silent first demo.
@@ -43,6 +43,19 @@ test: $(TEST_STAMP)
 # processes (pytest-xdist): under a minute on 2 cores (docs/ARCHITECTURE.md, "Working on afmctl").
 test-fast: $(TEST_STAMP)
 	$(BIN)/python -m pytest -q -m "not slow" -n 2
+
+# Long random runs of the property tests (hypothesis's `fuzz` profile, tests/conftest.py): 20x each
+# test's examples, failures kept in .hypothesis/examples and replayed first by the next run.
+# `make test` uses the derandomised `ci` profile, so it gives the same answer every time.
+FUZZ_ARGS ?=
+fuzz: $(TEST_STAMP)
+	@echo "afmctl: fuzzing the property tests (hypothesis profile 'fuzz'; HYPOTHESIS_FUZZ_FACTOR=$${HYPOTHESIS_FUZZ_FACTOR:-20})"
+	HYPOTHESIS_PROFILE=fuzz $(BIN)/python -m pytest -q -m hypothesis -p no:cacheprovider $(FUZZ_ARGS) \
+	  || { status=$$?; \
+	       echo "afmctl fuzz: a property failed. To replay it: rerun 'make fuzz FUZZ_ARGS=\"-k NAME\"' (the failing"; \
+	       echo "  example is stored in .hypothesis/examples and tried first), or paste the printed"; \
+	       echo "  @reproduce_failure(...) line above the test's @given and run that test with pytest."; \
+	       exit $$status; }
 
 bench: $(TEST_STAMP)
 	$(BIN)/python benchmarks/run_all.py

@@ -22,7 +22,22 @@ def wait_for(cond: Callable[[], object], timeout_s: float = 10.0, interval_s: fl
 
 def assert_no_threads_left(prefix: str = "afmctl-", timeout_s: float = 2.0) -> None:
     """Fail unless every thread whose name starts with ``prefix`` (the controller's,
-    the run log's, the zenoh bridge's) has ended within ``timeout_s`` seconds."""
+    the run log's, the zenoh bridge's) has ended within ``timeout_s`` seconds. What leaked is
+    stopped before the failure is raised (:func:`stop_leaked_threads`), so that one leak
+    does not starve the tests after it."""
+    leaked, survivors = stop_leaked_threads(prefix, timeout_s)
+    if leaked:
+        raise AssertionError(f"threads left running: {leaked}"
+                             + (f"; still running after stopping them: {survivors}" if survivors else
+                                "; stopped them"))
+
+
+def stop_leaked_threads(prefix: str = "afmctl-", timeout_s: float = 2.0,
+                        join_s: float = 5.0) -> tuple[list[str], list[str]]:
+    """Wait up to ``timeout_s`` [s] for the threads named ``prefix``… to end; then close
+    every started controller still running (:meth:`afmctl.control.controller.Controller.close`:
+    stop, then estop) and join what is left for up to ``join_s`` [s]. Returns (names of the
+    threads that had leaked, names of those still alive after all that)."""
     import threading
     left: list[str] = []
 
@@ -30,8 +45,56 @@ def assert_no_threads_left(prefix: str = "afmctl-", timeout_s: float = 2.0) -> N
         left[:] = [t.name for t in threading.enumerate() if t.name.startswith(prefix)]
         return not left
 
-    if not wait_for(none_left, timeout_s, 0.02):
-        raise AssertionError(f"threads left running: {left}")
+    if wait_for(none_left, timeout_s, 0.02):
+        return [], []
+    leaked = list(left)
+    from afmctl.control.controller import started_controllers
+    for ctl in started_controllers():
+        if ctl.running:
+            ctl.close(timeout=join_s)
+    deadline = time.monotonic() + join_s
+    for t in threading.enumerate():
+        if t.name.startswith(prefix) and t is not threading.current_thread():
+            t.join(max(deadline - time.monotonic(), 0.0))
+    none_left()
+    return leaked, list(left)
+
+
+#: Device-timed output (stream, FIFO wave) in tests: the most underruns a test tolerates, as a
+#: fraction of the samples played. An underrun is the host late beyond the FIFO's low water
+#: mark, and it is safe (the output holds for a tick). On a quiet machine there are none
+#: (docs/BENCHMARKS.md measures that); on a loaded 2-core machine there are some: 6 of
+#: ~10,000 samples (issue #22), and on the shared development machine at a load average of 12
+#: 171 of 3,119 samples (5.5 %) without and 671 (21.5 %) with a CPU hog on one core
+#: (tests/test_loop_stream.py's 20 ms host stalls at 1 kHz, 2026-11-26). Tests check what must
+#: hold whatever the load — limits, slew, every played sample logged, samples on the device's
+#: clock — and bound this count only against a producer that does not keep up at all.
+MAX_UNDERRUN_FRACTION = 0.5
+
+
+def assert_few_underruns(underruns: int, samples: int) -> None:
+    """Fail when ``underruns`` exceeds :data:`MAX_UNDERRUN_FRACTION` of ``samples``."""
+    allowed = int(MAX_UNDERRUN_FRACTION * samples)
+    if not 0 <= underruns <= allowed:
+        raise AssertionError(f"{underruns} underruns in {samples} samples; at most {allowed} "
+                             f"({MAX_UNDERRUN_FRACTION:.0%}) expected even on a loaded machine")
+
+
+def ticks_on_the_device_clock(times_s: Any, t0_s: float, rate_Hz: float) -> int:
+    """Device-timed output as a simulator recorded it: every time [s] must be one of the
+    device's ticks ``t0_s + k / rate_Hz`` (k integer, increasing, from 0; 1 ns tolerance for
+    the float sum) — zero jitter by construction of the device clock. Returns the ticks
+    skipped between the first and the last sample (each an underrun: the output held)."""
+    import numpy as np
+    t = np.asarray(times_s, dtype=np.float64)
+    if len(t) == 0:
+        return 0
+    k = np.rint((t - t0_s) * rate_Hz)
+    off = np.abs(t - (t0_s + k / rate_Hz))
+    if k[0] < 0 or np.any(np.diff(k) < 1) or off.max() > 1e-9:
+        raise AssertionError(f"samples off the device clock: first tick {k[0]:g}, smallest tick step "
+                             f"{np.diff(k).min() if len(k) > 1 else 1:g}, largest offset {off.max():.3g} s")
+    return int(k[-1] - k[0] + 1 - len(k))
 
 
 def wait_until(cond: Callable[[], object], timeout_s: float = 5.0, interval_s: float = 0.005,

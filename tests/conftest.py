@@ -3,11 +3,45 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, settings
+from hypothesis.database import DirectoryBasedExampleDatabase
 
 # Headless plotting everywhere in the test suite.
 os.environ.setdefault("MPLBACKEND", "Agg")
+
+# Hypothesis profiles, chosen by HYPOTHESIS_PROFILE (default "ci"):
+# - "ci" (`make test`, .ci/run): derandomised, so the same commit gives the same answer every
+#   time (each test's examples come from a seed fixed by the test's name); no example database
+#   (nothing carried from run to run); no deadline and no too_slow health check (a loaded
+#   2-core machine); tests without their own max_examples draw 50.
+# - "fuzz" (`make fuzz`): random exploration, FUZZ_FACTOR x each test's max_examples (at least
+#   FUZZ_MIN), failures kept in .hypothesis/examples (replayed first by the next run) and printed
+#   with a @reproduce_failure blob.
+FUZZ_FACTOR = int(os.environ.get("HYPOTHESIS_FUZZ_FACTOR", "20"))
+FUZZ_MIN = int(os.environ.get("HYPOTHESIS_FUZZ_MIN", "500"))
+settings.register_profile("ci", derandomize=True, database=None, deadline=None, max_examples=50,
+                          suppress_health_check=[HealthCheck.too_slow], print_blob=True)
+settings.register_profile("fuzz", derandomize=False, deadline=None, max_examples=FUZZ_MIN, print_blob=True,
+                          database=DirectoryBasedExampleDatabase(
+                              str(Path(__file__).resolve().parent.parent / ".hypothesis" / "examples")),
+                          suppress_health_check=[HealthCheck.too_slow])
+HYPOTHESIS_PROFILE = os.environ.get("HYPOTHESIS_PROFILE", "ci")
+settings.load_profile(HYPOTHESIS_PROFILE)
+
+
+def _scale_for_fuzzing(item) -> None:
+    """Fuzz profile: a test's own ``@settings(max_examples=N)`` beats the profile, so scale it
+    here (FUZZ_FACTOR x N, at least FUZZ_MIN). Hypothesis reads a test's settings when the test
+    runs, from the attribute its ``@given`` wrapper keeps them in."""
+    fn = getattr(item, "obj", None)
+    fn = getattr(fn, "__func__", fn)
+    own = getattr(fn, "_hypothesis_internal_use_settings", None)
+    if own is not None:
+        fn._hypothesis_internal_use_settings = settings(
+            own, max_examples=max(own.max_examples * FUZZ_FACTOR, FUZZ_MIN))
 
 
 # Whole files of end-to-end tests (subprocesses, the demo, real zenoh sessions and processes,
@@ -126,6 +160,43 @@ def pytest_collection_modifyitems(config, items):
         name = f"{item.path.name}::{item.originalname}"
         if item.path.name in SLOW_FILES or name in SLOW_TESTS:
             item.add_marker(pytest.mark.slow)
+        if HYPOTHESIS_PROFILE == "fuzz":
+            _scale_for_fuzzing(item)
+
+
+def pytest_report_header(config):
+    return f"hypothesis profile: {HYPOTHESIS_PROFILE} (HYPOTHESIS_PROFILE=ci|fuzz; tests/conftest.py)"
+
+
+@pytest.hookimpl(hookwrapper=True, tryfirst=True)
+def pytest_runtest_makereport(item, call):
+    """Keep each phase's report on the item (``item.rep_call``): the leak check below needs
+    to know whether the test itself failed."""
+    outcome = yield
+    rep = outcome.get_result()
+    setattr(item, "rep_" + rep.when, rep)
+
+
+@pytest.fixture
+def no_leaked_threads(request):
+    """After the test: every ``afmctl-`` thread (controller loop, dispatcher, feeder,
+    reconnect, run log, zenoh bridge) must have ended. What leaked is stopped (running
+    controllers closed: stop, then estop; threads joined) before anything is reported, so
+    that a leak cannot starve the tests after it; then a test that passed fails on the leak
+    (a teardown error), and a test that already failed is not failed twice (the leak is
+    added to its report). Use with ``pytestmark = pytest.mark.usefixtures("no_leaked_threads")``."""
+    yield
+    from afmctl.testing import stop_leaked_threads
+    leaked, survivors = stop_leaked_threads("afmctl-")
+    if not leaked:
+        return
+    msg = (f"threads left running: {leaked}; "
+           + (f"still running after stopping them: {survivors}" if survivors else "stopped them"))
+    rep = getattr(request.node, "rep_call", None)
+    if rep is not None and rep.failed:
+        request.node.add_report_section("teardown", "leaked threads", msg)
+        return
+    pytest.fail(msg, pytrace=False)
 
 
 @pytest.fixture

@@ -17,14 +17,11 @@ from afmctl.control.controller import Controller, State
 from afmctl.control.pipeline import build_pipeline
 from afmctl.control.runlog import RunLogReader
 from afmctl.simulation.link import RecordingAmplifier
-from afmctl.testing import assert_no_threads_left, bridge_on_free_port, make_config
+from afmctl.testing import bridge_on_free_port, make_config
 from afmctl.testing import wait_until as wait_for
 
 
-@pytest.fixture(autouse=True)
-def no_leaked_threads():
-    yield
-    assert_no_threads_left("afmctl-")
+pytestmark = pytest.mark.usefixtures("no_leaked_threads")   # tests/conftest.py
 
 
 def cfg_for(tmp_path, kalman: bool = True, extra: str = ""):

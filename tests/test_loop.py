@@ -13,16 +13,12 @@ from afmctl.control.controller import Controller, State
 from afmctl.control.pipeline import build_pipeline
 from afmctl.control.runlog import RunLogReader
 from afmctl.simulation.link import RecordingAmplifier
-from afmctl.testing import assert_no_threads_left, make_config
+from afmctl.testing import make_config
 from afmctl.testing import wait_until as wait_for
 
 
 
-@pytest.fixture(autouse=True)
-def no_leaked_threads():
-    """Every test here must leave no controller thread behind."""
-    yield
-    assert_no_threads_left("afmctl-")
+pytestmark = pytest.mark.usefixtures("no_leaked_threads")   # tests/conftest.py
 
 
 def cfg_for(tmp_path, extra: str = "", rate: float = 2000.0, slew: float = 5000.0):

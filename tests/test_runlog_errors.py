@@ -76,7 +76,9 @@ def _started(tmp_path, runlog_dir):
     gain = cfg.scanner.axis_spec("x").nm_per_V
     ctl.submit_segment(np.tile([100.0 * gain, 50.0 * gain, 20.0 * gain], (4000, 1)), cfg.dt_s)
     ctl.start(cfg.trajectory, runlog_path=runlog_dir / "run.afmlog")
-    wait_until(lambda: amp.outputs["x"] > 99.99 and ctl.runlog.flushed > 300)
+    wait_until(lambda: amp.outputs["x"] > 99.99)
+    at_100 = ctl.stats()["samples"]     # records from here on were sent at 100 V
+    wait_until(lambda: ctl.runlog.flushed > max(300, at_100 + 10))
     return ctl, amp, sink
 
 

@@ -19,6 +19,8 @@ from afmctl.control.safety import ReadbackError, SafetyLayer, Watchdog
 from afmctl.simulation.link import RecordingAmplifier
 from afmctl.drivers.errors import AmplifierConnectionError
 
+pytestmark = pytest.mark.usefixtures("no_leaked_threads")   # tests/conftest.py
+
 floats_any = st.one_of(st.floats(allow_nan=True, allow_infinity=True),
                        st.floats(min_value=-1e4, max_value=1e4))
 
@@ -151,8 +153,10 @@ offset_V = -30
     ctl = Controller(cfg, amp)
     # y, z default limits 0..150 (amplifier section)
     ctl.start(np.array(traj))
-    assert ctl.wait(20)
-    ctl.close()
+    try:
+        assert ctl.wait(20)
+    finally:
+        ctl.close()      # also when the wait failed: no example leaves its threads running
     assert amp.violations == []
     assert ctl.state is State.STOPPED
 
@@ -326,10 +330,14 @@ max_V = {hi}
     ctl.safety.clock = clock
     amp.ctl = ctl
     ctl.start(np.array(traj))
-    assert ctl.wait(20)
-    ctl.close()
+    try:
+        assert ctl.wait(20)
+    finally:
+        ctl.close()      # also when the wait failed: no example leaves its threads running
     assert amp.violations == []
     assert ctl.state in (State.STOPPED, State.FAULT)
+    # the loop ended in the terminal phase of its transition table that the state publishes
+    assert ctl._fsm.phase.value == ctl.state.value, list(ctl._fsm.trail)
     if amp.sent_at_action is not None:     # stopped during a fault: nothing sent after it
         assert len(amp.received) == amp.sent_at_action and ctl.state is State.STOPPED
 

@@ -59,6 +59,7 @@ import os
 import sys
 import threading
 import time
+import weakref
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
@@ -90,6 +91,16 @@ _END = END_OF_TRAJECTORY
 _HBINS = loop_stats.N_BINS
 _bin = loop_stats.bin_of
 _percentiles = loop_stats.percentiles
+
+
+#: every controller started in this process (weakly held): :func:`started_controllers`
+_STARTED: "weakref.WeakSet[Controller]" = weakref.WeakSet()
+
+
+def started_controllers() -> list["Controller"]:
+    """The controllers of this process that were started and are not yet garbage (test
+    harnesses close those still running after a test: :func:`afmctl.testing.stop_leaked_threads`)."""
+    return list(_STARTED)
 
 
 def _as_block(arr: Any, where: str = "trajectory") -> np.ndarray:
@@ -177,6 +188,8 @@ class Controller:
                                   {a: config.safety.safe_value(a) for a in axes})
         self._state = State.IDLE
         self._request: str | None = None
+        #: the running machine's phase machine (afmctl.control.transitions), None before a run
+        self._fsm: Any = None
         self._sinks: list[Any] = []
         self._deque: collections.deque = collections.deque()
         self._queue_mode = False
@@ -399,6 +412,7 @@ class Controller:
         if self.config.runlog.enabled:
             self._open_runlog(runlog_path)
         self._set_state(State.RUNNING, "start")
+        _STARTED.add(self)
         if it is not None:
             self._feeder = threading.Thread(target=self._feed, args=(it,), name="afmctl-feeder", daemon=True)
             self._feeder.start()
@@ -450,21 +464,32 @@ class Controller:
         """Wait until the run has ended and every record has been dispatched."""
         return self._done.wait(timeout)
 
-    def close(self, timeout: float = 10.0) -> None:
-        """Stop if running, wait, close the run log (the amplifier stays open)."""
-        if self._thread is not None and self._thread.is_alive():
+    def close(self, timeout: float = 10.0) -> list[str]:
+        """End the run from whatever state it is in and join every thread of this controller
+        (the amplifier stays open). Stops (ramp to the safe value or hold, as a stop does);
+        when the loop has not ended after half of ``timeout`` [s] (a slow finish ramp), an
+        estop (ramp at the slew limit). Each thread is joined until ``timeout`` after the
+        call; returns the names of those still alive then (a driver call blocked beyond its
+        own timeout; also logged as an error) — an empty list when everything ended."""
+        deadline = time.monotonic() + timeout
+        loop = self._thread
+        if loop is not None and loop.is_alive():
             self.stop()
-        if self._thread is not None:
-            self._thread.join(timeout)
-        if self._dispatcher is not None:
-            self._dispatcher.join(timeout)
-        if self._feeder is not None:
-            self._feed_stop = True
-            self._feeder.join(timeout)
-        if self._rc_thread is not None:   # a reconnect attempt still in the driver
-            self._rc_thread.join(timeout)
+            loop.join(0.5 * timeout)
+            if loop.is_alive():
+                self.estop()
+        self._feed_stop = True
+        for t in (loop, self._dispatcher, self._feeder, self._rc_thread):
+            if t is not None:       # _rc_thread: a reconnect attempt still in the driver
+                t.join(max(deadline - time.monotonic(), 0.0))
         if self.runlog is not None:
             self.runlog.close()
+        left = [t.name for t in (loop, self._dispatcher, self._feeder, self._rc_thread)
+                if t is not None and t.is_alive()]
+        if left:
+            log.error("close: threads still running %.1f s after close(): %s (state %s)",
+                      timeout, ", ".join(left), self._state.value)
+        return left
 
     def __enter__(self) -> "Controller":
         return self

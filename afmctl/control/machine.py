@@ -40,7 +40,8 @@ import numpy as np
 
 from . import stats as loop_stats
 from ..errors import error_line
-from .safety import Watchdog
+from .safety import ReadbackError, Watchdog
+from .transitions import REQUEST_EVENTS, TABLES, Event, Phase, PhaseMachine
 from afmctl.drivers.base import ConnectionState
 from afmctl.drivers.errors import AmplifierError, LimitError
 
@@ -93,6 +94,10 @@ class LoopMachine:
         self.max_reconnects = cfg.safety.max_reconnects
         self.has_kalman = getattr(pipe, "kalman", None) is not None
         self.mode = Mode.RUN
+        #: the loop's phase, moved only through the output mode's transition table
+        self.fsm = PhaseMachine(TABLES.get(cfg.amplifier.output, TABLES["setpoints"]))
+        ctl._fsm = self.fsm
+        self.req_taken: str | None = None   # the latest request taken (ctl._request)
         self.finish_rate_V_per_s = self.ramp_rate_V_per_s
         self.finish_hold = False
         self.blk: list | None = None        # flat block x0, y0, z0, x1, ... being played
@@ -125,7 +130,9 @@ class LoopMachine:
     # ------------------------------------------------------------------ main loop
     def run(self) -> None:
         """Tick until a tick method ends the run, then flush the link and publish ``stopped``."""
-        self._sync_at_start()
+        if not self._sync_at_start():
+            self._end_of_run()
+            return
         ctl = self.ctl
         FAULT = State.FAULT
         self.next_t_s = self.now_s = time.perf_counter()
@@ -134,8 +141,8 @@ class LoopMachine:
             self._wait_for_deadline()
             ctl._tick += 1
             self.T_C = ctl._T_C if self.T_file is None else self._T_from_file()
-            if ctl._request is not None:
-                self._take_request()
+            if ctl._request is not None and not self._take_request():
+                break
             if ctl._state is FAULT:
                 if not self._tick_fault():
                     break
@@ -193,34 +200,74 @@ class LoopMachine:
         t, T = self.T_file
         return float(np.interp(self.ctl._tick * self.period_s, t, T))
 
-    def _sync_at_start(self) -> None:
-        """Read the device's present output; a link error starts the run in fault."""
+    def _sync_at_start(self) -> bool:
+        """Read the device's present output. A link error starts the run in fault
+        (reconnecting, as the table says); a read-back that is not a voltage or lies more than
+        one slew step outside the limits ends the run in fault at once (event
+        ``readback-refused``, one line naming the axis and the limits, nothing sent) and
+        returns False."""
         ctl, safety = self.ctl, self.safety
         try:
-            for w in safety.sync_from_device():
-                ctl._event("readback", w)
-            self.u_prev = safety.xyz(safety.last)
+            warnings = safety.sync_from_device()
+        except ReadbackError as err:
+            return self._refuse_readback(err)
         except FAULT_ERRORS as err:
             ctl._enter_fault(err)
             self.next_attempt_s = time.perf_counter() + self.reconnect_interval_s
+            if self.fsm.fire(Event.FAULT) is Phase.FAULT:
+                self.in_fault = True
+            return True
+        for w in warnings:
+            ctl._event("readback", w)
+        self.u_prev = safety.xyz(safety.last)
+        self.fsm.fire(Event.READBACK_IN)
+        return True
+
+    def _refuse_readback(self, err: BaseException) -> bool:
+        """The output read back cannot be placed within the limits: end the run in fault
+        without sending anything (a ramp from there would leave the limits). Returns False."""
+        ctl = self.ctl
+        self.fsm.fire(Event.READBACK_OUT)
+        ctl._errors += 1
+        ctl._faults += 1
+        ctl._last_error = error_line(err)
+        ctl._set_state(State.FAULT, "readback-refused", ctl._last_error)
+        self.in_fault = True
+        return False
 
     def _synced_or_ended(self) -> bool:
         """Read the device's output back (:meth:`_sync_at_start`); with the link down, end
         the run in fault at once and return False (machines that do not reconnect)."""
-        self._sync_at_start()
-        if self.ctl._state is State.FAULT:
+        if not self._sync_at_start() or self.ctl._state is State.FAULT:
             self.in_fault = True
             self._end_of_run()
             return False
         return True
 
-    def _take_request(self) -> None:
-        """A request (any thread) switches to :attr:`Mode.FINISH`: ``stop`` (ramp or hold as
-        ``safety.on_finish`` says), ``estop`` (ramp at the slew limit), ``runlog-error``
-        (ramp to the safe value: the run log cannot be written). An estop during another
-        request's ramp raises the ramp rate to the slew limit."""
+    def _take_request(self) -> bool:
+        """A new request (any thread) goes through the transition table: in a fault
+        (RETRY, RECONNECT) the run ends at once (``stop-in-fault``: nothing can be sent, the
+        device holds) and this returns False; otherwise it switches to :attr:`Mode.FINISH`:
+        ``stop`` (ramp or hold as ``safety.on_finish`` says), ``estop`` (ramp at the slew
+        limit), ``runlog-error`` (ramp to the safe value: the run log cannot be written). An
+        estop during another request's ramp raises the ramp rate to the slew limit."""
         ctl = self.ctl
         req = ctl._request
+        if req is None or req == self.req_taken:
+            return True
+        self.req_taken = req
+        nxt = self.fsm.fire(REQUEST_EVENTS.get(req, Event.STOP))
+        self._finish_for(req)
+        if nxt is Phase.STOPPED or nxt is Phase.FAULT:
+            ctl._event("stop-in-fault", "link lost: the output could not be ramped")
+            ctl._set_state(State.STOPPED, "stopped")
+            self.in_fault = True
+            return False
+        return True
+
+    def _finish_for(self, req: str) -> None:
+        """Mode, rate and hold of the finish a request asks for (see :meth:`_take_request`)."""
+        ctl = self.ctl
         slew = self.safety.slew_V_per_s
         if req is not None and self.mode is not Mode.FINISH:
             self.mode = Mode.FINISH
@@ -260,22 +307,19 @@ class LoopMachine:
         reconnect_timeout_s: it runs on a helper thread, so that this loop keeps ticking and
         a stop or estop during a fault is honoured at once (the device holds its output)."""
         ctl = self.ctl
-        if self.mode is Mode.FINISH:
-            ctl._event("stop-in-fault", "link lost: the output could not be ramped")
-            ctl._set_state(State.STOPPED, "stopped")
-            self.in_fault = True
-            return False
         if self.rc_thread is not None:
             if not self.rc_thread.is_alive():
                 self.rc_thread = None
-                self._after_reconnect_attempt()
+                return self._after_reconnect_attempt()
             return True
         if self.now_s < self.next_attempt_s:
             return True
         if self.attempts >= self.max_reconnects:
+            self.fsm.fire(Event.RECONNECTS_EXHAUSTED)
             ctl._event("give-up", f"{self.attempts} reconnect attempts failed")
             self.in_fault = True
             return False
+        self.fsm.fire(Event.DONE)           # the wait is over: RETRY -> RECONNECT
         self.attempts += 1
         ctl._rc_error = None
         self.rc_thread = threading.Thread(target=ctl._reconnect_job, name="afmctl-reconnect", daemon=True)
@@ -283,30 +327,45 @@ class LoopMachine:
         self.rc_thread.start()
         return True
 
-    def _after_reconnect_attempt(self) -> None:
-        """A reconnect attempt finished: on success read the output back and resume
-        (ramping from the read-back voltage); on failure try again after the interval."""
+    def _after_reconnect_attempt(self) -> bool:
+        """A reconnect attempt finished: on success read the output back and resume where
+        the run was (ramping from the read-back voltage to the pending setpoint, or settling
+        on the last one when the trajectory had ended); on failure try again after the
+        interval; a read-back outside the limits ends the run (:meth:`_refuse_readback`,
+        returns False)."""
         ctl, safety = self.ctl, self.safety
         err = ctl._rc_error
         if err is None:
+            self.fsm.fire(Event.RECONNECT_OK)
             try:
-                for w in safety.sync_from_device():
-                    ctl._event("readback", w)
-            except Exception as e:   # noqa: BLE001 - any failure: stay in fault
+                warnings = safety.sync_from_device()
+            except ReadbackError as e:
+                return self._refuse_readback(e)
+            except Exception as e:   # noqa: BLE001 - any other failure: the link is still down
                 err = e
+                self.fsm.fire(Event.FAULT)
+        else:
+            self.fsm.fire(Event.RECONNECT_FAILED)
         if err is not None:
             ctl._errors += 1
             ctl._last_error = error_line(err)
             self.next_attempt_s = time.perf_counter() + self.reconnect_interval_s
-            return
+            return True
+        for w in warnings:
+            ctl._event("readback", w)
         ctl._reconnects += 1
         self.u_prev[:] = safety.xyz(safety.last)
         self.attempts = 0
-        self.need_ramp = True
-        self.mode = Mode.RUN
+        self.fsm.fire(Event.READBACK_IN)
+        if self.mode is Mode.SETTLE:        # the trajectory had ended: reach its last setpoint
+            self.fsm.fire(Event.TRAJECTORY_END)
+        else:
+            self.mode = Mode.RUN
+            self.need_ramp = True
         ctl._set_state(State.RUNNING, "resume", "reconnected; ramping from the read-back voltage")
         self.watchdog.feed()
         self.next_t_s = time.perf_counter()
+        return True
 
     def _on_link_error(self, err: BaseException) -> bool:
         """A driver error in a tick: a refused setpoint ends the run (nothing was sent, the
@@ -314,12 +373,20 @@ class LoopMachine:
         ctl = self.ctl
         if isinstance(err, LimitError):
             # the driver's own limits disagree with the configuration
+            self.fsm.fire(Event.REFUSED)
             ctl._errors += 1
             ctl._last_error = error_line(err)
             ctl._set_state(State.FAULT, "refused", f"the driver refused a setpoint: {ctl._last_error}")
             self.in_fault = True
             return False
         ctl._enter_fault(err)
+        nxt = self.fsm.fire(Event.FAULT)
+        if nxt is Phase.STOPPED:            # finishing: nothing more can be sent, the device holds
+            ctl._event("stop-in-fault", "link lost: the output could not be ramped")
+            ctl._set_state(State.STOPPED, "stopped")
+        if nxt is not Phase.RETRY:
+            self.in_fault = True
+            return False
         self.ramping = False
         self.next_attempt_s = time.perf_counter() + self.reconnect_interval_s
         self.attempts = 0
@@ -334,20 +401,27 @@ class LoopMachine:
         done = safety.ramp_step(safety.driven_target(self.last_u_cmd), safety.slew_V_per_s)
         self._record()
         if done:
+            self.fsm.fire(Event.DONE)
             self.mode = Mode.FINISH
         return True
 
     def _tick_finish(self) -> bool:
         """Ramp to the safe value at the finish rate (or hold: end at once)."""
         if self.finish_hold:
+            self.fsm.fire(Event.DONE)
             return False
         done = self.safety.ramp_step(self.safe_V, self.finish_rate_V_per_s)
         self._record()
+        if done:
+            self.fsm.fire(Event.DONE)
         return not done
 
     def _end_trajectory(self) -> None:
         """No more samples: settle on the last setpoint if needed, then finish."""
+        self.fsm.fire(Event.TRAJECTORY_END)
         self.mode = Mode.FINISH if self._reached(self.last_u_cmd) else Mode.SETTLE
+        if self.mode is Mode.FINISH:
+            self.fsm.fire(Event.DONE)
         self.finish_rate_V_per_s = self.ramp_rate_V_per_s
         self.finish_hold = self.on_finish == "hold"
 
@@ -376,10 +450,13 @@ class LoopMachine:
                                for i in range(len(tgt)))
             if self.ramping:
                 self.ctl._event("ramp", "ramping from the present output to the setpoint")
+            elif self.fsm.phase is Phase.RAMP:
+                self.fsm.fire(Event.DONE)
         if self.ramping:
             if safety.ramp_step(safety.driven_target(cur[6:9]), self.ramp_rate_V_per_s):
                 self.ramping = False
                 self.cur = None
+                self.fsm.fire(Event.DONE)
                 self.ctl._event("ramp-done")
             self._record()
             return True
@@ -421,6 +498,7 @@ class LoopMachine:
         rx, ry, rz = blk[j], blk[j + 1], blk[j + 2]
         self.watchdog.feed(self.now_s)
         if ctl._state is State.HOLDING:
+            self.fsm.fire(Event.SAMPLE)
             ctl._set_state(State.RUNNING, "resume", "trajectory samples again")
             self.need_ramp = True
         if ctl._drift_meas:
@@ -485,6 +563,7 @@ class LoopMachine:
         now = self.now_s
         if self.watchdog.expired(now):
             if ctl._state is not State.HOLDING:
+                self.fsm.fire(Event.STALL)
                 ctl._watchdog_trips += 1
                 ctl._set_state(State.HOLDING, "watchdog",
                                f"no trajectory sample for {self.watchdog.since(now):.3f} s")

@@ -34,6 +34,7 @@ import numpy as np
 from . import stats as loop_stats
 from .machine import FAULT_ERRORS, LoopMachine, Mode, State
 from .stream_producer import StreamProducer
+from .transitions import Event, Phase
 
 
 #: samples queued per driver call while topping up (a multiple of the CAN FD frame's 10)
@@ -92,6 +93,7 @@ class StreamMachine(LoopMachine):
                 self._estop_flush_and_ramp()    # an estop while the FIFO played out
                 self._wait_played(estop_check=False)
         except FAULT_ERRORS as err:
+            self.fsm.fire(Event.FAULT)
             ctl._enter_fault(err)
             ctl._event("stream-fault", "link lost while streaming: the amplifier plays out its FIFO, then holds")
             self.in_fault = True
@@ -197,6 +199,8 @@ class StreamMachine(LoopMachine):
                 if reached:
                     self.ramping = False
                     self.cur = None
+                    if self.fsm.phase is Phase.RAMP:
+                        self.fsm.fire(Event.DONE)
                     self.ctl._event("ramp-done")
                 return self._queue_row(row)
             self.cur = None
@@ -204,6 +208,7 @@ class StreamMachine(LoopMachine):
         if mode is Mode.SETTLE:
             row, reached = self._ramp_row(self.last_u_cmd, self.safety.slew_V_per_s)
             if reached:
+                self.fsm.fire(Event.DONE)
                 self.mode = Mode.FINISH
             return self._queue_row(row)
         if self.finish_hold:
@@ -311,6 +316,8 @@ class StreamMachine(LoopMachine):
 
     def _end_of_run(self) -> None:
         ctl = self.ctl
+        if self.fsm.phase is Phase.FINISH:
+            self.fsm.fire(Event.DONE)           # the FIFO played out
         if ctl._state not in (State.FAULT, State.STOPPED):
             ctl._set_state(State.STOPPED, "stopped")
 

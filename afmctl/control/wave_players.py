@@ -28,6 +28,7 @@ from afmctl.drivers.errors import LimitError
 
 from ..errors import AfmctlError
 from .stream import sleep_to_next_wake
+from .transitions import Event
 from .stream_producer import StreamProducer
 from .wave_plan import WaveTable, driven_steps_ok
 
@@ -110,6 +111,7 @@ class TablePlayer(WavePlayer):
         st = self.amp.start_wave(divider=wcodec.divider_for(self.ctl.config.loop.rate_Hz, self.amp.servo_cycle_s()),
                                  cycles=1, axes=list(self.m.safety.axes))
         self.started = True
+        self.m.fsm.fire(Event.DONE)        # uploaded and started: UPLOAD -> PLAY
         self.t0 = time.perf_counter()      # after the start was acknowledged: never ahead of the device
         self.m.tick0 = self.ctl._tick + 1
         rate, n = st.rate_Hz, len(table)
@@ -175,6 +177,7 @@ class FifoPlayer(WavePlayer):
         n = len(rows)
         amp.start_stream(prod.rate_Hz, prefill=int(min(prod.high, n)))
         self.started = True
+        self.m.fsm.fire(Event.DONE)        # the FIFO plays: UPLOAD -> PLAY
         prod._queued = 0
         self.m.tick0 = ctl._tick + 1
         next_wake = time.perf_counter()

@@ -42,6 +42,7 @@ from .machine import (C_COR, C_D, C_S, C_T, C_TGT, C_U, END_OF_TRAJECTORY, FAULT
                            LoopMachine, Mode, State)
 from .wave_plan import KALMAN_REFUSAL, MAX_TABLE_SAMPLES, WaveTable, plan_table
 from .wave_players import FifoPlayer, TablePlayer, WavePlayer, WaveRefused
+from . import transitions
 
 #: longest the loop thread waits for the dispatcher to make room in the ring [s]
 RING_WAIT_S = 1.0
@@ -102,6 +103,7 @@ class WaveMachine(LoopMachine):
             self._refused(err)
         except FAULT_ERRORS as err:
             self.player.abort()
+            self.fsm.fire(transitions.Event.FAULT)
             ctl._enter_fault(err)
             ctl._event("wave-fault", "link error during the wave: the device plays out or holds")
             self.in_fault = True
@@ -210,6 +212,8 @@ class WaveMachine(LoopMachine):
         if self.ctl._request is not None:
             self._take_request()
         else:
+            played = self.fsm.phase is transitions.Phase.PLAY
+            self.fsm.fire(transitions.Event.DONE if played else transitions.Event.TRAJECTORY_END)
             self.mode = Mode.FINISH
             self.finish_hold = self.on_finish == "hold"
         LoopMachine.run(self)
@@ -233,6 +237,7 @@ class WaveMachine(LoopMachine):
             self.played_to(self.recorded, "error during the wave")
         except FAULT_ERRORS:
             pass
+        self.fsm.fire(transitions.Event.FAULT)
         ctl._set_state(State.FAULT, "wave-error", ctl._last_error)
         self.in_fault = True
         self._end_of_run()
