@@ -269,7 +269,8 @@ def format_table(table: Sequence[dict[str, Any]]) -> str:
              f"{'':<18} {'[nm] (%)':>14} {'[nm] (%)':>14} {'[nm]':>11}"]
     for row in table:
         if "error" in row:
-            lines.append(f"{row['structure']:<18} failed: {row['error']}")
+            lines.append(f"{row['structure']:<18} failed: {row['error']}"
+                         + (f" (held-out rms {row['heldout_rms_nm']:.4g} nm)" if "heldout_rms_nm" in row else ""))
             continue
         lines.append(f"{row['structure']:<18} {row['heldout_max_nm']:>7.4g} ({row['heldout_max_pct']:.3g}) "
                      f"{row['heldout_rms_nm']:>7.4g} ({row['heldout_rms_pct']:.3g}) {row['train_rms_nm']:>11.4g}")

@@ -34,6 +34,7 @@ import numpy as np
 from .base import ModelError, check_finite
 from .chain import ChainModel, parse_structure
 from .dynamics_identify import small_signal_bounds
+from .fit_health import failure_reason, linear_fit_rms
 from .input_checks import number_option
 
 log = logging.getLogger(__name__)
@@ -98,9 +99,14 @@ def score_candidate(structure: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.n
     span = float(np.ptp(y_nm[split:])) or 1.0
     rms = float(np.sqrt(np.mean(e_test ** 2)))
     peak = float(np.max(np.abs(e_test)))
-    return {"structure": structure, "heldout_rms_nm": round(rms, 4), "heldout_max_nm": round(peak, 4),
-            "heldout_rms_pct": round(100.0 * rms / span, 4), "heldout_max_pct": round(100.0 * peak / span, 4),
-            "train_rms_nm": round(float(np.sqrt(np.mean(e_train ** 2))), 4)}
+    train_rms = float(np.sqrt(np.mean(e_train ** 2)))
+    row = {"structure": structure, "heldout_rms_nm": round(rms, 4), "heldout_max_nm": round(peak, 4),
+           "heldout_rms_pct": round(100.0 * rms / span, 4), "heldout_max_pct": round(100.0 * peak / span, 4),
+           "train_rms_nm": round(train_rms, 4)}
+    reason = failure_reason(model, train_rms, linear_fit_rms(u_V[fit_from_index:split], y_nm[fit_from_index:split]))
+    if reason:
+        row["error"] = reason
+    return row
 
 
 #: selection criteria: the table's sort key (held-out nm), ties broken by the other one
@@ -160,6 +166,29 @@ def select_model(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates:
         log.info("auto: %s → %s", row["structure"], row)
         table.append(row)
         table.sort(key=lambda row: _key(row, criterion))
-    best = _fit(table[0]["structure"], t, u, y, options or {}, k0)
+    best = _refit_best(table, t, u, y, options or {}, k0)
     best.selection = table
     return best, table
+
+
+def _refit_best(table: list[dict[str, Any]], t: np.ndarray, u: np.ndarray, y: np.ndarray,
+                options: dict[str, Any], k0: int) -> ChainModel:
+    """Re-identify the selected candidate on the whole record; when that fit fails
+    (:mod:`.fit_health`) the row says so and the next candidate is refitted instead."""
+    dt = float(np.median(np.diff(t)))
+    for row in [r for r in table if "error" not in r]:
+        try:
+            model = _fit(row["structure"], t, u, y, options, k0)
+            pred = model.forward(dt).block(u)
+        except (ModelError, ValueError, np.linalg.LinAlgError) as err:
+            reason: str | None = " ".join(str(err).split())
+        else:
+            e = (pred - y)[k0:]
+            rms = float(np.sqrt(np.mean(e ** 2))) if np.all(np.isfinite(e)) else math.inf
+            reason = failure_reason(model, rms, linear_fit_rms(u[k0:], y[k0:]))
+            if reason is None:
+                return model
+        row["error"] = f"refitted on the whole record: {reason}"
+        log.warning("auto: %s failed when refitted on the whole record: %s", row["structure"], reason)
+    raise ModelError("data: no candidate could be identified; " + "; ".join(
+        f"{r['structure']}: {r['error']}" for r in table))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from .identify_io import _plot, _read_conditioned, _save, parse_params  # noqa: F401 - parse_params: public
+from .identify_io import _plot, _read_conditioned, _refuse_failed, _save, parse_params  # noqa: F401 - parse_params: public
 
 log = logging.getLogger(__name__)
 
@@ -122,6 +122,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="input-output delay of the sensor (default auto: estimated, whole samples)")
     p.add_argument("--keep-spikes", action="store_true",
                    help="do not replace isolated outliers of y (Hampel filter) before fitting")
+    p.add_argument("--force", action="store_true",
+                   help="write the model even when its fit failed (training error above the straight line's, "
+                        "optimiser not converged, a parameter on its bound); without it such a fit is refused "
+                        "with the reason, exit status 2")
     p.set_defaults(func=run)
 
 
@@ -148,6 +152,7 @@ def run(args: argparse.Namespace) -> int:
         args.delay = "0"
     c = _read_conditioned(args, uniform=getattr(cls, "time_dependent", False))
     model, first, y_fit = _fit(cls, args, c)
+    _refuse_failed(args, model, c.y_nm[first:], c.u_V[first:], y_fit, c.fit_from - first)
     _save(model, args.out)
     _report(args, c, model, first, y_fit)
     return 0

@@ -85,6 +85,8 @@ def run_chain(args: argparse.Namespace) -> int:
     rms = float(np.sqrt(np.mean(res ** 2)))
     peak = float(np.max(np.abs(res)))
     span = float(np.ptp(y[k:])) or 1.0
+    from .identify_io import _refuse_failed
+    _refuse_failed(args, model, y, u, y_fit, k)
     model.delay_s = delay_s
     if model.u_range_V is None:        # compensate's default --limits
         model.u_range_V = (float(np.min(u)), float(np.max(u)))
