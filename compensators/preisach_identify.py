@@ -48,6 +48,9 @@ PRIOR_WEIGHT = 1e-4
 #: priors of the nnls fit: "pi" (the PI model identified on the same data, as a Preisach
 #: density) or "none" (the smoothness penalty alone)
 PRIORS: tuple[str, ...] = ("pi", "none")
+#: relative ridge weight in the cells no reversal of the record reached
+#: (:func:`visited_cells`): there the data say nothing and the prior decides
+UNVISITED_PRIOR_WEIGHT = 1e-2
 #: threshold bins of the prior's density (equal widths in r = (α − β)/2)
 PRIOR_BINS = 12
 
@@ -210,6 +213,10 @@ def _for_nodes(u: np.ndarray, y: np.ndarray, lo: float, hi: float, L: int) -> tu
     alphas = np.array([c[0] for c in curves])
     if alphas.max() < hi - tol:
         raise ModelError("data: the highest reversal point is below u_max_V; the curves do not cover the grid")
+    inner = np.unique(np.round(alphas[(alphas > lo + 0.1 * span) & (alphas < hi - 0.1 * span)] / (span / L)))
+    if inner.size < 2:
+        raise ModelError("data: fewer than two reversal points inside the range; the curves leave the inside of "
+                         "the grid unvisited (use method=nnls, which falls back to its prior there)")
     # E(v_i, v_0) from the ascending branches (longest first)
     G = np.full((L + 1, L + 1), np.nan)
     order = np.argsort([-len(a) for a in asc_u])
@@ -378,7 +385,9 @@ def _nnls_fit(u: np.ndarray, y: np.ndarray, lo: float, hi: float, L: int, cap: i
     H = AtA + smoothing * scale * (D.T @ D) + 1e-9 * scale * np.eye(nc)
     if prior_weight > 0:
         p = _prior_masses(AtA, Atb, lo, hi, L, ne)
-        ridge = np.r_[np.full(n_cells, prior_weight * scale), np.zeros(ne)]
+        seen = visited_cells(u[fit_from_index:], lo, hi, L)
+        weight = np.where(seen, prior_weight, max(prior_weight, UNVISITED_PRIOR_WEIGHT))
+        ridge = np.r_[weight * scale, np.zeros(ne)]
         H += np.diag(ridge)
         # min ‖A x − b‖² + s‖D x‖² + λ‖x − p‖²: the right side gains λ p
         Atb = Atb + ridge * np.r_[p, np.zeros(ne)]
@@ -416,7 +425,7 @@ def prior_basis(lo: float, hi: float, L: int, bins: int = PRIOR_BINS, subsamples
     s_hat = (a + b - hi - lo) / (hi - lo)
     k = np.minimum((r / (0.5 * (hi - lo)) * bins).astype(np.int64), bins - 1)
     inside = r >= 0
-    area = d * d / subsamples ** 2
+    area = d * d / subsamples ** 2 / 2.0             # dα dβ = 2 ds dr
     B = np.zeros((i.size, 2 * bins))
     for sign, col0 in ((1.0, 0), (-1.0, bins)):
         wt = np.where(inside, 0.5 * (1.0 + sign * s_hat), 0.0) * area
@@ -447,3 +456,33 @@ def _prior_masses(AtA: np.ndarray, Atb: np.ndarray, lo: float, hi: float, L: int
     z = np.linalg.solve(R.T, g)
     c, _ = nnls(R, z, maxiter=50 * M.shape[0])
     return B @ c[:B.shape[1]]
+
+
+def visited_cells(u_V: np.ndarray, lo: float, hi: float, L: int, reach: float = 1.5) -> np.ndarray:
+    """Which cells (``np.tril_indices(L)`` order) a reversal of the record reached: a
+    maximum ``M`` near cell row ``α`` followed by a descent to the next minimum ``m`` visits
+    the cells ``(α, β)`` with ``β ≥ m`` (a descending reversal curve from ``α``), a minimum
+    near column ``β`` followed by a rise to ``M`` those with ``α ≤ M``. "Near": within
+    ``reach`` cells. The rest of the plane (e.g. its inside after full-range cycles) is known
+    only through the prior."""
+    u = np.asarray(u_V, dtype=float)
+    d = np.diff(u)
+    nz = np.flatnonzero(d)
+    seen = np.zeros((L, L), dtype=bool)
+    if nz.size < 2:
+        return seen[np.tril_indices(L)]
+    sg = np.sign(d[nz])
+    turn = nz[1:][sg[1:] != sg[:-1]]             # index of each turning point's sample
+    pts = np.r_[u[nz[0]], u[turn], u[-1]]
+    step = (hi - lo) / L
+    q = np.clip(np.round((pts - lo) / step - 0.5).astype(np.int64), 0, L - 1)
+    pairs = np.unique(np.c_[q[:-1], q[1:]], axis=0)
+    idx = np.arange(L)
+    for a, b in pairs:
+        if a > b:        # a maximum in row a, descending to b: rows near a, columns ≥ b
+            rows = np.abs(idx - a) <= reach
+            seen[np.ix_(rows, idx >= b - 1)] = True
+        elif b > a:      # a minimum in column a, rising to b: columns near a, rows ≤ b
+            cols = np.abs(idx - a) <= reach
+            seen[np.ix_(idx <= b + 1, cols)] = True
+    return seen[np.tril_indices(L)]
