@@ -462,7 +462,26 @@ def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n: float | None = None, 
         model = cls(d_nm_per_V=d, A_nm_per_V=A, beta=beta, gamma=gamma, n=nn, offset_nm=off, u0_V=u0)
     except ValueError as err:
         raise ModelError(f"data: the fitted Bouc–Wen parameters are not admissible ({err})") from None
+    _note_bw_problems(model, best, nfix is None)
     res = (model.forward().block(u) - y)[k0:]
     model.fit_residual_nm = float(np.sqrt(np.mean(res * res)))
     log.info("identify bouc-wen: %s", model.summary().replace("\n", "; "))
     return model
+
+
+#: names of the Bouc–Wen search parameters (:func:`_identify`); n on its bounds 1 or 4 is an
+#: admissible member of the family (n = 1 is the classical model) and is not a failure
+_BW_PARAMS = ("d", "A/d", "h_sat", "gamma/beta", "n", "offset")
+
+
+def _note_bw_problems(model: BoucWenModel, sol: Any, free_n: bool) -> None:
+    """Record a least-squares run that spent its budget, or a parameter stopped on a bound
+    that only limits the search (:mod:`afmctl.compensators.fit_health`)."""
+    from .fit_health import note_problem
+
+    if sol.status == 0:
+        note_problem(model, f"bouc-wen: least squares did not converge ({sol.nfev} evaluations)")
+    names = _BW_PARAMS if free_n else _BW_PARAMS[:4] + _BW_PARAMS[5:]
+    on_bound = [nm for nm, a in zip(names, sol.active_mask) if a != 0 and nm != "n"]
+    if on_bound:
+        note_problem(model, f"bouc-wen: {', '.join(on_bound)} on the bound of the search")

@@ -263,14 +263,24 @@ def _fit_static(hcls: Any, fit: _StageFit, y: np.ndarray, dt: float, with_creep:
 
 
 def format_table(table: Sequence[dict[str, Any]]) -> str:
-    """The selection table as text, best first (what ``identify --model auto`` prints;
-    rows from :func:`afmctl.compensators.selection.score_candidate`)."""
-    lines = [f"{'candidate':<18} {'held-out max':>14} {'held-out rms':>14} {'train rms':>11}",
-             f"{'':<18} {'[nm] (%)':>14} {'[nm] (%)':>14} {'[nm]':>11}"]
+    """The selection table as text, selected first (what ``identify --model auto`` prints;
+    rows from :func:`afmctl.compensators.selection.score_candidate`): the main split's
+    held-out max and RMS, the mean RMS over the folds with their spread, the training RMS;
+    under the selected row, why it won."""
+    lines = [f"{'candidate':<24} {'held-out max':>14} {'held-out rms':>15} {'folds: mean rms [min–max]':>28} "
+             f"{'train rms':>10}",
+             f"{'':<24} {'[nm] (%)':>14} {'[nm] (%)':>15} {'[nm]':>28} {'[nm]':>10}"]
     for row in table:
         if "error" in row:
-            lines.append(f"{row['structure']:<18} failed: {row['error']}")
+            lines.append(f"{row['structure']:<24} failed: {row['error']}"
+                         + (f" (held-out rms {row['heldout_rms_nm']:.4g} nm)" if "heldout_rms_nm" in row else ""))
             continue
-        lines.append(f"{row['structure']:<18} {row['heldout_max_nm']:>7.4g} ({row['heldout_max_pct']:.3g}) "
-                     f"{row['heldout_rms_nm']:>7.4g} ({row['heldout_rms_pct']:.3g}) {row['train_rms_nm']:>11.4g}")
+        folds = row.get("fold_rms_nm")
+        fold_text = (f"{row['mean_rms_nm']:.4g} [{min(folds):.4g}–{max(folds):.4g}] ({len(folds)})"
+                     if folds else "–")
+        lines.append(f"{row['structure']:<24} {row['heldout_max_nm']:>7.4g} ({row['heldout_max_pct']:.3g}) "
+                     f"{row['heldout_rms_nm']:>7.4g} ({row['heldout_rms_pct']:.3g}) {fold_text:>28} "
+                     f"{row['train_rms_nm']:>10.4g}")
+        if "why" in row:
+            lines.append(f"  ↳ why: {row['why']}")
     return "\n".join(lines)

@@ -164,10 +164,15 @@ class LinearDynamicsModel(HysteresisModel):
         Options: see :func:`afmctl.compensators.dynamics_identify.fit_dynamics`."""
         from .dynamics_identify import fit_dynamics
 
+        from .fit_health import note_problem
+
         fit = fit_dynamics(t_s, u_V, y_nm, **options)
-        return cls(poles_rad_per_s=[(float(p.real), float(p.imag)) for p in fit.poles],
+        model = cls(poles_rad_per_s=[(float(p.real), float(p.imag)) for p in fit.poles],
                    zeros_rad_per_s=[(float(z.real), float(z.imag)) for z in fit.zeros],
                    delay_s=fit.delay_s, initial_nm=float(np.asarray(y_nm, dtype=float)[0]), fit_info=fit.info)
+        if "problem" in fit.info:
+            note_problem(model, str(fit.info["problem"]))
+        return model
 
     def predict_linear(self, t_s: np.ndarray, u: np.ndarray, y_nm: np.ndarray, dt_s: float) -> np.ndarray:
         """What the fitted linear model says ``y`` [nm] was for input ``u``, over the part

@@ -53,6 +53,8 @@ class FRF:
     f_Hz: np.ndarray
     G: np.ndarray
     coherence: np.ndarray
+    #: mode counts whose least-squares fit spent its evaluation budget (did not converge)
+    unconverged_modes: set[int] = field(default_factory=set)
 
 
 #: function evaluations per start of the least-squares fit (a good start converges in < 100)
@@ -217,6 +219,9 @@ def fit_frf(frf: FRF, n_modes: int, n_lags: int, dt_s: float) -> tuple[np.ndarra
         if best is None or sol.cost < best.cost:
             best = sol
     rms = float(np.sqrt(2 * best.cost / frf.f_Hz.size))
+    if best.status == 0:
+        log.warning("dynamics fit: least squares did not converge in %d evaluations", best.nfev)
+        frf.unconverged_modes.add(n_modes)
     return best.x, rms
 
 
@@ -276,6 +281,8 @@ def fit_dynamics(t_s: np.ndarray, u: np.ndarray, y_nm: np.ndarray, **options: An
         "f_max_Hz": float(frf.f_Hz[-1]), "bins": float(frf.f_Hz.size), "sample_rate_Hz": fs,
         "fitted_delay_s": tau, "fit_t0_s": float(t[0]), "fit_t1_s": float(t[-1]),
     }
+    if n_modes in frf.unconverged_modes:
+        info["problem"] = f"dynamics: the frequency-response fit did not converge ({MAX_NFEV} evaluations per start)"
     log.info("dynamics fit: %d modes, %d lags, delay %.3g µs, RMS log error %.3g over %d bins",
              n_modes, n_lags, tau * 1e6, rms, frf.f_Hz.size)
     return DynamicsFit(poles, np.zeros(0, complex), max(0.0, tau - 0.5 * dt), info)

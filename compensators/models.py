@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, PrivateAttr, ValidationError, field_validator
 
 from .base import ModelError, StreamingOperator
 from .errortext import format_validation_error
@@ -60,6 +60,10 @@ class HysteresisModel(BaseModel):
     has_own_delay: ClassVar[bool] = False
     #: whether ``identify`` takes ``fit_from_index`` (a burn-in: earlier samples only set the memory)
     fits_with_burn_in: ClassVar[bool] = False
+    #: what went wrong in the fit that produced this model (not saved): an optimiser that did
+    #: not converge, a parameter on its bound; one short clause each
+    #: (:mod:`afmctl.compensators.fit_health`)
+    _fit_problems: list[str] = PrivateAttr(default_factory=list)
 
     @field_validator("u_range_V")
     @classmethod

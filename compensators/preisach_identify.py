@@ -39,6 +39,21 @@ from .preisach_grid import cell_masses_from_nodes
 
 log = logging.getLogger(__name__)
 
+#: relative weight of the ridge that pulls the cell masses towards the prior (a fraction of
+#: the mean diagonal of the normal equations: negligible in the directions the data determine,
+#: decisive in those they do not). Measured: minor loops predicted from full-range sines
+#: 146 nm RMS (PI 252, no prior 303; relay plant, 14.5 µm span); a rich noise-free record
+#: keeps its 0.11 % max error (0.30 % at 1e-3)
+PRIOR_WEIGHT = 1e-4
+#: priors of the nnls fit: "pi" (the PI model identified on the same data, as a Preisach
+#: density) or "none" (the smoothness penalty alone)
+PRIORS: tuple[str, ...] = ("pi", "none")
+#: relative ridge weight in the cells no reversal of the record reached
+#: (:func:`visited_cells`): there the data say nothing and the prior decides
+UNVISITED_PRIOR_WEIGHT = 1e-2
+#: threshold bins of the prior's density (equal widths in r = (α − β)/2)
+PRIOR_BINS = 12
+
 #: largest grid for the NNLS fit and the exact nonnegative projection (memory ~ (L²/2)² doubles)
 _NNLS_MAX_LEVELS = 64
 
@@ -82,7 +97,8 @@ def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n_operators: int | None 
               u_min_V: float | None = None, u_max_V: float | None = None, method: str = "auto",
               smoothing: float = 1e-4, max_rows: int = 200000, memory_depth: int | None = None,
               levels: int | None = None, fit_from_index: int = 0,
-              regressors: np.ndarray | None = None) -> tuple[Any, np.ndarray]:
+              regressors: np.ndarray | None = None, prior: str = "pi",
+              prior_weight: float = PRIOR_WEIGHT) -> tuple[Any, np.ndarray]:
     u, y = _check_data(t_s, u_V, y_nm)
     L = n_operators if n_operators is not None else (levels if levels is not None else 32)
     if isinstance(L, bool) or not isinstance(L, (int, np.integer)) or not 1 <= int(L) <= 512:
@@ -98,6 +114,10 @@ def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n_operators: int | None 
         raise ModelError(f"smoothing: must be a finite number >= 0, got {smoothing!r}")
     if not isinstance(max_rows, (int, np.integer)) or max_rows < 10:
         raise ModelError(f"max_rows: must be an integer >= 10, got {max_rows!r}")
+    if prior not in PRIORS:
+        raise ModelError(f"prior: {prior!r} is not known; allowed: {', '.join(PRIORS)}")
+    if not (isinstance(prior_weight, (int, float)) and 0 <= prior_weight <= 1e3 and math.isfinite(prior_weight)):
+        raise ModelError(f"prior_weight: must be a number in 0 … 1000, got {prior_weight!r}")
     if memory_depth is not None and (not isinstance(memory_depth, (int, np.integer)) or memory_depth < 2):
         raise ModelError(f"memory_depth: must be an integer >= 2, got {memory_depth!r}")
     n_out = int(np.count_nonzero((u < lo) | (u > hi)))
@@ -129,8 +149,10 @@ def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n_operators: int | None 
         w = _project_nonneg(G)
         model = cls.from_cell_masses(w, lo, hi, y0, fit_method="first-order reversal curves", **fields)
     else:
-        w, y0, coef = _nnls_fit(u, y, lo, hi, L, cap, smoothing, max_rows, fit_from_index, regressors)
-        model = cls.from_cell_masses(w, lo, hi, y0, fit_method=f"nnls (smoothing {smoothing:g})", **fields)
+        w, y0, coef = _nnls_fit(u, y, lo, hi, L, cap, smoothing, max_rows, fit_from_index, regressors,
+                                prior_weight if prior == "pi" else 0.0)
+        how = f"nnls (smoothing {smoothing:g}" + (f", PI prior {prior_weight:g})" if prior == "pi" else ")")
+        model = cls.from_cell_masses(w, lo, hi, y0, fit_method=how, **fields)
     r = (model.forward().block(u) - y)[fit_from_index:]
     if coef.size:
         r = r + (regressors @ coef)[fit_from_index:]
@@ -191,6 +213,10 @@ def _for_nodes(u: np.ndarray, y: np.ndarray, lo: float, hi: float, L: int) -> tu
     alphas = np.array([c[0] for c in curves])
     if alphas.max() < hi - tol:
         raise ModelError("data: the highest reversal point is below u_max_V; the curves do not cover the grid")
+    inner = np.unique(np.round(alphas[(alphas > lo + 0.1 * span) & (alphas < hi - 0.1 * span)] / (span / L)))
+    if inner.size < 2:
+        raise ModelError("data: fewer than two reversal points inside the range; the curves leave the inside of "
+                         "the grid unvisited (use method=nnls, which falls back to its prior there)")
     # E(v_i, v_0) from the ascending branches (longest first)
     G = np.full((L + 1, L + 1), np.nan)
     order = np.argsort([-len(a) for a in asc_u])
@@ -312,11 +338,14 @@ def _smoothness(L: int) -> np.ndarray:
 
 
 def _nnls_fit(u: np.ndarray, y: np.ndarray, lo: float, hi: float, L: int, cap: int, smoothing: float,
-              max_rows: int, fit_from_index: int = 0, extra: np.ndarray | None = None
-              ) -> tuple[np.ndarray, float, np.ndarray]:
+              max_rows: int, fit_from_index: int = 0, extra: np.ndarray | None = None,
+              prior_weight: float = 0.0) -> tuple[np.ndarray, float, np.ndarray]:
     """Cell masses ``w ≥ 0`` [nm], offset ``y0`` [nm] and the coefficients ``c ≥ 0`` of the
     ``extra`` regressors (columns, one value per sample; none: an empty array) of
-    ``y ≈ y0 + Φ(u)·w + extra·c`` (regularised nonnegative least squares)."""
+    ``y ≈ y0 + Φ(u)·w + extra·c`` (regularised nonnegative least squares). With
+    ``prior_weight > 0`` a ridge of that relative weight pulls ``w`` towards the prior
+    (:func:`_prior_masses`, fitted on the same normal equations): what the data do not
+    determine takes the prior's masses."""
     from scipy.linalg import cholesky, solve_triangular
     from scipy.optimize import nnls
     n = u.shape[0] - fit_from_index
@@ -354,6 +383,14 @@ def _nnls_fit(u: np.ndarray, y: np.ndarray, lo: float, hi: float, L: int, cap: i
     D = _smoothness(L)
     D = np.hstack([D, np.zeros((D.shape[0], ne))])
     H = AtA + smoothing * scale * (D.T @ D) + 1e-9 * scale * np.eye(nc)
+    if prior_weight > 0:
+        p = _prior_masses(AtA, Atb, lo, hi, L, ne)
+        seen = visited_cells(u[fit_from_index:], lo, hi, L)
+        weight = np.where(seen, prior_weight, max(prior_weight, UNVISITED_PRIOR_WEIGHT))
+        ridge = np.r_[weight * scale, np.zeros(ne)]
+        H += np.diag(ridge)
+        # min ‖A x − b‖² + s‖D x‖² + λ‖x − p‖²: the right side gains λ p
+        Atb = Atb + ridge * np.r_[p, np.zeros(ne)]
     try:
         R = cholesky(H, lower=False)
     except np.linalg.LinAlgError:
@@ -367,3 +404,85 @@ def _nnls_fit(u: np.ndarray, y: np.ndarray, lo: float, hi: float, L: int, cap: i
     w = np.zeros((L, L))
     w[np.tril_indices(L)] = x[:n_cells]
     return w, y0, x[n_cells:]
+
+
+# ------------------------------------------------------------------ the prior (#24 item 3)
+def prior_basis(lo: float, hi: float, L: int, bins: int = PRIOR_BINS, subsamples: int = 6) -> np.ndarray:
+    """Cell masses [nm per unit coefficient] of the prior's density family, one column per
+    term: ``b_k(r)·(1 ± ŝ)/2`` with ``b_k`` the indicator of the k-th of ``bins`` equal bins of
+    ``r = (α − β)/2`` over ``0 … (hi − lo)/2`` and ``ŝ = (α + β − hi − lo)/(hi − lo) ∈ [−1, 1]``.
+    With equal coefficients of a bin's two terms it is a PI model (a play of threshold ``r``
+    is the integral of the 0/1 relays on ``α − β = 2r``, Brokate & Sprekels, *Hysteresis and
+    Phase Transitions*, §2.4, with its threshold spread over a bin); unequal ones tilt the
+    density along ``α + β`` (asymmetric loops). Integrated on ``subsamples²`` midpoints per
+    cell (``dα dβ = 2 ds dr``). Rows in ``np.tril_indices(L)`` order."""
+    d = (hi - lo) / L
+    off = (np.arange(subsamples) + 0.5) / subsamples * d
+    i, j = np.tril_indices(L)
+    a = lo + (i * d)[:, None, None] + off[None, :, None]
+    b = lo + (j * d)[:, None, None] + off[None, None, :]
+    r = 0.5 * (a - b)
+    s_hat = (a + b - hi - lo) / (hi - lo)
+    k = np.minimum((r / (0.5 * (hi - lo)) * bins).astype(np.int64), bins - 1)
+    inside = r >= 0
+    area = d * d / subsamples ** 2 / 2.0             # dα dβ = 2 ds dr
+    B = np.zeros((i.size, 2 * bins))
+    for sign, col0 in ((1.0, 0), (-1.0, bins)):
+        wt = np.where(inside, 0.5 * (1.0 + sign * s_hat), 0.0) * area
+        for kk in range(bins):
+            B[:, col0 + kk] = np.where(k == kk, wt, 0.0).sum(axis=(1, 2))
+    return B
+
+
+def _prior_masses(AtA: np.ndarray, Atb: np.ndarray, lo: float, hi: float, L: int, ne: int) -> np.ndarray:
+    """The prior's cell masses [nm]: the nonnegative member of :func:`prior_basis`'s family
+    (and the extra regressors) that best fits the data, from the fit's centred normal
+    equations (cells first, then ``ne`` extra columns)."""
+    from scipy.optimize import nnls
+
+    B = prior_basis(lo, hi, L)
+    n_cells = B.shape[0]
+    T = np.zeros((n_cells + ne, B.shape[1] + ne))
+    T[:n_cells, :B.shape[1]] = B
+    T[n_cells:, B.shape[1]:] = np.eye(ne)
+    M = T.T @ AtA @ T
+    g = T.T @ Atb
+    scale = float(np.trace(M)) / M.shape[0] if np.trace(M) > 0 else 1.0
+    M += 1e-9 * scale * np.eye(M.shape[0])
+    try:
+        R = np.linalg.cholesky(M).T
+    except np.linalg.LinAlgError:
+        R = np.linalg.cholesky(M + 1e-6 * scale * np.eye(M.shape[0])).T
+    z = np.linalg.solve(R.T, g)
+    c, _ = nnls(R, z, maxiter=50 * M.shape[0])
+    return B @ c[:B.shape[1]]
+
+
+def visited_cells(u_V: np.ndarray, lo: float, hi: float, L: int, reach: float = 1.5) -> np.ndarray:
+    """Which cells (``np.tril_indices(L)`` order) a reversal of the record reached: a
+    maximum ``M`` near cell row ``α`` followed by a descent to the next minimum ``m`` visits
+    the cells ``(α, β)`` with ``β ≥ m`` (a descending reversal curve from ``α``), a minimum
+    near column ``β`` followed by a rise to ``M`` those with ``α ≤ M``. "Near": within
+    ``reach`` cells. The rest of the plane (e.g. its inside after full-range cycles) is known
+    only through the prior."""
+    u = np.asarray(u_V, dtype=float)
+    d = np.diff(u)
+    nz = np.flatnonzero(d)
+    seen = np.zeros((L, L), dtype=bool)
+    if nz.size < 2:
+        return seen[np.tril_indices(L)]
+    sg = np.sign(d[nz])
+    turn = nz[1:][sg[1:] != sg[:-1]]             # index of each turning point's sample
+    pts = np.r_[u[nz[0]], u[turn], u[-1]]
+    step = (hi - lo) / L
+    q = np.clip(np.round((pts - lo) / step - 0.5).astype(np.int64), 0, L - 1)
+    pairs = np.unique(np.c_[q[:-1], q[1:]], axis=0)
+    idx = np.arange(L)
+    for a, b in pairs:
+        if a > b:        # a maximum in row a, descending to b: rows near a, columns ≥ b
+            rows = np.abs(idx - a) <= reach
+            seen[np.ix_(rows, idx >= b - 1)] = True
+        elif b > a:      # a minimum in column a, rising to b: columns near a, rows ≤ b
+            cols = np.abs(idx - a) <= reach
+            seen[np.ix_(idx <= b + 1, cols)] = True
+    return seen[np.tril_indices(L)]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from .identify_io import _plot, _read_conditioned, _save, parse_params  # noqa: F401 - parse_params: public
+from .identify_io import _plot, _read_conditioned, _refuse_failed, _save, parse_params  # noqa: F401 - parse_params: public
 
 log = logging.getLogger(__name__)
 
@@ -53,8 +53,15 @@ Model kinds (--model):
   auto      fit every candidate chain on the first 70 % of the data after the burn-in,
             score each by its prediction error on the last 30 % (held out; the models
             run over the whole record, so the burn-in sets their memory), print the
-            table and keep the lowest held-out RMS (re-fitted on all the data); the
-            table is stored in the model file. Excite the full voltage range in the
+            table and keep the best (re-fitted on all the data); the table is
+            stored in the model file. The leading candidates are also fitted on
+            shorter prefixes and scored on the input cycles after each (folds spread
+            through the record); a richer model (preisach > pi/bouc-wen, +creep,
+            +dynamics) must lower the mean held-out RMS over the folds by >= 5 % and
+            win most folds, else the simplest adequate one is kept; the table shows
+            the folds' spread and why the winner won. A fit that failed (training
+            error above a straight line's, optimiser not converged, a parameter on
+            its bound) is listed as failed and never selected. Excite the full voltage range in the
             first 70 % ('afmctl excite --kind all' does). The best is then tried
             +dynamics (its dynamics from the record's small-signal part: record at a
             rate that resolves the scanner's resonance, e.g. 50 kHz).
@@ -63,6 +70,7 @@ Model kinds (--model):
 Real recordings (--data):
   --burn-in auto    samples until the input has passed both its extremes only set the model's
                     memory (the state the recording started in is unknown); 'none' or SECONDS
+  --force           write the model even when its fit failed (otherwise refused, exit 2)
   --delay auto      the sensor's delay (whole samples, estimated; stored as delay_s); or SECONDS
   spikes            isolated outliers of y are replaced by their running median (--keep-spikes)
   units             u within ±1000 V, y within ±1 mm; y in µm is refused unless --y-unit um
@@ -78,7 +86,10 @@ Options:
                     epi: min_dwell_samples (10), dwell_tol_V (0)
                     creep: tau_min_s, tau_max_s (time-constant range, s)
                     preisach: u_min_V, u_max_V (grid range, default the data range),
-                      method=auto|for|nnls, smoothing (1e-4), max_rows, memory_depth
+                      method=auto|for|nnls, smoothing (1e-4), max_rows, memory_depth,
+                      prior=pi|none (nnls: what the data do not determine — e.g. the inside
+                      of the plane after full-range cycles — takes a PI-like density fitted
+                      on the same data), prior_weight (1e-4)
                     bouc-wen: n (fix the exponent), max_rows (20000), u0_V
                     dynamics: n_modes (auto: 1-3 as the response shows), n_lags (1), segment=auto|all, nperseg,
                       f_min_Hz, f_max_Hz, min_coherence (0.9)
@@ -122,6 +133,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="input-output delay of the sensor (default auto: estimated, whole samples)")
     p.add_argument("--keep-spikes", action="store_true",
                    help="do not replace isolated outliers of y (Hampel filter) before fitting")
+    p.add_argument("--force", action="store_true",
+                   help="write the model even when its fit failed (training error above the straight line's, "
+                        "optimiser not converged, a parameter on its bound); without it such a fit is refused "
+                        "with the reason, exit status 2")
     p.set_defaults(func=run)
 
 
@@ -148,6 +163,7 @@ def run(args: argparse.Namespace) -> int:
         args.delay = "0"
     c = _read_conditioned(args, uniform=getattr(cls, "time_dependent", False))
     model, first, y_fit = _fit(cls, args, c)
+    _refuse_failed(args, model, c.y_nm[first:], c.u_V[first:], y_fit, c.fit_from - first)
     _save(model, args.out)
     _report(args, c, model, first, y_fit)
     return 0

@@ -53,7 +53,9 @@ def _fit(args: argparse.Namespace, t, u, y, fit_from: int):
         model, table = select_model(t, u, y, holdout_fraction=holdout, options=params, fit_from_index=fit_from,
                                     criterion=criterion, with_dynamics=with_dynamics, **kwargs)
         print(f"held-out prediction error (last {holdout:.0%} of {args.data} after the burn-in; % of its span; "
-              f"ranked by {criterion}):")
+              f"ranked by {criterion}" + ("; the leading candidates also on earlier blocks, fitted on what precedes "
+                                          "each; the simplest adequate model wins" if criterion == "rms" else "")
+              + "):")
         print(format_table(table))
         print(f"selected         : {model.structure}")
         return model
@@ -85,6 +87,8 @@ def run_chain(args: argparse.Namespace) -> int:
     rms = float(np.sqrt(np.mean(res ** 2)))
     peak = float(np.max(np.abs(res)))
     span = float(np.ptp(y[k:])) or 1.0
+    from .identify_io import _refuse_failed
+    _refuse_failed(args, model, y, u, y_fit, k)
     model.delay_s = delay_s
     if model.u_range_V is None:        # compensate's default --limits
         model.u_range_V = (float(np.min(u)), float(np.max(u)))

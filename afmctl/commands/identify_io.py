@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 from typing import Any
+
+log = logging.getLogger(__name__)
 
 
 def parse_params(items: list[str]) -> dict[str, Any]:
@@ -62,3 +65,28 @@ def _plot(path: str, t, u, y, y_fit, kind: str) -> None:
     fig.tight_layout()
     save_figure(fig, path)
 
+
+def _refuse_failed(args: argparse.Namespace, model, y, u, y_fit, k: int) -> None:
+    """A failed fit (:mod:`afmctl.compensators.fit_health`) is not written without
+    ``--force``: one line with the reason, exit status 2. ``y_fit`` is the model's output on
+    ``u``; samples from ``k`` on were fitted (NaN: not predicted, the dynamics kind)."""
+    import numpy as np
+
+    from ..errors import AfmctlError
+    from afmctl.compensators.fit_health import failure_reason, linear_fit_rms
+
+    seen = np.isfinite(y_fit[k:])
+    if not np.any(seen):
+        return
+    r = (y_fit - y)[k:][seen]
+    rms = float(np.sqrt(np.mean(r ** 2)))
+    # the dynamics kind is a line with dynamics: the comparison with the line says nothing
+    line = float("inf") if model.kind == "dynamics" else linear_fit_rms(u[k:][seen], y[k:][seen])
+    reason = failure_reason(model, rms, line)
+    if reason is None:
+        return
+    if not getattr(args, "force", False):
+        raise AfmctlError(f"{args.data}: the {args.model} fit failed: {reason}; not written "
+                          "(--force writes it anyway)")
+    log.warning("the %s fit failed (%s); written because of --force", args.model, reason)
+    print(f"warning          : the fit failed: {reason}; written because of --force")

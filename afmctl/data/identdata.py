@@ -186,7 +186,8 @@ def excitation_notes(t_s: np.ndarray, u_V: np.ndarray) -> list[str]:
     interior = [k for k in tp if lo + 0.1 * span < u_V[k] < hi - 0.1 * span]
     if len(interior) < 3:
         notes.append("the input reverses only near its extremes (no minor loops): the inside of the Preisach "
-                     "plane is not identified (kind preisach); record reversal curves: afmctl excite --kind static")
+                     "plane is not identified (kind preisach takes its PI-like prior there, so minor loops are "
+                     "predicted about as a PI model predicts them); record reversal curves: afmctl excite --kind static")
     if _longest_hold_s(t_s, u_V, 0.005 * span) < 1.0:
         notes.append("no hold of ≥ 1 s after a voltage step: creep is not identified (kinds epi, creep, +creep); "
                      "record holds: afmctl excite --kind creep")

@@ -1,0 +1,120 @@
+"""#24 items 2 and 3: folds spread through the record, the simplest adequate model, and a
+Preisach fit that predicts minor loops it never saw (PI-like prior)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from afmctl.compensators.pi import PIModel
+from afmctl.compensators.preisach import PreisachModel
+from afmctl.compensators.preisach_identify import prior_basis
+from afmctl.compensators.selection import select_model
+from afmctl.compensators.selection_folds import MARGIN, choose, complexity, cycle_starts, fold_bounds
+from plants import RelayPreisachPlant
+
+
+def _row(structure: str, folds: list[float]) -> dict:
+    return {"structure": structure, "heldout_rms_nm": folds[0], "heldout_max_nm": 3 * folds[0],
+            "fold_rms_nm": folds, "mean_rms_nm": float(np.mean(folds))}
+
+
+def test_complexity_orders_the_structures():
+    assert complexity("pi") == complexity("bouc-wen") < complexity("pi+creep") < complexity("preisach")
+    assert complexity("preisach") < complexity("preisach+creep") < complexity("preisach+creep+dynamics")
+
+
+def test_richer_model_needs_a_clear_margin_and_most_folds():
+    pi, pre = _row("pi", [57.5, 58.0, 57.7]), _row("preisach", [56.0, 56.5, 56.2])   # 2.6 % better
+    assert choose([pre, pi]) is pi and "simplest adequate" in pi["why"]
+    pi, pre = _row("pi", [60.0, 61.0, 60.0]), _row("preisach", [50.0, 51.0, 50.0])   # 17 % better
+    assert choose([pi, pre]) is pre and "lower mean held-out RMS than" in pre["why"]
+    # better on the mean by more than the margin, but only thanks to one fold
+    pi, pre = _row("pi", [60.0, 60.0, 60.0]), _row("preisach", [30.0, 61.0, 61.0])
+    assert 1 - pre["mean_rms_nm"] / pi["mean_rms_nm"] > MARGIN
+    assert choose([pi, pre]) is pi
+
+
+def test_a_failed_row_is_never_chosen():
+    bad = {"structure": "pi", "heldout_rms_nm": 1.0, "heldout_max_nm": 1.0, "error": "diverged"}
+    good = _row("preisach+creep", [70.0, 71.0, 72.0])
+    assert choose([bad, good]) is good
+
+
+def test_folds_sit_on_input_cycles_spread_through_the_record():
+    t = np.arange(0, 10, 1e-3)
+    u = 75 - 75 * np.cos(2 * np.pi * t)
+    starts = cycle_starts(u, 0)
+    assert np.allclose(np.diff(starts), 1000, atol=2)
+    folds = fold_bounds(u, 0)
+    assert len(folds) == 2
+    for s, e in folds:
+        assert s in starts and e in starts and e > s
+    assert folds[0][0] < 0.5 * u.size < folds[1][1] <= 0.75 * u.size
+
+
+def test_prior_basis_with_equal_halves_is_a_pi_model():
+    lo, hi, L = 0.0, 100.0, 32
+    B = prior_basis(lo, hi, L)
+    bins = B.shape[1] // 2
+    c = np.r_[np.linspace(2.0, 0.5, bins), np.linspace(2.0, 0.5, bins)]
+    w = np.zeros((L, L))
+    w[np.tril_indices(L)] = B @ c
+    # the same density as plays: each bin's density × its width spread over 8 plays inside it
+    width = 0.5 * (hi - lo) / bins
+    sub = 8
+    r = ((np.arange(bins * sub) + 0.5) * width / sub)
+    wts = np.repeat(np.linspace(2.0, 0.5, bins) * width / sub, sub)
+    pi = PIModel(thresholds=np.r_[0.0, r].tolist(), weights=np.r_[1e-6, wts].tolist())
+    u = np.r_[np.linspace(0, 100, 200), 50 + 40 * np.cos(np.linspace(0, 30, 3000)) * np.linspace(1, 0.2, 3000)]
+    y_pre = PreisachModel.from_cell_masses(w, lo, hi, 0.0).forward().block(u)[200:]
+    y_pi = pi.forward().block(u)[200:]
+    A = np.c_[y_pre, np.ones_like(y_pre)]
+    coef, *_ = np.linalg.lstsq(A, y_pi, rcond=None)
+    assert abs(coef[0] - 1.0) < 0.03
+    assert np.std(A @ coef - y_pi) < 0.01 * np.ptp(y_pi)
+
+
+def _sines_then_minor_loops(fs_Hz: float = 200.0) -> tuple[np.ndarray, np.ndarray, int]:
+    t1 = np.arange(0, 8, 1 / fs_Hz)
+    u1 = 75 - 75 * np.cos(2 * np.pi * 0.5 * t1)                       # full-range cycles only
+    t2 = np.arange(0, 16, 1 / fs_Hz)
+    env = np.interp(t2, [0, 4, 8, 12, 16], [1, 0.3, 0.6, 0.15, 0.8])
+    u2 = 75 - 75 * env * np.cos(2 * np.pi * t2)                        # amplitude ramps: minor loops
+    return t1, np.r_[u1, u2], u1.size
+
+
+def test_preisach_from_full_range_sines_predicts_minor_loops_at_least_as_well_as_pi():
+    """Full-range cycles leave the inside of the Preisach plane unvisited: without the prior
+    the fitted density there is what the smoothing left (303 nm RMS on the minor loops), PI
+    gets 252 nm, the Preisach fit with its PI-like prior 146 nm (relay plant, 14.5 µm span)."""
+    t1, u, k = _sines_then_minor_loops()
+    plant = RelayPreisachPlant(noise_nm=2.0, seed=1)
+    y = plant.run(u)
+
+    def heldout_rms(model) -> float:
+        e = (model.forward().block(u) - y)[k:]
+        return float(np.std(e))
+
+    pi = heldout_rms(PIModel.identify(t1, u[:k], y[:k]))
+    pre = heldout_rms(PreisachModel.identify(t1, u[:k], y[:k], n_operators=32, method="nnls"))
+    bare = heldout_rms(PreisachModel.identify(t1, u[:k], y[:k], n_operators=32, method="nnls", prior="none"))
+    assert pre <= pi and pre < 0.8 * bare
+
+
+@pytest.mark.slow
+def test_auto_on_a_second_recording_is_within_10_percent_of_the_best_single_kind():
+    """Identify on full-range sines, predict a recording of another character (amplitude
+    ramps): auto's pick is within 10 % RMS of the best single kind on it."""
+    t1, u, k = _sines_then_minor_loops()
+    plant = RelayPreisachPlant(noise_nm=2.0, seed=2)
+    y = plant.run(u)
+    kinds = ("pi", "preisach", "bouc-wen")
+    best, table = select_model(t1, u[:k], y[:k], candidates=kinds, with_dynamics=False)
+    assert "why" in table[0] and table[0]["structure"] == best.structure
+
+    def second(model) -> float:
+        return float(np.std((model.forward(1 / 200.0).block(u) - y)[k:]))
+
+    from afmctl.compensators.chain import ChainModel
+    singles = {kind: second(ChainModel.identify(t1, u[:k], y[:k], structure=kind)) for kind in kinds}
+    assert second(best) <= 1.1 * min(singles.values()), (best.structure, singles)
