@@ -298,6 +298,26 @@ def test_nv200_library_waveform_generator_uploads_and_runs_on_the_simulated_cloc
     assert min(h[1]["x"] for h in played) == pytest.approx(10.0, abs=0.05)
 
 
+@pytest.mark.slow
+def test_nv200_library_data_recorder_records_a_waveform_run_from_the_simulated_sensor(nv200_python):
+    """The library's DataRecorder: recsrc (position, voltage), recast 2 (start with the
+    waveform generator), recstr, reclen, recrun (arm, then poll until 0), recoutf of both
+    channels; the position is the simulated scanner's sensor [µm]."""
+    from afmctl.sim_backend.scanner import Scanner, default_scanner_config
+    client = ROOT / "tests" / "vendor" / "nv200_recorder_client.py"
+    scanner = Scanner(default_scanner_config())
+    with serve_pty("nv200", sink=scanner, sensor="strain gauge") as server:
+        res = subprocess.run([nv200_python, str(client), server.port, "2"], capture_output=True,
+                             text=True, timeout=180)
+        assert res.returncode == 0, res.stderr[-2000:]
+        out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert out["finished"] and out["sources"] == [0, 2] and out["sample_time_ms"] == pytest.approx(0.2)
+    assert len(out["position"]) == len(out["voltage"]) == 24
+    assert out["voltage"] == pytest.approx(out["values_V"] * 2, abs=0.01)   # sample k = buffer point k
+    pos = out["position"]                                                  # µm: the scanner moved
+    assert max(pos) - min(pos) > 2.0
+
+
 def test_nv200_stored_settings_are_changed_only_when_needed_said_and_restored_on_request(caplog):
     with serve_pty("nv200") as server:
         server.device.params["cl"] = 1            # closed loop, analog input (power-up default)
