@@ -21,6 +21,7 @@ with the device code at the next call; a read (``set``) is the synchronisation p
 from __future__ import annotations
 
 import logging
+import time
 from typing import Any
 
 from collections.abc import Sequence
@@ -29,9 +30,11 @@ import numpy as np
 
 from . import codec_gcs_wave
 from . import codec_nv200 as codec
+from . import codec_nv200_rec as rcodec
 from . import codec_nv200_wave as wcodec
 from .base import VoltageLimits
-from .errors import AmplifierError, LimitError, ProtocolError
+from .errors import AmplifierError, AmplifierTimeout, LimitError, ProtocolError, RecorderUnavailable
+from .recording import Recording, RecorderSetup, time_axis
 from .serial_amp import SerialAmplifier
 from .transport import SerialTransport
 from .wave_check import WaveStatus, check_table
@@ -58,6 +61,7 @@ class NV200(SerialAmplifier):
     one axis ``x``; voltages in V."""
 
     name = "nv200"
+    has_recorder = True
 
     def __init__(self, transport: SerialTransport, *, restore_settings: bool = False, **options: Any) -> None:
         self.restore_settings = bool(restore_settings)
@@ -67,6 +71,11 @@ class NV200(SerialAmplifier):
         self._table: np.ndarray | None = None
         self._wave_run = (0.0, 0, 0)
         self._playing = False
+        #: a recording read back before the driver reused the recorder (sensored units read
+        #: their output voltage through it)
+        self._rec_cache: Recording | None = None
+        self._rec_pending = False
+        self._rec_dirty = False
         super().__init__(transport, **options)
 
     @property
@@ -125,6 +134,12 @@ class NV200(SerialAmplifier):
     def _read_voltages(self) -> dict[str, float]:
         if self.sensor == "none":
             return {"x": self._read("meas")}  # without a sensor meas is the piezo voltage
+        if self._rec_pending:          # the recorder is about to be reused: keep the recording
+            self._fetch_recording()
+        if self._rec_dirty:            # a recording changed the set-up the read-back relies on
+            self.transport.write(b"".join(codec.encode(c) for c in (
+                "recast,0", f"recsrc,0,{_RECSRC_PIEZO_VOLTAGE}", "recstr,1", "reclen,1")))
+            self._rec_dirty = False
         self.transport.write(codec.encode("recrun,1"))
         fields = codec.frame_fields(self._reply_to("recout,0,0,1"))
         if len(fields) != 4:
@@ -245,3 +260,62 @@ class NV200(SerialAmplifier):
             self._guard()
             self._io(self._send_synced, codec.encode("grun,0"))
         return self.wave_status()
+
+    # ---- data recorder (the Amplifier template's configure_recorder / read_recording) ----
+    def _recorder_clock_s(self) -> float:
+        return rcodec.BASE_SAMPLE_S
+
+    def _recorder_capacity(self, axes: tuple[str, ...], signals: tuple[str, ...]) -> int:
+        if "y_nm" in signals and self.sensor == "none":
+            raise RecorderUnavailable(
+                "nv200: this actuator has no position sensor, so the recorder has no position to record; "
+                "record u_V only, or measure the motion with an external sensor and give it as a file "
+                "(t,y in nm; docs/DRIVERS.md, 'Recording the motion')")
+        return rcodec.BUFFER_SIZE
+
+    def _configure_recorder(self, setup: RecorderSetup) -> RecorderSetup:
+        channels = {sig: ch for ch, sig in enumerate(setup.signals)}
+        sources = {ch: rcodec.SOURCES[sig] for sig, ch in channels.items()}
+        self._drain()
+        self.transport.write(rcodec.encode_configure(sources, setup.divider, setup.points))
+        self._read("recrun")                # every write taken (an error comes back first)
+        self._rec_cache, self._rec_pending, self._rec_dirty = None, True, True
+        return RecorderSetup(setup.axes, setup.signals, setup.points, setup.divider, setup.clock_s,
+                             {"channels": channels})
+
+    def _recorded_points(self, setup: RecorderSetup) -> int:
+        """The unit does not count its points: ``recrun`` reads 0 once it holds them all."""
+        if self._rec_cache is not None:
+            return len(self._rec_cache)
+        return setup.points if not self._read("recrun") else 0
+
+    def _fetch_recording(self) -> None:
+        """Wait for the armed recording to end (``recrun`` 0; at most its length + 2 s),
+        read it into the cache."""
+        setup = self._recorder_setup
+        deadline = time.monotonic() + setup.points * setup.period_s + 2.0
+        while self._read("recrun"):
+            if time.monotonic() > deadline:
+                self._rec_pending = False
+                raise AmplifierTimeout("nv200: the armed recording did not end (recrun stays 1)")
+            time.sleep(0.01)
+        self._rec_cache = self._read_channels(setup)
+        self._rec_pending = False
+
+    def _read_channels(self, setup: RecorderSetup) -> Recording:
+        values = {}
+        for sig, ch in setup.extra["channels"].items():  # type: ignore[union-attr]
+            self._drain()
+            self.transport.write(codec.encode(f"recoutf,{ch}"))
+            values[sig] = rcodec.parse_recoutf(self.transport.read_frame(rcodec.split_recoutf, timeout_s=max(
+                self.transport.timeout_s, 2.0)), ch)
+        n = min(len(v) for v in values.values())
+        y = {"x": values["y_nm"][:n] * 1000.0} if "y_nm" in values else {}   # µm -> nm
+        u = {"x": values["u_V"][:n]} if "u_V" in values else {}
+        return Recording(time_axis(n, setup.period_s), y, u, setup.period_s, "nv200 recoutf")
+
+    def _read_recording(self, setup: RecorderSetup) -> Recording:
+        if self._rec_cache is None:
+            self._rec_cache = self._read_channels(setup)
+            self._rec_pending = False
+        return self._rec_cache

@@ -1,0 +1,88 @@
+"""What a device's data recorder hands back, in one shape for every backend (and for a
+motion measured by an external sensor, read from a file by ``afmctl.motion_files``).
+
+Alignment with the device-timed wave output (the record trigger is the wave start):
+``t_s[k] = k * period_s`` counts from the device tick at which wave table point 0 is
+output. ``u_V[axis][k]`` is the output voltage in force at that tick (with the recorder
+and the wave at the same rate: table point k); ``y_nm[axis][k]`` is the position sensor
+read at that tick, i.e. the response to the points output before it (a causal offset of
+at least one device tick, plus the sensor's own delay and bandwidth).
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: what a recorder can record per axis: the measured position [nm], the output voltage [V]
+SIGNALS = ("y_nm", "u_V")
+
+
+@dataclass(frozen=True)
+class RecorderSetup:
+    """An armed recording: ``points`` per signal and axis, one every ``divider`` ticks of
+    the device's recorder clock ``clock_s`` [s] (``period_s = divider * clock_s``)."""
+
+    axes: tuple[str, ...]
+    signals: tuple[str, ...]
+    points: int
+    divider: int
+    clock_s: float
+    #: backend-specific bookkeeping (record tables, channels, ...)
+    extra: Mapping[str, object] = field(default_factory=dict)
+
+    @property
+    def period_s(self) -> float:
+        return self.divider * self.clock_s
+
+
+@dataclass(frozen=True)
+class Recording:
+    """A recorded motion: ``t_s`` (N,) [s] from the record trigger (the wave start),
+    per axis ``y_nm`` (N,) measured position [nm] and ``u_V`` (N,) output voltage [V]
+    (each only for the signals recorded), ``period_s`` [s], and where it came from
+    (``source``: e.g. ``"gcs DRR?"``, ``"nv200 recoutf"``, ``"can REC_DATA"``,
+    ``"file motion.csv"``)."""
+
+    t_s: np.ndarray
+    y_nm: Mapping[str, np.ndarray]
+    u_V: Mapping[str, np.ndarray]
+    period_s: float
+    source: str
+
+    def __post_init__(self) -> None:
+        n = len(self.t_s)
+        for name, group in (("y_nm", self.y_nm), ("u_V", self.u_V)):
+            for axis, arr in group.items():
+                if len(arr) != n:
+                    raise ValueError(f"recording {self.source}: {name}[{axis}] has {len(arr)} points, t_s has {n}")
+
+    @property
+    def axes(self) -> tuple[str, ...]:
+        return tuple(dict.fromkeys([*self.y_nm, *self.u_V]))
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+
+def check_setup(axes: Sequence[str], signals: Sequence[str], points: int, divider: int,
+                *, known_axes: Sequence[str], capacity: int, name: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """Validate a recorder request; returns (axes, signals) as tuples. ValueError names
+    the argument and the allowed range."""
+    ax = tuple(axes)
+    if not ax or any(a not in known_axes for a in ax) or len(set(ax)) != len(ax):
+        raise ValueError(f"recorder axes {list(ax)}: give one or more of {', '.join(known_axes)} (each once)")
+    sig = tuple(signals)
+    if not sig or any(s not in SIGNALS for s in sig) or len(set(sig)) != len(sig):
+        raise ValueError(f"recorder signals {list(sig)}: give one or more of {', '.join(SIGNALS)}")
+    if not (isinstance(points, int) and 1 <= points <= capacity):
+        raise ValueError(f"recorder points {points!r}: {name} records 1..{capacity} points per signal")
+    if not (isinstance(divider, int) and 1 <= divider <= 2**31 - 1):
+        raise ValueError(f"recorder divider {divider!r}: a whole number of clock ticks >= 1")
+    return ax, sig
+
+
+def time_axis(n: int, period_s: float) -> np.ndarray:
+    """``k * period_s`` for k < n [s]."""
+    return np.arange(n, dtype=np.float64) * float(period_s)
