@@ -20,6 +20,8 @@ sensor measured while they played: every model is wrong somewhere, and the measu
 motion teaches the feedforward what the model missed.
 
   afmctl learn step ...   one iteration from files (an external sensor, a DAQ, a script)
+  afmctl learn --config RUN.toml --iterations N --out LEARNED.afmwave
+                          on a device with a data recorder: play, record, learn, repeat
 
 See 'afmctl learn step --help' and docs/LEARNING.md.
 """
@@ -69,12 +71,14 @@ Example (iterate: play NEXT.csv, record, repeat with --sent NEXT.csv):
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("learn", help=HELP, description=DESCRIPTION,
+    from .learn_device import DEVICE_HELP, add_device_arguments, run_device
+    p = subparsers.add_parser("learn", help=HELP, description=DESCRIPTION + "\n" + DEVICE_HELP,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_device_arguments(p)
     sub = p.add_subparsers(dest="learn_verb", metavar="SUBCOMMAND")
     for reg in SUBCOMMANDS.values():
         reg(sub)
-    p.set_defaults(func=lambda args: _no_subcommand(p))
+    p.set_defaults(func=lambda args: run_device(args) if args.config else _no_subcommand(p))
 
 
 def _no_subcommand(p: argparse.ArgumentParser) -> int:
@@ -116,7 +120,7 @@ SUBCOMMANDS: dict[str, Callable[[argparse._SubParsersAction], None]] = {"step": 
 def run_step(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from ..datafiles import write_csv
+    from ..data.datafiles import write_csv
     from ..learnfiles import load_inputs, load_state, save_state, settings_from_args
     from afmctl.compensators.learning import Learner
 
