@@ -80,13 +80,15 @@ class LearnOptions:
     central part of each line is at or below it [% of the line]; ``settings``: the learning
     law's (step size, weighting; limits are set from the configuration);
     ``use_model``: learn through the configured model (False: model-free);
-    ``record_timeout_s``: longest wait for a recording after the play [s]."""
+    ``record_timeout_s``: longest wait for a recording after the play [s];
+    ``link_retries``: plays of the same table after a link fault (reconnected first)."""
 
     iterations: int = 10
     noise_floor_pct: float = 0.0
     settings: LearnSettings = field(default_factory=LearnSettings)
     use_model: bool = True
     record_timeout_s: float = 30.0
+    link_retries: int = 2
 
 
 @dataclass
@@ -197,10 +199,15 @@ class LearnRun:
         """Steps check → arm → play → read → learn of iteration ``k`` (module docstring)."""
         self.step = Step.CHECK
         self._check(table)
-        self.step = Step.ARM
-        setup = self._arm(table, list(learners))
-        self.step = Step.PLAY
-        ended = self._play(table)
+        for attempt in range(self.options.link_retries + 1):
+            self.step = Step.ARM
+            setup = self._arm(table, list(learners))
+            self.step = Step.PLAY
+            ended = self._play(table)
+            if ended is None or ended[0] != "fault" or attempt == self.options.link_retries or self._stop.is_set():
+                break
+            log.warning("learn: iteration %d: %s; reconnecting and playing the table again", k, ended[1])
+            self._reconnect()
         if ended is not None:
             return IterationReport(k, {}, float("nan"), state=ended[0], detail=ended[1]), None
         self.step = Step.READ
@@ -247,6 +254,14 @@ class LearnRun:
         if wave.get("played") != len(table):
             return "stopped", f"stopped during the play ({wave.get('played', 0)} of {len(table)} samples)"
         return None
+
+    def _reconnect(self) -> None:
+        """After a link fault: reconnect (the driver reads the output back; the next play's
+        approach ramps from there)."""
+        try:
+            self.amp.reconnect()
+        except Exception as err:  # noqa: BLE001 - the next play reports the link's state
+            log.warning("learn: reconnect failed: %s", err)
 
     def _read(self, table: WaveTable, setup: Any) -> dict[str, np.ndarray]:
         rec = self.amp.read_recording(timeout_s=self.options.record_timeout_s)
