@@ -101,3 +101,32 @@ def test_nv200_without_sensor_records_voltage_only_and_says_why():
             with pytest.raises(RecorderUnavailable, match="no position sensor.*u_V only"):
                 amp.configure_recorder(points=10)
             assert amp.configure_recorder(points=10, signals=("u_V",)).signals == ("u_V",)
+
+
+def test_can_driver_records_the_stream_from_its_first_played_sample():
+    import uuid
+    from afmctl.sim_backend.testing import serve_can
+    scanner = Scanner(default_scanner_config())
+    n = 400
+    table = _sine(n, 20.0, 100.0)
+    rows = [(float(v), 30.0, 0.0) for v in table]
+    channel = f"rec-{uuid.uuid4().hex[:8]}"
+    with serve_can(channel, scanner):
+        with open_amplifier("can", f"virtual:{channel}") as amp:
+            amp.set_voltages({"x": rows[0][0], "y": 30.0, "z": 0.0})
+            with pytest.raises(LimitError, match="start_stream"):
+                amp.configure_recorder(points=n)
+            amp.start_stream(10_000, prefill=n)           # the clock starts once all are queued
+            with pytest.raises(LimitError, match="1..8192"):
+                amp.configure_recorder(points=9000)
+            setup = amp.configure_recorder(["x", "y"], points=n)
+            assert setup.period_s == pytest.approx(100e-6)
+            amp.queue(rows)
+            amp.drain_stream()
+            rec = amp.read_recording(timeout_s=10)
+    assert rec.source == "can REC_DATA" and len(rec) == n and set(rec.y_nm) == {"x", "y"}
+    np.testing.assert_allclose(rec.u_V["x"], table, atol=0.0013)      # 2.5 mV frames
+    np.testing.assert_allclose(rec.u_V["y"], 30.0)
+    want = _offline_reference(rec.u_V["x"], samples_per_point=10)
+    err = rec.y_nm["x"] - want                        # t0 lies between two 10 us samples: <= 1 sample off
+    assert np.ptp(want) > 2000.0 and np.abs(err).max() < 0.002 * np.ptp(want)
