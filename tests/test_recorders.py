@@ -130,3 +130,59 @@ def test_can_driver_records_the_stream_from_its_first_played_sample():
     want = _offline_reference(rec.u_V["x"], samples_per_point=10)
     err = rec.y_nm["x"] - want                        # t0 lies between two 10 us samples: <= 1 sample off
     assert np.ptp(want) > 2000.0 and np.abs(err).max() < 0.002 * np.ptp(want)
+
+
+def test_nv200_recording_armed_but_never_started_is_dropped_when_the_output_is_read(caplog):
+    import logging
+    from afmctl.drivers.errors import AmplifierError
+    with serve_pty("nv200", sensor="strain gauge") as server:
+        with open_amplifier("nv200", server.port) as amp:
+            amp.set_voltages({"x": 12.0})
+            amp.configure_recorder(points=50)
+            with caplog.at_level(logging.WARNING, logger="afmctl.drivers.nv200"):
+                assert amp.get_voltages()["x"] == pytest.approx(12.0, abs=0.01)
+            assert "never started" in caplog.text
+            with pytest.raises(AmplifierError, match="no recording armed"):
+                amp.read_recording(timeout_s=0.1)
+
+
+# -- the simulated E-727's recorder, sans-I/O (a clock the test moves) --
+def _gcs(clock):
+    from afmctl.sim_backend.amplifiers.base import RecordingSink
+    from afmctl.sim_backend.amplifiers.gcs import SimGCS
+    return SimGCS(RecordingSink(), now=lambda: clock[0])
+
+
+def test_sim_gcs_recorder_triggers_rate_and_gcs_array():
+    clock = [0.0]
+    dev = _gcs(clock)
+    dev.feed(b"SVO 1 0 2 0 3 0\nDRC 1 1 7 2 2 7\nRTR 4\nDRT 0 1 0\n")
+    assert dev.feed(b"DRL? 1 2\n") == b"1=0 \n2=0\n"            # not triggered yet
+    clock[0] = 1e-3
+    dev.feed(b"SVA 1 12.5\n")                                 # DRT 1: a position-changing command
+    clock[0] = 1e-3 + 10 * 4 * 50e-6
+    assert dev.feed(b"DRL? 1\n") == b"1=11\n"                  # t0 .. t0 + 10 x 200 us
+    reply = dev.feed(b"DRR? 2 3 1 2\n").decode()
+    head, data = reply.split("# END_HEADER \n")
+    assert "# TYPE = 1 \n" in head and "# SEPARATOR = 32 \n" in head and "# NDATA = 3 \n" in head
+    assert "# DIM = 2 \n" in head and "# SAMPLE_TIME = 0.0002 \n" in head and "# NAME1 = Voltage of output chan 2" in head
+    assert data == "12.500000 0.000000 \n12.500000 0.000000 \n12.500000 0.000000\n"
+    dev.feed(b"DRT 0 4 0\n")                                  # 4: at once
+    assert dev.feed(b"DRL? 1\n") == b"1=1\n"
+    dev.feed(b"DRT 0 2 0\n")                                  # 2: the next command, then back to 0
+    clock[0] += 1.0
+    dev.feed(b"VOL? 1\n")
+    assert dev.feed(b"DRL? 1\n") == b"1=1\n" and dev.feed(b"DRT? 1\n") == b"1=0 0\n"
+    clock[0] += 1.0
+    dev.feed(b"WGR\n")                                        # restarts every table
+    assert dev.feed(b"DRL? 1\n") == b"1=1\n" and dev.feed(b"ERR?\n") == b"0\n"
+    assert dev.feed(b"TNR?\n") == b"8\n" and dev.feed(b"RTR?\n") == b"4\n"
+
+
+@pytest.mark.parametrize("cmd, code", [(b"DRC 9 1 2\n", 17), (b"DRC 1 1 5\n", 17), (b"DRC 1 7 2\n", 17),
+                                       (b"DRC 1 1\n", 1), (b"DRT 0 3 0\n", 17), (b"RTR 0\n", 17),
+                                       (b"DRL? 9\n", 17), (b"DRR? 0 5 1\n", 17)])
+def test_sim_gcs_recorder_refuses_bad_commands_with_gcs_errors(cmd, code):
+    dev = _gcs([0.0])
+    dev.feed(cmd)
+    assert dev.feed(b"ERR?\n") == f"{code}\n".encode()

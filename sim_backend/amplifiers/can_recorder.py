@@ -5,7 +5,7 @@ Armed (REC_CTRL arm: axes, signals, points, divider), it starts with the stream'
 the tick of the first sample played after arming (for a fresh stream its sample 0 at t0).
 Point k is taken at t0 + k·divider/rate: the output voltage in force then (stream sample
 k·divider) and the scanner's position sensor at that instant (the response to the samples
-before it; without a sensor in the sink the position reads NaN and is sent as 0). It holds
+before it; without a sensor in the sink there is no position and it is sent as 0). It holds
 ``CAPACITY`` points per signal; REC_READ asks for a range of them back.
 """
 from __future__ import annotations

@@ -173,7 +173,7 @@ class DataRecorder:
         """DRT ... 4: the tables set to trigger "immediately" start now."""
         self._start([t for t in self.tables.values() if t.trigger == 4 and t.option], now_s)
 
-    def _ids(self, args: list[str]) -> list[int]:
+    def ids(self, args: list[str]) -> list[int]:
         ids = [_int(a) for a in args] or list(self.tables)
         if any(t not in self.tables for t in ids):
             raise RecorderError(17)
