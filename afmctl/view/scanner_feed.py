@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from ..messages import DriftMsg, SimImageMsg, SimTipMsg, StatusMsg, decode_json, decode_setpoints
+from ..zenoh_api.messages import DriftMsg, SimImageMsg, SimTipMsg, StatusMsg, decode_json, decode_setpoints
 from .align import ClockOffset, TargetHistory
 from .image import HeightImage
 from .ring import Ring
