@@ -1,5 +1,5 @@
 """What a device's data recorder hands back, in one shape for every backend (and for a
-motion measured by an external sensor, read from a file by ``afmctl.motion_files``).
+motion measured by an external sensor, read from a file by ``afmctl.data.motion_files``).
 
 Alignment with the device-timed wave output (the record trigger is the wave start):
 ``t_s[k] = k * period_s`` counts from the device tick at which wave table point 0 is

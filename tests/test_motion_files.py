@@ -1,4 +1,4 @@
-"""A measured motion from an external sensor as a file (afmctl/motion_files.py), read into
+"""A measured motion from an external sensor as a file (afmctl/data/motion_files.py), read into
 the same Recording a device's recorder returns."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 from afmctl.drivers.recording import Recording
 from afmctl.errors import AfmctlError
-from afmctl.motion_files import read_motion_csv, write_motion_csv
+from afmctl.data.motion_files import read_motion_csv, write_motion_csv
 
 
 def _write(path, text):

@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from .datafiles import read_csv, uniform_period, write_csv
-from .drivers.recording import Recording
-from .errors import AfmctlError
+from ..drivers.recording import Recording
+from ..errors import AfmctlError
 
 _AXES = ("x", "y", "z")
 
