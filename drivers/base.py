@@ -513,6 +513,16 @@ class Amplifier(AmplifierInterface):
             self._guard()
             return self._io(self._recorder_clock_s)
 
+    def recorder_capacity(self, axes: Sequence[str] | None = None,
+                          signals: Sequence[str] = ("y_nm", "u_V")) -> int:
+        """The most points per signal one recording of these axes and signals holds."""
+        if not self.has_recorder:
+            raise self._no_recorder()
+        ax = tuple(axes) if axes is not None else self.axes
+        with self._lock:
+            self._guard()
+            return self._io(self._recorder_capacity, ax, tuple(signals))
+
     def configure_recorder(self, axes: Sequence[str] | None = None, *, points: int, divider: int = 1,
                            signals: Sequence[str] = ("y_nm", "u_V")) -> RecorderSetup:
         """Arm the device's data recorder: from the next wave start (``start_wave``; on CAN
