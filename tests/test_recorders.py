@@ -186,3 +186,28 @@ def test_sim_gcs_recorder_refuses_bad_commands_with_gcs_errors(cmd, code):
     dev = _gcs([0.0])
     dev.feed(cmd)
     assert dev.feed(b"ERR?\n") == f"{code}\n".encode()
+
+
+def test_sim_gcs_recorder_options_commanded_actual_and_error_from_the_sensor():
+    """Option 1 (commanded position, the linear map of the output), 2 (the scanner's sensor)
+    and 3 (their difference) on one recording; µm."""
+    from afmctl.sim_backend.amplifiers.gcs import SimGCS
+    clock = [0.0]
+    scanner = Scanner(default_scanner_config())
+    dev = SimGCS(scanner, now=lambda: clock[0])
+    dev.feed(b"SVO 1 0\nSVA 1 60\nDRC 1 1 1 2 1 2 3 1 3\nDRT 0 1 0\n")
+    clock[0] = 0.01
+    dev.feed(b"SVA 1 61\n")                                   # triggers (DRT 1) and moves
+    clock[0] = 0.02
+    reply = dev.feed(b"DRR? 1 100 1 2 3\n").decode()
+    data = np.array([[float(v) for v in ln.split()] for ln in reply.split("# END_HEADER \n")[1].splitlines()])
+    assert data.shape == (100, 3)
+    np.testing.assert_allclose(data[:, 0], 61 / 120 * 100, atol=1e-6)      # commanded: linear over VMI..VMA
+    np.testing.assert_allclose(data[:, 2], data[:, 0] - data[:, 1], atol=2e-6)
+    assert 2.0 < data[-1, 1] < 20.0 and data[-1, 1] > data[0, 1]           # the sensor [µm] sees the step
+
+
+def test_sensor_config_from_a_scanner_config_table():
+    from afmctl.sim_backend.config import ScannerConfig
+    cfg = ScannerConfig.model_validate({"x": {"sensor": {"noise_nm": 1.0, "bandwidth_Hz": None, "delay_s": 2e-5}}})
+    assert cfg.x.sensor.noise_nm == 1.0 and cfg.x.sensor.bandwidth_Hz is None and cfg.y.sensor.noise_nm == 0.2
