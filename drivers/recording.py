@@ -66,21 +66,24 @@ class Recording:
         return len(self.t_s)
 
 
-def check_setup(axes: Sequence[str], signals: Sequence[str], points: int, divider: int,
-                *, known_axes: Sequence[str], capacity: int, name: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """Validate a recorder request; returns (axes, signals) as tuples. ValueError names
-    the argument and the allowed range."""
+def check_axes_signals(axes: Sequence[str], signals: Sequence[str],
+                       known_axes: Sequence[str]) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """The axes and signals of a recorder request as tuples; ValueError names the allowed ones."""
     ax = tuple(axes)
     if not ax or any(a not in known_axes for a in ax) or len(set(ax)) != len(ax):
         raise ValueError(f"recorder axes {list(ax)}: give one or more of {', '.join(known_axes)} (each once)")
     sig = tuple(signals)
     if not sig or any(s not in SIGNALS for s in sig) or len(set(sig)) != len(sig):
         raise ValueError(f"recorder signals {list(sig)}: give one or more of {', '.join(SIGNALS)}")
+    return ax, sig
+
+
+def check_points(points: int, divider: int, *, capacity: int, name: str) -> None:
+    """ValueError naming the range when ``points`` or ``divider`` is outside it."""
     if not (isinstance(points, int) and 1 <= points <= capacity):
         raise ValueError(f"recorder points {points!r}: {name} records 1..{capacity} points per signal")
     if not (isinstance(divider, int) and 1 <= divider <= 2**31 - 1):
         raise ValueError(f"recorder divider {divider!r}: a whole number of clock ticks >= 1")
-    return ax, sig
 
 
 def time_axis(n: int, period_s: float) -> np.ndarray:

@@ -211,3 +211,17 @@ def test_sensor_config_from_a_scanner_config_table():
     from afmctl.sim_backend.config import ScannerConfig
     cfg = ScannerConfig.model_validate({"x": {"sensor": {"noise_nm": 1.0, "bandwidth_Hz": None, "delay_s": 2e-5}}})
     assert cfg.x.sensor.noise_nm == 1.0 and cfg.x.sensor.bandwidth_Hz is None and cfg.y.sensor.noise_nm == 0.2
+
+
+def test_bad_recorder_requests_name_the_allowed_range_and_send_nothing():
+    with serve_pty("gcs") as server:
+        with open_amplifier("gcs", server.port) as amp:
+            before = server.device.recorder.tables[1].option, server.device.commands
+            for kwargs, match in [({"axes": ["w"], "points": 10}, "one or more of x, y, z"),
+                                  ({"signals": ("pos",), "points": 10}, "one or more of y_nm, u_V"),
+                                  ({"points": 0}, "1..32768"), ({"points": 10, "divider": 0}, "divider")]:
+                with pytest.raises(LimitError, match=match):
+                    amp.configure_recorder(**kwargs)
+            assert server.device.recorder.tables[1].option == before[0]     # no DRC was sent
+            with pytest.raises(Exception, match="no recording armed"):
+                amp.read_recording(timeout_s=0.1)
