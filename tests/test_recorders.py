@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from afmctl.drivers.errors import LimitError, RecorderUnavailable
+from afmctl.drivers.recording import align_to_table
 from afmctl.drivers.registry import open_amplifier
 from afmctl.sim_backend.scanner import Scanner, default_scanner_config
 from afmctl.sim_backend.testing import serve_pty
@@ -51,6 +52,7 @@ def test_gcs_driver_records_position_and_voltage_aligned_with_the_wave():
     assert rec.source == "gcs DRR?" and len(rec) == n and rec.period_s == pytest.approx(100e-6)
     np.testing.assert_allclose(rec.t_s, np.arange(n) * 100e-6)
     np.testing.assert_allclose(rec.u_V["x"], table, atol=1e-4)       # point k = wave point k
+    assert len(align_to_table(rec, {"x": table}, tol_V=1e-4)) == n
     # reading k is the position after wave points 0..k-1: the same scanner played offline
     # (its rest before the start lasts as long as the link took, so creep differs a little)
     want = _offline_reference(table, samples_per_point=10)
@@ -90,6 +92,7 @@ def test_nv200_driver_records_position_and_voltage_started_by_the_waveform_gener
     assert rec.source == "nv200 recoutf" and len(rec) == n
     np.testing.assert_allclose(rec.t_s, np.arange(n) * 100e-6)
     np.testing.assert_allclose(rec.u_V["x"], table, atol=0.1)    # the buffer holds % of the range
+    assert len(align_to_table(rec, {"x": table}, tol_V=0.005)) == n
     want = _offline_reference(rec.u_V["x"], samples_per_point=10)
     err = rec.y_nm["x"] - want
     assert np.ptp(want) > 2000.0 and np.abs(err).max() < 0.002 * np.ptp(want)
@@ -127,6 +130,7 @@ def test_can_driver_records_the_stream_from_its_first_played_sample():
     assert rec.source == "can REC_DATA" and len(rec) == n and set(rec.y_nm) == {"x", "y"}
     np.testing.assert_allclose(rec.u_V["x"], table, atol=0.0013)      # 2.5 mV frames
     np.testing.assert_allclose(rec.u_V["y"], 30.0)
+    assert len(align_to_table(rec, {"x": table}, tol_V=0.00125 + 1e-9)) == n
     want = _offline_reference(rec.u_V["x"], samples_per_point=10)
     err = rec.y_nm["x"] - want                        # t0 lies between two 10 us samples: <= 1 sample off
     assert np.ptp(want) > 2000.0 and np.abs(err).max() < 0.002 * np.ptp(want)
@@ -225,3 +229,19 @@ def test_bad_recorder_requests_name_the_allowed_range_and_send_nothing():
             assert server.device.recorder.tables[1].option == before[0]     # no DRC was sent
             with pytest.raises(Exception, match="no recording armed"):
                 amp.read_recording(timeout_s=0.1)
+
+
+def test_align_to_table_checks_length_and_trigger_and_cuts_a_cycle():
+    from afmctl.drivers.recording import Recording, RecordingMismatch, align_to_table
+    n = 50
+    table = _sine(n, 10.0, 60.0)
+    u = np.concatenate([table, table, table])
+    y = np.arange(3 * n, dtype=float)
+    rec = Recording(np.arange(3 * n) * 1e-4, {"x": y}, {"x": u}, 1e-4, "test")
+    last = align_to_table(rec, {"x": table}, cycle=2)
+    assert len(last) == n and last.y_nm["x"][0] == 2 * n and last.t_s[0] == 0.0
+    with pytest.raises(RecordingMismatch, match="needs 200"):
+        align_to_table(rec, {"x": table}, cycle=3)
+    late = Recording(rec.t_s, {"x": y}, {"x": np.concatenate([table[-3:], u[:-3]])}, 1e-4, "late")
+    with pytest.raises(RecordingMismatch, match="matches 3 point.s. later .a trigger offset.*not learned from"):
+        align_to_table(late, {"x": table}, cycle=1)
