@@ -5,6 +5,11 @@ checks — limits and ``max_step_V`` (before any byte is sent), the lock that se
 callers, the visible connection state and the mapping of link failures onto it — while a
 backend only fills in protected hooks (``_open_link``, ``_handshake``, ``_read_voltages``,
 ``_write_setpoint``, ``_sync``, ...). No backend re-implements :meth:`Amplifier.set_voltages`.
+The data recorder follows the same pattern: :meth:`Amplifier.configure_recorder`, :meth:`~Amplifier.read_recording`
+(a :class:`~afmctl.drivers.recording.Recording`) are concrete; a backend with a recorder sets
+``has_recorder`` and fills ``_recorder_clock_s``, ``_recorder_capacity``,
+``_configure_recorder``, ``_recorded_points``, ``_read_recording``; one without raises
+:class:`~afmctl.drivers.errors.RecorderUnavailable`.
 
 Layering (as in pyLabLib / PIPython / caproto): a *transport* moves bytes or frames, a
 *codec* (pure, no I/O) turns typed messages into bytes and back, and the *driver* speaks
@@ -40,7 +45,7 @@ from typing import Any, TypeVar
 
 from .errors import (AmplifierConnectionError, AmplifierError, AmplifierTimeout, LimitError, ProtocolError,
                      RecorderUnavailable)
-from .recording import Recording, RecorderSetup, check_setup
+from .recording import Recording, RecorderSetup, check_axes_signals, check_points
 
 log = logging.getLogger(__name__)
 _T = TypeVar("_T")
@@ -513,6 +518,16 @@ class Amplifier(AmplifierInterface):
             self._guard()
             return self._io(self._recorder_clock_s)
 
+    def recorder_capacity(self, axes: Sequence[str] | None = None,
+                          signals: Sequence[str] = ("y_nm", "u_V")) -> int:
+        """The most points per signal one recording of these axes and signals holds."""
+        if not self.has_recorder:
+            raise self._no_recorder()
+        ax = tuple(axes) if axes is not None else self.axes
+        with self._lock:
+            self._guard()
+            return self._io(self._recorder_capacity, ax, tuple(signals))
+
     def configure_recorder(self, axes: Sequence[str] | None = None, *, points: int, divider: int = 1,
                            signals: Sequence[str] = ("y_nm", "u_V")) -> RecorderSetup:
         """Arm the device's data recorder: from the next wave start (``start_wave``; on CAN
@@ -526,12 +541,9 @@ class Amplifier(AmplifierInterface):
             raise self._no_recorder()
         with self._lock:
             self._guard()
-            ax = tuple(axes) if axes is not None else self.axes
-            sig = tuple(signals)
             try:
-                capacity = self._io(self._recorder_capacity, ax, sig) if set(ax) <= set(self.axes) else 1
-                ax, sig = check_setup(ax, sig, points, divider, known_axes=self.axes, capacity=capacity,
-                                      name=self.name)
+                ax, sig = check_axes_signals(axes if axes is not None else self.axes, signals, self.axes)
+                check_points(points, divider, capacity=self._io(self._recorder_capacity, ax, sig), name=self.name)
             except ValueError as err:
                 raise LimitError(str(err)) from None
             setup = RecorderSetup(ax, sig, points, divider, self._io(self._recorder_clock_s))

@@ -33,7 +33,7 @@ from . import codec_nv200 as codec
 from . import codec_nv200_rec as rcodec
 from . import codec_nv200_wave as wcodec
 from .base import VoltageLimits
-from .errors import AmplifierError, AmplifierTimeout, LimitError, ProtocolError, RecorderUnavailable
+from .errors import AmplifierError, LimitError, ProtocolError, RecorderUnavailable
 from .recording import Recording, RecorderSetup, time_axis
 from .serial_amp import SerialAmplifier
 from .transport import SerialTransport
@@ -76,6 +76,7 @@ class NV200(SerialAmplifier):
         self._rec_cache: Recording | None = None
         self._rec_pending = False
         self._rec_dirty = False
+        self._rec_triggered = False
         super().__init__(transport, **options)
 
     @property
@@ -231,6 +232,7 @@ class NV200(SerialAmplifier):
             self._io(self._send_synced, wcodec.encode_start(len(self._table), divider, cycles))
             self._wave_run = (1.0 / (divider * wcodec.BASE_SAMPLE_S), divider, cycles)
             self._playing = True
+            self._rec_triggered = self._rec_pending   # an armed recording starts with it (recast 2)
         return self.wave_status()
 
     def wave_status(self) -> WaveStatus:
@@ -280,6 +282,7 @@ class NV200(SerialAmplifier):
         self.transport.write(rcodec.encode_configure(sources, setup.divider, setup.points))
         self._read("recrun")                # every write taken (an error comes back first)
         self._rec_cache, self._rec_pending, self._rec_dirty = None, True, True
+        self._rec_triggered = False
         return RecorderSetup(setup.axes, setup.signals, setup.points, setup.divider, setup.clock_s,
                              {"channels": channels})
 
@@ -290,17 +293,24 @@ class NV200(SerialAmplifier):
         return setup.points if not self._read("recrun") else 0
 
     def _fetch_recording(self) -> None:
-        """Wait for the armed recording to end (``recrun`` 0; at most its length + 2 s),
-        read it into the cache."""
+        """Before the read-back reuses the recorder: a recording the waveform generator
+        started is waited for (``recrun`` 0; at most its length + 2 s) and read into the
+        cache; one never started (or not ending) is stopped and dropped, with a warning."""
         setup = self._recorder_setup
-        deadline = time.monotonic() + setup.points * setup.period_s + 2.0
-        while self._read("recrun"):
-            if time.monotonic() > deadline:
-                self._rec_pending = False
-                raise AmplifierTimeout("nv200: the armed recording did not end (recrun stays 1)")
-            time.sleep(0.01)
-        self._rec_cache = self._read_channels(setup)
         self._rec_pending = False
+        deadline = time.monotonic() + setup.points * setup.period_s + 2.0
+        while self._rec_triggered and self._read("recrun"):
+            if time.monotonic() > deadline:
+                break
+            time.sleep(0.01)
+        else:
+            if self._rec_triggered:
+                self._rec_cache = self._read_channels(setup)
+                return
+        self.transport.write(codec.encode("recrun,0"))
+        self._recorder_setup = None
+        log.warning("nv200 on %s: the armed recording %s; it was stopped and dropped to read the output",
+                    self.transport.url, "did not end" if self._rec_triggered else "was never started by a wave")
 
     def _read_channels(self, setup: RecorderSetup) -> Recording:
         values = {}

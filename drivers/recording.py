@@ -1,5 +1,5 @@
 """What a device's data recorder hands back, in one shape for every backend (and for a
-motion measured by an external sensor, read from a file by ``afmctl.motion_files``).
+motion measured by an external sensor, read from a file by ``afmctl.data.motion_files``).
 
 Alignment with the device-timed wave output (the record trigger is the wave start):
 ``t_s[k] = k * period_s`` counts from the device tick at which wave table point 0 is
@@ -66,23 +66,78 @@ class Recording:
         return len(self.t_s)
 
 
-def check_setup(axes: Sequence[str], signals: Sequence[str], points: int, divider: int,
-                *, known_axes: Sequence[str], capacity: int, name: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """Validate a recorder request; returns (axes, signals) as tuples. ValueError names
-    the argument and the allowed range."""
+def check_axes_signals(axes: Sequence[str], signals: Sequence[str],
+                       known_axes: Sequence[str]) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """The axes and signals of a recorder request as tuples; ValueError names the allowed ones."""
     ax = tuple(axes)
     if not ax or any(a not in known_axes for a in ax) or len(set(ax)) != len(ax):
         raise ValueError(f"recorder axes {list(ax)}: give one or more of {', '.join(known_axes)} (each once)")
     sig = tuple(signals)
     if not sig or any(s not in SIGNALS for s in sig) or len(set(sig)) != len(sig):
         raise ValueError(f"recorder signals {list(sig)}: give one or more of {', '.join(SIGNALS)}")
+    return ax, sig
+
+
+def check_points(points: int, divider: int, *, capacity: int, name: str) -> None:
+    """ValueError naming the range when ``points`` or ``divider`` is outside it."""
     if not (isinstance(points, int) and 1 <= points <= capacity):
         raise ValueError(f"recorder points {points!r}: {name} records 1..{capacity} points per signal")
     if not (isinstance(divider, int) and 1 <= divider <= 2**31 - 1):
         raise ValueError(f"recorder divider {divider!r}: a whole number of clock ticks >= 1")
-    return ax, sig
 
 
 def time_axis(n: int, period_s: float) -> np.ndarray:
     """``k * period_s`` for k < n [s]."""
     return np.arange(n, dtype=np.float64) * float(period_s)
+
+
+class RecordingMismatch(ValueError):
+    """A recording that does not match the table that was played (length, trigger, values):
+    not to be learned from."""
+
+
+def align_to_table(rec: Recording, tables_V: Mapping[str, Sequence[float]], *, cycle: int = 0,
+                   tol_V: float = 0.005) -> Recording:
+    """The part of ``rec`` that recorded cycle ``cycle`` (0-based) of the wave ``tables_V``
+    (per axis [V], played at the recording's rate: one recorded point per table point),
+    checked: the recording holds the whole cycle, and for every axis whose output voltage was
+    recorded it equals the table within ``tol_V`` (the device's output resolution). The
+    result's ``t_s`` counts from that cycle's first point; ``y_nm[k]`` is the sensor at the
+    tick of table point k (the response to the points before it, see the module notes).
+
+    Raises :class:`RecordingMismatch` (a ``ValueError``) naming what differs: too few points,
+    or the voltage off the table — then with the shift (in points, within ±half a table)
+    that would match it, when one does: a trigger offset."""
+    lengths = {len(np.asarray(t)) for t in tables_V.values()}
+    if len(lengths) != 1 or 0 in lengths:
+        raise RecordingMismatch("tables_V: give one non-empty table per axis, all of one length")
+    n = lengths.pop()
+    first, last = cycle * n, (cycle + 1) * n
+    if cycle < 0 or len(rec) < last:
+        raise RecordingMismatch(f"recording {rec.source}: {len(rec)} points, cycle {cycle} of a {n}-point table "
+                                f"needs {last}")
+    for axis, table in tables_V.items():
+        if axis not in rec.u_V:
+            continue
+        want = np.asarray(table, dtype=np.float64)
+        got = np.asarray(rec.u_V[axis][first:last], dtype=np.float64)
+        err = np.abs(got - want)
+        if err.max() > tol_V:
+            k = int(np.argmax(err))
+            raise RecordingMismatch(f"recording {rec.source}: axis {axis}: the recorded output differs from the "
+                                    f"table by {err.max():.4g} V at point {k} (tolerance {tol_V:g} V)"
+                                    + _shift_hint(rec.u_V[axis], want, first, tol_V) + "; not learned from")
+    sl = slice(first, last)
+    return Recording(time_axis(n, rec.period_s), {a: v[sl].copy() for a, v in rec.y_nm.items()},
+                     {a: v[sl].copy() for a, v in rec.u_V.items()}, rec.period_s, rec.source)
+
+
+def _shift_hint(u_V: np.ndarray, table: np.ndarray, first: int, tol_V: float) -> str:
+    """", it matches N points later/earlier (trigger offset)" when a shift makes it match."""
+    n = len(table)
+    u = np.asarray(u_V, dtype=np.float64)
+    for shift in sorted(range(-(n // 2), n // 2 + 1), key=abs):
+        lo, hi = first + shift, first + shift + n
+        if shift and 0 <= lo and hi <= len(u) and np.abs(u[lo:hi] - table).max() <= tol_V:
+            return f"; it matches {abs(shift)} point(s) {'later' if shift > 0 else 'earlier'} (a trigger offset)"
+    return ""

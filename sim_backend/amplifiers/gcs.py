@@ -172,7 +172,7 @@ class SimGCS(SimDevice):
             if cmd in ("RTR?", "TNR?"):
                 return f"{r.rate if cmd == 'RTR?' else N_TABLES}\n".encode()
             if cmd in ("DRC?", "DRT?", "DRL?"):
-                ids = r._ids(args)
+                ids = r.ids(args)
                 if cmd == "DRL?":
                     now = self._sense_now()
                     return self._items([(str(t), str(r.recorded(t, now))) for t in ids])
@@ -190,7 +190,7 @@ class SimGCS(SimDevice):
         now = self._sense_now()
         if args and len(args) < 2:
             raise RecorderError(1)
-        tables = r._ids(args[2:]) if len(args) > 2 else [t for t, tab in r.tables.items() if tab.option]
+        tables = r.ids(args[2:]) if len(args) > 2 else [t for t, tab in r.tables.items() if tab.option]
         first = int(_num(args[0]) or 0) - 1 if args else 0
         have = min((r.recorded(t, now) for t in tables), default=0)
         want = int(_num(args[1]) or 0) if args else have

@@ -83,6 +83,8 @@ class DataRecorder:
                                 7 if t <= 2 * len(channels) else 0) for t in range(1, N_TABLES + 1)}
         #: the output voltage [V] per channel in force now
         self._held = {c: 0.0 for c in channels}
+        #: the tables whose recording still takes points
+        self._filling: list[Table] = []
 
     # -- what the controller tells it --
     def output_changed(self, t_s: float, volts: dict[str, float]) -> None:
@@ -96,9 +98,11 @@ class DataRecorder:
         self._fill(now_s, strict=False)
 
     def _fill(self, t_s: float, strict: bool) -> None:
+        if not self._filling:           # nothing records: the common case, kept cheap
+            return
         period = self.rate * self.servo_cycle_s
-        for tab in self.tables.values():
-            if tab.t0_s is None or tab.filled >= self.max_points:
+        for tab in self._filling:
+            if tab.filled >= self.max_points:
                 continue
             x = (t_s - tab.t0_s) / period
             last = math.ceil(x - 1e-9) - 1 if strict else math.floor(x + 1e-9)
@@ -106,6 +110,7 @@ class DataRecorder:
             if upto > tab.filled:
                 tab.volts[tab.filled:upto] = self._held[tab.source]
                 tab.filled = upto
+        self._filling = [t for t in self._filling if t.filled < self.max_points]
 
     def event(self, kind: str, now_s: float) -> None:
         """A command that may trigger: ``"wgo"`` (a generator starts: ``now_s`` is its tick),
@@ -131,6 +136,7 @@ class DataRecorder:
                 tab.capture.cancel()
             tab.t0_s, tab.capture = t0, capture if tab.option in (2, 3) else None
             tab.volts, tab.filled = np.zeros(self.max_points), 0
+        self._filling = [t for t in self.tables.values() if t.t0_s is not None and t.filled < self.max_points]
 
     # -- host commands --
     def drc(self, args: list[str]) -> None:
@@ -167,7 +173,7 @@ class DataRecorder:
         """DRT ... 4: the tables set to trigger "immediately" start now."""
         self._start([t for t in self.tables.values() if t.trigger == 4 and t.option], now_s)
 
-    def _ids(self, args: list[str]) -> list[int]:
+    def ids(self, args: list[str]) -> list[int]:
         ids = [_int(a) for a in args] or list(self.tables)
         if any(t not in self.tables for t in ids):
             raise RecorderError(17)
