@@ -45,17 +45,21 @@ from .base import ModelError
 from .dynamics_limits import rate_limit
 from .learning_laws import Increment, model_based_increment, model_free_increment
 from .learning_spectra import Grid, estimate_lag_samples
-from .learning_weights import error_figures, error_weights, find_lines
+from .learning_weights import error_figures, error_weights, find_lines, rounded_reference
 
 log = logging.getLogger(__name__)
 
 LAWS = ("model", "model-free")
+#: default largest step size per law: the model-based law measures the model's error and
+#: sizes its steps from it; the model-free estimate of a hysteretic plant's response is
+#: rougher (benchmarks/learning.py: ρ = 1 oscillates, 0.7 converges in about 8 steps)
+DEFAULT_STEP = {"model": 1.0, "model-free": 0.7}
 
 
 @dataclass(frozen=True)
 class LearnSettings:
-    """How the learner learns. ``rho_max``: largest step size (1 = a full model-inverse
-    step); ``q_cutoff_Hz``: the Q-filter's cut-off (None: the model's band limit, or the
+    """How the learner learns. ``rho_max``: largest step size (1 = a full inverse step;
+    None: :data:`DEFAULT_STEP` of the law); ``q_cutoff_Hz``: the Q-filter's cut-off (None: the model's band limit, or the
     highest frequency the sent voltages excite without a model); ``central_pct``: the
     weighted share of each raster line [%] (100: no weighting); ``lines_only``: weight 0
     off the lines; ``periodic``: the table is played cyclically and recorded in steady
@@ -65,7 +69,7 @@ class LearnSettings:
     the weighted error energy beyond it that stops learning; ``align``: shift the
     recording by the estimated lag."""
 
-    rho_max: float = 1.0
+    rho_max: float | None = None
     q_cutoff_Hz: float | None = None
     central_pct: float = 90.0
     lines_only: bool = False
@@ -77,10 +81,11 @@ class LearnSettings:
     phase_limit_deg: float = 90.0
     stall_share: float = 0.5
     align: bool = False
+    turnaround_weight: float = 1.0
 
     def check(self) -> None:
         """:class:`ModelError` naming the first setting out of its range."""
-        checks = [("rho_max", 0 < self.rho_max <= 2, "0 < rho_max ≤ 2"),
+        checks = [("rho_max", self.rho_max is None or 0 < self.rho_max <= 2, "0 < rho_max ≤ 2"),
                   ("q_cutoff_Hz", self.q_cutoff_Hz is None or self.q_cutoff_Hz > 0, "> 0 Hz"),
                   ("central_pct", 0 < self.central_pct <= 100, "0 < central_pct ≤ 100 %"),
                   ("u_min_V/u_max_V", self.u_min_V < self.u_max_V, "u_min_V < u_max_V"),
@@ -199,7 +204,9 @@ class Learner:
         self.settings = settings or LearnSettings()
         self.settings.check()
         self.lines = find_lines(self.target_nm)
-        self.weights = error_weights(self.target_nm, self.settings.central_pct, self.settings.lines_only, self.lines)
+        w = error_weights(self.target_nm, self.settings.central_pct, self.settings.lines_only, self.lines)
+        self.reference_nm = rounded_reference(self.target_nm, w, self.lines)
+        self.weights = np.where(w > 0, 1.0, self.settings.turnaround_weight if self.lines else 0.0)
         self.grid = Grid.for_record(self.target_nm.size, self.dt_s, self.settings.periodic)
         self.digest = target_digest(self.target_nm, self.dt_s)
         if state is not None and state.target_digest != self.digest:
@@ -232,8 +239,8 @@ class Learner:
         if aligned:
             y = _shift(y, -int(round(lag)), s.periodic)
         errors = error_figures(y, self.target_nm, self.lines)
-        e = self.target_nm - y
-        metric = _weighted_max_pct(e, self.weights, self.target_nm, self.lines)
+        e = self.reference_nm - y
+        metric = _weighted_max_pct(e, self.weights >= 1.0, self.target_nm, self.lines)
         previous = self._previous()
         stop_reason = self._record(u, y, errors, metric)
         inc = self._increment(u, y, e * self.weights, previous)
@@ -301,10 +308,10 @@ class Learner:
     def _increment(self, u: np.ndarray, y: np.ndarray, werr: np.ndarray,
                    previous: tuple[np.ndarray, np.ndarray] | None) -> Increment:
         s = self.settings
+        rho = s.rho_max if s.rho_max is not None else DEFAULT_STEP[self.law]
         if self.model is None:
-            return model_free_increment(self.grid, u, y, werr, s.rho_max, s.q_cutoff_Hz)
-        return model_based_increment(self.grid, self.model, self.dt_s, u, y, werr, s.rho_max, s.q_cutoff_Hz,
-                                     previous)
+            return model_free_increment(self.grid, u, y, werr, rho, s.q_cutoff_Hz, previous)
+        return model_based_increment(self.grid, self.model, self.dt_s, u, y, werr, rho, s.q_cutoff_Hz, previous)
 
     def _phase_check(self, inc: Increment, werr: np.ndarray) -> tuple[float, float, bool]:
         """(largest measured phase error [°] at a learned harmonic, its frequency [Hz],

@@ -29,8 +29,16 @@ zero-phase Q-filter and ``ρ`` the step size. With the true response ``G = Ĝ·R
 * :func:`model_free_increment` — no model: ``Ĝ_k = Y_k / U_k`` from this iteration's own
   sent voltages and measured motion (Kim & Zou, "Model-less inversion-based iterative
   control", IEEE/ASME Trans. Mechatronics 2013; here the smoothed H1 ratio of the
-  differenced signals), the DC gain from a straight-line fit of the motion on the
-  voltages (the linear calibration); bins the voltages do not excite are not learned.
+  differenced signals), replaced from the second iteration on, wherever the last change
+  of the table excites a bin, by the secant
+
+      Ĝ_k(jω) = (y_k − y_{k−1})(jω) / (u_k − u_{k−1})(jω)                               (3)
+
+  — the response to a *change*, which is what the learning relies on: the harmonics that
+  hysteresis adds to ``Y_k`` are no response of a linear system to ``U_k`` at that
+  frequency, but to a small change they respond nearly linearly (the local slope of the
+  branch). The DC gain comes from a straight-line fit of the motion on the voltages (the
+  linear calibration); bins above the highest excited one are not learned.
 """
 from __future__ import annotations
 
@@ -43,6 +51,8 @@ from .learning_spectra import Grid, interpolate_unreliable, smoothed_ratio, zero
 
 #: a secant bin is measured when its windowed change is at least this fraction of the peak
 SECANT_RELIABLE = 1e-3
+#: the model-free Q-filter cuts where |Ĝ| has rolled off to this fraction of its DC gain
+ROLL_OFF = 0.3
 #: regularisation of Ĝ⁻¹: |Ĝ|² + (λ·|Ĝ(0)|)² in the denominator
 REGULARISATION = 1e-3
 
@@ -118,19 +128,42 @@ def _predict(dyn, x: np.ndarray, dt_s: float, periodic: bool) -> np.ndarray:
 
 
 def model_free_increment(grid: Grid, sent_V: np.ndarray, measured_nm: np.ndarray, werr_nm: np.ndarray,
-                         rho_max: float, q_cutoff_Hz: float | None) -> Increment:
-    """Law (1) with ``Ĝ_k`` estimated from this iteration (module docstring)."""
-    g, reliable = smoothed_ratio(grid.diff_spectrum(measured_nm), grid.diff_spectrum(sent_V), grid.f_Hz)
+                         rho_max: float, q_cutoff_Hz: float | None,
+                         previous: tuple[np.ndarray, np.ndarray] | None = None) -> Increment:
+    """Law (1) with ``Ĝ_k`` estimated from the iterations themselves (module docstring):
+    the secant ``Δy/Δu`` between the last two iterations (3) where their change excites a
+    bin, else this iteration's ``Y_k/U_k``; the DC gain from the linear calibration."""
+    f = grid.f_Hz
+    g, reliable = smoothed_ratio(grid.diff_spectrum(measured_nm), grid.diff_spectrum(sent_V), f)
+    if previous is not None:
+        g_sec, rel_sec = smoothed_ratio(grid.diff_spectrum(measured_nm - previous[1]),
+                                        grid.diff_spectrum(sent_V - previous[0]), f, threshold=SECANT_RELIABLE)
+        g = np.where(rel_sec, g_sec, g)
+        reliable = reliable | rel_sec
     gain, offset = calibration(sent_V, measured_nm)
     g[0], reliable[0] = gain, True
-    top = float(grid.f_Hz[np.flatnonzero(reliable)[-1]])
-    cutoff = top if q_cutoff_Hz is None else min(q_cutoff_Hz, top)
+    top = float(f[np.flatnonzero(reliable)[-1]])
     g = interpolate_unreliable(g, reliable)
-    q = zero_phase_q(grid.f_Hz, cutoff) * (grid.f_Hz <= top)
-    rho = np.full(grid.f_Hz.size, float(rho_max))
+    cutoff = min(top, roll_off_Hz(f, g, reliable)) if q_cutoff_Hz is None else min(q_cutoff_Hz, top)
+    q = zero_phase_q(f, cutoff) * (f <= top)
+    rho = np.full(f.size, float(rho_max))
     du = grid.apply(q * rho * _regularised_inverse(g), werr_nm)
-    ratio = np.ones(grid.f_Hz.size, dtype=complex)
+    ratio = np.ones(f.size, dtype=complex)
     return Increment(du, rho, ratio, reliable, cutoff, gain * np.asarray(sent_V) + offset)
+
+
+def roll_off_Hz(f_Hz: np.ndarray, g: np.ndarray, reliable: np.ndarray) -> float:
+    """The model-free Q cut-off: the first reliable frequency above the response's peak
+    where ``|Ĝ|`` falls below :data:`ROLL_OFF` of its DC value — above it the scanner
+    barely responds, a learning step there needs large voltages, and the estimate of a
+    small response is the least certain (inf when it never does)."""
+    mag = np.abs(g)
+    idx = np.flatnonzero(reliable & (f_Hz > 0))
+    if idx.size == 0:
+        return math.inf
+    peak = idx[int(np.argmax(mag[idx]))]
+    below = idx[(idx > peak) & (mag[idx] < ROLL_OFF * mag[0])]
+    return float(f_Hz[below[0]]) if below.size else math.inf
 
 
 def calibration(u_V: np.ndarray, y_nm: np.ndarray) -> tuple[float, float]:

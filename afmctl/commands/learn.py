@@ -95,8 +95,9 @@ def register_step(sub: argparse._SubParsersAction) -> None:
                    help="voltage range [V] (default: the model's range, else 0..150 V)")
     p.add_argument("--slew-V-per-s", type=float, metavar="S", help="amplifier slew limit [V/s]")
     p.add_argument("--state", metavar="STATE.json", help="iteration state file (created if missing)")
-    p.add_argument("--step-size", type=float, default=1.0, metavar="RHO",
-                   help="largest step size ρ, 0 < ρ ≤ 2 (default 1: a full inverse step)")
+    p.add_argument("--step-size", type=float, metavar="RHO",
+                   help="largest step size ρ, 0 < ρ ≤ 2 (default 1 with --model: a full inverse step, sized down "
+                        "per harmonic from the model's measured error; 0.7 without)")
     p.add_argument("--q-cutoff-Hz", type=float, metavar="HZ",
                    help="Q-filter cut-off [Hz] (default: the model's band limit; model-free: what the data excite)")
     p.add_argument("--central-pct", type=float, default=90.0, metavar="P",
