@@ -86,37 +86,46 @@ def step_size(ratio: np.ndarray, rho_max: float) -> np.ndarray:
     return np.clip(np.cos(np.angle(ratio)) / mag, 0.0, rho_max)
 
 
-def model_based_increment(grid: Grid, chain, dt_s: float, sent_V: np.ndarray, measured_nm: np.ndarray,
-                          werr_nm: np.ndarray, rho_max: float, q_cutoff_Hz: float | None,
-                          previous: tuple[np.ndarray, np.ndarray] | None = None) -> Increment:
+def model_based_increment(grid: Grid, chain, dt_s: float, base: tuple[np.ndarray, np.ndarray], werr_nm: np.ndarray,
+                          rho_max: float, q_cutoff_Hz: float | None,
+                          secant: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+                          known: tuple[np.ndarray, np.ndarray] | None = None) -> Increment:
     """Law (1) with the chain ``chain`` (a :class:`~afmctl.compensators.chain.ChainModel`
-    or any static hysteresis model: ``forward``/``inverse`` u [V] ↔ y [nm]) as ``Ĝ``.
-    ``previous``: the table sent and the motion measured one iteration earlier; the
-    model's error ``R`` is then measured as the secant ratio (2) of the module docstring,
-    else taken as 1 (the model trusted)."""
+    or any static hysteresis model: ``forward``/``inverse`` u [V] ↔ y [nm]) as ``Ĝ``,
+    applied to the table ``base = (u [V], y [nm])`` with its weighted error ``werr_nm``.
+    ``secant = (u_a, y_a, u_b, y_b)``: two tables and their recordings, from which the
+    model's error ``R`` is measured (2) where their difference excites a bin; ``known =
+    (R, mask)``: what earlier iterations measured (kept where not measured anew). Bins
+    never measured take ``R = 1`` (the model trusted). The returned ``ratio`` and
+    ``reliable`` are the updated knowledge."""
     dyn = getattr(chain, "dynamics", None)
     static_fwd, static_inv = _static_ops(chain, dt_s)
-    x = periodic_run(static_fwd, sent_V, grid.periodic)
+    periodic = grid.periodic
+
+    def predict(u: np.ndarray) -> np.ndarray:
+        return _predict(dyn, periodic_run(static_fwd, u, periodic), dt_s, periodic)
+
     if dyn is not None:
         d_hat = dyn.discrete(dt_s).frequency_response(grid.f_Hz)
         cutoff = dyn.inverse_bandwidth_Hz(dt_s) if q_cutoff_Hz is None else q_cutoff_Hz
     else:
         d_hat = np.ones(grid.f_Hz.size, dtype=complex)
         cutoff = 0.45 / dt_s if q_cutoff_Hz is None else q_cutoff_Hz
-    y_hat = _predict(dyn, x, dt_s, grid.periodic)
     ratio = np.ones(grid.f_Hz.size, dtype=complex)
     reliable = np.zeros(grid.f_Hz.size, dtype=bool)
-    if previous is not None:
-        y_prev = _predict(dyn, periodic_run(static_fwd, previous[0], grid.periodic), dt_s, grid.periodic)
-        r, reliable = smoothed_ratio(grid.diff_spectrum(measured_nm - previous[1]), grid.diff_spectrum(y_hat - y_prev),
-                                     grid.f_Hz, threshold=SECANT_RELIABLE)
-        ratio[reliable] = r[reliable]
+    if known is not None:
+        ratio[known[1]], reliable = known[0][known[1]], known[1].copy()
+    if secant is not None:
+        u_a, y_a, u_b, y_b = secant
+        r, rel = smoothed_ratio(grid.diff_spectrum(y_a - y_b), grid.diff_spectrum(predict(u_a) - predict(u_b)),
+                                grid.f_Hz, threshold=SECANT_RELIABLE)
+        ratio[rel], reliable = r[rel], reliable | rel
     rho = step_size(ratio, rho_max)
-    q = zero_phase_q(grid.f_Hz, cutoff)
-    filt = q * rho * _regularised_inverse(d_hat)
+    filt = zero_phase_q(grid.f_Hz, cutoff) * rho * _regularised_inverse(d_hat)
+    x = periodic_run(static_fwd, base[0], periodic)
     dx = grid.apply(filt, werr_nm)
-    du = periodic_run(static_inv, x + dx, grid.periodic) - periodic_run(static_inv, x, grid.periodic)
-    return Increment(du, rho, ratio, reliable, float(cutoff), y_hat)
+    du = periodic_run(static_inv, x + dx, periodic) - periodic_run(static_inv, x, periodic)
+    return Increment(du, rho, ratio, reliable, float(cutoff), _predict(dyn, x, dt_s, periodic))
 
 
 def _predict(dyn, x: np.ndarray, dt_s: float, periodic: bool) -> np.ndarray:
