@@ -67,7 +67,9 @@ class LearnSettings:
     ``max_rises``: iterations of rising error in a row that stop learning;
     ``phase_limit_deg``: the convergence check's bound; ``stall_share``: the share of
     the weighted error energy beyond it that stops learning; ``align``: shift the
-    recording by the estimated lag."""
+    recording by the estimated lag; ``turnaround_weight``: the weight of the error in the
+    turnaround zones, where the target is replaced by its rounded copy
+    (:func:`~afmctl.compensators.learning_weights.rounded_reference`)."""
 
     rho_max: float | None = None
     q_cutoff_Hz: float | None = None
@@ -92,7 +94,8 @@ class LearnSettings:
                   ("slew_V_per_s", self.slew_V_per_s is None or self.slew_V_per_s > 0, "> 0 V/s"),
                   ("max_rises", self.max_rises >= 1, "≥ 1"),
                   ("phase_limit_deg", 0 < self.phase_limit_deg <= 180, "0 … 180°"),
-                  ("stall_share", 0 < self.stall_share <= 1, "0 < stall_share ≤ 1")]
+                  ("stall_share", 0 < self.stall_share <= 1, "0 < stall_share ≤ 1"),
+                  ("turnaround_weight", 0 <= self.turnaround_weight <= 1, "0 … 1")]
         for name, ok, allowed in checks:
             if not ok:
                 raise ModelError(f"learning setting {name}: {getattr(self, name.split('/')[0])!r}; allowed {allowed}")
@@ -245,6 +248,8 @@ class Learner:
         resampled onto the target's samples."""
         u = self._samples("sent_V", sent_V)
         y = self._samples("measured_nm", measured_nm)
+        if self.state.stopped:
+            return self._stopped_result(u, y)
         s = self.settings
         ref = self._reference(u)
         lag = estimate_lag_samples(ref, y, max(1, self.target_nm.size // 10))
@@ -278,6 +283,17 @@ class Learner:
                            float(np.max(np.abs(du))), float(np.sqrt(np.mean(du * du))), clipped, limited,
                            float(np.median(inc.rho[learned])) if np.any(learned) else 0.0, inc.q_cutoff_Hz,
                            phase_deg, phase_f, self.state.stopped, self.state.reason, self.state.best_iteration)
+
+    def _stopped_result(self, u: np.ndarray, y: np.ndarray) -> LearnResult:
+        """After a stop: the best table again, nothing learned, nothing recorded."""
+        st = self.state
+        best = np.asarray(st.best_u_V if st.best_u_V is not None else u, dtype=float)
+        errors = error_figures(y, self.target_nm, self.lines)
+        metric = _weighted_max_pct(self.reference_nm - y, self.weights >= 1.0, self.target_nm, self.lines)
+        du = best - u
+        return LearnResult(best, st.iteration, self.law, errors, metric, 0.0, False, float(np.max(np.abs(du))),
+                           float(np.sqrt(np.mean(du * du))), 0, 0, 0.0, math.nan, 0.0, 0.0, True, st.reason,
+                           st.best_iteration)
 
     # ------------------------------------------------------------------ parts of a step
     def _samples(self, name: str, x: np.ndarray) -> np.ndarray:
