@@ -43,7 +43,7 @@ import numpy as np
 
 from .base import ModelError
 from .dynamics_limits import rate_limit
-from .learning_laws import Increment, model_based_increment, model_free_increment
+from .learning_laws import Increment, model_based_increment, model_free_increment, periodic_run
 from .learning_spectra import Grid, estimate_lag_samples
 from .learning_weights import error_figures, error_weights, find_lines, rounded_reference
 
@@ -310,7 +310,6 @@ class Learner:
         if self.model is None:
             return self.target_nm
         try:
-            from .learning_laws import periodic_run
             return periodic_run(lambda: self.model.forward(self.dt_s), u, self.settings.periodic)
         except ModelError:
             return self.target_nm

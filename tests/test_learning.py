@@ -225,6 +225,22 @@ def test_lag_estimate_finds_a_shift_to_a_fraction_of_a_sample():
         assert estimate_lag_samples(ref, rec, 100) == pytest.approx(shift, abs=0.2)
 
 
+def test_a_trigger_offset_is_estimated_reported_and_with_align_removed(plant, chain):
+    tgt = raster(lines=2)
+    u = chain.inverse_within_limits(tgt, DT, 0.0, 150.0, SLEW).u_V
+    y = plant.run(u)
+    late = np.concatenate([np.full(6, y[0]), y[:-6]])           # the recorder started 6 samples late
+    base = LearnSettings(u_min_V=0.0, u_max_V=150.0)
+    on_time = Learner(tgt, DT, chain, base).step(u, y)
+    reported = Learner(tgt, DT, chain, base).step(u, late)
+    assert reported.lag_samples == pytest.approx(on_time.lag_samples + 6, abs=0.5) and not reported.aligned
+    fixed = Learner(tgt, DT, chain, LearnSettings(u_min_V=0.0, u_max_V=150.0, align=True)).step(u, late)
+    assert fixed.aligned and fixed.lag_samples == pytest.approx(reported.lag_samples)
+    k = int(round(fixed.lag_samples))
+    back = np.concatenate([late[k:], np.full(k, late[-1])])    # what the learner learned from
+    assert fixed.errors == pytest.approx(error_figures(back, tgt))
+
+
 def test_grid_filters_like_linear_and_circular_convolution():
     rng = np.random.default_rng(0)
     x = rng.normal(size=300)

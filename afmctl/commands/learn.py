@@ -74,10 +74,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sub = p.add_subparsers(dest="learn_verb", metavar="SUBCOMMAND")
     for reg in SUBCOMMANDS.values():
         reg(sub)
+    # the device loop ('afmctl learn --config RUN.toml --iterations N --out LEARNED.afmwave') adds its
+    # options to this parser and replaces _no_subcommand: without a subcommand, learn runs on the device
     p.set_defaults(func=lambda args: _no_subcommand(p))
 
 
 def _no_subcommand(p: argparse.ArgumentParser) -> int:
+    """``afmctl learn`` without a subcommand: its help (the device loop is not built yet)."""
     p.print_help()
     return 0
 
@@ -147,6 +150,8 @@ def _check_table(u, settings, dt_s: float) -> None:
 
 
 def _print_result(res, settings, source: str, inputs, args) -> None:
+    import math
+
     e = res.errors
     print(f"iteration        : {res.iteration} ({'model-based, ' + args.model if res.law == 'model' else 'model-free'})")
     print(f"error (sent)     : max {e['max_pct']:.3g} % / RMS {e['rms_pct']:.3g} % of the span (whole file)")
@@ -156,9 +161,10 @@ def _print_result(res, settings, source: str, inputs, args) -> None:
     lag_us = res.lag_samples * inputs.dt_s * 1e6
     print(f"recording lag    : {res.lag_samples:+.2f} samples ({lag_us:+.4g} µs) behind the "
           f"{'prediction' if res.law == 'model' else 'target'}" + ("; shifted back (--align)" if res.aligned else ""))
-    print(f"learning         : step size ρ median {res.rho_median:.3g}, Q-filter cut-off {res.q_cutoff_Hz:.4g} Hz"
-          + (f", largest phase error {res.phase_error_deg:.0f}° at {res.phase_error_f_Hz:.4g} Hz"
-             if res.law == "model" else ""))
+    if math.isfinite(res.q_cutoff_Hz):
+        print(f"learning         : step size ρ median {res.rho_median:.3g}, Q-filter cut-off {res.q_cutoff_Hz:.4g} Hz"
+              + (f", largest phase error {res.phase_error_deg:.0f}° at {res.phase_error_f_Hz:.4g} Hz"
+                 if res.law == "model" else ""))
     print(f"changed          : max {res.du_max_V:.4g} V, RMS {res.du_rms_V:.4g} V; {res.clipped} samples clipped, "
           f"{res.slew_limited} slew-limited")
     print(f"limits           : {settings.u_min_V:g} .. {settings.u_max_V:g} V ({source})"
