@@ -19,7 +19,7 @@ from afmctl.compensators.learning import Learner, LearnSettings, LearnState
 from afmctl.compensators.learning_spectra import Grid, estimate_lag_samples
 from afmctl.compensators.learning_weights import error_figures, error_weights, find_lines
 from afmctl.compensators.pi import PIModel
-from afmctl.datafiles import read_csv, write_csv
+from afmctl.data.datafiles import read_csv, write_csv
 from plants import triangle
 
 DT = 1e-4

@@ -120,8 +120,8 @@ SUBCOMMANDS: dict[str, Callable[[argparse._SubParsersAction], None]] = {"step": 
 def run_step(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from ..datafiles import write_csv
-    from ..learnfiles import load_inputs, load_state, save_state, settings_from_args
+    from ..data.datafiles import write_csv
+    from ..data.learnfiles import load_inputs, load_state, save_state, settings_from_args
     from afmctl.compensators.learning import Learner
 
     inputs = load_inputs(args)

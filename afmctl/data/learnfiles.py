@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from .datafiles import read_csv, uniform_period
-from .errors import AfmctlError
+from ..errors import AfmctlError
 
 #: limits when neither --limits nor the model file gives a voltage range [V]
 FALLBACK_LIMITS_V = (0.0, 150.0)
