@@ -41,7 +41,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from afmctl.compensators.dynamics_limits import rate_limit  # noqa: E402
 from afmctl.compensators.learning_weights import error_figures  # noqa: E402
 from afmctl.compensators.models import load_model, save_model  # noqa: E402
-from afmctl.datafiles import read_csv, write_csv  # noqa: E402
+from afmctl.data.datafiles import read_csv, write_csv  # noqa: E402
 from afmctl.sim_backend.scanner import default_scanner_config  # noqa: E402
 from sections import write_section  # noqa: E402  (benchmarks/sections.py)
 from speed_ladder import cli  # noqa: E402

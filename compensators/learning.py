@@ -43,19 +43,23 @@ import numpy as np
 
 from .base import ModelError
 from .dynamics_limits import rate_limit
-from .learning_laws import Increment, model_based_increment, model_free_increment
+from .learning_laws import Increment, model_based_increment, model_free_increment, periodic_run
 from .learning_spectra import Grid, estimate_lag_samples
-from .learning_weights import error_figures, error_weights, find_lines
+from .learning_weights import error_figures, error_weights, find_lines, rounded_reference
 
 log = logging.getLogger(__name__)
 
 LAWS = ("model", "model-free")
+#: default largest step size per law: the model-based law measures the model's error and
+#: sizes its steps from it; the model-free estimate of a hysteretic plant's response is
+#: rougher (benchmarks/learning.py: ρ = 1 oscillates, 0.7 converges in about 8 steps)
+DEFAULT_STEP = {"model": 1.0, "model-free": 0.7}
 
 
 @dataclass(frozen=True)
 class LearnSettings:
-    """How the learner learns. ``rho_max``: largest step size (1 = a full model-inverse
-    step); ``q_cutoff_Hz``: the Q-filter's cut-off (None: the model's band limit, or the
+    """How the learner learns. ``rho_max``: largest step size (1 = a full inverse step;
+    None: :data:`DEFAULT_STEP` of the law); ``q_cutoff_Hz``: the Q-filter's cut-off (None: the model's band limit, or the
     highest frequency the sent voltages excite without a model); ``central_pct``: the
     weighted share of each raster line [%] (100: no weighting); ``lines_only``: weight 0
     off the lines; ``periodic``: the table is played cyclically and recorded in steady
@@ -63,9 +67,11 @@ class LearnSettings:
     ``max_rises``: iterations of rising error in a row that stop learning;
     ``phase_limit_deg``: the convergence check's bound; ``stall_share``: the share of
     the weighted error energy beyond it that stops learning; ``align``: shift the
-    recording by the estimated lag."""
+    recording by the estimated lag; ``turnaround_weight``: the weight of the error in the
+    turnaround zones, where the target is replaced by its rounded copy
+    (:func:`~afmctl.compensators.learning_weights.rounded_reference`)."""
 
-    rho_max: float = 1.0
+    rho_max: float | None = None
     q_cutoff_Hz: float | None = None
     central_pct: float = 90.0
     lines_only: bool = False
@@ -77,17 +83,19 @@ class LearnSettings:
     phase_limit_deg: float = 90.0
     stall_share: float = 0.5
     align: bool = False
+    turnaround_weight: float = 1.0
 
     def check(self) -> None:
         """:class:`ModelError` naming the first setting out of its range."""
-        checks = [("rho_max", 0 < self.rho_max <= 2, "0 < rho_max ≤ 2"),
+        checks = [("rho_max", self.rho_max is None or 0 < self.rho_max <= 2, "0 < rho_max ≤ 2"),
                   ("q_cutoff_Hz", self.q_cutoff_Hz is None or self.q_cutoff_Hz > 0, "> 0 Hz"),
                   ("central_pct", 0 < self.central_pct <= 100, "0 < central_pct ≤ 100 %"),
                   ("u_min_V/u_max_V", self.u_min_V < self.u_max_V, "u_min_V < u_max_V"),
                   ("slew_V_per_s", self.slew_V_per_s is None or self.slew_V_per_s > 0, "> 0 V/s"),
                   ("max_rises", self.max_rises >= 1, "≥ 1"),
                   ("phase_limit_deg", 0 < self.phase_limit_deg <= 180, "0 … 180°"),
-                  ("stall_share", 0 < self.stall_share <= 1, "0 < stall_share ≤ 1")]
+                  ("stall_share", 0 < self.stall_share <= 1, "0 < stall_share ≤ 1"),
+                  ("turnaround_weight", 0 <= self.turnaround_weight <= 1, "0 … 1")]
         for name, ok, allowed in checks:
             if not ok:
                 raise ModelError(f"learning setting {name}: {getattr(self, name.split('/')[0])!r}; allowed {allowed}")
@@ -101,7 +109,8 @@ class LearnState:
     weighted error), ``rises`` (iterations of rising error in a row), ``stopped`` and
     ``reason``, ``target_digest`` (which target it belongs to), and the last iteration's
     table and recording ``previous_u_V``/``previous_y_nm`` (for the secant estimate of
-    the model's error)."""
+    the model's error), ``best_y_nm`` (the best table's recording), and the model's error
+    ``R`` measured so far on bins ``ratio_bins`` (``ratio_re`` + j ``ratio_im``)."""
 
     target_digest: str
     iteration: int = 0
@@ -114,6 +123,10 @@ class LearnState:
     reason: str = ""
     previous_u_V: list[float] | None = None
     previous_y_nm: list[float] | None = None
+    best_y_nm: list[float] | None = None
+    ratio_bins: list[int] = field(default_factory=list)
+    ratio_re: list[float] = field(default_factory=list)
+    ratio_im: list[float] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -125,7 +138,7 @@ class LearnState:
         """From :meth:`to_dict`'s output; :class:`ModelError` naming a bad field."""
         try:
             best = d.get("best_u_V")
-            prev_u, prev_y = d.get("previous_u_V"), d.get("previous_y_nm")
+            prev_u, prev_y, best_y = d.get("previous_u_V"), d.get("previous_y_nm"), d.get("best_y_nm")
             state = cls(target_digest=str(d["target_digest"]), iteration=int(d.get("iteration", 0)),
                         history=[{str(k): float(v) for k, v in h.items()} for h in d.get("history", [])],
                         best_u_V=None if best is None else [float(v) for v in best],
@@ -133,10 +146,16 @@ class LearnState:
                         best_iteration=int(d.get("best_iteration", -1)), rises=int(d.get("rises", 0)),
                         stopped=bool(d.get("stopped", False)), reason=str(d.get("reason", "")),
                         previous_u_V=None if prev_u is None else [float(v) for v in prev_u],
-                        previous_y_nm=None if prev_y is None else [float(v) for v in prev_y])
+                        previous_y_nm=None if prev_y is None else [float(v) for v in prev_y],
+                        best_y_nm=None if best_y is None else [float(v) for v in best_y],
+                        ratio_bins=[int(v) for v in d.get("ratio_bins", [])],
+                        ratio_re=[float(v) for v in d.get("ratio_re", [])],
+                        ratio_im=[float(v) for v in d.get("ratio_im", [])])
+            if not len(state.ratio_bins) == len(state.ratio_re) == len(state.ratio_im):
+                raise ValueError("ratio_bins, ratio_re and ratio_im differ in length")
         except (KeyError, TypeError, ValueError, AttributeError) as err:
             raise ModelError(f"learning state: {err!r} is missing or malformed; delete the state file to start afresh") from None
-        for name in ("best_u_V", "previous_u_V", "previous_y_nm"):
+        for name in ("best_u_V", "previous_u_V", "previous_y_nm", "best_y_nm", "ratio_re", "ratio_im"):
             v = getattr(state, name)
             if v is not None and not np.all(np.isfinite(v)):
                 raise ModelError(f"learning state: {name} holds non-finite values; delete the state file")
@@ -199,13 +218,17 @@ class Learner:
         self.settings = settings or LearnSettings()
         self.settings.check()
         self.lines = find_lines(self.target_nm)
-        self.weights = error_weights(self.target_nm, self.settings.central_pct, self.settings.lines_only, self.lines)
+        w = error_weights(self.target_nm, self.settings.central_pct, self.settings.lines_only, self.lines)
+        self.reference_nm = rounded_reference(self.target_nm, w, self.lines)
+        self.weights = np.where(w > 0, 1.0, self.settings.turnaround_weight if self.lines else 0.0)
         self.grid = Grid.for_record(self.target_nm.size, self.dt_s, self.settings.periodic)
         self.digest = target_digest(self.target_nm, self.dt_s)
         if state is not None and state.target_digest != self.digest:
             raise ModelError("learning state: it belongs to another target or sample period; delete it or give "
                              "another state file")
-        for name in ("best_u_V", "previous_u_V", "previous_y_nm"):
+        if state is not None and any(b < 0 or b >= self.grid.f_Hz.size for b in state.ratio_bins):
+            raise ModelError("learning state: ratio_bins outside the frequency grid of this target")
+        for name in ("best_u_V", "previous_u_V", "previous_y_nm", "best_y_nm"):
             v = None if state is None else getattr(state, name)
             if v is not None and len(v) != self.target_nm.size:
                 raise ModelError(f"learning state: {name} has another length than the target")
@@ -225,6 +248,8 @@ class Learner:
         resampled onto the target's samples."""
         u = self._samples("sent_V", sent_V)
         y = self._samples("measured_nm", measured_nm)
+        if self.state.stopped:
+            return self._stopped_result(u, y)
         s = self.settings
         ref = self._reference(u)
         lag = estimate_lag_samples(ref, y, max(1, self.target_nm.size // 10))
@@ -232,30 +257,43 @@ class Learner:
         if aligned:
             y = _shift(y, -int(round(lag)), s.periodic)
         errors = error_figures(y, self.target_nm, self.lines)
-        e = self.target_nm - y
-        metric = _weighted_max_pct(e, self.weights, self.target_nm, self.lines)
+        e = self.reference_nm - y
+        metric = _weighted_max_pct(e, self.weights >= 1.0, self.target_nm, self.lines)
         previous = self._previous()
         stop_reason = self._record(u, y, errors, metric)
-        inc = self._increment(u, y, e * self.weights, previous)
-        self._last = inc
-        phase_deg, phase_f, stalled = self._phase_check(inc, e * self.weights)
+        base = self._base(u, y)
+        werr = (self.reference_nm - base[1]) * self.weights
+        inc = self._increment(base, werr, (u, y) + previous if previous else None)
+        self._remember(inc)
+        phase_deg, phase_f, stalled = self._phase_check(inc, werr)
         if not stop_reason and stalled:
             stop_reason = (f"the model's phase error is {phase_deg:.0f}° (over {s.phase_limit_deg:g}°) at "
-                           f"{phase_f:.4g} Hz, where most of the remaining error lies: the model-based law cannot "
-                           "converge there (re-identify the model, or learn without --model)")
+                           f"{phase_f:.4g} Hz, and most of the remaining error lies where it is: the model-based law "
+                           "cannot converge there (re-identify the model, or learn without --model)")
         if stop_reason:
             self.state.stopped, self.state.reason = True, self.state.reason or stop_reason
         if self.state.stopped:
             nxt = np.asarray(self.state.best_u_V, dtype=float)
             clipped = limited = 0
         else:
-            nxt, clipped, limited = self._within_limits(u + inc.du_V)
+            nxt, clipped, limited = self._within_limits(base[0] + inc.du_V)
         du = nxt - u
         learned = inc.reliable & (inc.rho > 0)
         return LearnResult(nxt, self.state.iteration, self.law, errors, metric, float(lag), aligned,
                            float(np.max(np.abs(du))), float(np.sqrt(np.mean(du * du))), clipped, limited,
                            float(np.median(inc.rho[learned])) if np.any(learned) else 0.0, inc.q_cutoff_Hz,
                            phase_deg, phase_f, self.state.stopped, self.state.reason, self.state.best_iteration)
+
+    def _stopped_result(self, u: np.ndarray, y: np.ndarray) -> LearnResult:
+        """After a stop: the best table again, nothing learned, nothing recorded."""
+        st = self.state
+        best = np.asarray(st.best_u_V if st.best_u_V is not None else u, dtype=float)
+        errors = error_figures(y, self.target_nm, self.lines)
+        metric = _weighted_max_pct(self.reference_nm - y, self.weights >= 1.0, self.target_nm, self.lines)
+        du = best - u
+        return LearnResult(best, st.iteration, self.law, errors, metric, 0.0, False, float(np.max(np.abs(du))),
+                           float(np.sqrt(np.mean(du * du))), 0, 0, 0.0, math.nan, 0.0, 0.0, True, st.reason,
+                           st.best_iteration)
 
     # ------------------------------------------------------------------ parts of a step
     def _samples(self, name: str, x: np.ndarray) -> np.ndarray:
@@ -272,7 +310,6 @@ class Learner:
         if self.model is None:
             return self.target_nm
         try:
-            from .learning_laws import periodic_run
             return periodic_run(lambda: self.model.forward(self.dt_s), u, self.settings.periodic)
         except ModelError:
             return self.target_nm
@@ -292,19 +329,54 @@ class Learner:
         st.iteration += 1
         if metric < st.best_metric_pct:
             st.best_metric_pct, st.best_u_V, st.best_iteration = metric, u.tolist(), st.iteration - 1
+            st.best_y_nm = y.tolist()
         st.rises = st.rises + 1 if metric > prev * (1 + 1e-6) else 0
         if st.rises >= self.settings.max_rises:
             return (f"the weighted error rose {st.rises} times in a row (to {metric:.3g} %): diverging; "
                     f"keeping the best table (iteration {st.best_iteration}, {st.best_metric_pct:.3g} %)")
         return ""
 
-    def _increment(self, u: np.ndarray, y: np.ndarray, werr: np.ndarray,
-                   previous: tuple[np.ndarray, np.ndarray] | None) -> Increment:
+    def _base(self, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The table the next one is learned from: this one, or — when it came out worse
+        than the best so far — the best one (a step back, with what the worse step taught
+        about the model's error)."""
+        st = self.state
+        if st.best_iteration != st.iteration - 1 and st.best_u_V is not None and st.best_y_nm is not None:
+            log.info("iteration %d is worse than iteration %d: learning from the best table", st.iteration - 1,
+                     st.best_iteration)
+            return np.asarray(st.best_u_V, dtype=float), np.asarray(st.best_y_nm, dtype=float)
+        return u, y
+
+    def _increment(self, base: tuple[np.ndarray, np.ndarray], werr: np.ndarray,
+                   secant: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None) -> Increment:
         s = self.settings
+        rho = s.rho_max if s.rho_max is not None else DEFAULT_STEP[self.law]
         if self.model is None:
-            return model_free_increment(self.grid, u, y, werr, s.rho_max, s.q_cutoff_Hz)
-        return model_based_increment(self.grid, self.model, self.dt_s, u, y, werr, s.rho_max, s.q_cutoff_Hz,
-                                     previous)
+            prev = None if secant is None else (secant[2], secant[3])
+            return model_free_increment(self.grid, base[0], base[1], werr, rho, s.q_cutoff_Hz, prev)
+        return model_based_increment(self.grid, self.model, self.dt_s, base, werr, rho, s.q_cutoff_Hz, secant,
+                                     self._known())
+
+    def _known(self) -> tuple[np.ndarray, np.ndarray] | None:
+        st = self.state
+        if not st.ratio_bins:
+            return None
+        ratio = np.ones(self.grid.f_Hz.size, dtype=complex)
+        mask = np.zeros(self.grid.f_Hz.size, dtype=bool)
+        idx = np.asarray(st.ratio_bins, dtype=int)
+        ratio[idx] = np.asarray(st.ratio_re) + 1j * np.asarray(st.ratio_im)
+        mask[idx] = True
+        return ratio, mask
+
+    def _remember(self, inc: Increment) -> None:
+        """Keep the model's measured error for the next iterations (model-based law)."""
+        self._last = inc
+        if self.model is None:
+            return
+        idx = np.flatnonzero(inc.reliable)
+        self.state.ratio_bins = idx.tolist()
+        self.state.ratio_re = inc.ratio.real[idx].tolist()
+        self.state.ratio_im = inc.ratio.imag[idx].tolist()
 
     def _phase_check(self, inc: Increment, werr: np.ndarray) -> tuple[float, float, bool]:
         """(largest measured phase error [°] at a learned harmonic, its frequency [Hz],

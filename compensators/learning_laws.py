@@ -29,8 +29,16 @@ zero-phase Q-filter and ``ρ`` the step size. With the true response ``G = Ĝ·R
 * :func:`model_free_increment` — no model: ``Ĝ_k = Y_k / U_k`` from this iteration's own
   sent voltages and measured motion (Kim & Zou, "Model-less inversion-based iterative
   control", IEEE/ASME Trans. Mechatronics 2013; here the smoothed H1 ratio of the
-  differenced signals), the DC gain from a straight-line fit of the motion on the
-  voltages (the linear calibration); bins the voltages do not excite are not learned.
+  differenced signals), replaced from the second iteration on, wherever the last change
+  of the table excites a bin, by the secant
+
+      Ĝ_k(jω) = (y_k − y_{k−1})(jω) / (u_k − u_{k−1})(jω)                               (3)
+
+  — the response to a *change*, which is what the learning relies on: the harmonics that
+  hysteresis adds to ``Y_k`` are no response of a linear system to ``U_k`` at that
+  frequency, but to a small change they respond nearly linearly (the local slope of the
+  branch). The DC gain comes from a straight-line fit of the motion on the voltages (the
+  linear calibration); bins above the highest excited one are not learned.
 """
 from __future__ import annotations
 
@@ -43,6 +51,8 @@ from .learning_spectra import Grid, interpolate_unreliable, smoothed_ratio, zero
 
 #: a secant bin is measured when its windowed change is at least this fraction of the peak
 SECANT_RELIABLE = 1e-3
+#: the model-free Q-filter cuts where |Ĝ| has rolled off to this fraction of its DC gain
+ROLL_OFF = 0.3
 #: regularisation of Ĝ⁻¹: |Ĝ|² + (λ·|Ĝ(0)|)² in the denominator
 REGULARISATION = 1e-3
 
@@ -76,37 +86,46 @@ def step_size(ratio: np.ndarray, rho_max: float) -> np.ndarray:
     return np.clip(np.cos(np.angle(ratio)) / mag, 0.0, rho_max)
 
 
-def model_based_increment(grid: Grid, chain, dt_s: float, sent_V: np.ndarray, measured_nm: np.ndarray,
-                          werr_nm: np.ndarray, rho_max: float, q_cutoff_Hz: float | None,
-                          previous: tuple[np.ndarray, np.ndarray] | None = None) -> Increment:
+def model_based_increment(grid: Grid, chain, dt_s: float, base: tuple[np.ndarray, np.ndarray], werr_nm: np.ndarray,
+                          rho_max: float, q_cutoff_Hz: float | None,
+                          secant: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+                          known: tuple[np.ndarray, np.ndarray] | None = None) -> Increment:
     """Law (1) with the chain ``chain`` (a :class:`~afmctl.compensators.chain.ChainModel`
-    or any static hysteresis model: ``forward``/``inverse`` u [V] ↔ y [nm]) as ``Ĝ``.
-    ``previous``: the table sent and the motion measured one iteration earlier; the
-    model's error ``R`` is then measured as the secant ratio (2) of the module docstring,
-    else taken as 1 (the model trusted)."""
+    or any static hysteresis model: ``forward``/``inverse`` u [V] ↔ y [nm]) as ``Ĝ``,
+    applied to the table ``base = (u [V], y [nm])`` with its weighted error ``werr_nm``.
+    ``secant = (u_a, y_a, u_b, y_b)``: two tables and their recordings, from which the
+    model's error ``R`` is measured (2) where their difference excites a bin; ``known =
+    (R, mask)``: what earlier iterations measured (kept where not measured anew). Bins
+    never measured take ``R = 1`` (the model trusted). The returned ``ratio`` and
+    ``reliable`` are the updated knowledge."""
     dyn = getattr(chain, "dynamics", None)
     static_fwd, static_inv = _static_ops(chain, dt_s)
-    x = periodic_run(static_fwd, sent_V, grid.periodic)
+    periodic = grid.periodic
+
+    def predict(u: np.ndarray) -> np.ndarray:
+        return _predict(dyn, periodic_run(static_fwd, u, periodic), dt_s, periodic)
+
     if dyn is not None:
         d_hat = dyn.discrete(dt_s).frequency_response(grid.f_Hz)
         cutoff = dyn.inverse_bandwidth_Hz(dt_s) if q_cutoff_Hz is None else q_cutoff_Hz
     else:
         d_hat = np.ones(grid.f_Hz.size, dtype=complex)
         cutoff = 0.45 / dt_s if q_cutoff_Hz is None else q_cutoff_Hz
-    y_hat = _predict(dyn, x, dt_s, grid.periodic)
     ratio = np.ones(grid.f_Hz.size, dtype=complex)
     reliable = np.zeros(grid.f_Hz.size, dtype=bool)
-    if previous is not None:
-        y_prev = _predict(dyn, periodic_run(static_fwd, previous[0], grid.periodic), dt_s, grid.periodic)
-        r, reliable = smoothed_ratio(grid.diff_spectrum(measured_nm - previous[1]), grid.diff_spectrum(y_hat - y_prev),
-                                     grid.f_Hz, threshold=SECANT_RELIABLE)
-        ratio[reliable] = r[reliable]
+    if known is not None:
+        ratio[known[1]], reliable = known[0][known[1]], known[1].copy()
+    if secant is not None:
+        u_a, y_a, u_b, y_b = secant
+        r, rel = smoothed_ratio(grid.diff_spectrum(y_a - y_b), grid.diff_spectrum(predict(u_a) - predict(u_b)),
+                                grid.f_Hz, threshold=SECANT_RELIABLE)
+        ratio[rel], reliable = r[rel], reliable | rel
     rho = step_size(ratio, rho_max)
-    q = zero_phase_q(grid.f_Hz, cutoff)
-    filt = q * rho * _regularised_inverse(d_hat)
+    filt = zero_phase_q(grid.f_Hz, cutoff) * rho * _regularised_inverse(d_hat)
+    x = periodic_run(static_fwd, base[0], periodic)
     dx = grid.apply(filt, werr_nm)
-    du = periodic_run(static_inv, x + dx, grid.periodic) - periodic_run(static_inv, x, grid.periodic)
-    return Increment(du, rho, ratio, reliable, float(cutoff), y_hat)
+    du = periodic_run(static_inv, x + dx, periodic) - periodic_run(static_inv, x, periodic)
+    return Increment(du, rho, ratio, reliable, float(cutoff), _predict(dyn, x, dt_s, periodic))
 
 
 def _predict(dyn, x: np.ndarray, dt_s: float, periodic: bool) -> np.ndarray:
@@ -118,19 +137,42 @@ def _predict(dyn, x: np.ndarray, dt_s: float, periodic: bool) -> np.ndarray:
 
 
 def model_free_increment(grid: Grid, sent_V: np.ndarray, measured_nm: np.ndarray, werr_nm: np.ndarray,
-                         rho_max: float, q_cutoff_Hz: float | None) -> Increment:
-    """Law (1) with ``Ĝ_k`` estimated from this iteration (module docstring)."""
-    g, reliable = smoothed_ratio(grid.diff_spectrum(measured_nm), grid.diff_spectrum(sent_V), grid.f_Hz)
+                         rho_max: float, q_cutoff_Hz: float | None,
+                         previous: tuple[np.ndarray, np.ndarray] | None = None) -> Increment:
+    """Law (1) with ``Ĝ_k`` estimated from the iterations themselves (module docstring):
+    the secant ``Δy/Δu`` between the last two iterations (3) where their change excites a
+    bin, else this iteration's ``Y_k/U_k``; the DC gain from the linear calibration."""
+    f = grid.f_Hz
+    g, reliable = smoothed_ratio(grid.diff_spectrum(measured_nm), grid.diff_spectrum(sent_V), f)
+    if previous is not None:
+        g_sec, rel_sec = smoothed_ratio(grid.diff_spectrum(measured_nm - previous[1]),
+                                        grid.diff_spectrum(sent_V - previous[0]), f, threshold=SECANT_RELIABLE)
+        g = np.where(rel_sec, g_sec, g)
+        reliable = reliable | rel_sec
     gain, offset = calibration(sent_V, measured_nm)
     g[0], reliable[0] = gain, True
-    top = float(grid.f_Hz[np.flatnonzero(reliable)[-1]])
-    cutoff = top if q_cutoff_Hz is None else min(q_cutoff_Hz, top)
+    top = float(f[np.flatnonzero(reliable)[-1]])
     g = interpolate_unreliable(g, reliable)
-    q = zero_phase_q(grid.f_Hz, cutoff) * (grid.f_Hz <= top)
-    rho = np.full(grid.f_Hz.size, float(rho_max))
+    cutoff = min(top, roll_off_Hz(f, g, reliable)) if q_cutoff_Hz is None else min(q_cutoff_Hz, top)
+    q = zero_phase_q(f, cutoff) * (f <= top)
+    rho = np.full(f.size, float(rho_max))
     du = grid.apply(q * rho * _regularised_inverse(g), werr_nm)
-    ratio = np.ones(grid.f_Hz.size, dtype=complex)
+    ratio = np.ones(f.size, dtype=complex)
     return Increment(du, rho, ratio, reliable, cutoff, gain * np.asarray(sent_V) + offset)
+
+
+def roll_off_Hz(f_Hz: np.ndarray, g: np.ndarray, reliable: np.ndarray) -> float:
+    """The model-free Q cut-off: the first reliable frequency above the response's peak
+    where ``|Ĝ|`` falls below :data:`ROLL_OFF` of its DC value — above it the scanner
+    barely responds, a learning step there needs large voltages, and the estimate of a
+    small response is the least certain (inf when it never does)."""
+    mag = np.abs(g)
+    idx = np.flatnonzero(reliable & (f_Hz > 0))
+    if idx.size == 0:
+        return math.inf
+    peak = idx[int(np.argmax(mag[idx]))]
+    below = idx[(idx > peak) & (mag[idx] < ROLL_OFF * mag[0])]
+    return float(f_Hz[below[0]]) if below.size else math.inf
 
 
 def calibration(u_V: np.ndarray, y_nm: np.ndarray) -> tuple[float, float]:

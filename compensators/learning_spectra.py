@@ -31,6 +31,8 @@ from scipy import fft as sfft
 
 #: a bin is reliable when its windowed excitation is at least this fraction of the peak
 RELIABLE_FRACTION = 1e-5
+#: half-width of the smoothing window, a fraction of the frequency
+REL_WIDTH = 0.03
 
 
 @dataclass(frozen=True)
@@ -69,7 +71,7 @@ class Grid:
         return sfft.irfft(response * self.spectrum(x), self.n_fft)[: self.n]
 
 
-def smoothed_ratio(num: np.ndarray, den: np.ndarray, f_Hz: np.ndarray, rel_width: float = 0.03,
+def smoothed_ratio(num: np.ndarray, den: np.ndarray, f_Hz: np.ndarray, rel_width: float = REL_WIDTH,
                    min_bins: int = 2, threshold: float = RELIABLE_FRACTION) -> tuple[np.ndarray, np.ndarray]:
     """``(ratio, reliable)``: ``Σ num·den* / Σ |den|²`` over the bins within
     ``max(min_bins, rel_width · k)`` of bin ``k`` (wider at high frequency, like a

@@ -85,6 +85,27 @@ def error_weights(y_nm: np.ndarray, central_pct: float = 80.0, lines_only: bool 
     return np.maximum(w, _lines_mask(y.size, found, central_pct))
 
 
+def rounded_reference(y_nm: np.ndarray, weights: np.ndarray, lines: list[Line]) -> np.ndarray:
+    """``y_nm`` with its corners inside the zero-weight zones around the line ends replaced
+    by a Gaussian-smoothed copy whose σ is a third of the zone's half-width, so the
+    rounding stays inside the zone and the weighted parts are untouched: a reference the
+    scanner can follow at the turnarounds, which the learning may then also track there
+    (at a lower weight) instead of leaving the turnarounds to chance."""
+    y = np.asarray(y_nm, dtype=float)
+    if not lines:
+        return y.copy()
+    from scipy.ndimage import gaussian_filter1d
+
+    zero = weights <= 0
+    if not np.any(zero):
+        return y.copy()
+    edges = np.flatnonzero(np.diff(zero.astype(int)))
+    runs = np.diff(np.concatenate([[0], edges + 1, [y.size]]))
+    half = max(1.0, float(np.median(runs[::2] if zero[0] else runs[1::2])) / 2.0)
+    smooth = gaussian_filter1d(y, half / 3.0, mode="nearest")
+    return np.where(zero, smooth, y)
+
+
 def _lines_mask(n: int, lines: list[Line], pct: float) -> np.ndarray:
     w = np.zeros(n)
     for ln in lines:

@@ -78,10 +78,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sub = p.add_subparsers(dest="learn_verb", metavar="SUBCOMMAND")
     for reg in SUBCOMMANDS.values():
         reg(sub)
+    # without a subcommand, learn runs on the device ('afmctl learn --config RUN.toml ...')
     p.set_defaults(func=lambda args: run_device(args) if args.config else _no_subcommand(p))
 
 
 def _no_subcommand(p: argparse.ArgumentParser) -> int:
+    """``afmctl learn`` without a subcommand nor ``--config``: its help."""
     p.print_help()
     return 0
 
@@ -99,8 +101,9 @@ def register_step(sub: argparse._SubParsersAction) -> None:
                    help="voltage range [V] (default: the model's range, else 0..150 V)")
     p.add_argument("--slew-V-per-s", type=float, metavar="S", help="amplifier slew limit [V/s]")
     p.add_argument("--state", metavar="STATE.json", help="iteration state file (created if missing)")
-    p.add_argument("--step-size", type=float, default=1.0, metavar="RHO",
-                   help="largest step size ρ, 0 < ρ ≤ 2 (default 1: a full inverse step)")
+    p.add_argument("--step-size", type=float, metavar="RHO",
+                   help="largest step size ρ, 0 < ρ ≤ 2 (default 1 with --model: a full inverse step, sized down "
+                        "per harmonic from the model's measured error; 0.7 without)")
     p.add_argument("--q-cutoff-Hz", type=float, metavar="HZ",
                    help="Q-filter cut-off [Hz] (default: the model's band limit; model-free: what the data excite)")
     p.add_argument("--central-pct", type=float, default=90.0, metavar="P",
@@ -121,7 +124,7 @@ def run_step(args: argparse.Namespace) -> int:
     import numpy as np
 
     from ..data.datafiles import write_csv
-    from ..learnfiles import load_inputs, load_state, save_state, settings_from_args
+    from ..data.learnfiles import load_inputs, load_state, save_state, settings_from_args
     from afmctl.compensators.learning import Learner
 
     inputs = load_inputs(args)
@@ -150,6 +153,8 @@ def _check_table(u, settings, dt_s: float) -> None:
 
 
 def _print_result(res, settings, source: str, inputs, args) -> None:
+    import math
+
     e = res.errors
     print(f"iteration        : {res.iteration} ({'model-based, ' + args.model if res.law == 'model' else 'model-free'})")
     print(f"error (sent)     : max {e['max_pct']:.3g} % / RMS {e['rms_pct']:.3g} % of the span (whole file)")
@@ -159,9 +164,10 @@ def _print_result(res, settings, source: str, inputs, args) -> None:
     lag_us = res.lag_samples * inputs.dt_s * 1e6
     print(f"recording lag    : {res.lag_samples:+.2f} samples ({lag_us:+.4g} µs) behind the "
           f"{'prediction' if res.law == 'model' else 'target'}" + ("; shifted back (--align)" if res.aligned else ""))
-    print(f"learning         : step size ρ median {res.rho_median:.3g}, Q-filter cut-off {res.q_cutoff_Hz:.4g} Hz"
-          + (f", largest phase error {res.phase_error_deg:.0f}° at {res.phase_error_f_Hz:.4g} Hz"
-             if res.law == "model" else ""))
+    if math.isfinite(res.q_cutoff_Hz):
+        print(f"learning         : step size ρ median {res.rho_median:.3g}, Q-filter cut-off {res.q_cutoff_Hz:.4g} Hz"
+              + (f", largest phase error {res.phase_error_deg:.0f}° at {res.phase_error_f_Hz:.4g} Hz"
+                 if res.law == "model" else ""))
     print(f"changed          : max {res.du_max_V:.4g} V, RMS {res.du_rms_V:.4g} V; {res.clipped} samples clipped, "
           f"{res.slew_limited} slew-limited")
     print(f"limits           : {settings.u_min_V:g} .. {settings.u_max_V:g} V ({source})"

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from .datafiles import read_csv, uniform_period
-from .errors import AfmctlError
+from ..errors import AfmctlError
 
 #: limits when neither --limits nor the model file gives a voltage range [V]
 FALLBACK_LIMITS_V = (0.0, 150.0)
@@ -83,7 +83,7 @@ def settings_from_args(args: argparse.Namespace, model: Any):
     """The learner's settings from the options; ``(settings, where the limits come from)``."""
     from afmctl.compensators.learning import LearnSettings
 
-    checks = [("--step-size", args.step_size, 0 < args.step_size <= 2, "0 < RHO ≤ 2"),
+    checks = [("--step-size", args.step_size, args.step_size is None or 0 < args.step_size <= 2, "0 < RHO ≤ 2"),
               ("--central-pct", args.central_pct, 0 < args.central_pct <= 100, "0 < P ≤ 100 (%)"),
               ("--q-cutoff-Hz", args.q_cutoff_Hz, args.q_cutoff_Hz is None or args.q_cutoff_Hz > 0, "> 0 Hz"),
               ("--slew-V-per-s", args.slew_V_per_s, args.slew_V_per_s is None or args.slew_V_per_s > 0, "> 0 V/s")]
