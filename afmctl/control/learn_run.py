@@ -16,8 +16,9 @@ One iteration (:meth:`LearnRun.iterate`), in named steps:
    estop during the play stops the device (wave generator stopped, FIFO flushed) and ramps
    within the slew limit, and learning ends with the best table so far;
 4. ``read`` — the recording is read back and refused (not learned from) unless it holds one
-   point per row of the whole table and lines up with it (its lag behind the prediction is
-   below :data:`MAX_LAG_SHARE` of the table);
+   point per row of the whole table and the output voltages it recorded are the table's
+   (no trigger offset), and unless its lag behind the prediction stays below
+   :data:`MAX_LAG_SHARE` of the table;
 5. ``learn`` — per learned axis the :class:`afmctl.compensators.learning.Learner` (the
    configured model as the learning filter, or the model-free law) gives the next column.
 
@@ -51,6 +52,8 @@ log = logging.getLogger(__name__)
 
 #: a recording lagging the prediction by more than this share of the table is refused
 MAX_LAG_SHARE = 0.25
+#: recorded output voltages must equal the table within this [V] (the devices' resolution)
+OUTPUT_TOL_V = 0.01
 #: planned tables keep this share of the slew limit in reserve (the players' own checks
 #: round to the device's resolution)
 SLEW_RESERVE = 0.02
@@ -226,7 +229,7 @@ class LearnRun:
         if abs(divider * clock - self.config.dt_s) > 1e-9 * self.config.dt_s + 1e-12:
             raise AfmctlError(f"loop.rate_Hz: {self.config.loop.rate_Hz:g} Hz is not a whole number of the "
                               f"recorder's {clock:g} s ticks")
-        return self.amp.configure_recorder(axes, points=len(table), divider=divider, signals=("y_nm",))
+        return self.amp.configure_recorder(axes, points=len(table), divider=divider, signals=("y_nm", "u_V"))
 
     def _play(self, table: WaveTable) -> tuple[str, str] | None:
         """Play ``table`` as a run plays a learned table; None when it played to the end,
@@ -264,10 +267,16 @@ class LearnRun:
             log.warning("learn: reconnect failed: %s", err)
 
     def _read(self, table: WaveTable, setup: Any) -> dict[str, np.ndarray]:
+        """The measured position per learned axis, one point per table row; a recording
+        whose length or recorded output voltages do not match the table (a trigger offset)
+        is refused (:func:`afmctl.drivers.recording.align_to_table`)."""
+        from afmctl.drivers.recording import RecordingMismatch, align_to_table
         rec = self.amp.read_recording(timeout_s=self.options.record_timeout_s)
-        if len(rec) != len(table):
-            raise RecordingRefused(f"learn: the recording holds {len(rec)} points, the table {len(table)}; "
-                                   "not learned from")
+        tables = {a: table.u_V[:, "xyz".index(a)] for a in setup.axes}
+        try:
+            rec = align_to_table(rec, tables, tol_V=OUTPUT_TOL_V)
+        except RecordingMismatch as err:
+            raise RecordingRefused(f"learn: {err}") from None
         missing = [a for a in setup.axes if a not in rec.y_nm]
         if missing:
             raise RecordingRefused(f"learn: the recording has no measured position of axis {missing[0]}; "
