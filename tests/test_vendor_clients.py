@@ -135,21 +135,23 @@ def test_pipython_datarecorder_records_a_wave_from_the_simulated_scanner_sensor(
         with _pipython(server.port) as pi:
             pi.SVO(pi.axes, [False, False, False])
             pi.SVA("1", points[0])
-            drec = datarectools.Datarecorder(pi)
-            assert drec.servotime == pytest.approx(50e-6) and drec.maxnumvalues == 262144 // 8
-            drec.numvalues = 200
-            drec.samplerate = 2
-            drec.options = (RecordOptions.ACTUAL_POSITION_2, RecordOptions.PIEZO_VOLTAGE_7)
-            drec.sources = ("1", "1")
-            drec.trigsources = TriggerSources.DEFAULT_0
-            drec.arm()
-            assert pi.qDRC([1, 2]) == {1: ["1", 2], 2: ["1", 7]} and pi.qRTR() == 2 and pi.qTNR() == 8
-            pitools.writewavepoints(pi, 1, points, bunchsize=50)
-            pi.WSL(1, 1)
-            pi.WGC(1, 1)
-            pi.WTR(1, 2, 0)
-            pi.WGO(1, 1)
-            header, data = drec.getdata(timeout=10)
+            # as a context manager: its exit unregisters the gateway callback it registered (PIPython
+            # keeps those callbacks for every gateway; a stale one would fire on the next connection)
+            with datarectools.Datarecorder(pi) as drec:
+                assert drec.servotime == pytest.approx(50e-6) and drec.maxnumvalues == 262144 // 8
+                drec.numvalues = 200
+                drec.samplerate = 2
+                drec.options = (RecordOptions.ACTUAL_POSITION_2, RecordOptions.PIEZO_VOLTAGE_7)
+                drec.sources = ("1", "1")
+                drec.trigsources = TriggerSources.DEFAULT_0
+                drec.arm()
+                assert pi.qDRC([1, 2]) == {1: ["1", 2], 2: ["1", 7]} and pi.qRTR() == 2 and pi.qTNR() == 8
+                pitools.writewavepoints(pi, 1, points, bunchsize=50)
+                pi.WSL(1, 1)
+                pi.WGC(1, 1)
+                pi.WTR(1, 2, 0)
+                pi.WGO(1, 1)
+                header, data = drec.getdata(timeout=10)
             assert pi.qERR() == 0
     assert header["NDATA"] == 200 and header["DIM"] == 2 and header["SAMPLE_TIME"] == pytest.approx(100e-6)
     assert "Actual Position" in header["NAME0"] and "Voltage" in header["NAME1"]
