@@ -7,19 +7,20 @@ One iteration (:meth:`LearnRun.iterate`), in named steps:
 1. ``check`` — the table is checked before anything is sent: every driven column finite,
    inside the configured limits and within the slew limit per sample, and short enough for
    the recorder (the wave player checks it again against the device's capacity);
-2. ``arm`` — the device's recorder is armed to record the measured position of the learned
-   axes from the next wave start, one point per table row
-   (:meth:`afmctl.drivers.base.Amplifier.configure_recorder`);
-3. ``play`` — a :class:`afmctl.control.controller.Controller` plays the table exactly as
+2. ``play`` — a :class:`afmctl.control.controller.Controller` plays the table exactly as
    ``afmctl run`` plays a learned table (``output = "wave"``: approach ramp, the table on the
-   amplifier's clock, the finish ramp), with every safety check of a run; a stop or an
+   amplifier's clock, the finish ramp), with every safety check of a run; ``arm``: once the
+   table is on the device (uploaded, or the stream started) and before its first point
+   plays, the device's recorder is armed to record the measured position and the output of
+   the learned axes, one point per table row
+   (:meth:`afmctl.drivers.base.Amplifier.configure_recorder`); a stop or an
    estop during the play stops the device (wave generator stopped, FIFO flushed) and ramps
    within the slew limit, and learning ends with the best table so far;
-4. ``read`` — the recording is read back and refused (not learned from) unless it holds one
+3. ``read`` — the recording is read back and refused (not learned from) unless it holds one
    point per row of the whole table and the output voltages it recorded are the table's
    (no trigger offset), and unless its lag behind the prediction stays below
    :data:`MAX_LAG_SHARE` of the table;
-5. ``learn`` — per learned axis the :class:`afmctl.compensators.learning.Learner` (the
+4. ``learn`` — per learned axis the :class:`afmctl.compensators.learning.Learner` (the
    configured model as the learning filter, or the model-free law) gives the next column.
 
 Learning ends when the error over the central part of each line is at the noise floor
@@ -203,18 +204,19 @@ class LearnRun:
         self.step = Step.CHECK
         self._check(table)
         for attempt in range(self.options.link_retries + 1):
-            self.step = Step.ARM
-            setup = self._arm(table, list(learners))
             self.step = Step.PLAY
-            ended = self._play(table)
+            armed: list[Any] = []
+            ended = self._play(table, lambda: armed.append(self._arm(table, list(learners))))
             if ended is None or ended[0] != "fault" or attempt == self.options.link_retries or self._stop.is_set():
                 break
             log.warning("learn: iteration %d: %s; reconnecting and playing the table again", k, ended[1])
             self._reconnect()
         if ended is not None:
             return IterationReport(k, {}, float("nan"), state=ended[0], detail=ended[1]), None
+        if not armed:
+            raise AfmctlError("learn: the play ended without arming the recorder")
         self.step = Step.READ
-        measured = self._read(table, setup)
+        measured = self._read(table, armed[0])
         self.step = Step.LEARN
         return self._learn(k, table, learners, measured)
 
@@ -231,13 +233,14 @@ class LearnRun:
                               f"recorder's {clock:g} s ticks")
         return self.amp.configure_recorder(axes, points=len(table), divider=divider, signals=("y_nm", "u_V"))
 
-    def _play(self, table: WaveTable) -> tuple[str, str] | None:
-        """Play ``table`` as a run plays a learned table; None when it played to the end,
-        else ``(state, why)``."""
+    def _play(self, table: WaveTable, arm: Callable[[], None]) -> tuple[str, str] | None:
+        """Play ``table`` as a run plays a learned table, ``arm`` called just before its first
+        point plays (step ``arm``); None when it played to the end, else ``(state, why)``."""
         if self._stop.is_set():
             return "stopped", "stopped before the play"
         source = LearnedSource(make_learned(self.config, table, self.spec), "the table being learned")
         ctl = Controller(self.config, self.amp)
+        ctl.before_wave_start = lambda: self._set_step(Step.ARM, arm)
         self._ctl = ctl
         try:
             ctl.start(source)
@@ -257,6 +260,11 @@ class LearnRun:
         if wave.get("played") != len(table):
             return "stopped", f"stopped during the play ({wave.get('played', 0)} of {len(table)} samples)"
         return None
+
+    def _set_step(self, step: Step, then: Callable[[], None]) -> None:
+        self.step = step
+        then()
+        self.step = Step.PLAY
 
     def _reconnect(self) -> None:
         """After a link fault: reconnect (the driver reads the output back; the next play's
