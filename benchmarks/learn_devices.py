@@ -160,7 +160,7 @@ def main() -> int:
     text = table_md(rows, model, "benchmarks/learn_devices.py " + " ".join(sys.argv[1:]))
     print(text)
     if not args.no_write:
-        write_section(ROOT / "docs" / "BENCHMARKS.md", NAME, text)
+        write_section(NAME, text)
     return 0
 
 
