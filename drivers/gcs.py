@@ -31,6 +31,9 @@ from .transport import SerialTransport
 _AXES = ("x", "y", "z")
 
 
+#: longest wait for one line of a data recorder's buffered reply (``DRR?``) [s]
+RECORD_LINE_TIMEOUT_S = 5.0
+
 class GCSAmplifier(SerialAmplifier):
     """``GCSAmplifier(transport, n_axes=3, check_every=50, host_limits=None, ...)``.
     Axes x, y, z map onto the first ``n_axes`` GCS axis identifiers reported by ``SAI?``
@@ -306,9 +309,12 @@ class GCSAmplifier(SerialAmplifier):
         tables = sorted(where.values())
         self._settle()
         self.transport.write(rcodec.encode_read(tables, setup.points))
+        # the controller assembles a long buffered reply while it sends it: allow each line
+        # more than a short reply's timeout (a loaded host or a slow link stretches it)
+        wait = max(RECORD_LINE_TIMEOUT_S, self.transport.timeout_s)
         head: list[bytes] = []
         while True:
-            line = self.transport.read_frame(rcodec.split_line)
+            line = self.transport.read_frame(rcodec.split_line, wait)
             if not line.lstrip().startswith(b"#"):
                 raise ProtocolError("DRR? answer: a data line before # END_HEADER", data=line)
             head.append(line)
@@ -316,7 +322,7 @@ class GCSAmplifier(SerialAmplifier):
                 break
         data_lines: list[bytes] = []
         while not rcodec.is_last_line(head[-1] if not data_lines else data_lines[-1]):
-            data_lines.append(self.transport.read_frame(rcodec.split_line))
+            data_lines.append(self.transport.read_frame(rcodec.split_line, wait))
         header = rcodec.parse_header(head)
         data = rcodec.parse_data(header, data_lines, len(tables))
         self._check()
