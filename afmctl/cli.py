@@ -16,8 +16,8 @@ import sys
 from collections.abc import Sequence
 
 #: verbs in the order ``afmctl --help`` lists them
-VERBS = ("demo", "run", "sim", "view", "excite", "identify", "compensate", "model", "drift", "amp", "log", "report",
-         "schema")
+VERBS = ("demo", "run", "sim", "view", "excite", "identify", "compensate", "learn", "model", "drift", "amp", "log",
+         "report", "schema")
 
 DESCRIPTION = """\
 afmctl — feedforward compensation for AFM piezo scanners.

@@ -387,6 +387,10 @@ class SimulationSection(_Strict):
     enabled: bool = Field(False, description="serve a simulated amplifier + scanner in-process")
     scanner: Path | None = Field(None, description="ScannerConfig JSON file; none: the default scanner")
     baud: int = Field(115200, ge=1200, le=10_000_000, description="simulated serial baud rate")
+    device: dict[str, Any] = Field(default_factory=dict,
+                                   description="options of the simulated amplifier, e.g. nv200: sensor = 'strain "
+                                               "gauge', posmax_um = 12 (a sensored unit whose recorder reads the "
+                                               "scanner's position sensor)")
 
 
 # --------------------------------------------------------------------------- top level

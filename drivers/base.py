@@ -5,6 +5,11 @@ checks — limits and ``max_step_V`` (before any byte is sent), the lock that se
 callers, the visible connection state and the mapping of link failures onto it — while a
 backend only fills in protected hooks (``_open_link``, ``_handshake``, ``_read_voltages``,
 ``_write_setpoint``, ``_sync``, ...). No backend re-implements :meth:`Amplifier.set_voltages`.
+The data recorder follows the same pattern: :meth:`Amplifier.configure_recorder`, :meth:`~Amplifier.read_recording`
+(a :class:`~afmctl.drivers.recording.Recording`) are concrete; a backend with a recorder sets
+``has_recorder`` and fills ``_recorder_clock_s``, ``_recorder_capacity``,
+``_configure_recorder``, ``_recorded_points``, ``_read_recording``; one without raises
+:class:`~afmctl.drivers.errors.RecorderUnavailable`.
 
 Layering (as in pyLabLib / PIPython / caproto): a *transport* moves bytes or frames, a
 *codec* (pure, no I/O) turns typed messages into bytes and back, and the *driver* speaks
@@ -34,11 +39,13 @@ import sys
 import threading
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
-from .errors import AmplifierConnectionError, AmplifierError, AmplifierTimeout, LimitError, ProtocolError
+from .errors import (AmplifierConnectionError, AmplifierError, AmplifierTimeout, LimitError, ProtocolError,
+                     RecorderUnavailable)
+from .recording import Recording, RecorderSetup, check_axes_signals, check_points
 
 log = logging.getLogger(__name__)
 _T = TypeVar("_T")
@@ -287,6 +294,36 @@ class Amplifier(AmplifierInterface):
     def _on_close(self) -> None:
         """Last words to a connected device before the link closes (default: none)."""
 
+    # ---- recorder hooks (a backend with a data recorder sets has_recorder and fills these) ----
+    #: the device has a data recorder this driver drives (see :meth:`configure_recorder`)
+    has_recorder: bool = False
+
+    def _recorder_clock_s(self) -> float:
+        """The recorder's base sample period [s] (one tick of the device clock)."""
+        raise NotImplementedError
+
+    def _recorder_capacity(self, axes: tuple[str, ...], signals: tuple[str, ...]) -> int:
+        """The most points per signal the recorder holds for these axes and signals."""
+        raise NotImplementedError
+
+    def _configure_recorder(self, setup: RecorderSetup) -> RecorderSetup:
+        """Arm the recorder to start with the next wave start; returns the setup with the
+        backend's bookkeeping in ``extra``."""
+        raise NotImplementedError
+
+    def _recorded_points(self, setup: RecorderSetup) -> int:
+        """Points recorded so far (per signal, the least over them)."""
+        raise NotImplementedError
+
+    def _read_recording(self, setup: RecorderSetup) -> Recording:
+        """Read the whole recording back (every point is there)."""
+        raise NotImplementedError
+
+    def _no_recorder(self) -> RecorderUnavailable:
+        return RecorderUnavailable(
+            f"{self.name or type(self).__name__} has no data recorder: measure the motion with an external "
+            "sensor and give it as a file (t,y or t,x,y,z in nm; docs/DRIVERS.md, 'Recording the motion')")
+
     # ---- limits ----
     @property
     def limits(self) -> Mapping[str, VoltageLimits]:
@@ -471,6 +508,84 @@ class Amplifier(AmplifierInterface):
         with self._lock:
             self._guard()
             self._io(self._set_enabled, False)
+
+    # ---- data recorder (the same on every backend that has one) ----
+    def recorder_clock_s(self) -> float:
+        """The recorder's base sample period [s]; a recording's period is a whole multiple."""
+        if not self.has_recorder:
+            raise self._no_recorder()
+        with self._lock:
+            self._guard()
+            return self._io(self._recorder_clock_s)
+
+    def recorder_capacity(self, axes: Sequence[str] | None = None,
+                          signals: Sequence[str] = ("y_nm", "u_V")) -> int:
+        """The most points per signal one recording of these axes and signals holds."""
+        if not self.has_recorder:
+            raise self._no_recorder()
+        ax = tuple(axes) if axes is not None else self.axes
+        with self._lock:
+            self._guard()
+            return self._io(self._recorder_capacity, ax, tuple(signals))
+
+    def configure_recorder(self, axes: Sequence[str] | None = None, *, points: int, divider: int = 1,
+                           signals: Sequence[str] = ("y_nm", "u_V")) -> RecorderSetup:
+        """Arm the device's data recorder: from the next wave start (``start_wave``; on CAN
+        the stream's first played sample) it records ``points`` points of each of
+        ``signals`` (``"y_nm"`` measured position, ``"u_V"`` output voltage) on ``axes``
+        (default: all), one every ``divider`` ticks of :meth:`recorder_clock_s`. With the
+        wave at the same rate, point k is taken at the tick of wave point k. Raises
+        :class:`RecorderUnavailable` on a device without one, :class:`LimitError` for a
+        request outside what the recorder holds (naming the range)."""
+        if not self.has_recorder:
+            raise self._no_recorder()
+        with self._lock:
+            self._guard()
+            try:
+                ax, sig = check_axes_signals(axes if axes is not None else self.axes, signals, self.axes)
+                check_points(points, divider, capacity=self._io(self._recorder_capacity, ax, sig), name=self.name)
+            except ValueError as err:
+                raise LimitError(str(err)) from None
+            setup = RecorderSetup(ax, sig, points, divider, self._io(self._recorder_clock_s))
+            self._recorder_setup = self._io(self._configure_recorder, setup)
+            return self._recorder_setup
+
+    def recorded_points(self) -> int:
+        """Points of the armed recording taken so far (0 before the trigger)."""
+        setup = self._armed_setup()
+        with self._lock:
+            self._guard()
+            return self._io(self._recorded_points, setup)
+
+    def read_recording(self, timeout_s: float = 10.0, poll_s: float = 0.02) -> Recording:
+        """Wait (at most ``timeout_s`` [s]) until the armed recording holds every point,
+        then read it back as a :class:`~afmctl.drivers.recording.Recording` (t_s from the
+        wave start; y_nm, u_V per axis). A recording that does not fill in time raises
+        :class:`~afmctl.drivers.errors.AmplifierTimeout` saying how far it got."""
+        setup = self._armed_setup()
+        deadline = time.monotonic() + timeout_s
+        while True:
+            n = self.recorded_points()
+            if n >= setup.points:
+                break
+            if time.monotonic() > deadline:
+                raise AmplifierTimeout(f"{self.name}: the recording holds {n} of {setup.points} points after "
+                                       f"{timeout_s:g} s (was the wave started after configure_recorder()?)")
+            time.sleep(poll_s)
+        with self._lock:
+            self._guard()
+            rec = self._io(self._read_recording, setup)
+        if len(rec) != setup.points:
+            raise ProtocolError(f"{self.name}: the recording read back has {len(rec)} points, {setup.points} were armed")
+        return rec
+
+    def _armed_setup(self) -> RecorderSetup:
+        if not self.has_recorder:
+            raise self._no_recorder()
+        setup = getattr(self, "_recorder_setup", None)
+        if setup is None:
+            raise AmplifierError(f"{self.name}: no recording armed; call configure_recorder() first")
+        return setup
 
     def info(self) -> dict[str, object]:
         """Identity and limits as read from the device."""

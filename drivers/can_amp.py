@@ -26,9 +26,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from . import codec_can as codec
 from .base import Amplifier, ConnectionState, VoltageLimits
 from .errors import AmplifierTimeout, LimitError, ProtocolError
+from .recording import Recording, RecorderSetup, time_axis
 from .stream_safety import check_block
 from .transport_can import CanTransport
 
@@ -52,6 +55,9 @@ class CANAmplifier(Amplifier):
     reconnect_timeout_s=5.0)``; axes x, y, z; voltages in V."""
 
     name = "can"
+    has_recorder = True
+    #: REC_DATA points asked for with one REC_READ (bounds the frames queued at once)
+    REC_READ_CHUNK = 128
     default_baudrate = None
     sync_on_close = False  # a vanished amplifier would hold close() for timeout_s
     transport: CanTransport
@@ -76,8 +82,14 @@ class CANAmplifier(Amplifier):
         self.sent = 0
         self._ids = {name: codec.frame_id(name) for name in
                      (codec.SETPOINT, codec.HEARTBEAT, codec.STATUS, codec.ERROR, codec.LIMITS,
-                      codec.STREAM_CTRL, codec.STREAM_SAMPLE, codec.STREAM_STATUS)}
-        self._rx_kinds = {self._ids[k]: k for k in (codec.STATUS, codec.ERROR, codec.LIMITS, codec.STREAM_STATUS)}
+                      codec.STREAM_CTRL, codec.STREAM_SAMPLE, codec.STREAM_STATUS, codec.REC_CTRL, codec.REC_READ,
+                      codec.REC_STATUS, codec.REC_DATA)}
+        self._rx_kinds = {self._ids[k]: k for k in (codec.STATUS, codec.ERROR, codec.LIMITS, codec.STREAM_STATUS,
+                                                    codec.REC_STATUS, codec.REC_DATA)}
+        self._rec_status: dict[str, float] | None = None
+        self._rec_status_count = 0
+        #: REC_DATA frames received: (index, axis index) -> (y_nm, u_V)
+        self._rec_data: dict[tuple[int, int], tuple[float, float]] = {}
         super().__init__(transport, **options)
 
     @classmethod
@@ -118,6 +130,11 @@ class CANAmplifier(Amplifier):
             elif kind == codec.STREAM_STATUS:
                 self._stream_status = sig
                 self._stream_status_count += 1
+            elif kind == codec.REC_STATUS:
+                self._rec_status = sig
+                self._rec_status_count += 1
+            elif kind == codec.REC_DATA:
+                self._rec_data[(int(sig["INDEX"]), int(sig["AXIS"]))] = (float(sig["Y_NM"]), float(sig["U_V"]))
             else:
                 self._errors.append(codec.error_from(sig, bytes(msg.data)))
             self._cond.notify_all()
@@ -317,6 +334,67 @@ class CANAmplifier(Amplifier):
             status = self._io(self._stream_command, codec.CMD_DRAIN)
             self.stream_rate_Hz = None
             return status
+
+
+    # ---- data recorder (REC_* frames; the Amplifier template's configure_recorder / read_recording) ----
+    def _rec_command(self, cmd: int, axes_mask: int = 0, signals: int = 0, points: int = 0,
+                     divider: int = 0) -> dict[str, float]:
+        """Send REC_CTRL and wait for the REC_STATUS that answers it (an ERROR first is raised)."""
+        data = codec.encode_rec_ctrl(cmd, axes_mask, signals, points, divider)
+        self._send_and_await(lambda: self.transport.send(self._ids[codec.REC_CTRL], data, self.timeout_s),
+                             lambda: self._rec_status_count,
+                             lambda before: self._rec_status_count != before, "REC_STATUS")
+        self._raise_pending()
+        with self._cond:
+            assert self._rec_status is not None
+            return dict(self._rec_status)
+
+    def _recorder_clock_s(self) -> float:
+        if not self.stream_rate_Hz:
+            raise LimitError("can: the recorder counts the stream's ticks: start_stream(rate_Hz) first, then "
+                             "configure_recorder(), then queue the samples")
+        return 1.0 / self.stream_rate_Hz
+
+    def _recorder_capacity(self, axes: tuple[str, ...], signals: tuple[str, ...]) -> int:
+        return min(int(self._rec_command(codec.REC_CMD_STATUS)["CAPACITY"]), 0xFFFF)
+
+    def _configure_recorder(self, setup: RecorderSetup) -> RecorderSetup:
+        if setup.divider > 0xFFFF:
+            raise LimitError(f"recorder divider {setup.divider}: the CAN recorder takes 1..65535 ticks")
+        axes_mask = sum(1 << self.axes.index(a) for a in setup.axes)
+        signals = sum(codec.REC_SIGNAL_BITS[s] for s in setup.signals)
+        status = self._rec_command(codec.REC_CMD_ARM, axes_mask, signals, setup.points, setup.divider)
+        if codec.REC_STATES.get(int(status["REC_STATE"])) not in ("armed", "recording"):
+            raise ProtocolError(f"can: the recorder is {codec.REC_STATES.get(int(status['REC_STATE']))} after arming")
+        return setup
+
+    def _recorded_points(self, setup: RecorderSetup) -> int:
+        return int(self._rec_command(codec.REC_CMD_STATUS)["COUNT"])
+
+    def _read_recording(self, setup: RecorderSetup) -> Recording:
+        """REC_READ in chunks of :attr:`REC_READ_CHUNK` points; each chunk's REC_DATA frames
+        (one per point and axis) are awaited before the next is asked for."""
+        idx = [self.axes.index(a) for a in setup.axes]
+        y = np.empty((setup.points, len(idx)))
+        u = np.empty((setup.points, len(idx)))
+        for first in range(0, setup.points, self.REC_READ_CHUNK):
+            count = min(self.REC_READ_CHUNK, setup.points - first)
+            keys = [(k, i) for k in range(first, first + count) for i in idx]
+            with self._cond:
+                self._rec_data.clear()
+            self._send_and_await(
+                lambda: self.transport.send(self._ids[codec.REC_READ], codec.encode_rec_read(first, count),
+                                            self.timeout_s),
+                lambda: 0, lambda _: all(k in self._rec_data for k in keys) or bool(self._errors), "REC_DATA")
+            self._raise_pending()
+            with self._cond:
+                for k in range(first, first + count):
+                    for j, i in enumerate(idx):
+                        y[k, j], u[k, j] = self._rec_data[(k, i)]
+        t = time_axis(setup.points, setup.period_s)
+        ys = {a: y[:, j].copy() for j, a in enumerate(setup.axes)} if "y_nm" in setup.signals else {}
+        us = {a: u[:, j].copy() for j, a in enumerate(setup.axes)} if "u_V" in setup.signals else {}
+        return Recording(t, ys, us, setup.period_s, "can REC_DATA")
 
 
 def _buffer_status(sig: dict[str, float]) -> BufferStatus:

@@ -17,6 +17,10 @@ STREAM_CTRL     host     CMD (0 status/1 start/2 flush/3 drain), RATE_HZ, PREFIL
 STREAM_XYZ      host     X_V, Y_V, Z_V, SEQ (16 bit) — one sample for the stream FIFO
 STREAM_XYZ_FD   host     SEQ, COUNT, X0_V .. Z9_V — CAN FD (64 bytes): up to 10 samples
 STREAM_STATUS   amp      LEVEL, UNDERRUNS, PLAYED_SEQ, STREAM_STATE, CAPACITY_LOG2, OVERFLOWS
+REC_CTRL        host     CMD (0 status/1 arm/2 stop), AXES, SIGNALS (bit masks), DIVIDER, POINTS
+REC_READ        host     FIRST, COUNT — send those recorded points back
+REC_STATUS      amp      REC_STATE, AXES, SIGNALS, COUNT (recorded), CAPACITY, DIVIDER
+REC_DATA        amp      INDEX, AXIS, Y_NM (24 bit signed, 0.01 nm), U_V — one recorded point
 ==============  =======  ==========================================================
 
 Buffered stream (device-timed output): the host sends STREAM_CTRL start with the rate,
@@ -37,11 +41,17 @@ DBC_RESOURCE = "afm_amplifier.dbc"
 SETPOINT, HEARTBEAT, STATUS, ERROR, LIMITS = "SETPOINT_XYZ", "HEARTBEAT", "STATUS", "ERROR", "LIMITS"
 STREAM_CTRL, STREAM_SAMPLE, STREAM_STATUS = "STREAM_CTRL", "STREAM_XYZ", "STREAM_STATUS"
 STREAM_SAMPLE_FD = "STREAM_XYZ_FD"
+REC_CTRL, REC_READ, REC_STATUS, REC_DATA = "REC_CTRL", "REC_READ", "REC_STATUS", "REC_DATA"
+REC_CMD_STATUS, REC_CMD_ARM, REC_CMD_STOP = 0, 1, 2
+REC_STATES = {0: "idle", 1: "armed", 2: "recording", 3: "done", 4: "fault"}
+#: SIGNALS bits of REC_CTRL / REC_STATUS
+REC_SIGNAL_BITS = {"y_nm": 1, "u_V": 2}
 CMD_STATUS, CMD_START, CMD_FLUSH, CMD_DRAIN = 0, 1, 2, 3
 STREAM_STATES = {0: "idle", 1: "armed", 2: "playing", 3: "draining", 4: "fault"}
 FLAG_REQ_STATUS = 0x01
 ERRORS = {1: "value outside the amplifier range", 2: "sequence gap (setpoints lost or reordered)",
-          3: "outputs disabled", 4: "hardware fault", 5: "stream FIFO overflow"}
+          3: "outputs disabled", 4: "hardware fault", 5: "stream FIFO overflow",
+          6: "recorder request refused (detail 1 points, 2 divider, 3 axes/signals, 4 read past the recording)"}
 STATES = {0: "disabled", 1: "enabled", 2: "fault"}
 
 
@@ -203,3 +213,17 @@ def error_from(signals: Mapping[str, float], data: bytes = b"") -> ProtocolError
     code = int(signals["CODE"])
     return ProtocolError(f"CAN amplifier error (setpoint SEQ {int(signals['SEQ'])}, detail {int(signals['DETAIL'])})",
                          code=code, text=ERRORS.get(code, "unknown error"), data=bytes(data) or None)
+
+
+def encode_rec_ctrl(cmd: int, axes_mask: int = 0, signals: int = 0, points: int = 0, divider: int = 0) -> bytes:
+    """8 data bytes of REC_CTRL (``cmd`` one of REC_CMD_STATUS/ARM/STOP); points and divider
+    1..65535 for an arm."""
+    if cmd == REC_CMD_ARM and not (1 <= points <= 0xFFFF and 1 <= divider <= 0xFFFF):
+        raise LimitError(f"recorder: points {points!r} and divider {divider!r} must be whole numbers 1..65535")
+    return message(REC_CTRL).encode({"CMD": cmd, "AXES": axes_mask, "SIGNALS": signals,
+                                     "POINTS": points if cmd == REC_CMD_ARM else 0,
+                                     "DIVIDER": divider if cmd == REC_CMD_ARM else 0})
+
+
+def encode_rec_read(first: int, count: int) -> bytes:
+    return message(REC_READ).encode({"FIRST": int(first), "COUNT": int(count)})

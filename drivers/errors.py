@@ -39,3 +39,9 @@ class ProtocolError(AmplifierError):
 
 class LimitError(AmplifierError):
     """A requested value is outside the configured or device limits; nothing was sent."""
+
+
+class RecorderUnavailable(AmplifierError):
+    """The device has no data recorder (or none for what was asked, e.g. a position on a
+    unit without a sensor): measure the motion with an external sensor and give it as a
+    file (``t,y`` nm or ``t,x,y,z`` nm CSV; docs/DRIVERS.md, "Recording the motion")."""

@@ -19,9 +19,11 @@ from collections.abc import Sequence
 import numpy as np
 
 from . import codec_gcs as codec
+from . import codec_gcs_rec as rcodec
 from . import codec_gcs_wave as wcodec
 from .base import VoltageLimits
 from .errors import LimitError, ProtocolError
+from .recording import Recording, RecorderSetup, time_axis
 from .wave_check import WaveStatus, check_table
 from .serial_amp import SerialAmplifier
 from .transport import SerialTransport
@@ -29,12 +31,16 @@ from .transport import SerialTransport
 _AXES = ("x", "y", "z")
 
 
+#: longest wait for one line of a data recorder's buffered reply (``DRR?``) [s]
+RECORD_LINE_TIMEOUT_S = 5.0
+
 class GCSAmplifier(SerialAmplifier):
     """``GCSAmplifier(transport, n_axes=3, check_every=50, host_limits=None, ...)``.
     Axes x, y, z map onto the first ``n_axes`` GCS axis identifiers reported by ``SAI?``
     (and the voltage channels 1..n)."""
 
     name = "gcs"
+    has_recorder = True
 
     def __init__(self, transport: SerialTransport, *, n_axes: int = 3, check_every: int = 50, **options) -> None:
         if not 1 <= n_axes <= 3:
@@ -259,3 +265,71 @@ class GCSAmplifier(SerialAmplifier):
             self._io(self.transport.write, wcodec.encode_stop([self._gen(a) for a in self._axes]))
             self._io(self._check)
         return self.wave_status()
+
+    # ---- data recorder (the Amplifier template's configure_recorder / read_recording) ----
+    def _recorder_clock_s(self) -> float:
+        return self.servo_cycle_s()
+
+    def _recorder_capacity(self, axes: tuple[str, ...], signals: tuple[str, ...]) -> int:
+        """Points per record table: the controller's points over its tables (SPA?
+        0x16000200 / 0x16000300, as PIPython reads them); 0 when it has too few tables."""
+        tables = rcodec.parse_int(self._query("TNR?"), "TNR?")
+        if tables < len(axes) * len(signals):
+            raise LimitError(f"the controller has {tables} record tables (TNR?); {len(axes) * len(signals)} "
+                             "are needed for these axes and signals")
+        total = rcodec.parse_param(self._query(f"SPA? 1 {rcodec.MAX_POINTS_PARAM}"), rcodec.MAX_POINTS_PARAM)
+        chans = rcodec.parse_param(self._query(f"SPA? 1 {rcodec.CHAN_NUMBER_PARAM}"), rcodec.CHAN_NUMBER_PARAM)
+        if not (total >= 1 and chans >= 1):
+            raise ProtocolError(f"data recorder size {total:g} points / {chans:g} tables is not usable")
+        return int(total // chans)
+
+    def _configure_recorder(self, setup: RecorderSetup) -> RecorderSetup:
+        tables: list[tuple[int, str, int]] = []
+        where: dict[tuple[str, str], int] = {}
+        for a in setup.axes:
+            for sig in setup.signals:
+                t = len(tables) + 1
+                if sig == "y_nm":
+                    tables.append((t, self._ids[a], rcodec.OPTION_ACTUAL_POSITION))
+                else:
+                    tables.append((t, str(self._axes.index(a) + 1), rcodec.OPTION_VOLTAGE))
+                where[(a, sig)] = t
+        self._send_checked(*rcodec.encode_configure(tables, setup.divider))
+        return RecorderSetup(setup.axes, setup.signals, setup.points, setup.divider, setup.clock_s,
+                             {"tables": where})
+
+    def _recorded_points(self, setup: RecorderSetup) -> int:
+        tables = sorted(setup.extra["tables"].values())  # type: ignore[union-attr]
+        counts = rcodec.parse_counts(self._query("DRL? " + " ".join(map(str, tables))), tables)
+        return min(counts.values())
+
+    def _read_recording(self, setup: RecorderSetup) -> Recording:
+        """``DRR? 1 <points> <tables>``, read line by line (header, then one line a point)."""
+        where: dict = setup.extra["tables"]  # type: ignore[assignment]
+        tables = sorted(where.values())
+        self._settle()
+        self.transport.write(rcodec.encode_read(tables, setup.points))
+        # the controller assembles a long buffered reply while it sends it: allow each line
+        # more than a short reply's timeout (a loaded host or a slow link stretches it)
+        wait = max(RECORD_LINE_TIMEOUT_S, self.transport.timeout_s)
+        head: list[bytes] = []
+        while True:
+            line = self.transport.read_frame(rcodec.split_line, wait)
+            if not line.lstrip().startswith(b"#"):
+                raise ProtocolError("DRR? answer: a data line before # END_HEADER", data=line)
+            head.append(line)
+            if line.strip().upper().startswith(b"# END_HEADER") or rcodec.is_last_line(line):
+                break
+        data_lines: list[bytes] = []
+        while not rcodec.is_last_line(head[-1] if not data_lines else data_lines[-1]):
+            data_lines.append(self.transport.read_frame(rcodec.split_line, wait))
+        header = rcodec.parse_header(head)
+        data = rcodec.parse_data(header, data_lines, len(tables))
+        self._check()
+        col = {t: k for k, t in enumerate(tables)}
+        y = {a: data[:, col[t]] * 1000.0 for (a, sig), t in where.items() if sig == "y_nm"}  # µm -> nm
+        u = {a: data[:, col[t]].copy() for (a, sig), t in where.items() if sig == "u_V"}
+        period = float(header.get("SAMPLE_TIME", setup.period_s))
+        if abs(period - setup.period_s) > 1e-9 * max(period, 1.0):
+            raise ProtocolError(f"DRR? SAMPLE_TIME {period:g} s differs from the armed {setup.period_s:g} s")
+        return Recording(time_axis(len(data), setup.period_s), y, u, setup.period_s, "gcs DRR?")

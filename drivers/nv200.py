@@ -21,6 +21,7 @@ with the device code at the next call; a read (``set``) is the synchronisation p
 from __future__ import annotations
 
 import logging
+import time
 from typing import Any
 
 from collections.abc import Sequence
@@ -29,9 +30,11 @@ import numpy as np
 
 from . import codec_gcs_wave
 from . import codec_nv200 as codec
+from . import codec_nv200_rec as rcodec
 from . import codec_nv200_wave as wcodec
 from .base import VoltageLimits
-from .errors import AmplifierError, LimitError, ProtocolError
+from .errors import AmplifierError, LimitError, ProtocolError, RecorderUnavailable
+from .recording import Recording, RecorderSetup, time_axis
 from .serial_amp import SerialAmplifier
 from .transport import SerialTransport
 from .wave_check import WaveStatus, check_table
@@ -58,6 +61,7 @@ class NV200(SerialAmplifier):
     one axis ``x``; voltages in V."""
 
     name = "nv200"
+    has_recorder = True
 
     def __init__(self, transport: SerialTransport, *, restore_settings: bool = False, **options: Any) -> None:
         self.restore_settings = bool(restore_settings)
@@ -67,6 +71,12 @@ class NV200(SerialAmplifier):
         self._table: np.ndarray | None = None
         self._wave_run = (0.0, 0, 0)
         self._playing = False
+        #: a recording read back before the driver reused the recorder (sensored units read
+        #: their output voltage through it)
+        self._rec_cache: Recording | None = None
+        self._rec_pending = False
+        self._rec_dirty = False
+        self._rec_triggered = False
         super().__init__(transport, **options)
 
     @property
@@ -125,6 +135,12 @@ class NV200(SerialAmplifier):
     def _read_voltages(self) -> dict[str, float]:
         if self.sensor == "none":
             return {"x": self._read("meas")}  # without a sensor meas is the piezo voltage
+        if self._rec_pending:          # the recorder is about to be reused: keep the recording
+            self._fetch_recording()
+        if self._rec_dirty:            # a recording changed the set-up the read-back relies on
+            self.transport.write(b"".join(codec.encode(c) for c in (
+                "recast,0", f"recsrc,0,{_RECSRC_PIEZO_VOLTAGE}", "recstr,1", "reclen,1")))
+            self._rec_dirty = False
         self.transport.write(codec.encode("recrun,1"))
         fields = codec.frame_fields(self._reply_to("recout,0,0,1"))
         if len(fields) != 4:
@@ -216,6 +232,7 @@ class NV200(SerialAmplifier):
             self._io(self._send_synced, wcodec.encode_start(len(self._table), divider, cycles))
             self._wave_run = (1.0 / (divider * wcodec.BASE_SAMPLE_S), divider, cycles)
             self._playing = True
+            self._rec_triggered = self._rec_pending   # an armed recording starts with it (recast 2)
         return self.wave_status()
 
     def wave_status(self) -> WaveStatus:
@@ -245,3 +262,70 @@ class NV200(SerialAmplifier):
             self._guard()
             self._io(self._send_synced, codec.encode("grun,0"))
         return self.wave_status()
+
+    # ---- data recorder (the Amplifier template's configure_recorder / read_recording) ----
+    def _recorder_clock_s(self) -> float:
+        return rcodec.BASE_SAMPLE_S
+
+    def _recorder_capacity(self, axes: tuple[str, ...], signals: tuple[str, ...]) -> int:
+        if "y_nm" in signals and self.sensor == "none":
+            raise RecorderUnavailable(
+                "nv200: this actuator has no position sensor, so the recorder has no position to record; "
+                "record u_V only, or measure the motion with an external sensor and give it as a file "
+                "(t,y in nm; docs/DRIVERS.md, 'Recording the motion')")
+        return rcodec.BUFFER_SIZE
+
+    def _configure_recorder(self, setup: RecorderSetup) -> RecorderSetup:
+        channels = {sig: ch for ch, sig in enumerate(setup.signals)}
+        sources = {ch: rcodec.SOURCES[sig] for sig, ch in channels.items()}
+        self._drain()
+        self.transport.write(rcodec.encode_configure(sources, setup.divider, setup.points))
+        self._read("recrun")                # every write taken (an error comes back first)
+        self._rec_cache, self._rec_pending, self._rec_dirty = None, True, True
+        self._rec_triggered = False
+        return RecorderSetup(setup.axes, setup.signals, setup.points, setup.divider, setup.clock_s,
+                             {"channels": channels})
+
+    def _recorded_points(self, setup: RecorderSetup) -> int:
+        """The unit does not count its points: ``recrun`` reads 0 once it holds them all."""
+        if self._rec_cache is not None:
+            return len(self._rec_cache)
+        return setup.points if not self._read("recrun") else 0
+
+    def _fetch_recording(self) -> None:
+        """Before the read-back reuses the recorder: a recording the waveform generator
+        started is waited for (``recrun`` 0; at most its length + 2 s) and read into the
+        cache; one never started (or not ending) is stopped and dropped, with a warning."""
+        setup = self._recorder_setup
+        self._rec_pending = False
+        deadline = time.monotonic() + setup.points * setup.period_s + 2.0
+        while self._rec_triggered and self._read("recrun"):
+            if time.monotonic() > deadline:
+                break
+            time.sleep(0.01)
+        else:
+            if self._rec_triggered:
+                self._rec_cache = self._read_channels(setup)
+                return
+        self.transport.write(codec.encode("recrun,0"))
+        self._recorder_setup = None
+        log.warning("nv200 on %s: the armed recording %s; it was stopped and dropped to read the output",
+                    self.transport.url, "did not end" if self._rec_triggered else "was never started by a wave")
+
+    def _read_channels(self, setup: RecorderSetup) -> Recording:
+        values = {}
+        for sig, ch in setup.extra["channels"].items():  # type: ignore[union-attr]
+            self._drain()
+            self.transport.write(codec.encode(f"recoutf,{ch}"))
+            values[sig] = rcodec.parse_recoutf(self.transport.read_frame(rcodec.split_recoutf, timeout_s=max(
+                self.transport.timeout_s, 2.0)), ch)
+        n = min(len(v) for v in values.values())
+        y = {"x": values["y_nm"][:n] * 1000.0} if "y_nm" in values else {}   # µm -> nm
+        u = {"x": values["u_V"][:n]} if "u_V" in values else {}
+        return Recording(time_axis(n, setup.period_s), y, u, setup.period_s, "nv200 recoutf")
+
+    def _read_recording(self, setup: RecorderSetup) -> Recording:
+        if self._rec_cache is None:
+            self._rec_cache = self._read_channels(setup)
+            self._rec_pending = False
+        return self._rec_cache

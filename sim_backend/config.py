@@ -137,8 +137,23 @@ class DynamicsConfig(_Strict):
     quality_factor: float = Field(20.0, gt=0, description="Q (dimensionless)")
 
 
+class SensorConfig(_Strict):
+    """The axis's position sensor (a capacitive or strain-gauge sensor read by the
+    amplifier's data recorder): it sees the true tip position of its axis through a
+    first-order low-pass (``bandwidth_Hz``, -3 dB; null = none), a pure delay ``delay_s``
+    (whole simulation samples ``dt_s``), Gaussian noise ``noise_nm`` (RMS, seeded by the
+    scanner's ``seed``) and a quantiser of step ``resolution_nm`` (0 = none):
+    s[n] = Q(lp[n - d] + w[n]). A separate reading: the true tip position is not changed."""
+
+    noise_nm: float = Field(0.2, ge=0, le=1.0e4, description="RMS noise of a reading [nm]")
+    resolution_nm: float = Field(0.1, ge=0, le=1.0e4, description="quantisation step [nm]; 0 = none")
+    bandwidth_Hz: float | None = Field(1.0e4, gt=0, le=1.0e9, description="first-order -3 dB bandwidth [Hz]; null = unlimited")
+    delay_s: float = Field(0.0, ge=0, le=0.1, description="pure delay [s] (rounded to whole dt_s)")
+
+
 class AxisConfig(_Strict):
-    """One axis: amplifier → hysteresis → creep → structural mode(s).
+    """One axis: amplifier → hysteresis → creep → structural mode(s), and the position
+    sensor that reads it.
 
     ``dynamics`` is the first (dominant) mode; ``extra_modes`` are further modes in series
     after it (each unit DC gain, discretised the same way)."""
@@ -148,6 +163,7 @@ class AxisConfig(_Strict):
     creep: CreepConfig | None = None
     dynamics: DynamicsConfig | None = None
     extra_modes: list[DynamicsConfig] = Field(default_factory=list, max_length=8)
+    sensor: SensorConfig = Field(default_factory=SensorConfig)
 
 
 class DriftConfig(_Strict):

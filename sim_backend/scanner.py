@@ -48,10 +48,12 @@ from .config import (
     NoiseConfig,
     PreisachComponent,
     ScannerConfig,
+    SensorConfig,
     default_scanner_config,
     linear_scanner_config,
 )
 from .plant import AxisPlant
+from .sensor import PositionSensor, SensorCapture
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +70,8 @@ __all__ = [
     "PreisachComponent",
     "Scanner",
     "ScannerConfig",
+    "SensorConfig",
+    "SensorCapture",
     "default_scanner_config",
     "linear_scanner_config",
 ]
@@ -163,6 +167,8 @@ class Scanner:
             self._drift.prepare(self.config.dt_s)
             self.rng = np.random.default_rng(self.config.seed)
             self._pos = self._compose(np.array([[self.axes[a].y_nm for a in AXES]]), np.zeros((1, 3)))[0]
+            self.sensor = PositionSensor([self.config.axis(a).sensor for a in AXES], self.config.seed)
+            self._captures: list[SensorCapture] = []
 
     def _compose(self, disp: np.ndarray, drift: np.ndarray) -> np.ndarray:
         """Coupling then drift, row by row in a fixed order of operations (not ``disp @ C.T``,
@@ -202,6 +208,29 @@ class Scanner:
         (``config.noise.position_std_nm``)."""
         with self._lock:
             return self._pos + self.rng.normal(0.0, self.config.noise.position_std_nm, 3) if self.config.noise.position_std_nm > 0 else self._pos.copy()
+
+    def capture_sensor(self, t0_s: float, period_s: float, n: int) -> SensorCapture:
+        """Ask for ``n`` position-sensor readings [x, y, z] nm at ``t0_s + k·period_s`` [s]
+        (a data recorder armed now): filled as simulated time passes them (each the reading
+        of the last sample ending at or before that time; a time already past gets the
+        present reading). See :mod:`afmctl.sim_backend.sensor` and ``AxisConfig.sensor``."""
+        cap = SensorCapture(t0_s, period_s, n)
+        with self._lock:
+            self._captures = [c for c in self._captures if not c.done]
+            if not self._captures:          # the sensor wakes settled at the present position
+                self.sensor.reset(self._pos)
+            self._captures.append(cap)
+            cap.hold(self.time_s, self.sensor.last_nm, self.config.dt_s)
+        return cap
+
+    def _sense(self, pos: np.ndarray, dt: float) -> None:
+        """Run the position sensor over a simulated block and hand its readings to the
+        waiting captures (only while one waits)."""
+        before = self.sensor.last_nm.copy()
+        readings = self.sensor.block(pos, dt)
+        for cap in self._captures:
+            cap.fill(self.time_s, dt, readings, before)
+        self._captures = [c for c in self._captures if not c.done]
 
     def piezo_voltage_V(self) -> np.ndarray:
         """Voltage at each piezo [x, y, z] V (after the amplifier model)."""
@@ -260,6 +289,8 @@ class Scanner:
                 volts[:, i] = v
             drift = self._drift.block(T, volts, dt)
             pos = self._compose(disp, drift)
+            if n and self._captures:
+                self._sense(pos, dt)
             if n:
                 self._pos = pos[-1].copy()
                 self._held_V = u[-1].copy()

@@ -152,6 +152,11 @@ SLOW_TESTS = frozenset({
     "test_scan_files.py::test_identify_from_image_files_equals_npz",
     "test_sim_amplifiers.py::test_mdt_is_no_faster_than_115200_baud",
     "test_trajectories.py::test_smooth_move_respects_limits",
+    "test_recorders.py::test_gcs_driver_records_position_and_voltage_aligned_with_the_wave",
+    "test_recorders.py::test_nv200_driver_records_position_and_voltage_started_by_the_waveform_generator",
+    "test_recorders.py::test_can_driver_records_the_stream_from_its_first_played_sample",
+    "test_amp_cli.py::test_wave_record_writes_the_measured_motion_as_a_motion_file",
+    "test_recorders.py::test_sim_gcs_recorder_options_commanded_actual_and_error_from_the_sensor",
 })
 
 

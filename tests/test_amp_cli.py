@@ -168,3 +168,41 @@ def test_wave_refuses_bad_arguments_a_bad_wrap_and_other_drivers(mdt, tmp_path, 
         assert sim.stream.played == 0 and sim.received == 0
     assert main(["amp", "--driver", "mdt693b", "--port", mdt.port, "wave", "--file", path, "--rate-Hz", "100"]) == 2
     assert "wave works with --driver can" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("driver", ["gcs", "can"])
+def test_wave_record_writes_the_measured_motion_as_a_motion_file(driver, tmp_path, capsys):
+    from afmctl.data.motion_files import read_motion_csv
+    from afmctl.sim_backend.scanner import Scanner, default_scanner_config
+    n, rate = 200, 10_000
+    x = 60.0 + 30.0 * np.sin(2 * np.pi * np.arange(n) / n)
+    path = write_csv(tmp_path / "w.csv", "t,ux,uy,uz", np.column_stack([np.arange(n) / rate, x,
+                                                                       np.full(n, 3.0), np.full(n, 4.0)]))
+    out_csv = tmp_path / "motion.csv"
+    scanner = Scanner(default_scanner_config())
+    if driver == "can":
+        channel = f"rec-{uuid.uuid4().hex[:8]}"
+        server_cm, port = serve_can(channel, scanner), f"virtual:{channel}"
+    else:
+        server_cm = serve_pty("gcs", sink=scanner)
+        port = None
+    with server_cm as server:
+        port = port or server.port
+        assert main(["amp", "--driver", driver, "--port", port, "--max-step", "100", "wave", "--file", path,
+                     "--rate-Hz", str(rate), "--record", str(out_csv)]) == 0
+    out = capsys.readouterr().out
+    assert f"recorded {n} points every 100 us" in out and str(out_csv) in out
+    rec = read_motion_csv(out_csv)
+    if driver == "gcs":        # the x, y, z columns: three axes recorded
+        assert set(rec.y_nm) == {"x", "y", "z"}
+    assert len(rec) == n and rec.period_s == pytest.approx(1e-4)
+    np.testing.assert_allclose(rec.u_V["x"], x, atol=0.002)
+    assert np.ptp(rec.y_nm["x"]) > 2000.0
+
+
+def test_wave_record_is_refused_on_a_device_without_a_recorder(mdt, tmp_path, capsys):
+    path = write_csv(tmp_path / "w.csv", "t,u", [(0.0, 1.0), (0.001, 2.0)])
+    assert main(["amp", "--driver", "mdt693b", "--port", mdt.port, "wave", "--file", path, "--rate-Hz", "100",
+                 "--record", str(tmp_path / "m.csv")]) == 2
+    err = capsys.readouterr().err
+    assert "afmctl: error:" in err and "no data recorder" in err and "external sensor" in err

@@ -80,7 +80,7 @@ def test_sim_refuses_bad_wave_commands_with_gcs_errors():
     dev, _, _ = _sim()
     for cmd, code in [(b"WAV 1 X PNT 1 3 1 2\n", 1), (b"WAV 9 X PNT 1 1 1\n", 17), (b"WAV 1 & PNT 5 1 1\n", 17),
                       (b"WGO 1 1\n", 17), (b"WTR 1 0 0\n", 17), (b"WGO 1 7\n", 17), (b"WAV 1 X PNT 1 1 nan\n", 1),
-                      (b"SPA? 1 0x1\n", 56)]:
+                      (b"SPA? 1 0x1\n", 54)]:
         dev.feed(cmd)
         assert dev.feed(b"ERR?\n") == f"{code}\n".encode(), cmd
     dev.feed(b"WAV 1 X PNT 1 2 1 2\nWGC 1 0\nWGO 1 1\n")

@@ -16,6 +16,7 @@ import importlib.util
 import inspect
 import json
 import logging
+import math
 import os
 import select
 import shutil
@@ -120,6 +121,45 @@ def test_pipython_wave_generator_plays_on_the_simulated_servo_clock():
     assert max(t) - t0 == pytest.approx(249 * 10 * 50e-6, abs=1e-9)
     xs = [h[1]["x"] for h in played]
     assert min(xs) == 10.0 and max(xs) == 50.0
+
+
+def test_pipython_datarecorder_records_a_wave_from_the_simulated_scanner_sensor():
+    """PIPython's datarectools.Datarecorder: servo time and table size from SPA? (after an
+    unknown parameter it reads the error and carries on), RTR, DRC (actual position of axis 1,
+    voltage of output 1), DRT 0 (start with the wave generator), WGO, DRL? (wait), DRR?
+    (the buffered GCS array read in its background thread); the actual position is the
+    simulated scanner's position sensor."""
+    from pipython import datarectools, pitools
+    from pipython.datarectools import RecordOptions, TriggerSources
+    from afmctl.sim_backend.scanner import Scanner, default_scanner_config
+    scanner = Scanner(default_scanner_config())
+    points = [30.0 + 20.0 * math.sin(2 * math.pi * k / 100) for k in range(200)]
+    with serve_pty("gcs", sink=scanner) as server:
+        with _pipython(server.port) as pi:
+            pi.SVO(pi.axes, [False, False, False])
+            pi.SVA("1", points[0])
+            # as a context manager: its exit unregisters the gateway callback it registered (PIPython
+            # keeps those callbacks for every gateway; a stale one would fire on the next connection)
+            with datarectools.Datarecorder(pi) as drec:
+                assert drec.servotime == pytest.approx(50e-6) and drec.maxnumvalues == 262144 // 8
+                drec.numvalues = 200
+                drec.samplerate = 2
+                drec.options = (RecordOptions.ACTUAL_POSITION_2, RecordOptions.PIEZO_VOLTAGE_7)
+                drec.sources = ("1", "1")
+                drec.trigsources = TriggerSources.DEFAULT_0
+                drec.arm()
+                assert pi.qDRC([1, 2]) == {1: ["1", 2], 2: ["1", 7]} and pi.qRTR() == 2 and pi.qTNR() == 8
+                pitools.writewavepoints(pi, 1, points, bunchsize=50)
+                pi.WSL(1, 1)
+                pi.WGC(1, 1)
+                pi.WTR(1, 2, 0)
+                pi.WGO(1, 1)
+                header, data = drec.getdata(timeout=10)
+            assert pi.qERR() == 0
+    assert header["NDATA"] == 200 and header["DIM"] == 2 and header["SAMPLE_TIME"] == pytest.approx(100e-6)
+    assert "Actual Position" in header["NAME0"] and "Voltage" in header["NAME1"]
+    assert data[1] == pytest.approx(points, abs=1e-4)              # the voltage of each wave point
+    assert max(data[0]) - min(data[0]) > 1.0                       # [µm]: the sensor saw the scanner move
 
 
 # ------------------------------------------------------------ mdt69x → SimMDT693B
@@ -405,6 +445,26 @@ def test_nv200_library_waveform_generator_uploads_and_runs_on_the_simulated_cloc
     assert all(abs(ti / 50e-6 - round(ti / 50e-6)) < 1e-6 for ti in t)       # on the unit's 50 us clock
     assert max(h[1]["x"] for h in played) == pytest.approx(50.0, abs=0.05)
     assert min(h[1]["x"] for h in played) == pytest.approx(10.0, abs=0.05)
+
+
+@pytest.mark.slow
+def test_nv200_library_data_recorder_records_a_waveform_run_from_the_simulated_sensor(nv200_python):
+    """The library's DataRecorder: recsrc (position, voltage), recast 2 (start with the
+    waveform generator), recstr, reclen, recrun (arm, then poll until 0), recoutf of both
+    channels; the position is the simulated scanner's sensor [µm]."""
+    from afmctl.sim_backend.scanner import Scanner, default_scanner_config
+    client = ROOT / "tests" / "vendor" / "nv200_recorder_client.py"
+    scanner = Scanner(default_scanner_config())
+    with serve_pty("nv200", sink=scanner, sensor="strain gauge") as server:
+        res = subprocess.run([nv200_python, str(client), server.port, "2"], capture_output=True,
+                             text=True, timeout=180)
+        assert res.returncode == 0, res.stderr[-2000:]
+        out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert out["finished"] and out["sources"] == [0, 2] and out["sample_time_ms"] == pytest.approx(0.2)
+    assert len(out["position"]) == len(out["voltage"]) == 24
+    assert out["voltage"] == pytest.approx(out["values_V"] * 2, abs=0.01)   # sample k = buffer point k
+    pos = out["position"]                                                  # µm: the scanner moved
+    assert max(pos) - min(pos) > 2.0
 
 
 def test_nv200_stored_settings_are_changed_only_when_needed_said_and_restored_on_request(caplog):

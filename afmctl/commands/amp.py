@@ -33,7 +33,7 @@ Actions:
   info                      identity, limits, connection state
   get                       read back the applied output voltages
   set x=V [y=V z=V]         set some axes, then read back
-  wave --file VOLTS.csv --rate-Hz R [--cycles N]
+  wave --file VOLTS.csv --rate-Hz R [--cycles N] [--record MOTION.csv]
                             play the rows on the amplifier's own clock through its
                             stream FIFO (driver can) or as wave tables on the
                             controller's servo clock (driver gcs), N times

@@ -32,6 +32,12 @@ def add_parser(actions) -> None:
                    help="samples per second, 1..1000000 (can: a whole number; gcs, nv200: the device "
                         "clock over a whole number, e.g. 20000/3 = 6666.666667 on an E-727)")
     w.add_argument("--cycles", type=int, default=1, metavar="N", help="play the file N times (default 1)")
+    w.add_argument("--record", metavar="MOTION.csv", default=None,
+                   help="record the motion with the device's data recorder while it plays (one point per "
+                        "played sample, from the first: the position sensor [nm] and the output [V] of the "
+                        "file's axes, as many points as the recorder holds) and write it as t,y,u (one "
+                        "axis) or t,x,y,z,ux,uy,uz — the format afmctl reads an external sensor's motion "
+                        "in; refused on a device without a recorder (mdt693b)")
 
 
 def check_args(args) -> None:
@@ -67,6 +73,8 @@ def play(amp, loaded, args, check_file_limits, fmt) -> None:
     """Stream the wave, keeping the FIFO between WAVE_LOW_S and WAVE_HIGH_S; print a summary.
     ``check_file_limits(amp, loaded, path)`` and ``fmt(volts)`` are ``afmctl amp``'s."""
     from ..errors import AfmctlError
+    if args.record is not None and not amp.has_recorder:
+        amp.recorder_capacity()          # raises RecorderUnavailable: one line on what to do instead
     if hasattr(amp, "upload_wave"):
         return play_table(amp, loaded, args, check_file_limits, fmt)
     if not hasattr(amp, "start_stream"):
@@ -77,6 +85,7 @@ def play(amp, loaded, args, check_file_limits, fmt) -> None:
     rate = args.rate_Hz
     low, high = max(1, int(WAVE_LOW_S * rate)), max(2, int(WAVE_HIGH_S * rate))
     amp.start_stream(rate, prefill=int(min(high, len(rows))))
+    setup = _arm_recorder(amp, loaded[0], len(rows), 1, args)
     queued, t0 = 0, time.perf_counter()
     while queued < len(rows):
         st = amp.latest_buffer_status()
@@ -97,6 +106,7 @@ def play(amp, loaded, args, check_file_limits, fmt) -> None:
           f"(schedule {len(rows) / rate:.3f} s)")
     if st.state == "fault":
         raise AfmctlError("the amplifier stopped the stream (fault); see the error above")
+    _write_recording(amp, setup, args)
     print("final: " + fmt(amp.get_voltages()))
 
 
@@ -116,6 +126,7 @@ def play_table(amp, loaded, args, check_file_limits, fmt) -> None:
         raise AfmctlError(f"--rate-Hz: {err}; nothing was sent") from None
     for k, axis in enumerate(axes):
         amp.upload_wave(axis, values[:, k])
+    setup = _arm_recorder(amp, axes, len(values) * args.cycles, divider, args)
     st = amp.start_wave(divider=divider, cycles=args.cycles, axes=axes)
     duration_s = len(values) * args.cycles / st.rate_Hz
     t0 = time.perf_counter()
@@ -131,4 +142,28 @@ def play_table(amp, loaded, args, check_file_limits, fmt) -> None:
     print(f"played {len(values)} points x {args.cycles} cycle(s) on {', '.join(axes)} at {st.rate_Hz:g} Hz on the "
           f"device's clock (every {divider} tick(s) of {cycle_s * 1e6:g} us): "
           f"{duration_s:.4f} s; host waited {time.perf_counter() - t0:.3f} s")
+    _write_recording(amp, setup, args)
     print("final: " + fmt(amp.get_voltages()))
+
+
+def _arm_recorder(amp, axes, samples: int, divider: int, args):
+    """With ``--record``: arm the recorder for one point per played sample of ``axes`` (as
+    many as it holds); None without."""
+    if args.record is None:
+        return None
+    capacity = amp.recorder_capacity(list(axes))
+    if samples > capacity:
+        log.warning("--record: the recorder holds %d points per signal; the first %d of %d samples are recorded",
+                    capacity, capacity, samples)
+    return amp.configure_recorder(list(axes), points=min(samples, capacity), divider=divider)
+
+
+def _write_recording(amp, setup, args) -> None:
+    if setup is None:
+        return
+    from ..data.motion_files import write_motion_csv
+    rec = amp.read_recording(timeout_s=10.0 + setup.points * setup.period_s)
+    write_motion_csv(args.record, rec)
+    span = {a: float(v.max() - v.min()) for a, v in rec.y_nm.items()}
+    print(f"recorded {len(rec)} points every {rec.period_s * 1e6:g} us ({rec.source}) -> {args.record}; "
+          "measured span " + ", ".join(f"{a} {s:.1f} nm" for a, s in span.items()))

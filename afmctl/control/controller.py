@@ -60,7 +60,7 @@ import sys
 import threading
 import time
 import weakref
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -167,6 +167,10 @@ class Controller:
     #: test hook for ``amplifier.output = "stream"``: called once per producer wake-up on
     #: the loop thread (tests inject host stalls there); None in use
     stream_stall_hook: Any = None
+
+    #: ``amplifier.output = "wave"``: called once by the player after the table is uploaded
+    #: (or the stream started) and before its first point plays (arming a data recorder)
+    before_wave_start: Callable[[], None] | None = None
 
     def __init__(self, config, amplifier, *, pipeline=None) -> None:
         self.config = config

@@ -82,6 +82,14 @@ class WavePlayer:
     def _stop_device(self) -> None:
         """The device-specific part of :meth:`abort`."""
 
+    def _before_start(self) -> None:
+        """Call the controller's ``before_wave_start`` hook (e.g. arm the device's data
+        recorder, :mod:`afmctl.control.learn_run`): after the upload (or the stream's
+        start), before the first point plays."""
+        hook = getattr(self.ctl, "before_wave_start", None)
+        if hook is not None:
+            hook()
+
 
 class TablePlayer(WavePlayer):
     """A wave generator: GCS wave tables or the NV200's waveform buffer."""
@@ -108,6 +116,7 @@ class TablePlayer(WavePlayer):
         """Upload, start every driven axis together, record the rows as they play."""
         if not self._upload(table):
             return
+        self._before_start()
         st = self.amp.start_wave(divider=wcodec.divider_for(self.ctl.config.loop.rate_Hz, self.amp.servo_cycle_s()),
                                  cycles=1, axes=list(self.m.safety.axes))
         self.started = True
@@ -177,6 +186,7 @@ class FifoPlayer(WavePlayer):
         n = len(rows)
         amp.start_stream(prod.rate_Hz, prefill=int(min(prod.high, n)))
         self.started = True
+        self._before_start()
         self.m.fsm.fire(Event.DONE)        # the FIFO plays: UPLOAD -> PLAY
         prod._queued = 0
         self.m.tick0 = ctl._tick + 1

@@ -51,10 +51,14 @@ def simulated_amplifier(config) -> Iterator[tuple[Any, Any]]:
         if driver == "can":
             channel = config.amplifier.port or "virtual:afmctl-sim"
             name = channel.split(":", 1)[1] if channel.startswith("virtual:") else channel
-            stack.enter_context(testing.serve_can(name, sink=scanner))
+            stack.enter_context(testing.serve_can(name, sink=scanner, **config.simulation.device))
             port = f"virtual:{name}"
         else:
-            server = stack.enter_context(testing.serve_pty(driver, sink=scanner, baud=config.simulation.baud))
+            try:
+                server = stack.enter_context(testing.serve_pty(driver, sink=scanner, baud=config.simulation.baud,
+                                                               **config.simulation.device))
+            except (TypeError, ValueError) as err:
+                raise AfmctlError(f"simulation.device: {err} (simulated {driver})") from None
             port = server.port
         from ..control.hardware import open_driver
         if driver != "can" and "baudrate" not in config.amplifier.options:

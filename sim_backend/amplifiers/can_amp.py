@@ -32,13 +32,14 @@ from importlib import resources
 from pathlib import Path
 
 from .base import Sink, elapsed_clock
+from .can_recorder import CAPACITY as REC_CAPACITY, RecState, TickRecorder
 from .can_stream import StreamPlayer, StreamState
 
 log = logging.getLogger(__name__)
 
 #: the DBC's messages this amplifier receives and sends
 _MESSAGES = ("SETPOINT_XYZ", "HEARTBEAT", "STATUS", "ERROR", "LIMITS", "STREAM_CTRL", "STREAM_XYZ",
-             "STREAM_XYZ_FD", "STREAM_STATUS")
+             "STREAM_XYZ_FD", "STREAM_STATUS", "REC_CTRL", "REC_READ", "REC_STATUS", "REC_DATA")
 #: how often a playing stream reports its FIFO [s of the amplifier clock]
 STATUS_PERIOD_S = 0.01
 
@@ -83,7 +84,7 @@ class SimCANAmplifier:
         self._msg = {name: self.db.get_message_by_name(name) for name in _MESSAGES}
         #: frame id -> message name, for the frames this amplifier receives
         self._rx = {self._msg[n].frame_id: n for n in ("SETPOINT_XYZ", "HEARTBEAT", "STREAM_CTRL", "STREAM_XYZ",
-                                                       "STREAM_XYZ_FD")}
+                                                       "STREAM_XYZ_FD", "REC_CTRL", "REC_READ")}
         self._bus_options = bus_options
         #: sample slots of one STREAM_XYZ_FD frame (from the DBC: its X<k>_V signals)
         self._fd_samples = sum(1 for sg in self._msg["STREAM_XYZ_FD"].signals if sg.name[0] == "X")
@@ -111,6 +112,8 @@ class SimCANAmplifier:
         #: guards the stream player (notifier thread pushes, player thread plays)
         self._stream_lock = threading.Condition()
         self.stream = StreamPlayer(self._play, capacity_log2=fifo_log2)
+        #: the data recorder (REC_* frames; :mod:`.can_recorder`), guarded by the stream lock
+        self.recorder = TickRecorder(self._sensor_capture)
         self._played_t: list[float] = []
         self._played_V: list[tuple[float, float, float]] = []
         self._player: threading.Thread | None = None
@@ -221,6 +224,10 @@ class SimCANAmplifier:
                                      "Z_V": sig[f"Z{k}_V"]})
         elif name == "STREAM_CTRL":
             self._stream_ctrl(sig)
+        elif name == "REC_CTRL":
+            self._rec_ctrl(sig)
+        elif name == "REC_READ":
+            self._rec_read(sig)
         else:
             if sig["REQ_STATE"] == 1:
                 self.enabled = True
@@ -274,6 +281,7 @@ class SimCANAmplifier:
         """One sample played by the stream at its tick time ``t_s`` (under the stream lock);
         handed to the sink with the others of the same clock update by :meth:`_run_stream`."""
         self.outputs = dict(zip(self.axes, values))
+        self.recorder.played(values, t_s, self.stream.rate_Hz)
         self._played_t.append(t_s)
         self._played_V.append(values)
 
@@ -294,6 +302,53 @@ class SimCANAmplifier:
         else:
             for t_k, row in zip(t, rows):
                 self.sink.apply(dict(zip(self.axes, row)), t_k)
+
+    # -- data recorder --
+    def _sensor_capture(self, t0_s: float, period_s: float, n: int):
+        capture = getattr(self.sink, "capture_sensor", None)
+        return capture(t0_s, period_s, n) if capture is not None else None
+
+    def _rec_sync(self) -> None:
+        """Play what is due, bring the sink's simulation (its sensor) and the recorder to now
+        (under the stream lock)."""
+        now = self.now()
+        self._run_stream(now)
+        advance = getattr(self.sink, "advance", None)
+        if advance is not None and getattr(self.sink, "capture_sensor", None) is not None:
+            advance(now)
+        self.recorder.sync(now)
+
+    def send_rec_status(self) -> None:
+        r = self.recorder
+        self._send("REC_STATUS", {"REC_STATE": int(r.state), "AXES": r.axes_mask, "SIGNALS": r.signals,
+                                  "COUNT": r.count(), "CAPACITY": REC_CAPACITY, "DIVIDER": r.divider & 0xFFFF})
+
+    def _rec_ctrl(self, sig: dict) -> None:
+        cmd = int(sig["CMD"])
+        with self._stream_lock:
+            self._rec_sync()
+            if cmd == 1:
+                detail = self.recorder.arm(int(sig["AXES"]), int(sig["SIGNALS"]), int(sig["POINTS"]),
+                                           int(sig["DIVIDER"]))
+                if detail:
+                    self._error(6, detail, 0)
+            elif cmd == 2:
+                self.recorder.stop()
+            self.send_rec_status()
+
+    def _rec_read(self, sig: dict) -> None:
+        first, count = int(sig["FIRST"]), int(sig["COUNT"])
+        with self._stream_lock:
+            self._rec_sync()
+            r = self.recorder
+            if r.state is RecState.IDLE or first + count > r.count():
+                self._error(6, 4, 0)
+                return
+            axes = [i for i in range(3) if r.axes_mask >> i & 1]
+            frames = [(k, i, *r.point(k, i)) for k in range(first, first + count) for i in axes]
+        lo, hi = -83886.08, 83886.07                   # the Y_NM signal's range (DBC)
+        for k, i, y, u in frames:
+            self._send("REC_DATA", {"INDEX": k, "AXIS": i, "Y_NM": min(max(y, lo), hi), "U_V": u})
 
     def send_stream_status(self) -> None:
         st = self.stream.status()

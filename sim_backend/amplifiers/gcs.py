@@ -24,13 +24,16 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from .base import SimDevice, Sink
+from .gcs_recorder import (DATA_REC_CHAN_NUMBER_PARAM, DATA_REC_MAX_POINTS_PARAM, N_TABLES, TOTAL_POINTS,
+                           DataRecorder, RecorderError)
 from .gcs_wave import SERVO_CYCLE_S, SERVO_UPDATE_TIME_PARAM, WaveError, WaveGenerator
 
 _AXIS = {"1": "x", "2": "y", "3": "z"}
 IDN = b"(c)2024 Physik Instrumente (PI) GmbH & Co. KG, E-727, SIM-afmctl, 01.00.00.00\n"
 _HELP = ("*IDN?", "CSV?", "ERR?", "HLP?", "SAI?", "SVO", "SVO?", "SVA", "SVA?", "VOL?", "VMA", "VMA?",
-         "VMI", "VMI?", "POS?", "MOV", "MOV?", "ONT?", "TMN?", "TMX?", "SPA?", "HPA?", "WAV", "WAV?", "WSL",
-         "WSL?", "WGC", "WGC?", "WTR", "WTR?", "WGO", "WGO?", "WMS?", "TWC", "WOS", "WOS?", "#9")
+         "VMI", "VMI?", "POS?", "MOV", "MOV?", "ONT?", "TMN?", "TMX?", "SPA", "SPA?", "HPA?", "WAV", "WAV?", "WSL",
+         "WSL?", "WGC", "WGC?", "WTR", "WTR?", "WGO", "WGO?", "WMS?", "TWC", "WOS", "WOS?", "#9",
+         "DRC", "DRC?", "DRT", "DRT?", "RTR", "RTR?", "TNR?", "DRL?", "DRR?", "WGR")
 #: single-byte GCS commands (no LF): #9 asks which wave generators run
 _RUNNING_BYTE = 0x09
 
@@ -63,6 +66,8 @@ class SimGCS(SimDevice):
         self._played: list[tuple[float, list[float]]] | None = None
         #: per generator the output offset added to every wave value (``WOS``; 0 at power-on)
         self.wave_offset_V = {int(k): 0.0 for k in _AXIS}
+        #: the data recorder (:mod:`.gcs_recorder`): reads the sink's position sensor if it has one
+        self.recorder = DataRecorder(servo_cycle_s, self._sensor_capture, self._model_um, tuple(_AXIS))
 
     def _latch(self, code: int) -> bytes:
         if self.error == 0:
@@ -116,10 +121,89 @@ class SimGCS(SimDevice):
         v = min(max(value, self.vmi[key]), self.vma[key])
         if self.outputs[axis] != v:
             self.outputs[axis] = v
+            self.recorder.output_changed(t_s, self._channel_volts())
             if self._played is not None:
                 self._played.append((t_s, [self.outputs[a] for a in "xyz"]))
             elif self.sink is not None:
                 self.sink.apply(dict(self.outputs), t_s)
+
+    def _channel_volts(self) -> dict[str, float]:
+        return {k: self.outputs[a] for k, a in _AXIS.items()}
+
+    def _apply(self, changes) -> None:
+        """Host-set outputs (SVA, MOV): the recorder sees them from now on, and they may
+        trigger it (``DRT`` 1)."""
+        now = self.now()
+        self.recorder.event("move", now)
+        super()._apply(changes)
+        self.recorder.output_changed(now, self._channel_volts())
+
+    def _sensor_capture(self, t0_s: float, period_s: float, n: int):
+        """A capture of the sink's position sensor, or None when the sink has none."""
+        capture = getattr(self.sink, "capture_sensor", None)
+        return capture(t0_s, period_s, n) if capture is not None else None
+
+    def _model_um(self, key: str, volts: float) -> float:
+        """The linear position [µm] of an output voltage (over VMI..VMA onto the travel)."""
+        lo, hi = self.vmi[key], self.vma[key]
+        frac = (volts - lo) / (hi - lo) if hi > lo else 0.0
+        return self.travel_um[0] + frac * (self.travel_um[1] - self.travel_um[0])
+
+    def _sense_now(self) -> float:
+        """Bring the sink's simulation (and so its sensor) up to now; returns now [s]."""
+        now = self.now()
+        advance = getattr(self.sink, "advance", None)
+        if advance is not None and getattr(self.sink, "capture_sensor", None) is not None:
+            advance(now)
+        return now
+
+    def _recorder_command(self, cmd: str, args: list[str]) -> bytes | None:
+        """The data recorder commands (:mod:`.gcs_recorder`); None when ``cmd`` is not one."""
+        r = self.recorder
+        try:
+            if cmd in ("DRC", "DRT", "RTR"):
+                {"DRC": r.drc, "DRT": r.drt, "RTR": r.rtr}[cmd](args)
+                if cmd == "DRT":
+                    r.start_immediate(self.now())
+                return b""
+            if cmd == "WGR":
+                r.event("wgr", self.now())
+                return b""
+            if cmd in ("RTR?", "TNR?"):
+                return f"{r.rate if cmd == 'RTR?' else N_TABLES}\n".encode()
+            if cmd in ("DRC?", "DRT?", "DRL?"):
+                ids = r.ids(args)
+                if cmd == "DRL?":
+                    now = self._sense_now()
+                    return self._items([(str(t), str(r.recorded(t, now))) for t in ids])
+                field = {"DRC?": lambda t: f"{t.source} {t.option}", "DRT?": lambda t: f"{t.trigger} {t.trigger_value}"}
+                return self._items([(str(t), field[cmd](r.tables[t])) for t in ids])
+            if cmd == "DRR?":
+                return self._drr(args)
+        except RecorderError as err:
+            return self._latch(err.code)
+        return None
+
+    def _drr(self, args: list[str]) -> bytes:
+        """``DRR? [offset n [tables]]``: the GCS array (header, then one line per point)."""
+        r = self.recorder
+        now = self._sense_now()
+        if args and len(args) < 2:
+            raise RecorderError(1)
+        tables = r.ids(args[2:]) if len(args) > 2 else [t for t, tab in r.tables.items() if tab.option]
+        first = int(_num(args[0]) or 0) - 1 if args else 0
+        have = min((r.recorded(t, now) for t in tables), default=0)
+        want = int(_num(args[1]) or 0) if args else have
+        if first < 0 or want < 1 or (args and _num(args[1]) is None):
+            raise RecorderError(17)
+        n = max(0, min(want, have - first))
+        head = ["# REM E-727", "# VERSION = 1", "# TYPE = 1", "# SEPARATOR = 32", f"# DIM = {len(tables)}",
+                f"# SAMPLE_TIME = {r.rate * r.servo_cycle_s:.9g}", f"# NDATA = {n}"]
+        head += [f"# NAME{i} = {r.name(t)}" for i, t in enumerate(tables)]
+        head.append("# END_HEADER")
+        cols = [r.values(t, first, n) for t in tables]
+        rows = [" ".join(f"{c[k]:.6f}" for c in cols) for k in range(n)]
+        return (" \n".join(head + rows) + "\n").encode()
 
     def _wave_command(self, cmd: str, args: list[str]) -> bytes | None:
         """The wave generator commands; None when ``cmd`` is not one."""
@@ -157,6 +241,8 @@ class SimGCS(SimDevice):
 
     def _wgo(self, gen: int, mode: int) -> None:
         self.wave.wgo(gen, mode, self._cmd_now)
+        if mode:
+            self.recorder.event("wgo", self._cmd_now)  # once: the generators start on one tick
 
     @staticmethod
     def _int_pairs(args: list[str], width: int) -> list[tuple[int, list[int]]]:
@@ -204,9 +290,14 @@ class SimGCS(SimDevice):
             param = int(args[1], 0)
         except ValueError:
             return self._latch(1)
-        if args[0] not in _AXIS or param != SERVO_UPDATE_TIME_PARAM:
-            return self._latch(56)  # PI: unknown parameter
-        return self._items([(f"{args[0]} {args[1]}", f"{self.wave.servo_cycle_s:.9g}")])
+        known = {SERVO_UPDATE_TIME_PARAM: f"{self.wave.servo_cycle_s:.9g}",
+                 DATA_REC_MAX_POINTS_PARAM: str(TOTAL_POINTS), DATA_REC_CHAN_NUMBER_PARAM: str(N_TABLES)}
+        if args[0] not in _AXIS or param not in known:
+            # PI: unknown parameter (54), answered with an empty line (unconfirmed: what a real
+            # E-727 sends then; PIPython's getparam() reads the error and carries on)
+            self._latch(54)
+            return b"\n"
+        return self._items([(f"{args[0]} {args[1]}", known[param])])
 
     def command(self, line: bytes) -> bytes:
         self.poll()
@@ -221,11 +312,22 @@ class SimGCS(SimDevice):
         cmd, args = tokens[0].upper(), tokens[1:]
         if cmd == "SPA?":
             return self._spa_query(args)
+        if cmd == "SPA":   # the parameters simulated here are not for the host to change
+            if len(args) % 3 or not args:
+                return self._latch(1)
+            return self._latch(60)      # PI: protected parameter (command level too low)
         if cmd == "HPA?":  # the parameters this simulator knows: id= level max-item type group text
-            return b"0x0E000200=\t0\t1\tFLOAT\tservo\tservo update time [s]\n"
+            return (b"0x0E000200=\t0\t1\tFLOAT\tservo\tservo update time [s] \n"
+                    b"0x16000200=\t0\t1\tINT\tdata recorder\tdata recorder max points \n"
+                    b"0x16000300=\t0\t1\tINT\tdata recorder\tdata recorder chan number\n")
+        if cmd not in ("DRT", "DRT?", "ERR?"):
+            self.recorder.event("command", self.now())  # DRT 2: "next command" triggers
         wave = self._wave_command(cmd, args)
         if wave is not None:
             return wave
+        rec = self._recorder_command(cmd, args)
+        if rec is not None:
+            return rec
         if cmd == "ERR?":
             code, self.error = self.error, 0
             return f"{code}\n".encode()
@@ -234,7 +336,9 @@ class SimGCS(SimDevice):
         if cmd == "CSV?":
             return b"2\n"
         if cmd == "HLP?":
-            return b" \n".join(c.encode() for c in _HELP) + b"\n"
+            # framed by a title and an end line, as a controller's help (PIPython strips both)
+            lines = ["The following commands are available:", *_HELP, "end of help"]
+            return b" \n".join(c.encode() for c in lines) + b"\n"
         if cmd == "MOV":
             return self._move(args)
         if cmd == "SAI?":

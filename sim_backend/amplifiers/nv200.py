@@ -11,8 +11,9 @@ Parameters: ``set``, ``meas``, ``avmin``/``avmax`` [V], ``posmin``/``posmax`` (t
 µm), ``stat`` (bit 0 actuator present, bits 1-2 sensor type, bit 3 closed loop), ``cl``,
 ``modsrc`` (1 at power-up: the setpoint follows the analog input until ``modsrc,0``),
 ``sr`` (slew rate in %/ms, 2000 = off), ``temp``, ``desc``, ``acserno``, ``acmeasure``,
-``unitol``/``unitcl``, and the data recorder (``recsrc``, ``recast``, ``recstr``,
-``reclen``, ``recrun``, ``recout``) enough to read the piezo voltage, and the arbitrary
+``unitol``/``unitcl``, the data recorder (``recsrc``, ``recast``, ``recstr``, ``reclen``,
+``recrun``, ``recoutf``, ``recout``; :mod:`.nv200_recorder`: with a sensor the position is the
+sink's position sensor where the sink has one, e.g. the simulated scanner), and the arbitrary
 waveform generator (``gbarb``, ``goarb``, ``gsarb``, ``gearb``, ``gcarb``, ``gtarb``,
 ``grun``; :mod:`.nv200_wave`), which drives the output while ``modsrc`` is 3: a buffer
 value p [%] is the voltage ``avmin + p/100 (avmax - avmin)`` in open loop. It plays on the
@@ -27,6 +28,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from .base import SimDevice, Sink
+from .nv200_recorder import NV200Recorder
 from .nv200_wave import BUFFER_SIZE, RANGES as WAVE_RANGES, WaveBuffer
 
 XON = b"\x11"
@@ -61,8 +63,7 @@ class SimNV200(SimDevice):
                                          "temp": 31.5, "recast": 0, "recstr": 1, "reclen": 6144, "recrun": 0}
         self.text = {"desc": "TRITOR100SG" if sensor != "none" else "PSH15", "acserno": "SIM00001",
                      "unitol": "V", "unitcl": "um" if sensor != "none" else "V"}
-        self.recsrc = {0: 0, 1: 1}
-        self.recorded: dict[int, list[float]] = {0: [], 1: []}
+        self.recorder = NV200Recorder(self._sensor_capture, self._position_of, sensor != "none")
         #: every write of a setting the unit stores in the actuator's memory: (name, value)
         self.stored_writes: list[tuple[str, int]] = []
 
@@ -78,6 +79,29 @@ class SimNV200(SimDevice):
     def _source_value(self, src: int) -> float:
         return {0: self.position_um() if self.sensor != "none" else self.outputs["x"],
                 1: self.params["set"], 2: self.outputs["x"]}.get(src, 0.0)
+
+    def _position_of(self, volts: float) -> float:
+        lo, hi = self.params["avmin"], self.params["avmax"]
+        frac = (volts - lo) / (hi - lo) if hi > lo else 0.0
+        return self.params["posmin"] + frac * (self.params["posmax"] - self.params["posmin"])
+
+    def _sensor_capture(self, t0_s: float, period_s: float, n: int):
+        capture = getattr(self.sink, "capture_sensor", None)
+        return capture(t0_s, period_s, n) if capture is not None else None
+
+    def _sense_now(self) -> float:
+        """Bring the sink's simulation (its sensor) and the recorder up to now."""
+        now = self.now()
+        advance = getattr(self.sink, "advance", None)
+        if advance is not None and getattr(self.sink, "capture_sensor", None) is not None:
+            advance(now)
+        self.recorder.sync(now)
+        return now
+
+    def _apply(self, changes) -> None:
+        now = self.now()
+        super()._apply(changes)
+        self.recorder.output_changed(now, self.outputs["x"], self.params["set"])
 
     # -- wire --
     def _reply(self, name: str, value: object) -> bytes:
@@ -110,6 +134,7 @@ class SimNV200(SimDevice):
         v = min(max(v, lo), hi)
         if self.outputs["x"] != v:
             self.outputs["x"] = v
+            self.recorder.output_changed(t_s, v, v)
             if self.sink is not None:
                 self.sink.apply(dict(self.outputs), t_s)
 
@@ -134,7 +159,13 @@ class SimNV200(SimDevice):
             return self._reply(name, self.wave.params[name])
         if len(nums) > 1 or nums[0] != int(nums[0]):
             return self._error(5 if len(nums) > 1 else 4)
-        return b"" if self.wave.set(name, int(nums[0]), self.now()) else self._error(4)
+        was_running = self.wave.params["grun"]
+        if not self.wave.set(name, int(nums[0]), self.now()):
+            return self._error(4)
+        if name == "grun" and nums[0] == 1 and not was_running and self.params["recast"] == 2:
+            # recast 2: the recorder starts with the generator, on the tick of its sample 0
+            self.recorder.start(self.wave.t0_s, self.params["recstr"], self.params["reclen"])
+        return b""
 
     def command(self, line: bytes) -> bytes:
         self.poll()
@@ -164,6 +195,9 @@ class SimNV200(SimDevice):
     def _read(self, name: str) -> bytes:
         if name == "meas":
             return self._reply(name, self._source_value(0))
+        if name == "recrun":
+            self._sense_now()
+            return self._reply(name, int(self.recorder.running))
         if name == "stat":
             return self._reply(name, self.status_word())
         if name == "acmeasure":
@@ -186,6 +220,8 @@ class SimNV200(SimDevice):
             if not self.params["avmin"] <= v <= self.params["avmax"]:
                 return self._error(4)
             self.params["set"] = v
+            if self.recorder.state == "armed" and self.params["recast"] == 1:
+                self.recorder.start(self.now(), self.params["recstr"], self.params["reclen"])
             if self.params["modsrc"] == 0:
                 self._apply({"x": v})
             return b""
@@ -195,9 +231,20 @@ class SimNV200(SimDevice):
         self.params[name] = int(v) if name in _INT else v
         if name in ("cl", "modsrc"):
             self.stored_writes.append((name, int(v)))
-        if name == "recrun" and v == 1:
-            self.recorded = {ch: [self._source_value(src)] for ch, src in self.recsrc.items()}
+        if name == "recrun":
+            self._recrun(int(v))
         return b""
+
+    def _recrun(self, v: int) -> None:
+        """``recrun,1`` arms the recorder (``recast`` 0: it starts on the next tick),
+        ``recrun,0`` stops it."""
+        now = self._sense_now()
+        if v == 0:
+            self.recorder.stop()
+        elif self.params["recast"] == 0:
+            self.recorder.start(now, self.params["recstr"], self.params["reclen"])
+        else:
+            self.recorder.arm()
 
     def _recorder(self, name: str, args: list[str]) -> bytes:
         try:
@@ -207,14 +254,16 @@ class SimNV200(SimDevice):
         if not nums or nums[0] not in (0, 1):
             return self._error(3 if not nums else 4)
         ch = nums[0]
+        rec = self.recorder
         if name == "recsrc":
             if len(nums) == 1:
-                return f"recsrc,{ch},{self.recsrc[ch]}\r\n".encode() + XON
+                return f"recsrc,{ch},{rec.recsrc[ch]}\r\n".encode() + XON
             if len(nums) != 2 or not 0 <= nums[1] <= 7:
                 return self._error(4)
-            self.recsrc[ch] = nums[1]
+            rec.recsrc[ch] = nums[1]
             return b""
-        data = self.recorded.get(ch, [])
+        self._sense_now()
+        data = rec.values(ch).tolist()
         if name == "recoutf":
             return (f"recoutf,{ch}," + ",".join(f"{v:.3f}" for v in data) + "\r\n").encode() + XON
         if len(nums) != 3:

@@ -1,0 +1,180 @@
+"""``afmctl learn --config RUN.toml --iterations N --out LEARNED.afmwave``: learning on a
+device with a data recorder (:mod:`afmctl.control.learn_run`), its progress line per
+iteration, the zenoh ``learn`` key, and the convergence plot."""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import math
+import sys
+from typing import Any
+
+DEVICE_HELP = """\
+On a device that records its own motion (a PI GCS controller's data recorder, the NV200's,
+the CAN amplifier's; simulated ones with [simulation] enabled = true):
+
+  afmctl learn --config RUN.toml --iterations 10 --out LEARNED.afmwave --plot conv.png
+
+plays the configured trajectory as a wave table (amplifier.output = "wave"), reads the
+scanner's measured motion back through the recorder, computes the next table, and repeats:
+a progress line per iteration (error max / RMS in % of the range, over the central 80 %
+of each line, step size), until the error is at --noise-floor-pct, stops improving, a
+guard stops it (error rising twice; a model whose phase is over 90 deg off) or N tables
+have played. Every table is checked (limits, slew, device capacity) before it is sent;
+Ctrl-C stops (the best table so far is written), a second Ctrl-C is an emergency stop.
+The best measured table is written to --out; play it with
+
+  [trajectory]
+  kind = "learned"
+  file = "LEARNED.afmwave"
+
+in a run configuration (afmctl run), which refuses it with one line if the trajectory, the
+amplifier, its limits or the model files have changed since.
+"""
+
+#: most iterations one call plays
+MAX_ITERATIONS = 1000
+
+
+def add_device_arguments(p: argparse.ArgumentParser) -> None:
+    """The device loop's options, on the ``learn`` parser itself."""
+    g = p.add_argument_group("learning on a device (afmctl learn --config ...)")
+    g.add_argument("--config", metavar="RUN.toml", help="run configuration: amplifier (output = 'wave'), "
+                   "trajectory to learn, compensation model")
+    g.add_argument("--iterations", type=int, default=10, metavar="N",
+                   help=f"most tables to play after the first, 1..{MAX_ITERATIONS} (default 10)")
+    g.add_argument("--out", dest="learned_out", metavar="LEARNED.afmwave", help="learned table to write")
+    g.add_argument("--plot", dest="learned_plot", metavar="CONV.png", help="convergence plot (PNG)")
+    g.add_argument("--noise-floor-pct", type=float, default=0.0, metavar="P",
+                   help="stop when the central error is at most P %% of the line (default 0: stop when it no "
+                        "longer improves)")
+    g.add_argument("--model-free", action="store_true",
+                   help="learn without the configured model (frequency response from the iterations)")
+    g.add_argument("--rho", type=float, default=1.0, metavar="RHO",
+                   help="largest step size, 0 < RHO <= 2 (default 1: a full inverse step)")
+    g.add_argument("--central-pct", dest="device_central_pct", type=float, default=90.0, metavar="P",
+                   help="weighted central share of each raster line [%%] (default 90)")
+
+
+def _check_args(args: argparse.Namespace) -> None:
+    from ..errors import AfmctlError
+    if not args.learned_out:
+        raise AfmctlError("--out LEARNED.afmwave is required with --config")
+    if not 1 <= args.iterations <= MAX_ITERATIONS:
+        raise AfmctlError(f"--iterations {args.iterations}: allowed 1..{MAX_ITERATIONS}")
+    if not (math.isfinite(args.noise_floor_pct) and 0.0 <= args.noise_floor_pct <= 100.0):
+        raise AfmctlError(f"--noise-floor-pct {args.noise_floor_pct:g}: allowed 0..100 %")
+    if not (math.isfinite(args.rho) and 0.0 < args.rho <= 2.0):
+        raise AfmctlError(f"--rho {args.rho:g}: allowed 0 < RHO <= 2")
+    if not (math.isfinite(args.device_central_pct) and 0.0 < args.device_central_pct <= 100.0):
+        raise AfmctlError(f"--central-pct {args.device_central_pct:g}: allowed 0 < P <= 100 %")
+
+
+def progress_line(report: Any) -> str:
+    """One line per iteration: the worst axis's error, the next step's size, the state."""
+    s = report.summary()
+    if s["max_pct"] is None:
+        return f"afmctl: learn {report.iteration:3d}: {report.state}: {report.detail}"
+    central = (f"; central 80 %: max {s['central_max_pct']:.3f} / RMS {s['central_rms_pct']:.3f} %"
+               if s["central_max_pct"] is not None else "")
+    step = f"; step {report.rho:.2f}" if report.rho is not None and report.state == "learning" else ""
+    tail = f"; {report.state}: {report.detail}" if report.state != "learning" else ""
+    return (f"afmctl: learn {report.iteration:3d}: max {s['max_pct']:.3f} / RMS {s['rms_pct']:.3f} % of the range"
+            f"{central}{step}{tail}")
+
+
+def plot_convergence(reports: list[Any], path: str) -> None:
+    """Error per iteration (log scale), whole table and central part of each line."""
+    from ..figures import pyplot, save_figure
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    its = [r.iteration for r in reports if r.summary()["max_pct"] is not None]
+    for key, label in (("max_pct", "max, whole table"), ("central_max_pct", "max, central 80 % of each line"),
+                       ("central_rms_pct", "RMS, central 80 %")):
+        vals = [r.summary()[key] for r in reports if r.summary()["max_pct"] is not None]
+        if all(v is not None for v in vals) and vals:
+            ax.semilogy(its, vals, "o-", label=label)
+    ax.set_xlabel("iteration (0: the model's table)")
+    ax.set_ylabel("tracking error [% of the range]")
+    ax.set_title("afmctl learn: convergence")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    save_figure(fig, path, "--plot")
+
+
+def run_device(args: argparse.Namespace) -> int:
+    """The device loop (``DEVICE_HELP``); exit 0 when a table was learned, 1 on a fault."""
+    from afmctl.compensators.learning import LearnSettings
+
+    from ..config import load_config
+    from ..control.learn_run import LearnOptions, LearnRun
+    from ..control.learned_table import save_learned
+    _check_args(args)
+    config = load_config(args.config)
+    settings = LearnSettings(rho_max=args.rho, central_pct=args.device_central_pct)
+    options = LearnOptions(iterations=args.iterations, noise_floor_pct=args.noise_floor_pct, settings=settings,
+                           use_model=not args.model_free)
+    with contextlib.ExitStack() as stack:
+        amp = _open_amplifier(stack, config)
+        publish = _publisher(stack, config)
+
+        def on_iteration(report: Any) -> None:
+            print(progress_line(report), file=sys.stderr, flush=True)
+            if publish is not None:
+                publish(report)
+
+        run = LearnRun(config, amp, options, on_iteration=on_iteration)
+        _install_signals(stack, run)
+        learned = run.run()
+    save_learned(args.learned_out, learned)
+    if args.learned_plot:
+        plot_convergence(run.reports, args.learned_plot)
+    best = min(run.reports, key=lambda r: r.metric_pct if r.metric_pct == r.metric_pct else math.inf)
+    print(f"afmctl: learned table {args.learned_out}: best iteration {best.iteration}, central error "
+          f"{best.metric_pct:.3f} % of the line; play it with [trajectory] kind = \"learned\"", file=sys.stderr)
+    return 1 if run.reports[-1].state == "fault" else 0
+
+
+def _open_amplifier(stack: contextlib.ExitStack, config: Any) -> Any:
+    if config.simulation.enabled:
+        from ..simulation.link import simulated_amplifier
+        amp, _scanner = stack.enter_context(simulated_amplifier(config))
+        return amp
+    from ..control.hardware import open_driver
+    amp = open_driver(config, config.amplifier.port)
+    stack.callback(amp.close)
+    return amp
+
+
+def _publisher(stack: contextlib.ExitStack, config: Any) -> Any:
+    """A function publishing each report on ``<prefix>/<scanner>/learn``, or None without zenoh."""
+    if not config.zenoh.enabled:
+        return None
+    from ..zenoh_api.learn import LearnPublisher
+    pub = stack.enter_context(LearnPublisher(config.zenoh, config.scanner.name))
+
+    def publish(report: Any) -> None:
+        pub.publish(report.iteration, report.summary(), step=report.rho, state=report.state, detail=report.detail)
+    return publish
+
+
+def _install_signals(stack: contextlib.ExitStack, run: Any) -> None:
+    """Ctrl-C / SIGTERM: first a stop (the best table so far is kept), then an emergency stop."""
+    import signal
+    import threading
+    count = {"n": 0}
+
+    def on_signal(signum: int, frame: Any) -> None:  # noqa: ARG001
+        count["n"] += 1
+        if count["n"] == 1:
+            print("afmctl: stopping learning (the best table so far is kept); again for an emergency stop",
+                  file=sys.stderr)
+            run.stop()
+        else:
+            run.estop()
+
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            old = signal.signal(sig, on_signal)
+            stack.callback(signal.signal, sig, old)

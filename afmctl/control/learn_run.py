@@ -1,0 +1,346 @@
+"""``afmctl learn --config``: learn a scan's voltages on a device that records its own
+motion — play the table on the amplifier's clock, read the scanner's measured motion back
+through the device's data recorder, compute the next table, repeat.
+
+One iteration (:meth:`LearnRun.iterate`), in named steps:
+
+1. ``check`` — the table is checked before anything is sent: every driven column finite,
+   inside the configured limits and within the slew limit per sample, and short enough for
+   the recorder (the wave player checks it again against the device's capacity);
+2. ``play`` — a :class:`afmctl.control.controller.Controller` plays the table exactly as
+   ``afmctl run`` plays a learned table (``output = "wave"``: approach ramp, the table on the
+   amplifier's clock, the finish ramp), with every safety check of a run; ``arm``: once the
+   table is on the device (uploaded, or the stream started) and before its first point
+   plays, the device's recorder is armed to record the measured position and the output of
+   the learned axes, one point per table row
+   (:meth:`afmctl.drivers.base.Amplifier.configure_recorder`); a stop or an
+   estop during the play stops the device (wave generator stopped, FIFO flushed) and ramps
+   within the slew limit, and learning ends with the best table so far;
+3. ``read`` — the recording is read back and refused (not learned from) unless it holds one
+   point per row of the whole table and the output voltages it recorded are the table's
+   (no trigger offset), and unless its lag behind the prediction stays below
+   :data:`MAX_LAG_SHARE` of the table;
+4. ``learn`` — per learned axis the :class:`afmctl.compensators.learning.Learner` (the
+   configured model as the learning filter, or the model-free law) gives the next column.
+
+Learning ends when the error over the central part of each line is at the noise floor
+(``noise_floor_pct``), after ``iterations``, when a learner's guard stops it (error rising
+twice, or a model whose phase is more than 90° off where the error lies), or on a stop.
+The result is the best table *measured*, as a :class:`LearnedTable` that ``afmctl run``
+plays (``[trajectory] kind = "learned"``). Units: nm, V, s; errors in % of the scan range.
+"""
+from __future__ import annotations
+
+import enum
+import logging
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from afmctl.compensators.learning import Learner, LearnSettings
+
+from ..errors import AfmctlError
+from ..inputs.trajectories import build, collect
+from .controller import Controller, State
+from .learned_table import LearnedSource, LearnedTable, make_learned
+from .pipeline import axis_models, build_pipeline
+from .wave_plan import WaveTable, driven_steps_ok, plan_table
+
+log = logging.getLogger(__name__)
+
+#: a recording lagging the prediction by more than this share of the table is refused
+MAX_LAG_SHARE = 0.25
+#: recorded output voltages must equal the table within this [V] (the devices' resolution)
+OUTPUT_TOL_V = 0.01
+#: planned tables keep this share of the slew limit in reserve (the players' own checks
+#: round to the device's resolution)
+SLEW_RESERVE = 0.02
+#: a target axis moving less than this [nm] peak to peak is not learned (it holds)
+MIN_SPAN_NM = 1.0
+#: without a noise floor: relative improvement below which two iterations in a row mean
+#: the error is at the noise floor
+STALL_IMPROVEMENT = 0.03
+
+
+class Step(enum.Enum):
+    """Where an iteration is (module docstring)."""
+    CHECK = "check"
+    ARM = "arm"
+    PLAY = "play"
+    READ = "read"
+    LEARN = "learn"
+
+
+class RecordingRefused(AfmctlError):
+    """A recording that does not match the table it was taken with (length, trigger)."""
+
+
+@dataclass(frozen=True)
+class LearnOptions:
+    """``iterations``: most tables to play; ``noise_floor_pct``: stop when the error over the
+    central part of each line is at or below it [% of the line]; ``settings``: the learning
+    law's (step size, weighting; limits are set from the configuration);
+    ``use_model``: learn through the configured model (False: model-free);
+    ``record_timeout_s``: longest wait for a recording after the play [s];
+    ``link_retries``: plays of the same table after a link fault (reconnected first)."""
+
+    iterations: int = 10
+    noise_floor_pct: float = 0.0
+    settings: LearnSettings = field(default_factory=LearnSettings)
+    use_model: bool = True
+    record_timeout_s: float = 30.0
+    link_retries: int = 2
+
+
+@dataclass
+class IterationReport:
+    """One played table: ``iteration`` (0: the model's table), per learned axis the error
+    figures of :func:`afmctl.compensators.learning_weights.error_figures` (% of the range),
+    ``metric_pct`` (the worst axis's central max, else max), the next step's ``rho``, the
+    recording's ``lag_samples``, ``state`` (learning / converged / stopped / diverged /
+    fault) and ``detail``."""
+
+    iteration: int
+    errors: dict[str, dict[str, float]]
+    metric_pct: float
+    rho: float | None = None
+    lag_samples: float = 0.0
+    state: str = "learning"
+    detail: str = ""
+
+    def summary(self) -> dict[str, float | None]:
+        """The worst axis's figures, as :class:`afmctl.zenoh_api.messages.LearnMsg` takes them."""
+        keys = ("max_pct", "rms_pct", "central_max_pct", "central_rms_pct")
+        return {k: max((e[k] for e in self.errors.values() if k in e), default=None) for k in keys}
+
+
+class LearnRun:
+    """Learning on one open amplifier (module docstring). ``config``: the run's
+    configuration (``amplifier.output = "wave"``, a finite trajectory); ``amplifier``: open,
+    with a data recorder; ``on_iteration``: called with each :class:`IterationReport`."""
+
+    def __init__(self, config: Any, amplifier: Any, options: LearnOptions | None = None,
+                 on_iteration: Callable[[IterationReport], None] | None = None) -> None:
+        self.config = config
+        self.amp = amplifier
+        self.options = options or LearnOptions()
+        self.on_iteration = on_iteration
+        self.reports: list[IterationReport] = []
+        self.best: tuple[float, WaveTable] | None = None
+        self.step = Step.CHECK
+        self._ctl: Controller | None = None
+        self._stop = threading.Event()
+        self._check_config()
+        self.spec = config.trajectory.model_dump(mode="json")
+        self.axes = [a for a in config.scanner.axes if a in amplifier.axes]
+        self.limits_V = {a: config.limits(a) for a in self.axes}
+        self.max_step_V = (1.0 - SLEW_RESERVE) * config.slew_V_per_s() * config.dt_s
+
+    def _check_config(self) -> None:
+        cfg = self.config
+        if cfg.amplifier.output != "wave":
+            raise AfmctlError("amplifier.output: afmctl learn plays each table on the amplifier's clock; "
+                              "set output = 'wave'")
+        if cfg.trajectory.kind in ("queue", "learned"):
+            raise AfmctlError(f"trajectory.kind = '{cfg.trajectory.kind}': afmctl learn needs a finite trajectory "
+                              "to learn (raster, moves, indentation, text, spiral or file)")
+        if not getattr(self.amp, "has_recorder", False):
+            raise AfmctlError(f"amplifier.driver = '{cfg.amplifier.driver}' has no data recorder this driver "
+                              "reads: record the motion with an external sensor and learn from the files with "
+                              "'afmctl learn step'")
+
+    # ------------------------------------------------------------------ the first table
+    def first_table(self) -> WaveTable:
+        """The configured compensation's table for the trajectory (what ``output = "wave"``
+        plays without learning)."""
+        cfg = self.config
+        targets = collect(build(cfg.trajectory, cfg.dt_s))
+        if len(targets) == 0:
+            raise AfmctlError("trajectory: it has no samples at the loop period")
+        T_C = cfg.compensation.temperature.T_C
+        return plan_table(cfg, build_pipeline(cfg), targets, T_C, self.limits_V, self.max_step_V)
+
+    def learners(self, table: WaveTable) -> dict[str, Learner]:
+        """One learner per axis whose target moves, its limits from the configuration."""
+        models = axis_models(self.config)[0] if self.options.use_model else [(None, None)] * 3
+        out: dict[str, Learner] = {}
+        for axis in self.axes:
+            k = "xyz".index(axis)
+            if np.ptp(table.target_nm[:, k]) < MIN_SPAN_NM:
+                continue
+            lo, hi = self.limits_V[axis]
+            settings = LearnSettings(**{**self.options.settings.__dict__, "u_min_V": lo, "u_max_V": hi,
+                                        "slew_V_per_s": self.max_step_V / self.config.dt_s})
+            out[axis] = Learner(table.target_nm[:, k], self.config.dt_s, models[k][0], settings)
+        if not out:
+            raise AfmctlError("trajectory: no driven axis moves; nothing to learn")
+        return out
+
+    # ------------------------------------------------------------------ iterations
+    def run(self) -> LearnedTable:
+        """Iterate until converged, stopped or done; the best measured table, learned."""
+        table = self.first_table()
+        learners = self.learners(table)
+        for k in range(self.options.iterations + 1):
+            report, table_next = self.iterate(k, table, learners)
+            self.reports.append(report)
+            if self.on_iteration is not None:
+                self.on_iteration(report)
+            if report.state != "learning" or table_next is None or k == self.options.iterations:
+                break
+            table = table_next
+        if self.best is None:
+            raise AfmctlError("learn: no table was played to the end; nothing learned")
+        history = [{"iteration": r.iteration, "metric_pct": r.metric_pct, "state": r.state, **r.summary()}
+                   for r in self.reports]
+        return make_learned(self.config, self.best[1], self.spec, history)
+
+    def iterate(self, k: int, table: WaveTable, learners: dict[str, Learner]
+                ) -> tuple[IterationReport, WaveTable | None]:
+        """Steps check → arm → play → read → learn of iteration ``k`` (module docstring)."""
+        self.step = Step.CHECK
+        self._check(table)
+        for attempt in range(self.options.link_retries + 1):
+            self.step = Step.PLAY
+            armed: list[Any] = []
+            ended = self._play(table, lambda: armed.append(self._arm(table, list(learners))))
+            if ended is None or ended[0] != "fault" or attempt == self.options.link_retries or self._stop.is_set():
+                break
+            log.warning("learn: iteration %d: %s; reconnecting and playing the table again", k, ended[1])
+            self._reconnect()
+        if ended is not None:
+            return IterationReport(k, {}, float("nan"), state=ended[0], detail=ended[1]), None
+        if not armed:
+            raise AfmctlError("learn: the play ended without arming the recorder")
+        self.step = Step.READ
+        measured = self._read(table, armed[0])
+        self.step = Step.LEARN
+        return self._learn(k, table, learners, measured)
+
+    def _check(self, table: WaveTable) -> None:
+        start = table.u_V[0, ["xyz".index(a) for a in self.axes]]
+        if not driven_steps_ok(table.u_V, self.axes, self.limits_V, self.max_step_V / (1.0 - SLEW_RESERVE), start):
+            raise AfmctlError("learn: the next table breaks the limits or the slew limit; nothing was sent")
+
+    def _arm(self, table: WaveTable, axes: list[str]) -> Any:
+        clock = self.amp.recorder_clock_s()
+        divider = max(1, round(self.config.dt_s / clock))
+        if abs(divider * clock - self.config.dt_s) > 1e-9 * self.config.dt_s + 1e-12:
+            raise AfmctlError(f"loop.rate_Hz: {self.config.loop.rate_Hz:g} Hz is not a whole number of the "
+                              f"recorder's {clock:g} s ticks")
+        return self.amp.configure_recorder(axes, points=len(table), divider=divider, signals=("y_nm", "u_V"))
+
+    def _play(self, table: WaveTable, arm: Callable[[], None]) -> tuple[str, str] | None:
+        """Play ``table`` as a run plays a learned table, ``arm`` called just before its first
+        point plays (step ``arm``); None when it played to the end, else ``(state, why)``."""
+        if self._stop.is_set():
+            return "stopped", "stopped before the play"
+        source = LearnedSource(make_learned(self.config, table, self.spec), "the table being learned")
+        ctl = Controller(self.config, self.amp)
+        ctl.before_wave_start = lambda: self._set_step(Step.ARM, arm)
+        self._ctl = ctl
+        try:
+            ctl.start(source)
+            if self._stop.is_set():
+                ctl.stop()
+            while not ctl.wait(0.05):
+                pass
+            stats = ctl.stats()
+        finally:
+            ctl.close()
+            self._ctl = None
+        wave = stats.get("wave") or {}
+        if ctl.trajectory_error is not None:
+            raise AfmctlError(f"learn: the table cannot be played: {ctl.trajectory_error}")
+        if ctl.state is not State.STOPPED:
+            return "fault", f"the play ended in {ctl.state.value}: {stats.get('last_error') or 'see the log'}"
+        if wave.get("played") != len(table):
+            return "stopped", f"stopped during the play ({wave.get('played', 0)} of {len(table)} samples)"
+        return None
+
+    def _set_step(self, step: Step, then: Callable[[], None]) -> None:
+        self.step = step
+        then()
+        self.step = Step.PLAY
+
+    def _reconnect(self) -> None:
+        """After a link fault: reconnect (the driver reads the output back; the next play's
+        approach ramps from there)."""
+        try:
+            self.amp.reconnect()
+        except Exception as err:  # noqa: BLE001 - the next play reports the link's state
+            log.warning("learn: reconnect failed: %s", err)
+
+    def _read(self, table: WaveTable, setup: Any) -> dict[str, np.ndarray]:
+        """The measured position per learned axis, one point per table row; a recording
+        whose length or recorded output voltages do not match the table (a trigger offset)
+        is refused (:func:`afmctl.drivers.recording.align_to_table`)."""
+        from afmctl.drivers.recording import RecordingMismatch, align_to_table
+        rec = self.amp.read_recording(timeout_s=self.options.record_timeout_s)
+        tables = {a: table.u_V[:, "xyz".index(a)] for a in setup.axes}
+        try:
+            rec = align_to_table(rec, tables, tol_V=OUTPUT_TOL_V)
+        except RecordingMismatch as err:
+            raise RecordingRefused(f"learn: {err}") from None
+        missing = [a for a in setup.axes if a not in rec.y_nm]
+        if missing:
+            raise RecordingRefused(f"learn: the recording has no measured position of axis {missing[0]}; "
+                                   "not learned from")
+        return {a: np.asarray(rec.y_nm[a], dtype=float) for a in setup.axes}
+
+    def _learn(self, k: int, table: WaveTable, learners: dict[str, Learner], measured: dict[str, np.ndarray]
+               ) -> tuple[IterationReport, WaveTable | None]:
+        nxt = WaveTable(table.target_nm, table.corrected_nm, table.drift_nm, table.u_V.copy(), table.T_C, table.pad,
+                        list(table.report))
+        errors, rhos, lags, stops = {}, [], [], []
+        for axis, learner in learners.items():
+            c = "xyz".index(axis)
+            res = learner.step(table.u_V[:, c], measured[axis])
+            if abs(res.lag_samples) > MAX_LAG_SHARE * len(table):
+                raise RecordingRefused(f"learn: the recording of axis {axis} lags the table by "
+                                       f"{res.lag_samples:.0f} samples (trigger?); not learned from")
+            errors[axis] = res.errors
+            rhos.append(res.rho_median)
+            lags.append(res.lag_samples)
+            nxt.u_V[:, c] = res.u_next_V
+            if res.stopped:
+                stops.append(f"{axis}: {res.reason}")
+        metric = max(e.get("central_max_pct", e["max_pct"]) for e in errors.values())
+        if self.best is None or metric < self.best[0]:
+            self.best = (metric, table)
+        report = IterationReport(k, errors, metric, float(np.median(rhos)), float(max(lags, key=abs)))
+        if metric <= self.options.noise_floor_pct:
+            report.state, report.detail = "converged", f"at the noise floor ({metric:.3g} % <= " \
+                                                      f"{self.options.noise_floor_pct:g} %)"
+            return report, None
+        if self.options.noise_floor_pct <= 0.0 and self._stalled(metric):
+            report.state, report.detail = "converged", "no further improvement in two iterations (noise floor)"
+            return report, None
+        if stops:
+            report.state, report.detail = "diverged", "; ".join(stops) + "; the best table is kept"
+            return report, None
+        return report, nxt
+
+    def _stalled(self, metric: float) -> bool:
+        m = [r.metric_pct for r in self.reports[-2:]] + [metric]
+        return len(m) == 3 and all(m[i + 1] > (1.0 - STALL_IMPROVEMENT) * m[i] for i in (0, 1))
+
+    # ------------------------------------------------------------------ requests
+    def stop(self) -> None:
+        """End learning: the table playing (if any) stops as a run stops; the best table so
+        far is the result."""
+        self._stop.set()
+        ctl = self._ctl
+        if ctl is not None:
+            ctl.stop()
+
+    def estop(self) -> None:
+        """Emergency stop: the device stops at once (FIFO flushed / generator stopped) and the
+        output ramps to the safe value at the slew limit; learning ends."""
+        self._stop.set()
+        ctl = self._ctl
+        if ctl is not None:
+            ctl.estop()

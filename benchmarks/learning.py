@@ -1,0 +1,246 @@
+"""Iterative learning from files on simulated scanners: iterations to converge.
+
+Per plant (the default scanner's x axis and the variants of ``benchmarks/unseen_plants.py``),
+through the command line as a user with an external sensor runs it:
+
+1. ``afmctl excite --kind all`` at 50 kHz → the plant → ``afmctl identify --model auto``
+   (the chain), and a straight-line fit of that recording (the linear calibration);
+2. a raster target (4 µm lines at 50 lines/s, 1 µm lines at 100 lines/s: the amplifiers'
+   slew limits bound 4 µm lines to below ~80 lines/s), sampled at 100 kHz;
+3. the first table: ``afmctl compensate --model auto.json --limits 0 150 --slew-V-per-s S
+   --clip`` (start ``auto``), or the linear calibration, clipped and rate-limited
+   (start ``none``); also the auto chain with its modes 30 % too high (``wrong+30%``) and
+   a chain whose delay is off by 3/8 of a line period (``bad``: > 90° phase error at the
+   line rate);
+4. iterations: the table replayed noise-free through a fresh plant (the true x position),
+   then ``afmctl learn step --target --sent --measured [--model] --out --limits 0 150
+   --slew-V-per-s S --state``; the error of every table: max over the central 80 % of
+   each line, % of the line.
+
+    .venv/bin/python benchmarks/learning.py [--plants default stiff ...] [--rates 50 100]
+        [--work DIR] [--no-write] [--figure]
+
+``--work DIR`` keeps the identified models between runs (identification takes 1–3 min per
+plant). Writes its section of docs/BENCHMARKS.md between ``<!-- bench:learning -->``
+markers and, with ``--figure``, docs/img/learning_convergence.png.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from afmctl.compensators.dynamics_limits import rate_limit  # noqa: E402
+from afmctl.compensators.learning_weights import error_figures  # noqa: E402
+from afmctl.compensators.models import load_model, save_model  # noqa: E402
+from afmctl.data.datafiles import read_csv, write_csv  # noqa: E402
+from afmctl.sim_backend.scanner import default_scanner_config  # noqa: E402
+from sections import write_section  # noqa: E402  (benchmarks/sections.py)
+from speed_ladder import cli  # noqa: E402
+from unseen_plants import PLANTS, play_x  # noqa: E402
+
+NAME = "learning"
+DT_S = 1e-5
+LIMITS_V = (0.0, 150.0)
+#: line width per line rate [nm]
+WIDTH_NM = {50: 4000.0, 100: 1000.0, 200: 1000.0}
+GOALS = {"auto": (0.3, 10), "none": (0.5, 20), "wrong+30%": (0.3, 10), "bad": (0.3, 10)}
+
+
+def plant_config(name: str):
+    return default_scanner_config() if name == "default" else PLANTS[name][0]
+
+
+def slew_of(cfg) -> float:
+    return float(cfg.x.amplifier.effective_slew_V_per_s() or 1e5)
+
+
+def raster(cfg, rate: float, lines: int = 8) -> np.ndarray:
+    """x target [nm]: a smooth approach from 0 to a third of the plant's range, a rest,
+    ``lines`` trace+retrace lines of ``WIDTH_NM[rate]``, a rest."""
+    span = float(np.ptp(play_x(cfg, np.linspace(0.0, 150.0, 20000), 1e-3)))
+    x0, width = span / 3.0, WIDTH_NM.get(int(rate), 1000.0)
+    n = int(round(0.5 / rate / DT_S))
+    ramp = np.arange(n) / n
+    line = np.concatenate([x0 + width * ramp, x0 + width * (1 - ramp)])
+    na = int(0.1 / DT_S)
+    approach = x0 * (0.5 - 0.5 * np.cos(np.pi * np.arange(na) / na))
+    return np.concatenate([approach, np.full(int(0.1 / DT_S), x0), np.tile(line, lines), np.full(int(0.03 / DT_S), x0)])
+
+
+def identify(name: str, cfg, work: Path) -> tuple[Path, tuple[float, float]]:
+    """The ``auto`` chain and the linear calibration (gain nm/V, offset nm), cached."""
+    model, calib = work / f"{name}_auto.json", work / f"{name}_calibration.json"
+    if not (model.exists() and calib.exists()):
+        exc = work / f"{name}_exc.csv"
+        cli("excite", "--kind", "all", "--u-min-V", "0", "--u-max-V", "150", "--rate-Hz", "50000",
+            "--slew-V-per-s", f"{slew_of(cfg):g}", "--out", str(exc))
+        d = read_csv(exc, ("t", "u"))
+        y = play_x(cfg, d["u"], 2e-5)
+        data = work / f"{name}_data.csv"
+        write_csv(data, {"t": d["t"], "u": d["u"], "y": y})
+        cli("identify", "--model", "auto", "--data", str(data), "--out", str(model))
+        gain, offset = np.polyfit(d["u"], y, 1)
+        calib.write_text(json.dumps({"gain_nm_per_V": gain, "offset_nm": offset}))
+    c = json.loads(calib.read_text())
+    return model, (c["gain_nm_per_V"], c["offset_nm"])
+
+
+def variant(model_path: Path, kind: str, rate: float, work: Path) -> Path:
+    """The auto chain with its dynamics' modes 30 % too high, or its delay 3/8 of a line off."""
+    chain = load_model(model_path)
+    dyn = chain.dynamics
+    if kind == "wrong+30%":
+        poles = [(re * 1.3, im * 1.3) if im != 0 else (re, im) for re, im in dyn.poles_rad_per_s]
+        dyn = dyn.model_copy(update={"poles_rad_per_s": poles,
+                                     "zeros_rad_per_s": [(re * 1.3, im * 1.3) for re, im in dyn.zeros_rad_per_s]})
+    else:
+        dyn = dyn.model_copy(update={"delay_s": dyn.delay_s + 0.375 / rate})
+    out = work / f"{model_path.stem}_{kind.replace('%', 'pct')}_{rate:g}.json"
+    save_model(chain.model_copy(update={"dynamics": dyn}), out)
+    return out
+
+
+def first_table(start: str, model: Path, calib: tuple[float, float], target: Path, slew: float, work: Path) -> Path:
+    out = work / "u0.csv"
+    if start == "none":
+        d = read_csv(target, ("t", "y"))
+        u = rate_limit((d["y"] - calib[1]) / calib[0], *LIMITS_V, slew * DT_S * 0.999)[0]
+        write_csv(out, {"t": d["t"], "u": u})
+    else:
+        cli("compensate", "--model", str(model), "--target", str(target), "--out", str(out),
+            "--limits", *map(str, LIMITS_V), "--slew-V-per-s", f"{slew:g}", "--clip")
+    return out
+
+
+def iterate(cfg, target: Path, sent: Path, model: Path | None, iterations: int, slew: float, work: Path
+            ) -> tuple[list[float], str]:
+    """Play, measure, learn; the central max error [% of the line] of every table played
+    and the last status line."""
+    tgt = read_csv(target, ("t", "y"))
+    state = work / "state.json"
+    state.unlink(missing_ok=True)
+    errs, status = [], ""
+    for k in range(iterations + 1):
+        u = read_csv(sent, ("t", "u"))["u"]
+        y = play_x(cfg, u, DT_S)
+        errs.append(error_figures(y, tgt["y"])["central_max_pct"])
+        if k == iterations:
+            break
+        meas, nxt = work / "meas.csv", work / f"u{k + 1}.csv"
+        write_csv(meas, {"t": tgt["t"], "y": y})
+        args = ["learn", "step", "--target", str(target), "--sent", str(sent), "--measured", str(meas),
+                "--out", str(nxt), "--limits", *map(str, LIMITS_V), "--slew-V-per-s", f"{slew:g}",
+                "--state", str(state)]
+        out = cli(*args, *(("--model", str(model)) if model else ()))
+        status = next(ln for ln in out.splitlines() if ln.startswith("status"))
+        sent = nxt
+        if "stopped" in status:
+            u = read_csv(sent, ("t", "u"))["u"]
+            errs.append(error_figures(play_x(cfg, u, DT_S), tgt["y"])["central_max_pct"])
+            break
+    return errs, status.split(":", 1)[1].strip() if status else ""
+
+
+def run_case(name: str, rate: float, start: str, work: Path) -> dict:
+    cfg = plant_config(name)
+    slew = slew_of(cfg)
+    model, calib = identify(name, cfg, work)
+    target = work / "target.csv"
+    tgt = raster(cfg, rate)
+    write_csv(target, {"t": np.arange(tgt.size) * DT_S, "y": tgt})
+    learn_model = None if start == "none" else (model if start == "auto" else variant(model, start, rate, work))
+    sent = first_table(start, learn_model or model, calib, target, slew, work)
+    goal, n_iter = GOALS[start]
+    t0 = time.perf_counter()
+    errs, status = iterate(cfg, target, sent, learn_model, n_iter, slew, work)
+    hit = next((k for k, e in enumerate(errs) if e <= goal), None)
+    return {"plant": name, "rate": rate, "start": start, "errors": errs, "reached": hit, "goal": goal,
+            "status": status, "seconds": time.perf_counter() - t0}
+
+
+def table(rows: list[dict]) -> str:
+    head = ("| plant | lines/s | start | first table | best | iterations to goal | errors per iteration | status |\n"
+            "|---|---|---|---|---|---|---|---|\n")
+    body = ""
+    for r in rows:
+        reached = f"{r['reached']} (≤ {r['goal']:g} %)" if r["reached"] is not None else f"not reached (≤ {r['goal']:g} %)"
+        errs = " ".join(f"{e:.2f}" for e in r["errors"])
+        body += (f"| {r['plant']} | {r['rate']:g} | {r['start']} | {r['errors'][0]:.2f} | {min(r['errors']):.2f} | "
+                 f"{reached} | {errs} | {r['status'][:90]} |\n")
+    return head + body
+
+
+def figure(rows: list[dict], path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    starts = sorted({r["start"] for r in rows}, key=list(GOALS).index)
+    fig, axes = plt.subplots(1, len(starts), figsize=(4.2 * len(starts), 3.6), sharey=True, squeeze=False)
+    for ax, start in zip(axes[0], starts):
+        for r in (r for r in rows if r["start"] == start):
+            ax.semilogy(range(len(r["errors"])), r["errors"], marker="o", ms=3, label=f"{r['plant']} {r['rate']:g}/s")
+        ax.axhline(GOALS[start][0], color="k", ls="--", lw=0.8)
+        ax.set_title(f"start: {start}")
+        ax.set_xlabel("iteration")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0][0].set_ylabel("max error, central 80 % of lines [% of line]")
+    axes[0][-1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--plants", nargs="+", choices=["default", *sorted(PLANTS)], default=["default", "stiff", "soft"])
+    ap.add_argument("--rates", type=float, nargs="+", default=[50, 100])
+    ap.add_argument("--starts", nargs="+", choices=list(GOALS), default=list(GOALS))
+    ap.add_argument("--work", type=Path, default=Path("/tmp/afmctl-learning-bench"))
+    ap.add_argument("--no-write", action="store_true")
+    ap.add_argument("--figure", action="store_true")
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args(argv)
+    args.work.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    rows = []
+    for name in args.plants:
+        for rate in args.rates:
+            for start in args.starts:
+                if start in ("wrong+30%", "bad") and rate != args.rates[0]:
+                    continue
+                r = run_case(name, rate, start, args.work)
+                rows.append(r)
+                print(f"{name} {rate:g}/s {start}: " + " ".join(f"{e:.3f}" for e in r["errors"])
+                      + f"  [{r['status']}] ({r['seconds']:.0f} s)", flush=True)
+    tab = table(rows)
+    print(tab)
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
+    if args.figure:
+        figure(rows, ROOT / "docs" / "img" / "learning_convergence.png")
+    if not args.no_write:
+        write_section(NAME, "## Iterative learning from files (`afmctl learn step`)\n\n"
+                      f"`.venv/bin/python benchmarks/learning.py --figure` ({time.perf_counter() - t0:.0f} s, "
+                      "models identified once and cached in `--work`). Noise-free replay of each table through a "
+                      "fresh simulated plant; max error over the central 80 % of each line, % of the line; "
+                      "column 'errors' lists the first table then every learned one. Starts: `auto` = the chain "
+                      "from `identify --model auto` (goal ≤ 0.3 % within 10), `none` = linear calibration, no "
+                      "model (≤ 0.5 % within 20), `wrong+30%` = the auto chain with its modes 30 % too high, `bad` "
+                      "= its delay 3/8 of a line period too long (> 90° phase error at the line rate: the guard must "
+                      "stop). 4 µm lines at 50 lines/s, 1 µm at 100 lines/s.\n\n"
+                      "![convergence](img/learning_convergence.png)\n\n" + tab)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

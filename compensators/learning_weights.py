@@ -1,0 +1,131 @@
+"""Where accuracy matters: the lines of a raster, found in its target, and the error weight.
+
+An AFM images along the central part of each scan line; at the turnarounds the amplifier
+cannot follow the sharp corner of a triangle (slew limit, band limit), and an error there
+that the learning tried to remove would pull the table off the lines. :func:`find_lines`
+finds the lines of a target — maximal runs of one slope sign in which the slope stays
+within :data:`SLOPE_TOL` of the run's median over :data:`LINEAR_SHARE` of the run (a
+straight ramp; a smooth approach is not one) — and :func:`error_weights` gives weight 1 to
+the central ``central_pct`` % of each line and 0 around its ends (on both sides of each
+corner); everything else (rests, smooth approaches) keeps weight 1 unless ``lines_only``.
+
+:func:`error_figures` is the report: max / RMS error in % of the target's span over the
+whole record and over the central 80 % of each line.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: a line's slope stays within this fraction of its median slope …
+SLOPE_TOL = 0.05
+#: … over at least this share of its samples
+LINEAR_SHARE = 0.9
+#: a line is at least this many samples long
+MIN_LINE_SAMPLES = 16
+#: the share of each line the error report calls "central" [%]
+REPORT_CENTRAL_PCT = 80.0
+
+
+@dataclass(frozen=True)
+class Line:
+    """One line of a raster: samples ``start`` … ``stop − 1``."""
+
+    start: int
+    stop: int
+
+    @property
+    def n(self) -> int:
+        return self.stop - self.start
+
+    def central(self, pct: float) -> slice:
+        """The central ``pct`` % of the line."""
+        m = int(round(self.n * (100.0 - pct) / 200.0))
+        return slice(self.start + m, self.stop - m)
+
+
+def find_lines(y_nm: np.ndarray) -> list[Line]:
+    """The straight ramps (lines) of ``y_nm`` (module docstring), in order."""
+    y = np.asarray(y_nm, dtype=float)
+    if y.size < MIN_LINE_SAMPLES:
+        return []
+    d = np.diff(y)
+    scale = float(np.max(np.abs(d)))
+    if scale <= 0:
+        return []
+    sign = np.where(np.abs(d) > 1e-6 * scale, np.sign(d), 0.0)
+    edges = np.flatnonzero(np.diff(sign)) + 1
+    starts = np.concatenate([[0], edges])
+    stops = np.concatenate([edges, [d.size]])
+    lines = []
+    for a, b in zip(starts, stops):
+        if sign[a] == 0 or b - a < MIN_LINE_SAMPLES:
+            continue
+        seg = d[a:b]
+        med = float(np.median(seg))
+        if np.mean(np.abs(seg - med) <= SLOPE_TOL * abs(med)) >= LINEAR_SHARE:
+            lines.append(Line(int(a), int(b) + 1))    # differences a..b-1 join samples a..b
+    return lines
+
+
+def error_weights(y_nm: np.ndarray, central_pct: float = 80.0, lines_only: bool = False,
+                  lines: list[Line] | None = None) -> np.ndarray:
+    """Weight per sample (0 or 1) of the learning error (module docstring). No lines found:
+    all ones. ``central_pct`` 100 weights every sample of a line."""
+    y = np.asarray(y_nm, dtype=float)
+    found = find_lines(y) if lines is None else lines
+    if not found or central_pct >= 100.0:
+        return np.ones(y.size) if not (found and lines_only) else _lines_mask(y.size, found, 100.0)
+    w = np.zeros(y.size) if lines_only else np.ones(y.size)
+    for ln in found:
+        m = int(round(ln.n * (100.0 - central_pct) / 200.0))
+        w[max(0, ln.start - m): ln.start + m] = 0.0
+        w[max(0, ln.stop - m): ln.stop + m] = 0.0
+    return np.maximum(w, _lines_mask(y.size, found, central_pct))
+
+
+def rounded_reference(y_nm: np.ndarray, weights: np.ndarray, lines: list[Line]) -> np.ndarray:
+    """``y_nm`` with its corners inside the zero-weight zones around the line ends replaced
+    by a Gaussian-smoothed copy whose σ is a third of the zone's half-width, so the
+    rounding stays inside the zone and the weighted parts are untouched: a reference the
+    scanner can follow at the turnarounds, which the learning may then also track there
+    (at a lower weight) instead of leaving the turnarounds to chance."""
+    y = np.asarray(y_nm, dtype=float)
+    if not lines:
+        return y.copy()
+    from scipy.ndimage import gaussian_filter1d
+
+    zero = weights <= 0
+    if not np.any(zero):
+        return y.copy()
+    edges = np.flatnonzero(np.diff(zero.astype(int)))
+    runs = np.diff(np.concatenate([[0], edges + 1, [y.size]]))
+    half = max(1.0, float(np.median(runs[::2] if zero[0] else runs[1::2])) / 2.0)
+    smooth = gaussian_filter1d(y, half / 3.0, mode="nearest")
+    return np.where(zero, smooth, y)
+
+
+def _lines_mask(n: int, lines: list[Line], pct: float) -> np.ndarray:
+    w = np.zeros(n)
+    for ln in lines:
+        w[ln.central(pct)] = 1.0
+    return w
+
+
+def error_figures(y_nm: np.ndarray, target_nm: np.ndarray, lines: list[Line] | None = None) -> dict[str, float]:
+    """``max_pct``, ``rms_pct`` over the whole record and, when the target has lines,
+    ``central_max_pct`` / ``central_rms_pct`` over the central 80 % of each line; % of
+    the target's span (peak to peak) [nm]."""
+    tgt = np.asarray(target_nm, dtype=float)
+    e = np.asarray(y_nm, dtype=float) - tgt
+    span = float(np.ptp(tgt)) or 1.0
+    pct = 100.0 * e / span
+    out = {"max_pct": float(np.max(np.abs(pct))), "rms_pct": float(np.sqrt(np.mean(pct * pct)))}
+    found = find_lines(tgt) if lines is None else lines
+    if found:
+        line = float(np.median([np.ptp(tgt[ln.start:ln.stop]) for ln in found])) or 1.0
+        c = 100.0 * e[_lines_mask(tgt.size, found, REPORT_CENTRAL_PCT) > 0] / line
+        out["central_max_pct"] = float(np.max(np.abs(c)))
+        out["central_rms_pct"] = float(np.sqrt(np.mean(c * c)))
+    return out

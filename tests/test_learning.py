@@ -1,0 +1,333 @@
+"""Iterative learning (afmctl.compensators.learning, ``afmctl learn step``) on small plants.
+
+The plant is the simulated scanner's x axis (afmctl.sim_backend: Gaussian Preisach
+hysteresis, creep, amplifier, a structural mode — not a model under test) with its mode
+moved to 300 Hz so that short records at 10 kHz resolve it; a run takes tens of ms.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from afmctl.cli import main
+from afmctl.compensators.base import ModelError
+from afmctl.compensators.chain import ChainModel
+from afmctl.compensators.dynamics import LinearDynamicsModel
+from afmctl.compensators.learning import Learner, LearnSettings, LearnState
+from afmctl.compensators.learning_spectra import Grid, estimate_lag_samples
+from afmctl.compensators.learning_weights import error_figures, error_weights, find_lines
+from afmctl.compensators.pi import PIModel
+from afmctl.data.datafiles import read_csv, write_csv
+from plants import triangle
+
+DT = 1e-4
+LINE_RATE = 20.0
+SLEW = 1.0e4
+
+
+class Plant:
+    """The default simulated scanner's x axis, its mode at 300 Hz (Q 20), amplifier 3 kHz;
+    a fresh scanner for every run (a noise-free replay)."""
+
+    def __init__(self) -> None:
+        from afmctl.sim_backend.config import AmplifierConfig, DynamicsConfig
+        from afmctl.sim_backend.scanner import default_scanner_config
+
+        self.cfg = default_scanner_config()
+        self.cfg.x.dynamics = DynamicsConfig(resonance_Hz=300.0, quality_factor=20.0)
+        self.cfg.x.amplifier = AmplifierConfig(bandwidth_Hz=3000.0, slew_V_per_s=SLEW)
+
+    def run(self, u_V: np.ndarray) -> np.ndarray:
+        from afmctl.sim_backend.scanner import Scanner
+
+        U = np.zeros((u_V.size, 3))
+        U[:, 0] = u_V
+        return Scanner(self.cfg).run(U, DT)[:, 0]
+
+
+def raster(lines: int = 4, width_nm: float = 2000.0, x0_nm: float = 3000.0) -> np.ndarray:
+    n = int(round(0.5 / LINE_RATE / DT))
+    ramp = np.arange(n) / n
+    line = np.concatenate([x0_nm + width_nm * ramp, x0_nm + width_nm * (1 - ramp)])
+    na = 500
+    approach = x0_nm * (0.5 - 0.5 * np.cos(np.pi * np.arange(na) / na))
+    return np.concatenate([approach, np.full(300, x0_nm), np.tile(line, lines), np.full(500, x0_nm)])
+
+
+@pytest.fixture(scope="module")
+def plant() -> Plant:
+    return Plant()
+
+
+@pytest.fixture(scope="module")
+def chain(plant) -> ChainModel:
+    return make_chain(plant)
+
+
+def make_chain(plant: Plant) -> ChainModel:
+    """A chain identified the quick way: a PI model from a slow decaying triangle through
+    the plant (static), and dynamics with the mode damped 20 % more than the plant's (a good but not exact model)."""
+    t = np.arange(20000) * 1e-3
+    u = triangle(t, 0.5, 0.0, 150.0) * np.linspace(1.0, 0.3, t.size)
+    U = np.zeros((u.size, 3))
+    U[:, 0] = u
+    from afmctl.sim_backend.scanner import Scanner
+
+    y = Scanner(plant.cfg).run(U, 1e-3)[:, 0]
+    pi = PIModel.identify(t, u, y, n_operators=10)
+    dyn = LinearDynamicsModel.from_modes([(300.0, 0.03)], real_poles_Hz=[3000.0])
+    return ChainModel(hysteresis=pi, dynamics=dyn)
+
+
+def central_max(y: np.ndarray, target: np.ndarray) -> float:
+    return error_figures(y, target)["central_max_pct"]
+
+
+def learn(plant, learner: Learner, u: np.ndarray, iterations: int) -> tuple[list[float], list]:
+    errs, results = [], []
+    for _ in range(iterations):
+        y = plant.run(u)
+        errs.append(central_max(y, learner.target_nm))
+        res = learner.step(u, y)
+        results.append(res)
+        u = res.u_next_V
+    errs.append(central_max(plant.run(u), learner.target_nm))
+    return errs, results
+
+
+def test_model_based_learning_converges_within_limits(plant, chain):
+    tgt = raster()
+    s = LearnSettings(u_min_V=0.0, u_max_V=150.0, slew_V_per_s=SLEW)
+    u0 = chain.inverse_within_limits(tgt, DT, 0.0, 150.0, SLEW).u_V
+    errs, results = learn(plant, Learner(tgt, DT, chain, s), u0, 5)
+    assert errs[-1] < 0.3 * errs[0] and errs[-1] < 0.3, errs
+    for r in results:
+        u = r.u_next_V
+        assert u.min() >= 0.0 and u.max() <= 150.0
+        assert np.max(np.abs(np.diff(u))) <= SLEW * DT * (1 + 1e-9)
+        assert not r.stopped and r.law == "model"
+
+
+def test_model_free_learning_converges_from_a_linear_calibration(plant):
+    tgt = raster()
+    gain = 80.0
+    u0 = np.clip(tgt / gain, 0.0, 150.0)
+    s = LearnSettings(u_min_V=0.0, u_max_V=150.0, slew_V_per_s=SLEW)
+    errs, results = learn(plant, Learner(tgt, DT, None, s), u0, 10)
+    assert errs[0] > 5.0 and min(errs) < 0.5, errs
+    assert results[0].law == "model-free"
+
+
+def test_turnarounds_the_scanner_cannot_follow_do_not_pull_the_learning(chain):
+    """A motion that follows the lines exactly but rounds every corner (as a scanner at its
+    slew limit does) leaves nothing to learn; an error confined to the turnaround zones with
+    weight 0 there changes nothing either, while the same error on the lines does."""
+    tgt = raster()
+    u = chain.inverse_within_limits(tgt, DT, 0.0, 150.0, SLEW).u_V
+    learner = Learner(tgt, DT, chain, LearnSettings(u_min_V=0.0, u_max_V=150.0))
+    rounded = learner.reference_nm
+    assert np.max(np.abs(rounded - tgt)) > 10.0                       # the corners are rounded …
+    assert np.array_equal(rounded[error_weights(tgt, 90.0) > 0],
+                          tgt[error_weights(tgt, 90.0) > 0])          # … the weighted parts are not
+    res = learner.step(u, rounded)
+    assert res.du_max_V < 1e-6 and res.errors["max_pct"] > 0.3
+    zones = error_weights(tgt, 90.0) == 0
+    bump = np.where(zones, 50.0, 0.0)
+    s0 = LearnSettings(u_min_V=0.0, u_max_V=150.0, turnaround_weight=0.0)
+    quiet = Learner(tgt, DT, chain, s0).step(u, rounded + bump)
+    loud = Learner(tgt, DT, chain, s0).step(u, rounded + np.where(zones, 0.0, 50.0))
+    assert quiet.du_max_V < 1e-6 < 0.1 < loud.du_max_V
+
+
+def test_phase_error_over_90_degrees_stops_and_keeps_the_best_table(plant, chain):
+    """A model whose delay is 3/8 of a line period too long (135° at the line rate)."""
+    tgt = raster()
+    bad = chain.model_copy(update={"dynamics": chain.dynamics.model_copy(update={"delay_s": 2e-4 + 0.375 / LINE_RATE})})
+    s = LearnSettings(u_min_V=0.0, u_max_V=150.0, slew_V_per_s=SLEW)
+    learner = Learner(tgt, DT, bad, s)
+    u0 = chain.inverse_within_limits(tgt, DT, 0.0, 150.0, SLEW).u_V
+    u, sent = u0, []
+    for _ in range(6):
+        sent.append(u)
+        res = learner.step(u, plant.run(u))
+        if res.stopped:
+            break
+        u = res.u_next_V
+    assert res.stopped and ("phase error" in res.reason or "rose" in res.reason), res.reason
+    assert np.array_equal(res.u_next_V, sent[res.best_iteration])
+
+
+def test_divergence_guard_stops_after_two_rises_and_returns_the_best_table():
+    tgt = raster(lines=2)
+    learner = Learner(tgt, DT, None, LearnSettings(u_min_V=0.0, u_max_V=150.0))
+    tables = [np.full(tgt.size, 30.0 + k) for k in range(4)]
+    for k, err in enumerate((50.0, 20.0, 40.0, 80.0)):   # best at 1, then two rises
+        res = learner.step(tables[k], tgt + err)
+    assert res.stopped and "rose 2 times" in res.reason
+    assert res.best_iteration == 1 and np.array_equal(res.u_next_V, tables[1])
+    again = learner.step(tables[3], tgt + 10.0)
+    assert again.stopped and np.array_equal(again.u_next_V, tables[1])
+
+
+def test_tables_respect_range_and_slew_whatever_the_error():
+    tgt = raster(lines=2)
+    s = LearnSettings(u_min_V=10.0, u_max_V=60.0, slew_V_per_s=500.0)
+    learner = Learner(tgt, DT, None, s)
+    rng = np.random.default_rng(3)
+    u = np.full(tgt.size, 30.0)
+    res = learner.step(u, tgt * 0.01 + rng.normal(0, 500.0, tgt.size))
+    v = res.u_next_V
+    assert v.min() >= 10.0 and v.max() <= 60.0
+    assert np.max(np.abs(np.diff(v))) <= 500.0 * DT * (1 + 1e-9)
+    assert res.clipped + res.slew_limited > 0
+
+
+def test_periodic_table_learns_per_harmonic_and_wraps_within_the_slew(plant):
+    n = int(round(1.0 / LINE_RATE / DT))
+    t = np.arange(n) * DT
+    tgt = 3000.0 + 2000.0 * (1.0 - np.abs(2.0 * ((t * LINE_RATE + 0.5) % 1.0) - 1.0))
+    s = LearnSettings(u_min_V=0.0, u_max_V=150.0, slew_V_per_s=SLEW, periodic=True)
+    learner = Learner(tgt, DT, None, s)
+    assert learner.grid.n_fft == n
+
+    def steady(u):
+        return plant.run(np.tile(u, 4))[-n:]
+
+    u = np.clip(tgt / 80.0, 0, 150)
+    first = central_max(steady(u), tgt)
+    for _ in range(8):
+        res = learner.step(u, steady(u))
+        u = res.u_next_V
+        assert abs(u[0] - u[-1]) <= SLEW * DT * (1 + 1e-9)
+    assert central_max(steady(u), tgt) < 0.25 * first
+
+
+def test_find_lines_and_weights_of_a_raster():
+    tgt = raster(lines=3)
+    lines = find_lines(tgt)
+    n = int(round(0.5 / LINE_RATE / DT))
+    assert len(lines) == 6 and all(abs(ln.n - (n + 1)) <= 1 for ln in lines)
+    w = error_weights(tgt, 80.0, lines=lines)
+    ln = lines[2]
+    assert w[ln.start + n // 2] == 1.0 and w[ln.start] == 0.0 and w[ln.stop - 1] == 0.0
+    assert w[ln.start - n // 10 - 2] == 0.0 or w[ln.start + n // 10 + 2] == 1.0
+    assert w[:400].min() == 1.0                                      # the approach is not a line
+    assert np.all(error_weights(np.sin(np.linspace(0, 6, 500))) == 1.0)
+
+
+def test_lag_estimate_finds_a_shift_to_a_fraction_of_a_sample():
+    t = np.arange(4000) * DT
+    ref = np.sin(2 * np.pi * 37 * t) + 0.3 * np.sin(2 * np.pi * 210 * t)
+    for shift in (0, 3, 17):
+        rec = np.concatenate([np.full(shift, ref[0]), ref[: ref.size - shift]])
+        assert estimate_lag_samples(ref, rec, 100) == pytest.approx(shift, abs=0.2)
+
+
+def test_a_trigger_offset_is_estimated_reported_and_with_align_removed(plant, chain):
+    tgt = raster(lines=2)
+    u = chain.inverse_within_limits(tgt, DT, 0.0, 150.0, SLEW).u_V
+    y = plant.run(u)
+    late = np.concatenate([np.full(6, y[0]), y[:-6]])           # the recorder started 6 samples late
+    base = LearnSettings(u_min_V=0.0, u_max_V=150.0)
+    on_time = Learner(tgt, DT, chain, base).step(u, y)
+    reported = Learner(tgt, DT, chain, base).step(u, late)
+    assert reported.lag_samples == pytest.approx(on_time.lag_samples + 6, abs=0.5) and not reported.aligned
+    fixed = Learner(tgt, DT, chain, LearnSettings(u_min_V=0.0, u_max_V=150.0, align=True)).step(u, late)
+    assert fixed.aligned and fixed.lag_samples == pytest.approx(reported.lag_samples)
+    k = int(round(fixed.lag_samples))
+    back = np.concatenate([late[k:], np.full(k, late[-1])])    # what the learner learned from
+    assert fixed.errors == pytest.approx(error_figures(back, tgt))
+
+
+def test_grid_filters_like_linear_and_circular_convolution():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=300)
+    h = np.array([0.5, 0.3, 0.2])
+    g = Grid.for_record(300, 1.0, periodic=False)
+    resp = np.fft.rfft(h, g.n_fft)
+    assert np.allclose(g.apply(resp, x), np.convolve(x, h)[:300])
+    gp = Grid.for_record(300, 1.0, periodic=True)
+    circ = np.real(np.fft.ifft(np.fft.fft(x) * np.fft.fft(h, 300)))
+    assert np.allclose(gp.apply(np.fft.rfft(h, 300), x), circ)
+
+
+def test_state_round_trips_and_belongs_to_its_target(plant):
+    tgt = raster(lines=2)
+    learner = Learner(tgt, DT, None, LearnSettings(u_min_V=0.0, u_max_V=150.0))
+    u = np.clip(tgt / 80.0, 0, 150)
+    learner.step(u, plant.run(u))
+    state = LearnState.from_dict(learner.state.to_dict())
+    assert state == learner.state
+    Learner(tgt, DT, None, state=state)
+    with pytest.raises(ModelError, match="another target"):
+        Learner(tgt + 1.0, DT, None, state=state)
+    with pytest.raises(ModelError, match="learning state"):
+        LearnState.from_dict({"iteration": 1})
+    with pytest.raises(ModelError, match="rho_max"):
+        Learner(tgt, DT, None, LearnSettings(rho_max=5.0))
+
+
+# ------------------------------------------------------------------ the command line
+def _files(tmp_path, plant, u):
+    tgt = raster(lines=2)
+    t = np.arange(tgt.size) * DT
+    write_csv(tmp_path / "target.csv", {"t": t, "y": tgt})
+    write_csv(tmp_path / "sent.csv", {"t": t, "u": u})
+    write_csv(tmp_path / "meas.csv", {"t": t, "y": plant.run(u)})
+    return tgt, t
+
+
+def test_cli_learn_step_iterates_from_files(tmp_path, plant, chain, capsys):
+    from afmctl.compensators.models import save_model
+
+    save_model(chain, tmp_path / "chain.json")
+    tgt = raster(lines=2)
+    u = chain.inverse_within_limits(tgt, DT, 0.0, 150.0, SLEW).u_V
+    tgt, t = _files(tmp_path, plant, u)
+    first = central_max(plant.run(u), tgt)
+    for k in range(3):
+        args = ["learn", "step", "--target", str(tmp_path / "target.csv"), "--sent", str(tmp_path / "sent.csv"),
+                "--measured", str(tmp_path / "meas.csv"), "--model", str(tmp_path / "chain.json"),
+                "--out", str(tmp_path / "next.csv"), "--limits", "0", "150", "--slew-V-per-s", f"{SLEW:g}",
+                "--state", str(tmp_path / "state.json")]
+        assert main(args) == 0
+        out = capsys.readouterr().out
+        nxt = read_csv(tmp_path / "next.csv", ("t", "u"))
+        assert np.array_equal(nxt["t"], t) and nxt["u"].size == tgt.size
+        write_csv(tmp_path / "sent.csv", nxt)
+        write_csv(tmp_path / "meas.csv", {"t": t, "y": plant.run(nxt["u"])})
+    assert "iteration        : 3" in out
+    assert "error (lines)" in out and "changed" in out and "status           : learning" in out
+    assert central_max(plant.run(nxt["u"]), tgt) < 0.5 * first
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda p: write_csv(p / "sent.csv", {"t": np.arange(10) * DT, "u": np.zeros(10)}), "sent.csv: 10 rows"),
+    (lambda p: write_csv(p / "meas.csv", {"t": np.arange(10) * DT, "y": np.zeros(10)}), "must cover"),
+    (lambda p: (p / "target.csv").write_text("t,x\n0,1\n"), "missing column"),
+    (lambda p: (p / "state.json").write_text("[1, 2]"), "state.json"),
+])
+def test_cli_bad_input_is_one_line_exit_2(tmp_path, plant, capsys, change, message):
+    tgt = raster(lines=2)
+    _files(tmp_path, plant, np.clip(tgt / 80.0, 0, 150))
+    change(tmp_path)
+    rc = main(["learn", "step", "--target", str(tmp_path / "target.csv"), "--sent", str(tmp_path / "sent.csv"),
+               "--measured", str(tmp_path / "meas.csv"), "--out", str(tmp_path / "next.csv"),
+               "--state", str(tmp_path / "state.json")])
+    err = capsys.readouterr().err
+    assert rc == 2 and message in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_cli_bad_options_exit_2(tmp_path, plant, capsys):
+    tgt = raster(lines=2)
+    _files(tmp_path, plant, np.clip(tgt / 80.0, 0, 150))
+    base = ["learn", "step", "--target", str(tmp_path / "target.csv"), "--sent", str(tmp_path / "sent.csv"),
+            "--measured", str(tmp_path / "meas.csv"), "--out", str(tmp_path / "next.csv")]
+    for extra, msg in ((["--limits", "5", "1"], "--limits"), (["--step-size", "0"], "--step-size"),
+                       (["--slew-V-per-s", "-1"], "--slew-V-per-s"), (["--central-pct", "nan"], "--central-pct")):
+        assert main(base + extra) == 2
+        assert msg in capsys.readouterr().err
+    assert not (tmp_path / "next.csv").exists()
+    assert math.isfinite(float(np.ptp(tgt)))
