@@ -162,7 +162,7 @@ class Fault:
     kind: str
     t_s: float                       # from the soak's start
     wall: float = 0.0
-    lifted_wall: float = 0.0         # amplifier back / limit lifted / SIGCONT
+    lifted_wall: float = float("inf")   # amplifier back / limit lifted / SIGCONT
     outcome: dict = field(default_factory=dict)   # per leg (and peer/viewer): text
     ok: bool = True
 
@@ -182,6 +182,7 @@ class Soak:
         self.peer: Peer | None = None
         self.viewer: Viewer | None = None
         self.faults: list[Fault] = []
+        self.pending: list[Fault] = []           # injected, not judged yet
         self.growth: dict[str, float] = {s.name: 0.0 for s in self.specs}   # last wall time a record grew
 
     def start(self) -> None:
@@ -213,7 +214,8 @@ class Soak:
                                        for n, leg in self.legs.items()))
 
     def watch(self, until_wall: float) -> None:
-        """Sleep until ``until_wall``, noting when each amplifier record grows."""
+        """Sleep until ``until_wall``, noting when each amplifier record grows, and judge the
+        faults whose outcome is known."""
         last = {n: a.record_bytes() for n, a in self.amps.items()}
         while time.time() < until_wall:
             time.sleep(min(0.5, max(0.0, until_wall - time.time())))
@@ -221,6 +223,7 @@ class Soak:
                 b = a.record_bytes()
                 if b != last[n]:
                     self.growth[n], last[n] = time.time(), b
+            self.judge_ready()
 
     # -- the faults ---------------------------------------------------------------------------
     def inject(self, f: Fault) -> None:
@@ -268,10 +271,28 @@ class Soak:
                 pass          # the run ended (as it should: exit 3)
 
     # -- what became of a fault ---------------------------------------------------------------
-    def classify(self, f: Fault, now: float) -> None:
-        """Judge fault ``f`` with what was seen between it and ``now`` (the next fault or the end)."""
+    def _recovered(self, f: Fault) -> bool:
+        """Every leg drives its amplifier again after the fault was lifted (and the peer receives,
+        the viewer is running)."""
+        ok = all(self.growth[n] > f.lifted_wall + 0.6 for n in self.legs)
+        if f.kind == "zenoh_peer":
+            ok &= self.peer.messages > 0
+        return ok
+
+    def judge_ready(self, final: bool = False) -> None:
+        """Judge every pending fault that recovered, or waited ``--recover-s`` for it, or all at the end."""
+        for f in list(self.pending):
+            if final or self._recovered(f) or time.time() > f.lifted_wall + self.args.recover_s:
+                self.pending.remove(f)
+                self.classify(f)
+                _progress(self, f)
+
+    def classify(self, f: Fault) -> None:
+        """Judge fault ``f``: the runs that ended after it (before the next fault) and whether the
+        legs drive their amplifiers again."""
+        nxt = next((g.wall for g in self.faults if g.index == f.index + 1), float("inf"))
         for name, leg in self.legs.items():
-            f.outcome[name], ok = self._leg_outcome(f, name, leg, now)
+            f.outcome[name], ok = self._leg_outcome(f, name, leg, nxt)
             f.ok &= ok
         if f.kind == "zenoh_peer":
             ok = self.peer.messages > 0
@@ -283,20 +304,29 @@ class Soak:
             f.outcome["viewer"] = "SIGCONT, page serves" if ok else "viewer did not come back: FAILED"
             f.ok &= ok
 
-    def _leg_outcome(self, f: Fault, name: str, leg: Leg, now: float) -> tuple[str, bool]:
+    def _leg_outcome(self, f: Fault, name: str, leg: Leg, until: float) -> tuple[str, bool]:
         spec = LEGS[name]
-        ended = [r for r in leg.runs if r.end_wall is not None and f.wall <= r.end_wall <= now]
+        ended = [r for r in leg.runs if r.end_wall is not None and f.wall <= r.end_wall < until]
         safe = SAFE_END[spec.output].get(f.kind, set())
         bad = [r.rc for r in ended if r.rc not in safe]
         if bad:
             return f"run exit {bad} (allowed {sorted(safe) or 'none'}): FAILED", False
         driving = self.growth[name] > f.lifted_wall + 0.6
         if not driving:
-            return "nothing reached the amplifier after the fault: FAILED (stuck?)", False
+            return (f"nothing reached the amplifier in the {self.args.recover_s:g} s after the fault: FAILED "
+                    f"(state: {self._leg_state(leg)})"), False
         if any(r.rc not in (0, None) for r in ended):
             rcs = sorted({r.rc for r in ended})
             return f"ended safely (exit {rcs}), next run drives the amplifier", True
         return "recovered (run continued)" if not ended else "recovered (runs ended normally)", True
+
+    @staticmethod
+    def _leg_state(leg: Leg) -> str:
+        rec = leg.current
+        if rec is None:
+            return "no run"
+        tail = rec.stderr_tail[-1] if rec.stderr_tail else "no output"
+        return f"run {rec.index} alive since {time.time() - rec.start_wall:.0f} s, last line: {tail[:160]}"
 
     def run(self) -> None:
         a = self.args
@@ -304,16 +334,14 @@ class Soak:
         self.start()
         for i, (t, kind) in enumerate(plan):
             self.watch(self.t0 + t)
-            if self.faults:
-                self.classify(self.faults[-1], time.time())
-                _progress(self, self.faults[-1])
             f = Fault(i, kind, round(time.time() - self.t0, 1))
             self.faults.append(f)
             self.inject(f)
+            self.pending.append(f)
         self.watch(self.t0 + a.duration_s)
-        if self.faults:
-            self.classify(self.faults[-1], time.time())
-            _progress(self, self.faults[-1])
+        while self.pending and time.time() < max(f.lifted_wall for f in self.pending) + a.recover_s:
+            self.watch(time.time() + 0.5)
+        self.judge_ready(final=True)
 
     def close(self) -> None:
         self.stop_wall = time.time()
@@ -348,6 +376,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--amp-down-s", type=float, default=2.0, help="amplifier off before its restart [s]")
     ap.add_argument("--disk-full-s", type=float, default=5.0, help="how long the run log's file size is capped [s]")
     ap.add_argument("--viewer-stop-s", type=float, default=20.0, help="how long afmctl view is SIGSTOPped [s]")
+    ap.add_argument("--recover-s", type=float, default=60.0,
+                    help="a leg must drive its amplifier again this soon after a fault is lifted [s] (default 60)")
     ap.add_argument("--settle-s", type=float, default=20.0, help="no fault in the last S seconds (default 20)")
     ap.add_argument("--stop-timeout-s", type=float, default=15.0,
                     help="a run must exit this soon after SIGTERM at the end [s] (default 15)")
