@@ -164,6 +164,7 @@ class Fault:
     wall: float = 0.0
     lifted_wall: float = float("inf")   # amplifier back / limit lifted / SIGCONT
     outcome: dict = field(default_factory=dict)   # per leg (and peer/viewer): text
+    targets: list[str] | None = None              # the legs it hit (None: every leg)
     ok: bool = True
 
 
@@ -243,16 +244,21 @@ class Soak:
             self.watch(time.time() + 1.0)
             self.peer.start()
         elif f.kind == "disk_full":
-            self._disk_full(a.disk_full_s)
+            self._disk_full(f, a.disk_full_s)
         elif f.kind == "viewer_stop":
             self.viewer.sigstop()
             self.watch(time.time() + a.viewer_stop_s)
             self.viewer.sigcont()
         f.lifted_wall = time.time()
 
-    def _disk_full(self, hold_s: float) -> None:
+    def _disk_full(self, f: Fault, hold_s: float) -> None:
+        """Cap RLIMIT_FSIZE of one leg's run (the legs take turns, so that a run of each lives
+        twice as long between these; ``f.targets``), lift it after ``hold_s``."""
+        k = sum(g.kind == "disk_full" for g in self.faults[:f.index])
+        names = list(self.legs)
+        f.targets = [names[k % len(names)]]
         limited = []
-        for leg in self.legs.values():
+        for leg in (self.legs[n] for n in f.targets):
             rec, proc = leg.current, leg.proc
             if rec is None or proc is None or proc.poll() is not None:
                 continue
@@ -293,6 +299,8 @@ class Soak:
         nxt = next((g.wall for g in self.faults if g.index == f.index + 1), float("inf"))
         for name, leg in self.legs.items():
             f.outcome[name], ok = self._leg_outcome(f, name, leg, nxt)
+            if f.targets is not None and name not in f.targets:
+                f.outcome[name] = "(not hit) " + f.outcome[name]
             f.ok &= ok
         if f.kind == "zenoh_peer":
             ok = self.peer.messages > 0
@@ -384,10 +392,14 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--start-timeout-s", type=float, default=180.0,
                     help="the legs must reach their amplifiers this soon after start [s]; the soak's clock "
                          "(and the fault schedule) starts when they have")
+    ap.add_argument("--reanalyse", action="store_true",
+                    help="do not soak: analyse again what a soak left in --out (its soak-state.json)")
     ap.add_argument("--write-doc", action="store_true", help="put the table into docs/BENCHMARKS.md (section soak)")
     args = ap.parse_args(argv)
     if not args.duration_s > 0 or not args.fault_every_s > 0:
         ap.error("--duration-s and --fault-every-s must be positive")
+    if args.reanalyse and args.out is None:
+        ap.error("--reanalyse needs --out DIR (the folder of a soak)")
     return args
 
 
@@ -396,15 +408,21 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="afmctl-soak-") as tmp:
         work = args.out or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
-        soak = Soak(args, work.resolve())
-        print(f"soak: {args.duration_s:g} s, legs {', '.join(args.legs)}, faults every ~{args.fault_every_s:g} s "
+        soak = Soak(args, work.resolve()) if not args.reanalyse else None
+        if soak is not None:
+            soak.command = "benchmarks/soak.py " + " ".join(argv if argv is not None else sys.argv[1:])
+        print(f"soak{' (re-analysed)' if args.reanalyse else ''}: {args.duration_s:g} s, legs {', '.join(args.legs)}, faults every ~{args.fault_every_s:g} s "
               f"(seed {args.seed}), files in {work}", flush=True)
-        try:
-            soak.run()
-        finally:
-            soak.close()
+        if args.reanalyse:
+            soak = soak_report.load_state(work / "soak-state.json", args)
+        else:
+            try:
+                soak.run()
+            finally:
+                soak.close()
+                soak_report.save_state(soak, work / "soak-state.json")
         result = soak_report.analyse(soak, LEGS)
-        result["command"] = "benchmarks/soak.py " + " ".join(argv if argv is not None else sys.argv[1:])
+        result["command"] = soak.command
         table = soak_report.markdown(result)
         print(table)
         (work / "soak.json").write_text(json.dumps(result, indent=2, default=str), encoding="utf-8")

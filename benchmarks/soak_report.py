@@ -8,7 +8,10 @@ prints its link) and compared with the run whose process was alive then.
 from __future__ import annotations
 
 import itertools
+import json
+from dataclasses import asdict
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -48,20 +51,32 @@ def amp_chunks(path: Path, wall0: float):
                 return
 
 
+def first_send_wall(r) -> float | None:
+    """Wall time [s] a run could first have sent a setpoint (its first ``ramp`` event), None if never."""
+    if not r.log.exists():
+        return None
+    from afmctl.control.runlog import RunLogReader
+    walls = [e["wall_time"] for e in RunLogReader(r.log).events() if e.get("event") in ("ramp", "ramp-done", "resume")]
+    return min(walls) if walls else None
+
+
 def _amp_side(amp, runs, bound_V: float, finish) -> tuple[float, int, list[float]]:
     """Largest step the amplifier applied (from power-on 0 V in every segment), rows applied, and
-    the wall times of the first 20 steps above ``bound_V``. A row belongs to the
-    run started last before it (what a device plays out after a run ended belongs to that run);
+    the wall times of the first 20 steps above ``bound_V``. ``runs``: (run, first send wall time)
+    in order; a row belongs to the run that began sending last before it (what a device plays
+    out after its run ended belongs to that run; a run that never sent gets no row);
     ``finish(run, rows)`` gets each run's rows once no later row can belong to it (memory stays
     bounded by one run)."""
     worst, n_rows = 0.0, 0
-    per_run: dict[int, list[np.ndarray]] = {r.index: [] for r in runs}
+    per_run: dict[int, list[np.ndarray]] = {r.index: [] for r, _ in runs}
     done: set[int] = set()
     steps_at: list[float] = []
+    sending = [(r, w) for r, w in runs if w is not None]
 
     def _flush(upto_wall: float) -> None:
-        for k, r in enumerate(runs):
-            nxt = runs[k + 1].start_wall if k + 1 < len(runs) else np.inf
+        for r, w in runs:
+            later = [w2 for _, w2 in sending if w is not None and w2 > w] or [np.inf]
+            nxt = min(later) if w is not None else -np.inf
             if r.index not in done and nxt + 2.0 < upto_wall:
                 done.add(r.index)
                 rows = per_run.pop(r.index)
@@ -77,9 +92,9 @@ def _amp_side(amp, runs, bound_V: float, finish) -> tuple[float, int, list[float
             steps_at += [float(w) for w in wall[d > bound_V]][:20 - len(steps_at)]
             prev = rows[-1:]
             n_rows += len(rows)
-            for k, r in enumerate(runs):
-                nxt = runs[k + 1].start_wall if k + 1 < len(runs) else np.inf
-                sel = (wall >= r.start_wall) & (wall < nxt)
+            for k, (r, w) in enumerate(sending):
+                nxt = sending[k + 1][1] if k + 1 < len(sending) else np.inf
+                sel = (wall >= w) & (wall < nxt)
                 if sel.any() and r.index not in done:
                     per_run[r.index].append(rows[sel].astype(np.float32))
             _flush(float(wall[-1]))
@@ -162,7 +177,8 @@ def analyse_leg(spec, leg, amp, faults, soak_end: float, t0: float) -> tuple[dic
             summaries[k] += int(v or 0)
         bad.extend(_run_violations(spec, r, faults, soak_end))
 
-    amp_worst, amp_rows_n, steps_at = _amp_side(amp, runs, bound + RESOLUTION_V + 1e-9, finish)
+    amp_worst, amp_rows_n, steps_at = _amp_side(amp, [(r, first_send_wall(r)) for r in runs],
+                                                bound + RESOLUTION_V + 1e-9, finish)
     log_worst = log_worst[0]
     if amp_worst > bound + RESOLUTION_V + 1e-9:
         bad.append(f"{spec.name}: the amplifier applied a step of {amp_worst:.6g} V > {bound:g} V per sample, first at "
@@ -197,8 +213,7 @@ def _run_violations(spec, r, faults, soak_end: float) -> list[str]:
 
 def analyse(soak, legs_spec) -> dict[str, Any]:
     """Everything the soak measured, and ``violations`` (empty: every check held)."""
-    import time
-    end = time.time()
+    end = soak.stop_wall
     result: dict[str, Any] = {"hours": round((end - soak.t0) / 3600, 3), "seed": soak.args.seed,
                               "fault_every_s": soak.args.fault_every_s, "legs": {}, "faults": [], "violations": []}
     for f in soak.faults:
@@ -252,8 +267,68 @@ def markdown(res: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+DOC_INTRO = """\
+Continuous rasters through `afmctl run` (its own process, as a user runs it), two legs at
+once, each against its own simulated PI E-727 (`afmctl sim --protocol gcs --tcp`, a separate
+process that records every output it applies) reached through a loopback TCP forwarder owned
+by the soak: **setpoints** — host-timed setpoints at 1 kHz, one raster of 100,000 frames
+(16 lines at 4 lines/s, 6 × 4 µm); **wave** — device-timed output at 10 kHz, a 16-line raster
+at 2 lines/s uploaded as wave tables and played by the E-727's generator (20 kHz servo / 2),
+one run after another. Both runs publish on zenoh (loopback); a zenoh subscriber process and
+`afmctl view` are connected to both. Faults on a seeded schedule (each gap ±25 %, every kind
+once per round), each hitting both legs: `link_lost` (the forwarder closes the driver's TCP
+connection), `amp_restart` (the simulator SIGKILLed, a new one started 2 s later: power-on
+output 0 V), `zenoh_peer` (the subscriber SIGKILLed and started again), `disk_full`
+(RLIMIT_FSIZE of the `afmctl run` process lowered to its run log's size with
+`resource.prlimit` — the log's next write fails with EFBIG — lifted 5 s later), `viewer_stop`
+(`afmctl view` SIGSTOPped 20 s, then SIGCONTed). Steps are per sample (slew limit / loop
+rate); *applied* is what the amplifier's record shows, checked independently of the log (+
+the E-727's 1e-4 V number resolution). *In the log (of received)*: outputs the amplifier
+applied found in the run logs in order; *unloggable*: applied after the log failed (the
+safe ramp after `disk_full`) or the rest of a wave table played out after a link error.
+Missed deadlines count ticks later than half a period (host-timed leg) — a loaded shared
+machine, not a safety figure.
+"""
+
+
 def write_doc(res: dict[str, Any], table: str) -> None:
+    """Replace the ``soak`` section of docs/BENCHMARKS.md."""
+    import datetime
+    import os
     from sections import write_section
-    body = ("## Soak: hours of rasters through `afmctl run` with injected faults (#22)\n\n"
-            f"`nice -n 10 .venv/bin/python {res['command']}`\n\n" + table)
+    load = os.getloadavg()[0]
+    body = ("## Soak: rasters through `afmctl run` for hours, with injected faults (#22)\n\n"
+            f"`nice -n 10 .venv/bin/python {res['command']}` — ran {res['hours'] * 60:.1f} min "
+            f"({res['hours']:.2f} h) on {datetime.date.today().isoformat()}, 2 shared cores, load average "
+            f"{load:.1f} at the end.\n\n" + DOC_INTRO + "\n" + table)
     write_section("soak", body)
+
+
+def save_state(soak, path: Path) -> None:
+    """What the analysis needs of a soak (runs, record segments, faults, clocks), as JSON."""
+    state = {"t0": soak.t0, "stop_wall": soak.stop_wall, "command": soak.command,
+             "args": {"seed": soak.args.seed, "fault_every_s": soak.args.fault_every_s},
+             "faults": [asdict(f) for f in soak.faults],
+             "legs": {n: [asdict(r) for r in leg.runs] for n, leg in soak.legs.items()},
+             "amps": {n: {"segments": [str(p) for p in a.segments], "starts_wall": a.starts_wall}
+                      for n, a in soak.amps.items()}}
+    path.write_text(json.dumps(state, default=str), encoding="utf-8")
+
+
+def load_state(path: Path, args) -> SimpleNamespace:
+    """A stand-in for the soak that wrote ``path`` (:func:`save_state`), for :func:`analyse`."""
+    st = json.loads(path.read_text(encoding="utf-8"))
+    legs = {}
+    for n, runs in st["legs"].items():
+        recs = []
+        for r in runs:
+            r["log"] = Path(r["log"])
+            r["rss_kB"] = [tuple(x) for x in r["rss_kB"]]
+            recs.append(SimpleNamespace(**r))
+        legs[n] = SimpleNamespace(runs=recs)
+    amps = {n: SimpleNamespace(segments=[Path(p) for p in a["segments"]], starts_wall=a["starts_wall"])
+            for n, a in st["amps"].items()}
+    faults = [SimpleNamespace(**f) for f in st["faults"]]
+    args = SimpleNamespace(**{**vars(args), **st["args"]})
+    return SimpleNamespace(t0=st["t0"], stop_wall=st["stop_wall"], faults=faults, legs=legs, amps=amps, args=args,
+                           command=st["command"])
