@@ -208,7 +208,7 @@ class LoopMachine:
         returns False."""
         ctl, safety = self.ctl, self.safety
         try:
-            warnings = safety.sync_from_device()
+            warnings = safety.stop_leftover_playback() + safety.sync_from_device()
         except ReadbackError as err:
             return self._refuse_readback(err)
         except FAULT_ERRORS as err:
@@ -338,7 +338,7 @@ class LoopMachine:
         if err is None:
             self.fsm.fire(Event.RECONNECT_OK)
             try:
-                warnings = safety.sync_from_device()
+                warnings = safety.stop_leftover_playback() + safety.sync_from_device()
             except ReadbackError as e:
                 return self._refuse_readback(e)
             except Exception as e:   # noqa: BLE001 - any other failure: the link is still down

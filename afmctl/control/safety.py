@@ -111,6 +111,28 @@ class SafetyLayer:
         self.nonfinite = 0
 
     # ------------------------------------------------------------------ reference
+    def stop_leftover_playback(self) -> list[str]:
+        """Stop what the device still plays on its own clock from an earlier run — a wave
+        generator (GCS, NV200) or a stream FIFO (CAN) that played on after a link error —
+        before the output is read back: host setpoints must never compete with the device's
+        own clock (they would alternate with the table's samples, far beyond the slew limit).
+        Returns one line per thing stopped."""
+        amp = self.amplifier
+        notes: list[str] = []
+        if hasattr(amp, "wave_status"):
+            st = amp.wave_status()
+            if any(st.running.values()):
+                amp.stop_wave()
+                notes.append("a wave generator was still playing (left by an earlier run); stopped before the "
+                             "read-back")
+        elif hasattr(amp, "buffer_status"):
+            st = amp.buffer_status()
+            if st.state in ("armed", "playing", "draining") or st.level > 0:
+                amp.flush_stream()
+                notes.append(f"the stream FIFO was still {st.state} (left by an earlier run); flushed before the "
+                             "read-back")
+        return notes
+
     def sync_from_device(self) -> list[str]:
         """Read the applied voltages back and make them the reference for the next step.
 
