@@ -122,7 +122,8 @@ def _run_match(r, received: np.ndarray, logged: np.ndarray, events: list[dict]) 
         explained, why = len(tail), "wave rows played before a stop, after the last logged row (logged conservatively)"
     if len(tail) and last < 0 and len(rec) - len(tail) == 0 and not why:
         why = "no logged row reached the amplifier"
-    return {"run": r.index, "rc": r.rc, "received": int(len(rec)), "in_log": int(len(hit)), "not_in_log": int(len(unmatched)),
+    return {"run": r.index, "rc": r.rc, "received": int(len(rec)), "in_log": int(len(hit)),
+            "not_in_log": int(len(unmatched)),
             "explained": int(explained), "why": why, "logged": int(len(log_d)),
             "logged_not_received": int(len(log_d) - len(hit))}
 
@@ -214,7 +215,8 @@ def _run_violations(spec, r, faults, soak_end: float) -> list[str]:
 def analyse(soak, legs_spec) -> dict[str, Any]:
     """Everything the soak measured, and ``violations`` (empty: every check held)."""
     end = soak.stop_wall
-    result: dict[str, Any] = {"hours": round((end - soak.t0) / 3600, 3), "seed": soak.args.seed,
+    result: dict[str, Any] = {"hours": round((end - soak.t0) / 3600, 3), "load_end": getattr(soak, "load_end", None),
+                              "seed": soak.args.seed,
                               "fault_every_s": soak.args.fault_every_s, "legs": {}, "faults": [], "violations": []}
     for f in soak.faults:
         result["faults"].append({"n": f.index + 1, "kind": f.kind, "t_s": f.t_s, "ok": f.ok, **f.outcome})
@@ -241,7 +243,8 @@ def markdown(res: dict[str, Any]) -> str:
              f"{sum(f['ok'] for f in res['faults'])} recovered or ended safely; "
              f"violations: {len(res['violations']) or 'none'}", "",
              "| leg | runs (exit codes) | largest step logged / applied / limit [V per sample] | applied outputs "
-             "in the log (of received) | logged, not received | RSS after 1 min → end [MB] (slope MB/h), longest run | missed deadlines "
+             "in the log (of received) | logged, not received | RSS after 1 min → end [MB] (slope MB/h), "
+             "longest run | missed deadlines "
              "/ samples | underruns | stop after SIGTERM [s] |",
              "|---|---|---|---|---|---|---|---|---|"]
     for name, g in res["legs"].items():
@@ -276,7 +279,7 @@ by the soak: **setpoints** — host-timed setpoints at 1 kHz, one raster of 100,
 at 2 lines/s uploaded as wave tables and played by the E-727's generator (20 kHz servo / 2),
 one run after another. Both runs publish on zenoh (loopback); a zenoh subscriber process and
 `afmctl view` are connected to both. Faults on a seeded schedule (each gap ±25 %, every kind
-once per round), each hitting both legs: `link_lost` (the forwarder closes the driver's TCP
+once per round), each hitting both legs (`disk_full`: one leg, in turn): `link_lost` (the forwarder closes the driver's TCP
 connection), `amp_restart` (the simulator SIGKILLed, a new one started 2 s later: power-on
 output 0 V), `zenoh_peer` (the subscriber SIGKILLed and started again), `disk_full`
 (RLIMIT_FSIZE of the `afmctl run` process lowered to its run log's size with
@@ -286,27 +289,31 @@ rate); *applied* is what the amplifier's record shows, checked independently of 
 the E-727's 1e-4 V number resolution). *In the log (of received)*: outputs the amplifier
 applied found in the run logs in order; *unloggable*: applied after the log failed (the
 safe ramp after `disk_full`) or the rest of a wave table played out after a link error.
-Missed deadlines count ticks later than half a period (host-timed leg) — a loaded shared
-machine, not a safety figure.
+Missed deadlines count ticks later than half a period — a loaded shared machine, not a
+safety figure. RSS: the `afmctl run` process (not its zenoh child), sampled every 2 s; the
+slope is a least-squares fit after the first minute of the longest run (a `disk_full` ends a
+run, so runs last ≤ two rounds of faults). `(not hit) …`/`recovered` after a `disk_full` on
+the wave leg can mean the run wrote nothing while capped (collecting or uploading).
 """
 
 
 def write_doc(res: dict[str, Any], table: str) -> None:
     """Replace the ``soak`` section of docs/BENCHMARKS.md."""
     import datetime
-    import os
     from sections import write_section
-    load = os.getloadavg()[0]
+    load = res.get("load_end")
+    load_txt = f", load average {load:.1f} at the end" if load is not None else ""
     body = ("## Soak: rasters through `afmctl run` for hours, with injected faults (#22)\n\n"
             f"`nice -n 10 .venv/bin/python {res['command']}` — ran {res['hours'] * 60:.1f} min "
-            f"({res['hours']:.2f} h) on {datetime.date.today().isoformat()}, 2 shared cores, load average "
-            f"{load:.1f} at the end.\n\n" + DOC_INTRO + "\n" + table)
+            f"({res['hours']:.2f} h) on {datetime.date.today().isoformat()}, 2 shared cores{load_txt}.\n\n"
+            + DOC_INTRO + "\n" + table)
     write_section("soak", body)
 
 
 def save_state(soak, path: Path) -> None:
     """What the analysis needs of a soak (runs, record segments, faults, clocks), as JSON."""
     state = {"t0": soak.t0, "stop_wall": soak.stop_wall, "command": soak.command,
+             "load_end": getattr(soak, "load_end", None),
              "args": {"seed": soak.args.seed, "fault_every_s": soak.args.fault_every_s},
              "faults": [asdict(f) for f in soak.faults],
              "legs": {n: [asdict(r) for r in leg.runs] for n, leg in soak.legs.items()},
@@ -331,4 +338,4 @@ def load_state(path: Path, args) -> SimpleNamespace:
     faults = [SimpleNamespace(**f) for f in st["faults"]]
     args = SimpleNamespace(**{**vars(args), **st["args"]})
     return SimpleNamespace(t0=st["t0"], stop_wall=st["stop_wall"], faults=faults, legs=legs, amps=amps, args=args,
-                           command=st["command"])
+                           command=st["command"], load_end=st.get("load_end"))
