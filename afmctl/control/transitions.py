@@ -52,6 +52,15 @@ import enum
 from collections.abc import Mapping
 
 
+class State(str, enum.Enum):
+    """The controller's published state (status topic, run log events)."""
+    IDLE = "idle"          # not started
+    RUNNING = "running"    # playing the trajectory, settling or finishing
+    HOLDING = "holding"    # the watchdog saw the trajectory stall: output held or ramping to safe
+    FAULT = "fault"        # a driver error: reconnecting (or the run ended without a link)
+    STOPPED = "stopped"    # the run is over
+
+
 class Phase(str, enum.Enum):
     """Where the loop thread is (see the module docstring)."""
     SYNC = "sync"
