@@ -73,6 +73,7 @@ from ..errors import AfmctlError, error_line
 from . import cpu_pinning
 from .machine import END_OF_TRAJECTORY, N_COLS, RING_ROWS, LoopMachine, Mode, State  # noqa: F401 - Mode re-exported
 from .dispatcher import Dispatcher, quiet_window_wait_s  # noqa: F401 - re-exported (older import path)
+from .learned_table import LearnedSource
 from .reconnect import enter_fault
 from .run_inputs import (MAX_SEGMENT_SAMPLES, as_block as _as_block, check_drift_measurement,  # noqa: F401
                          check_segment_dt, feed_blocks, flat as _flat, segment_rows, source_blocks)
@@ -170,6 +171,7 @@ class Controller:
         self._sinks = self.dispatcher.sinks
         self._deque: collections.deque = collections.deque()
         self._queue_mode = False
+        self._learned_source: LearnedSource | None = None
         self._queue_end_when_idle = False
         self._thread: threading.Thread | None = None
         self._feeder: threading.Thread | None = None
@@ -279,6 +281,16 @@ class Controller:
             self._deque.append(_flat(rows[k:k + bs]))
         return len(rows)
 
+    def _learned_or(self, source: Any) -> Any:
+        """A ``kind = "learned"`` spec as its :class:`LearnedSource` (the wave machine plays its
+        table instead of planning one); any other source as it is."""
+        if getattr(source, "kind", None) == "learned":
+            source = LearnedSource.from_file(source.file)
+        self._learned_source = source if isinstance(source, LearnedSource) else None
+        if self._learned_source is not None and self.config.amplifier.output != "wave":
+            raise AfmctlError("start: a learned table plays on the amplifier's clock: set amplifier.output = 'wave'")
+        return source
+
     def start(self, source: Any = None, *, runlog_path: str | Path | None = None) -> None:
         """Start the loop thread.
 
@@ -292,6 +304,7 @@ class Controller:
             self._rc_thread.join(60.0)
             if self._rc_thread.is_alive():
                 raise AfmctlError("start: the previous run's reconnect attempt is still in the driver")
+        source = self._learned_or(source)
         self._queue_mode, self._queue_end_when_idle, it = source_blocks(source, self.dt_s,
                                                                         self.config.loop.block_samples)
         if self._queue_mode and self.config.amplifier.output == "wave":
