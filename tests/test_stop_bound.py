@@ -37,12 +37,13 @@ def cfg_for(tmp_path, **safety):
 
 
 def stop_bound_s(ctl: Controller, request: str = "stop") -> float:
-    """The stated bound [s]: one period + the finish ramp from the present output + one driver
-    call (RecordingAmplifier: immediate)."""
+    """The stated bound [s] until ``wait()`` returns: one period + the finish ramp from the
+    present output + one driver call (RecordingAmplifier: immediate) + the dispatcher's last
+    pass (``dispatch_interval_s``)."""
     s = ctl.safety
     dist = max(abs(v - safe) for v, safe in zip(s.last, s.safe))
-    rate = s.slew_V_per_s if request == "estop" else min(RAMP_V_PER_S, s.slew_V_per_s)
-    return ctl.dt_s + dist / rate
+    rate = s.slew_V_per_s if request == "estop" else min(ctl.config.safety.ramp_V_per_s, s.slew_V_per_s)
+    return ctl.dt_s + dist / rate + ctl.dispatch_interval_s
 
 
 class BlockingAmplifier(RecordingAmplifier):

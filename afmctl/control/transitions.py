@@ -38,7 +38,8 @@ phase, and from FINISH every event leads to FINISH or a terminal phase
 tick, so a stop ends the run within one loop period plus the finish ramp
 (``max(hi − lo) / safety.ramp_V_per_s``; at the slew limit for an estop; no ramp with
 ``on_finish = "hold"`` or without a link) plus one driver call; a stop during a fault ends
-it at the next tick (nothing can be sent; the device holds its output).
+it at the next tick (nothing can be sent; the device holds its output). ``wait()`` returns
+after the dispatcher's last pass, at most ``Controller.dispatch_interval_s`` (20 ms) later.
 
 Three tables, one per ``amplifier.output``: :data:`SETPOINT_TABLE` (reconnects after a link
 error), :data:`STREAM_TABLE` (a link error while streaming ends the run in FAULT: the FIFO
