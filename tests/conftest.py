@@ -152,6 +152,11 @@ SLOW_TESTS = frozenset({
     "test_scan_files.py::test_identify_from_image_files_equals_npz",
     "test_sim_amplifiers.py::test_mdt_is_no_faster_than_115200_baud",
     "test_trajectories.py::test_smooth_move_respects_limits",
+    "test_stop_bound.py::test_stop_in_ramp_run_and_finish",
+    "test_stop_bound.py::test_close_ends_every_thread_from_every_phase",
+    "test_stop_bound.py::test_issue_22_example_inside_the_limits_resumes_into_settle_and_ends",
+    "test_stop_bound.py::test_close_reports_a_driver_call_that_does_not_return",
+    "test_hypothesis_profiles.py::test_ci_profile_draws_the_same_examples_every_run_and_fuzz_does_not",
 })
 
 

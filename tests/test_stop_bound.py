@@ -237,7 +237,8 @@ def _running_in(tmp_path, phase: Phase):
     cfg = cfg_for(tmp_path, reconnect_interval_s=30.0 if phase is Phase.RETRY else 0.01,
                   ramp_V_per_s=5.0 if slow_finish else RAMP_V_PER_S)
     g = cfg.scanner.axis_spec("x").nm_per_V
-    amp = BlockingAmplifier(block_reconnect=phase is Phase.RECONNECT)
+    amp = BlockingAmplifier(block_reconnect=phase is Phase.RECONNECT,   # FINISH: no slow start ramp
+                            initial_V={"x": 10.0 if slow_finish else 0.0, "y": 0.0, "z": 0.0})
     ctl = Controller(cfg, amp)
     if phase in (Phase.RETRY, Phase.RECONNECT):
         amp.fail_after = 20
