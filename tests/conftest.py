@@ -157,6 +157,11 @@ SLOW_TESTS = frozenset({
     "test_recorders.py::test_can_driver_records_the_stream_from_its_first_played_sample",
     "test_amp_cli.py::test_wave_record_writes_the_measured_motion_as_a_motion_file",
     "test_recorders.py::test_sim_gcs_recorder_options_commanded_actual_and_error_from_the_sensor",
+    "test_stop_bound.py::test_stop_in_ramp_run_and_finish",
+    "test_stop_bound.py::test_close_ends_every_thread_from_every_phase",
+    "test_stop_bound.py::test_issue_22_example_inside_the_limits_resumes_into_settle_and_ends",
+    "test_stop_bound.py::test_close_reports_a_driver_call_that_does_not_return",
+    "test_hypothesis_profiles.py::test_ci_profile_draws_the_same_examples_every_run_and_fuzz_does_not",
 })
 
 

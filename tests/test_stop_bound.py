@@ -37,12 +37,13 @@ def cfg_for(tmp_path, **safety):
 
 
 def stop_bound_s(ctl: Controller, request: str = "stop") -> float:
-    """The stated bound [s]: one period + the finish ramp from the present output + one driver
-    call (RecordingAmplifier: immediate)."""
+    """The stated bound [s] until ``wait()`` returns: one period + the finish ramp from the
+    present output + one driver call (RecordingAmplifier: immediate) + the dispatcher's last
+    pass (``dispatch_interval_s``)."""
     s = ctl.safety
     dist = max(abs(v - safe) for v, safe in zip(s.last, s.safe))
-    rate = s.slew_V_per_s if request == "estop" else min(RAMP_V_PER_S, s.slew_V_per_s)
-    return ctl.dt_s + dist / rate
+    rate = s.slew_V_per_s if request == "estop" else min(ctl.config.safety.ramp_V_per_s, s.slew_V_per_s)
+    return ctl.dt_s + dist / rate + ctl.dispatch_interval_s
 
 
 class BlockingAmplifier(RecordingAmplifier):
@@ -236,7 +237,8 @@ def _running_in(tmp_path, phase: Phase):
     cfg = cfg_for(tmp_path, reconnect_interval_s=30.0 if phase is Phase.RETRY else 0.01,
                   ramp_V_per_s=5.0 if slow_finish else RAMP_V_PER_S)
     g = cfg.scanner.axis_spec("x").nm_per_V
-    amp = BlockingAmplifier(block_reconnect=phase is Phase.RECONNECT)
+    amp = BlockingAmplifier(block_reconnect=phase is Phase.RECONNECT,   # FINISH: no slow start ramp
+                            initial_V={"x": 10.0 if slow_finish else 0.0, "y": 0.0, "z": 0.0})
     ctl = Controller(cfg, amp)
     if phase in (Phase.RETRY, Phase.RECONNECT):
         amp.fail_after = 20

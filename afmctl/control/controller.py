@@ -60,7 +60,7 @@ import sys
 import threading
 import time
 import weakref
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -71,19 +71,18 @@ from afmctl.compensators.temperature import T_MAX_C, T_MIN_C
 from . import stats as loop_stats
 from ..errors import AfmctlError, error_line
 from . import cpu_pinning
-from .machine import (C_COR, C_D, C_S, C_SEQ, C_T, C_TGT, C_TICK, C_U, END_OF_TRAJECTORY, N_COLS,
-                           RING_ROWS, LoopMachine, Mode, State)  # noqa: F401 - Mode re-exported
-from .runlog import DRIFT_DTYPE, SETPOINT_DTYPE, RunLogWriter
+from .machine import END_OF_TRAJECTORY, N_COLS, RING_ROWS, LoopMachine, Mode, State  # noqa: F401 - Mode re-exported
+from .dispatcher import Dispatcher, quiet_window_wait_s  # noqa: F401 - re-exported (older import path)
 from .learned_table import LearnedSource
+from .reconnect import enter_fault
+from .run_inputs import (MAX_SEGMENT_SAMPLES, as_block as _as_block, check_drift_measurement,  # noqa: F401
+                         check_segment_dt, feed_blocks, flat as _flat, segment_rows, source_blocks)
+from .runlog import RunLogWriter
 from .safety import SafetyLayer
-from ..inputs import trajectories
-from ..inputs.trajectories import check_positions, resample
 
 log = logging.getLogger(__name__)
 
 _RING = RING_ROWS
-#: largest run-time segment after resampling to the loop period [samples]
-MAX_SEGMENT_SAMPLES = 1_000_000
 #: drift measurements waiting for the loop thread (more are refused)
 MAX_PENDING_DRIFT_MEASUREMENTS = 64
 _END = END_OF_TRAJECTORY
@@ -103,20 +102,6 @@ def started_controllers() -> list["Controller"]:
     return list(_STARTED)
 
 
-def _as_block(arr: Any, where: str = "trajectory") -> np.ndarray:
-    """Validate a block of positions (N, 3) [nm]; returns it as a float64 array."""
-    a = np.ascontiguousarray(arr, dtype=np.float64)
-    if a.ndim != 2 or a.shape[1] != 3:
-        raise AfmctlError(f"{where}: positions must have shape (N, 3) [nm], got {a.shape}")
-    check_positions(a, lambda i: f"{where}: sample {i}")
-    return a
-
-
-def _flat(rows: np.ndarray) -> list[float]:
-    """A block as one flat list x0, y0, z0, x1, ... (one GC-tracked object per block)."""
-    return rows.ravel().tolist()
-
-
 def helper_priority(loop_priority: int | None, cpus: frozenset[int] | None = None) -> None:
     """Make the calling thread SCHED_FIFO one step below a real-time loop thread (priority
     ``loop_priority``; None: leave it). Every thread of the loop's process that takes the
@@ -132,27 +117,18 @@ def helper_priority(loop_priority: int | None, cpus: frozenset[int] | None = Non
             pass
 
 
-def quiet_window_wait_s(now_s: float, deadline_s: float, period_s: float, spin_s: float) -> float:
-    """How long [s] a helper thread waits from ``now_s`` to be inside the loop's quiet window.
-
-    The loop ticks at ``deadline_s + k · period_s`` (perf_counter [s]), works for a while, then
-    sleeps until ``spin_s`` before the next deadline and spins. The quiet window of each period
-    starts a quarter period after the deadline (the tick's work done) and ends ``spin_s`` plus
-    a quarter period before the next one; a helper that starts there hands the interpreter
-    lock back before the loop needs it. 0 when ``now_s`` is inside a window, when the loop is
-    not running (``deadline_s`` 0) or when the period leaves no window (fast loops)."""
-    start = 0.25 * period_s
-    end = 0.75 * period_s - spin_s
-    if deadline_s <= 0.0 or end - start < 1e-4:
-        return 0.0
-    phase = (now_s - deadline_s) % period_s
-    if start <= phase <= end:
-        return 0.0
-    return (start - phase) % period_s
-
-
 class Controller:
     """Fixed-rate feedforward controller; see the module docstring.
+
+    Its jobs live in their own pieces: the loop thread's phases and their transitions
+    (:mod:`afmctl.control.machine`, :mod:`afmctl.control.transitions`), the fault/reconnect
+    policy (:mod:`afmctl.control.reconnect`), the dispatcher — run log, sinks, status
+    (:mod:`afmctl.control.dispatcher`) — and the run's inputs (:mod:`afmctl.control.run_inputs`).
+    What stays here, and why it is one class of about 400 lines: the public API (start, stop,
+    estop, wait, close, stats, submit_*, sinks), the ownership of the run's threads, and the
+    run's shared record — the counters, the ring buffer and the event deque that the loop
+    thread writes on every tick as plain attributes of this one object (no extra hop on the
+    hot path) and the dispatcher reads.
 
     Parameters
     ----------
@@ -194,7 +170,9 @@ class Controller:
         self._request: str | None = None
         #: the running machine's phase machine (afmctl.control.transitions), None before a run
         self._fsm: Any = None
-        self._sinks: list[Any] = []
+        #: the dispatcher (run log, sinks, status; afmctl.control.dispatcher)
+        self.dispatcher = Dispatcher(self)
+        self._sinks = self.dispatcher.sinks
         self._deque: collections.deque = collections.deque()
         self._queue_mode = False
         self._learned_source: LearnedSource | None = None
@@ -202,7 +180,6 @@ class Controller:
         self._thread: threading.Thread | None = None
         self._feeder: threading.Thread | None = None
         self._rc_thread: threading.Thread | None = None
-        self._rc_error: BaseException | None = None
         self._dispatcher: threading.Thread | None = None
         self._feed_stop = False
         self._feed_error: str | None = None
@@ -259,11 +236,10 @@ class Controller:
 
     def add_sink(self, sink: Any) -> None:
         """Register an object with ``on_setpoints``/``on_drift``/``on_status`` (any subset)."""
-        self._sinks.append(sink)
+        self.dispatcher.add_sink(sink)
 
     def remove_sink(self, sink: Any) -> None:
-        if sink in self._sinks:
-            self._sinks.remove(sink)
+        self.dispatcher.remove_sink(sink)
 
     def set_temperature(self, t_s: float, T_C: float) -> None:
         """Ambient temperature reading [°C] at time ``t_s`` [s] for the drift predictor."""
@@ -283,42 +259,14 @@ class Controller:
         here (AfmctlError naming the field and range); the loop thread fuses it before its
         next sample (never blocks the loop). Accepted while the controller runs.
         """
-        if getattr(self.pipeline, "kalman", None) is None:
-            raise AfmctlError("drift-measurement: the Kalman filter is off "
-                              "(set compensation.drift.enabled = true and compensation.drift.kalman = true)")
-        try:
-            z = np.asarray(measured_drift_nm, dtype=np.float64).reshape(-1)
-        except (TypeError, ValueError):
-            z = np.empty(0)
-        if z.shape != (3,) or np.any(np.isinf(z)) or np.all(np.isnan(z)) or np.any(np.abs(z[np.isfinite(z)]) > 1e6):
-            raise AfmctlError(f"drift-measurement: measured_drift_nm {measured_drift_nm!r:.80} must be 3 values "
-                              "in -1e6..1e6 nm (NaN = axis not measured, at least one measured)")
-        if isinstance(std_nm, (str, bytes, bool)):
-            std = math.nan
-        else:
-            try:
-                std = float(std_nm)
-            except (TypeError, ValueError):
-                std = math.nan
-        if not (math.isfinite(std) and 1e-6 <= std <= 1e6):
-            raise AfmctlError(f"drift-measurement: std_nm {std_nm!r:.40} outside the allowed range 1e-6..1e6 nm")
-        t = math.nan
-        if t_s is not None:
-            if not isinstance(t_s, (str, bytes, bool)):
-                try:
-                    t = float(t_s)
-                except (TypeError, ValueError):
-                    pass
-            if not (math.isfinite(t) and 0.0 <= t <= 1e7):
-                raise AfmctlError(f"drift-measurement: t_s {t_s!r:.40} outside the allowed range 0..1e7 s "
-                                  "(controller time since start)")
+        z, std, t = check_drift_measurement(self.pipeline, measured_drift_nm, std_nm, t_s)
         if not self.running or self._state is State.STOPPED:
             raise AfmctlError(f"drift-measurement: controller is {self._state.value}; "
                               "measurements are accepted while it runs")
         if len(self._drift_meas) >= MAX_PENDING_DRIFT_MEASUREMENTS:
             raise AfmctlError(f"drift-measurement: {MAX_PENDING_DRIFT_MEASUREMENTS} measurements already "
                               "pending; the loop is not consuming them")
-        self._drift_meas.append(((float(z[0]), float(z[1]), float(z[2])), std, t))
+        self._drift_meas.append((z, std, t))
 
     def submit_segment(self, positions_nm: np.ndarray, dt_s: float) -> int:
         """Append a segment (N, 3) [nm] sampled every ``dt_s`` [s] (resampled to the loop
@@ -327,21 +275,11 @@ class Controller:
         Accepted when idle or when running in queue mode (``start(None)`` or
         ``trajectory.kind = "queue"``).
         """
-        try:
-            dt = float(dt_s)
-        except (TypeError, ValueError):
-            raise AfmctlError(f"segment: dt_s {dt_s!r} is not a number") from None
-        if not (math.isfinite(dt) and 1e-6 <= dt <= 10.0):
-            raise AfmctlError(f"segment: dt_s {dt_s!r} outside the allowed range 1e-6..10 s")
+        dt = check_segment_dt(dt_s)
         if self.running and not self._queue_mode:
             raise AfmctlError("segment: the controller is running a finite trajectory; segments are "
                               "accepted in queue mode (trajectory.kind = 'queue')")
-        src = _as_block(positions_nm, "segment")  # validate before resampling
-        n_out = int(math.floor(max(len(src) - 1, 0) * dt / self.dt_s + 1e-9)) + 1
-        if n_out > MAX_SEGMENT_SAMPLES:
-            raise AfmctlError(f"segment: {len(src)} samples every {dt:g} s make {n_out} loop samples; "
-                              f"at most {MAX_SEGMENT_SAMPLES} per segment (split it)")
-        rows = _as_block(resample(np.asarray(positions_nm, dtype=np.float64), dt, self.dt_s), "segment")
+        rows = segment_rows(positions_nm, dt, self.dt_s)
         bs = self.config.loop.block_samples
         for k in range(0, len(rows), bs):
             self._deque.append(_flat(rows[k:k + bs]))
@@ -370,27 +308,9 @@ class Controller:
             self._rc_thread.join(60.0)
             if self._rc_thread.is_alive():
                 raise AfmctlError("start: the previous run's reconnect attempt is still in the driver")
-        it: Iterator | None
         source = self._learned_or(source)
-        self._queue_mode = False
-        self._queue_end_when_idle = False
-        if source is None:
-            self._queue_mode = True
-            it = None
-        elif getattr(source, "kind", None) == "queue":
-            self._queue_mode = True
-            self._queue_end_when_idle = source.idle == "end"
-            it = None
-        elif hasattr(source, "blocks_at"):
-            it = iter(source.blocks_at(self.dt_s, self.config.loop.block_samples))
-        elif hasattr(source, "kind"):
-            it = iter(trajectories.build(source, self.dt_s, self.config.loop.block_samples))
-        elif isinstance(source, np.ndarray):
-            it = iter(trajectories.blocks_of(source, self.config.loop.block_samples))
-        elif isinstance(source, Iterable):
-            it = iter(source)
-        else:
-            raise AfmctlError(f"start: unsupported trajectory source {type(source).__name__}")
+        self._queue_mode, self._queue_end_when_idle, it = source_blocks(source, self.dt_s,
+                                                                        self.config.loop.block_samples)
         if self._queue_mode and self.config.amplifier.output == "wave":
             raise AfmctlError("start: amplifier.output = 'wave' plays a finite trajectory computed before the "
                               "run; run-time segments (queue mode) need output = 'setpoints' or 'stream'")
@@ -421,9 +341,8 @@ class Controller:
             self._feeder = threading.Thread(target=self._feed, args=(it,), name="afmctl-feeder", daemon=True)
             self._feeder.start()
         self._thread = threading.Thread(target=self._loop_main, name="afmctl-loop", daemon=True)
-        self._dispatcher = threading.Thread(target=self._dispatch_main, name="afmctl-dispatch", daemon=True)
         self._thread.start()
-        self._dispatcher.start()
+        self._dispatcher = self.dispatcher.start()
 
     def _open_runlog(self, runlog_path: str | Path | None) -> None:
         """Create this run's log (default name: runlog.dir/<scanner>-<time>[-k].afmlog)."""
@@ -560,23 +479,9 @@ class Controller:
         helper_priority(self.config.loop.realtime_priority, self.cpu_plan.others)
 
     def _feed(self, it: Iterator) -> None:
+        """Feeder thread: the trajectory's blocks into the sample deque (:func:`feed_blocks`)."""
         self._helper_priority()
-        bs = self.config.loop.block_samples
-        prefetch = self.config.loop.prefetch_blocks
-        dq = self._deque
-        try:
-            for blk in it:
-                rows = _as_block(blk)
-                for k in range(0, len(rows), bs):
-                    while len(dq) >= prefetch and not self._feed_stop:
-                        time.sleep(0.002)
-                    if self._feed_stop:
-                        return
-                    dq.append(_flat(rows[k:k + bs]))
-        except Exception as err:  # a trajectory generator failed: end the run safely
-            self._feed_error = error_line(err)
-            log.error("trajectory: %s", self._feed_error)
-        dq.append(_END)
+        feed_blocks(self, it)
 
     def _loop_main(self) -> None:
         old_switch = sys.getswitchinterval()
@@ -630,131 +535,11 @@ class Controller:
         except Exception as err:  # noqa: BLE001 - a bad measurement must not stop the loop
             self._event("drift-measurement-error", error_line(err))
 
-    def _reconnect_job(self) -> None:
-        """One ``amplifier.reconnect()`` attempt (helper thread; may block for the driver's
-        reconnect_timeout_s). The loop thread reads the outcome from ``_rc_error``."""
-        try:
-            self.amplifier.reconnect()
-        except Exception as err:  # noqa: BLE001 - reported by the loop thread
-            self._rc_error = err
-
     def _enter_fault(self, err: BaseException) -> None:
-        self._errors += 1
-        self._faults += 1
-        self._last_error = error_line(err)
-        log.warning("amplifier fault: %s", self._last_error)
-        self._set_state(State.FAULT, "fault", self._last_error)
+        """Count a link error and publish ``fault`` (:func:`afmctl.control.reconnect.enter_fault`)."""
+        enter_fault(self, err)
 
-    # ------------------------------------------------------------------ dispatcher
-    def _dispatch_main(self) -> None:
-        self._helper_priority()
-        r = 0
-        next_status = time.monotonic()
-        try:
-            while True:
-                alive = self._thread is not None and self._thread.is_alive()
-                r = self._r_done = self._dispatch_records(r)
-                self._check_runlog()
-                self._dispatch_events()
-                if time.monotonic() >= next_status:
-                    next_status = time.monotonic() + self.status_interval_s
-                    self._call_sinks("on_status", self._status("periodic"))
-                if not alive:
-                    r = self._dispatch_records(r)
-                    self._dispatch_events()
-                    self._call_sinks("on_status", self._status("final"))
-                    break
-                time.sleep(self.dispatch_interval_s)
-                self._sleep_to_quiet_window()
-        finally:
-            if self.runlog is not None:
-                self.runlog.write_event({"seq": self._seq, "t_s": self._tick * self.dt_s, "wall_time": time.time(),
-                                         "state": self._state.value, "event": "stats",
-                                         "detail": self.stats()})
-                self.runlog.close()
-            self._done.set()
-
-    def _sleep_to_quiet_window(self) -> None:
-        """Dispatcher: wait until just after one of the loop's ticks, so that its work (run log,
-        sinks, zenoh frames) takes the interpreter lock while the loop thread sleeps, not while
-        it waits for a deadline. See :func:`quiet_window_wait_s`."""
-        wait = quiet_window_wait_s(time.perf_counter(), self._deadline_s, self.dt_s, self.config.loop.spin_s)
-        if wait > 0.0:
-            time.sleep(wait)
-
-    def _check_runlog(self) -> None:
-        """Dispatcher: a run log that cannot be written stops the run (ramp to the safe value
-        at ``safety.ramp_V_per_s``, whatever ``on_finish`` says): no setpoint is sent that no
-        record will show, beyond that ramp."""
-        err = self.runlog.error if self.runlog is not None else None
-        if err is None or self.runlog_error is not None:
-            return
-        self.runlog_error = str(err)
-        self._errors += 1
-        self._last_error = self.runlog_error
-        self._event("runlog-error", self.runlog_error)
-        if self._request != "estop":
-            self._request = "runlog-error"
-        self._feed_stop = True
-
-    def _dispatch_records(self, r: int) -> int:
-        w = self._w
-        if w == r:
-            return r
-        if w - r > _RING:
-            lost = w - r - _RING
-            self._dropped += lost
-            r = w - _RING
-        idx = np.arange(r, w) & (_RING - 1)
-        rows = self._ring[idx]
-        if self._w - r > _RING:  # overwritten while copying
-            keep = (self._w - _RING) - r
-            rows = rows[keep:] if keep < len(rows) else rows[:0]
-            self._dropped += keep
-        sp = np.zeros(len(rows), SETPOINT_DTYPE)
-        sp["seq"] = rows[:, C_SEQ].astype(np.uint64)
-        sp["t_s"] = rows[:, C_TICK] * self.dt_s
-        sp["target_nm"] = rows[:, C_TGT:C_TGT + 3]
-        sp["corrected_nm"] = rows[:, C_COR:C_COR + 3]
-        sp["u_V"] = rows[:, C_U:C_U + 3]
-        dr = np.zeros(len(rows), DRIFT_DTYPE)
-        dr["seq"] = sp["seq"]
-        dr["t_s"] = sp["t_s"]
-        dr["T_C"] = rows[:, C_T]
-        dr["drift_nm"] = rows[:, C_D:C_D + 3]
-        dr["std_nm"] = rows[:, C_S:C_S + 3]      # NaN when the Kalman filter is off
-        if self.runlog is not None:
-            self.runlog.write_setpoints(sp)
-            self.runlog.write_drift(dr)
-        if len(sp):
-            self._call_sinks("on_setpoints", sp)
-            last = dr[-1]
-            std = rows[-1, C_S:C_S + 3]
-            self._call_sinks("on_drift", {"seq": int(last["seq"]), "t_s": float(last["t_s"]),
-                                          "T_C": float(last["T_C"]),
-                                          "drift_nm": [float(v) for v in last["drift_nm"]],
-                                          "std_nm": None if math.isnan(std[0]) else [float(v) for v in std]})
-        return w
-
-    def _dispatch_events(self) -> None:
-        while self._events:
-            ev = self._events.popleft()
-            if self.runlog is not None:
-                self.runlog.write_event(ev)
-            st = self._status(ev["event"], ev.get("detail"))
-            st["state"] = ev["state"]
-            self._call_sinks("on_status", st)
-
+    # ------------------------------------------------------------------ status
     def _status(self, event: str, detail: Any = None) -> dict[str, Any]:
         return {"state": self._state.value, "event": event, "detail": detail, "seq": self._seq,
                 "t_s": self._tick * self.dt_s, "stats": self.stats()}
-
-    def _call_sinks(self, method: str, arg: Any) -> None:
-        for sink in list(self._sinks):
-            fn = getattr(sink, method, None)
-            if fn is None:
-                continue
-            try:
-                fn(arg)
-            except Exception:  # a sink must not stop the controller
-                log.exception("sink %r.%s failed", sink, method)

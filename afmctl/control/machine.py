@@ -32,7 +32,6 @@ from __future__ import annotations
 import collections
 import enum
 import math
-import threading
 import time
 from typing import Any
 
@@ -40,31 +39,20 @@ import numpy as np
 
 from . import stats as loop_stats
 from ..errors import error_line
-from .safety import ReadbackError, Watchdog
-from .transitions import REQUEST_EVENTS, TABLES, Event, Phase, PhaseMachine
+from .reconnect import FAULT_ERRORS, FaultPolicy
+from .safety import Watchdog
+from .transitions import REQUEST_EVENTS, TABLES, Event, Phase, PhaseMachine, State  # noqa: F401 - State re-exported
 from afmctl.drivers.base import ConnectionState
-from afmctl.drivers.errors import AmplifierError, LimitError
 
 
 #: the feeder puts this into the sample deque after the trajectory's last block
 END_OF_TRAJECTORY = object()
-#: errors of the amplifier link that put the loop into the fault state
-FAULT_ERRORS = (AmplifierError, OSError)
 #: ring buffer of sent setpoints: rows (power of two) and column layout
 RING_ROWS = 1 << 16
 C_SEQ, C_TICK = 0, 1
 C_TGT, C_COR, C_U, C_T, C_D, C_S = 2, 5, 8, 11, 12, 15
 N_COLS = 18
 NAN3 = (math.nan, math.nan, math.nan)
-
-
-class State(str, enum.Enum):
-    """The controller's published state (status topic, run log events)."""
-    IDLE = "idle"          # not started
-    RUNNING = "running"    # playing the trajectory, settling or finishing
-    HOLDING = "holding"    # the watchdog saw the trajectory stall: output held or ramping to safe
-    FAULT = "fault"        # a driver error: reconnecting (or the run ended without a link)
-    STOPPED = "stopped"    # the run is over
 
 
 class Mode(enum.Enum):
@@ -76,7 +64,15 @@ class Mode(enum.Enum):
 
 class LoopMachine:
     """One run of the loop thread of ``ctl`` (see the module docstring); :meth:`run` blocks
-    until the run ends."""
+    until the run ends.
+
+    Link errors, reconnects and read-backs are the :class:`afmctl.control.reconnect.FaultPolicy`'s
+    job; the phases move through :mod:`afmctl.control.transitions`. Why the rest is one class
+    of about 400 lines: the per-tick state (the block being played, the pending sample, mode,
+    ramp, preview queue, watchdog) is read and written on every tick at 1–20 kHz, as plain
+    attributes of one object, and the stream and wave machines are subclasses that reuse its
+    tick methods; splitting it would put attribute hops on the hot path and into both
+    subclasses."""
 
     def __init__(self, ctl: Any) -> None:  # an afmctl.control.controller.Controller (not imported: no cycle)
         cfg = ctl.config
@@ -90,13 +86,13 @@ class LoopMachine:
         self.on_stall = cfg.safety.on_stall
         self.watchdog = Watchdog(cfg.safety.watchdog_s)
         self.T_file = ctl._T_file
-        self.reconnect_interval_s = cfg.safety.reconnect_interval_s
-        self.max_reconnects = cfg.safety.max_reconnects
         self.has_kalman = getattr(pipe, "kalman", None) is not None
         self.mode = Mode.RUN
         #: the loop's phase, moved only through the output mode's transition table
         self.fsm = PhaseMachine(TABLES.get(cfg.amplifier.output, TABLES["setpoints"]))
         ctl._fsm = self.fsm
+        #: link errors, reconnects, read-backs (afmctl.control.reconnect)
+        self.faults = FaultPolicy(self)
         self.req_taken: str | None = None   # the latest request taken (ctl._request)
         self.finish_rate_V_per_s = self.ramp_rate_V_per_s
         self.finish_hold = False
@@ -106,14 +102,11 @@ class LoopMachine:
         self.need_ramp = True               # ramp to the next sample (start / resume)
         self.ramping = False
         self.last_u_cmd: tuple | None = None  # the trajectory's latest setpoint voltages (x, y, z)
-        self.next_attempt_s = 0.0
-        self.attempts = 0
         self.last_tgt = (0.0, 0.0, 0.0)
         self.last_cor = (0.0, 0.0, 0.0)
         self.last_d = (0.0, 0.0, 0.0)
         self.last_s = pipe.drift_std_nm() if self.has_kalman else NAN3
         self.u_prev = [0.0, 0.0, 0.0]
-        self.rc_thread: threading.Thread | None = None  # reconnect attempt in flight
         self.in_fault = False                           # the loop ended without a link
         self.now_s = 0.0                                # start of this tick (perf_counter)
         self.next_t_s = 0.0                             # this tick's deadline (perf_counter)
@@ -201,39 +194,9 @@ class LoopMachine:
         return float(np.interp(self.ctl._tick * self.period_s, t, T))
 
     def _sync_at_start(self) -> bool:
-        """Read the device's present output. A link error starts the run in fault
-        (reconnecting, as the table says); a read-back that is not a voltage or lies more than
-        one slew step outside the limits ends the run in fault at once (event
-        ``readback-refused``, one line naming the axis and the limits, nothing sent) and
-        returns False."""
-        ctl, safety = self.ctl, self.safety
-        try:
-            warnings = safety.stop_leftover_playback() + safety.sync_from_device()
-        except ReadbackError as err:
-            return self._refuse_readback(err)
-        except FAULT_ERRORS as err:
-            ctl._enter_fault(err)
-            self.next_attempt_s = time.perf_counter() + self.reconnect_interval_s
-            if self.fsm.fire(Event.FAULT) is Phase.FAULT:
-                self.in_fault = True
-            return True
-        for w in warnings:
-            ctl._event("readback", w)
-        self.u_prev = safety.xyz(safety.last)
-        self.fsm.fire(Event.READBACK_IN)
-        return True
-
-    def _refuse_readback(self, err: BaseException) -> bool:
-        """The output read back cannot be placed within the limits: end the run in fault
-        without sending anything (a ramp from there would leave the limits). Returns False."""
-        ctl = self.ctl
-        self.fsm.fire(Event.READBACK_OUT)
-        ctl._errors += 1
-        ctl._faults += 1
-        ctl._last_error = error_line(err)
-        ctl._set_state(State.FAULT, "readback-refused", ctl._last_error)
-        self.in_fault = True
-        return False
+        """Read the device's output back (:meth:`afmctl.control.reconnect.FaultPolicy.sync_at_start`);
+        False when the read-back refuses the run."""
+        return self.faults.sync_at_start()
 
     def _synced_or_ended(self) -> bool:
         """Read the device's output back (:meth:`_sync_at_start`); with the link down, end
@@ -303,94 +266,25 @@ class LoopMachine:
 
     # ------------------------------------------------------------------ FAULT
     def _tick_fault(self) -> bool:
-        """The link is down. reconnect() of a serial driver blocks for up to its
-        reconnect_timeout_s: it runs on a helper thread, so that this loop keeps ticking and
-        a stop or estop during a fault is honoured at once (the device holds its output)."""
-        ctl = self.ctl
-        if self.rc_thread is not None:
-            if not self.rc_thread.is_alive():
-                self.rc_thread = None
-                return self._after_reconnect_attempt()
-            return True
-        if self.now_s < self.next_attempt_s:
-            return True
-        if self.attempts >= self.max_reconnects:
-            self.fsm.fire(Event.RECONNECTS_EXHAUSTED)
-            ctl._event("give-up", f"{self.attempts} reconnect attempts failed")
-            self.in_fault = True
-            return False
-        self.fsm.fire(Event.DONE)           # the wait is over: RETRY -> RECONNECT
-        self.attempts += 1
-        ctl._rc_error = None
-        self.rc_thread = threading.Thread(target=ctl._reconnect_job, name="afmctl-reconnect", daemon=True)
-        ctl._rc_thread = self.rc_thread
-        self.rc_thread.start()
-        return True
+        """The link is down: the fault/reconnect policy's tick (:mod:`afmctl.control.reconnect`)."""
+        return self.faults.tick()
 
-    def _after_reconnect_attempt(self) -> bool:
-        """A reconnect attempt finished: on success read the output back and resume where
-        the run was (ramping from the read-back voltage to the pending setpoint, or settling
-        on the last one when the trajectory had ended); on failure try again after the
-        interval; a read-back outside the limits ends the run (:meth:`_refuse_readback`,
-        returns False)."""
-        ctl, safety = self.ctl, self.safety
-        err = ctl._rc_error
-        if err is None:
-            self.fsm.fire(Event.RECONNECT_OK)
-            try:
-                warnings = safety.stop_leftover_playback() + safety.sync_from_device()
-            except ReadbackError as e:
-                return self._refuse_readback(e)
-            except Exception as e:   # noqa: BLE001 - any other failure: the link is still down
-                err = e
-                self.fsm.fire(Event.FAULT)
-        else:
-            self.fsm.fire(Event.RECONNECT_FAILED)
-        if err is not None:
-            ctl._errors += 1
-            ctl._last_error = error_line(err)
-            self.next_attempt_s = time.perf_counter() + self.reconnect_interval_s
-            return True
-        for w in warnings:
-            ctl._event("readback", w)
-        ctl._reconnects += 1
-        self.u_prev[:] = safety.xyz(safety.last)
-        self.attempts = 0
-        self.fsm.fire(Event.READBACK_IN)
-        if self.mode is Mode.SETTLE:        # the trajectory had ended: reach its last setpoint
+    def _on_link_error(self, err: BaseException) -> bool:
+        """A driver error in a tick (:meth:`afmctl.control.reconnect.FaultPolicy.on_link_error`)."""
+        return self.faults.on_link_error(err)
+
+    def _resume(self) -> None:
+        """Reconnected and read back: resume where the run was — ramp from the read-back
+        voltage to the pending setpoint, or settle on the last one when the trajectory had
+        ended."""
+        if self.mode is Mode.SETTLE:
             self.fsm.fire(Event.TRAJECTORY_END)
         else:
             self.mode = Mode.RUN
             self.need_ramp = True
-        ctl._set_state(State.RUNNING, "resume", "reconnected; ramping from the read-back voltage")
+        self.ctl._set_state(State.RUNNING, "resume", "reconnected; ramping from the read-back voltage")
         self.watchdog.feed()
         self.next_t_s = time.perf_counter()
-        return True
-
-    def _on_link_error(self, err: BaseException) -> bool:
-        """A driver error in a tick: a refused setpoint ends the run (nothing was sent, the
-        output is held; reconnecting would not help); any other enters the fault state."""
-        ctl = self.ctl
-        if isinstance(err, LimitError):
-            # the driver's own limits disagree with the configuration
-            self.fsm.fire(Event.REFUSED)
-            ctl._errors += 1
-            ctl._last_error = error_line(err)
-            ctl._set_state(State.FAULT, "refused", f"the driver refused a setpoint: {ctl._last_error}")
-            self.in_fault = True
-            return False
-        ctl._enter_fault(err)
-        nxt = self.fsm.fire(Event.FAULT)
-        if nxt is Phase.STOPPED:            # finishing: nothing more can be sent, the device holds
-            ctl._event("stop-in-fault", "link lost: the output could not be ramped")
-            ctl._set_state(State.STOPPED, "stopped")
-        if nxt is not Phase.RETRY:
-            self.in_fault = True
-            return False
-        self.ramping = False
-        self.next_attempt_s = time.perf_counter() + self.reconnect_interval_s
-        self.attempts = 0
-        return True
 
     # ------------------------------------------------------------------ SETTLE / FINISH
     def _tick_settle(self) -> bool:

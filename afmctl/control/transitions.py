@@ -38,7 +38,8 @@ phase, and from FINISH every event leads to FINISH or a terminal phase
 tick, so a stop ends the run within one loop period plus the finish ramp
 (``max(hi − lo) / safety.ramp_V_per_s``; at the slew limit for an estop; no ramp with
 ``on_finish = "hold"`` or without a link) plus one driver call; a stop during a fault ends
-it at the next tick (nothing can be sent; the device holds its output).
+it at the next tick (nothing can be sent; the device holds its output). ``wait()`` returns
+after the dispatcher's last pass, at most ``Controller.dispatch_interval_s`` (20 ms) later.
 
 Three tables, one per ``amplifier.output``: :data:`SETPOINT_TABLE` (reconnects after a link
 error), :data:`STREAM_TABLE` (a link error while streaming ends the run in FAULT: the FIFO
@@ -50,6 +51,15 @@ from __future__ import annotations
 import collections
 import enum
 from collections.abc import Mapping
+
+
+class State(str, enum.Enum):
+    """The controller's published state (status topic, run log events)."""
+    IDLE = "idle"          # not started
+    RUNNING = "running"    # playing the trajectory, settling or finishing
+    HOLDING = "holding"    # the watchdog saw the trajectory stall: output held or ramping to safe
+    FAULT = "fault"        # a driver error: reconnecting (or the run ended without a link)
+    STOPPED = "stopped"    # the run is over
 
 
 class Phase(str, enum.Enum):
