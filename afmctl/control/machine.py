@@ -34,7 +34,7 @@ import enum
 import math
 import threading
 import time
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -366,7 +366,7 @@ class LoopMachine:
         resuming, else send it."""
         if self.cur is None and not self._next_sample():
             return True
-        cur = self.cur
+        cur = cast("tuple[Any, ...]", self.cur)  # _next_sample() set it
         safety = self.safety
         if self.need_ramp:
             self.need_ramp = False

@@ -25,6 +25,7 @@ unit's 50 us clock; every command and :meth:`SimNV200.poll` apply the samples du
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import cast
 
 from .base import SimDevice, Sink
 from .nv200_wave import BUFFER_SIZE, RANGES as WAVE_RANGES, WaveBuffer
@@ -80,7 +81,7 @@ class SimNV200(SimDevice):
                 1: self.params["set"], 2: self.outputs["x"]}.get(src, 0.0)
 
     # -- wire --
-    def _reply(self, name: str, value: object) -> bytes:
+    def _reply(self, name: str, value: str | float) -> bytes:
         if isinstance(value, str):
             text = value
         else:
@@ -141,7 +142,7 @@ class SimNV200(SimDevice):
         self.commands += 1
         injected = self._take_injected()
         if injected is not None:
-            return self._error(4 if injected is True else int(injected))  # type: ignore[arg-type]
+            return self._error(4 if injected is True else int(cast(int, injected)))  # tests inject a code
         try:
             fields = [f.strip() for f in line.decode("ascii").strip().split(",")]
         except UnicodeDecodeError:
