@@ -348,6 +348,15 @@ class FileSpec(_Strict):
     path: Path
 
 
+class LearnedSpec(_Strict):
+    """A table of voltages learned from the scanner's measured motion (``afmctl learn``),
+    played as it is with ``amplifier.output = "wave"``; refused when the trajectory, the
+    amplifier, its limits or the model files differ from those it was learned with."""
+
+    kind: Literal["learned"] = "learned"
+    file: Path = Field(description="learned table (.afmwave) written by afmctl learn")
+
+
 class QueueSpec(_Strict):
     """Segments arriving at run time (zenoh, Controller.submit_segment)."""
 
@@ -356,7 +365,7 @@ class QueueSpec(_Strict):
 
 
 TrajectorySpec = Annotated[
-    RasterSpec | MovesSpec | IndentationSpec | TextSpec | SpiralSpec | FileSpec | QueueSpec,
+    RasterSpec | MovesSpec | IndentationSpec | TextSpec | SpiralSpec | FileSpec | LearnedSpec | QueueSpec,
     Field(discriminator="kind")]
 
 
@@ -429,6 +438,9 @@ class Config(BaseSettings):
                                  f"(intersection [{lo:g}, {hi:g}] V)")
         if not self.simulation.enabled and not self.amplifier.port:
             raise ValueError("amplifier.port is required unless simulation.enabled = true")
+        if self.trajectory.kind == "learned" and self.amplifier.output != "wave":
+            raise ValueError("trajectory.kind = 'learned' plays a learned table on the amplifier's clock: "
+                             "set amplifier.output = 'wave'")
         return self
 
     # convenience -----------------------------------------------------------
@@ -450,7 +462,7 @@ class Config(BaseSettings):
 
 
 _TRAJ_KINDS = {"raster": RasterSpec, "moves": MovesSpec, "indentation": IndentationSpec, "text": TextSpec,
-               "spiral": SpiralSpec, "file": FileSpec, "queue": QueueSpec}
+               "spiral": SpiralSpec, "file": FileSpec, "learned": LearnedSpec, "queue": QueueSpec}
 
 
 def _model_of(annotation: Any) -> Any:

@@ -73,6 +73,7 @@ from . import cpu_pinning
 from .machine import (C_COR, C_D, C_S, C_SEQ, C_T, C_TGT, C_TICK, C_U, END_OF_TRAJECTORY, N_COLS,
                            RING_ROWS, LoopMachine, Mode, State)  # noqa: F401 - Mode re-exported
 from .runlog import DRIFT_DTYPE, SETPOINT_DTYPE, RunLogWriter
+from .learned_table import LearnedSource
 from .safety import SafetyLayer
 from ..inputs import trajectories
 from ..inputs.trajectories import check_positions, resample
@@ -179,6 +180,7 @@ class Controller:
         self._sinks: list[Any] = []
         self._deque: collections.deque = collections.deque()
         self._queue_mode = False
+        self._learned_source: LearnedSource | None = None
         self._queue_end_when_idle = False
         self._thread: threading.Thread | None = None
         self._feeder: threading.Thread | None = None
@@ -328,6 +330,16 @@ class Controller:
             self._deque.append(_flat(rows[k:k + bs]))
         return len(rows)
 
+    def _learned_or(self, source: Any) -> Any:
+        """A ``kind = "learned"`` spec as its :class:`LearnedSource` (the wave machine plays its
+        table instead of planning one); any other source as it is."""
+        if getattr(source, "kind", None) == "learned":
+            source = LearnedSource.from_file(source.file)
+        self._learned_source = source if isinstance(source, LearnedSource) else None
+        if self._learned_source is not None and self.config.amplifier.output != "wave":
+            raise AfmctlError("start: a learned table plays on the amplifier's clock: set amplifier.output = 'wave'")
+        return source
+
     def start(self, source: Any = None, *, runlog_path: str | Path | None = None) -> None:
         """Start the loop thread.
 
@@ -342,6 +354,7 @@ class Controller:
             if self._rc_thread.is_alive():
                 raise AfmctlError("start: the previous run's reconnect attempt is still in the driver")
         it: Iterator | None
+        source = self._learned_or(source)
         self._queue_mode = False
         self._queue_end_when_idle = False
         if source is None:

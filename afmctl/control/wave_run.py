@@ -165,8 +165,12 @@ class WaveMachine(LoopMachine):
         if self.T_file is not None:
             t, temps = self.T_file
             T = np.interp(np.arange(len(targets)) * self.period_s, t, temps)
+        learned = getattr(ctl, "_learned_source", None)
         try:
-            table = plan_table(ctl.config, self.pipe, targets, T, self.player.limits_V(), self.player.max_step_V)
+            if learned is not None:
+                table = learned.table_for(ctl.config)
+            else:
+                table = plan_table(ctl.config, self.pipe, targets, T, self.player.limits_V(), self.player.max_step_V)
         except AfmctlError as err:
             raise WaveRefused(str(err)) from None
         s.clamped += table.clamped

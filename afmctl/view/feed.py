@@ -20,7 +20,7 @@ log = logging.getLogger(__name__)
 
 #: the keys watched (leaf after ``<prefix>/<scanner>/``) and the feed method each goes to
 LEAVES = {"setpoint": "on_setpoints", "drift": "on_drift", "status": "on_status",
-          "sim/tip": "on_tip", "sim/image": "on_image"}
+          "sim/tip": "on_tip", "sim/image": "on_image", "learn": "on_learn"}
 #: most scanners one viewer tracks (a wildcard subscription cannot grow without bound)
 MAX_SCANNERS = 16
 

@@ -237,6 +237,25 @@ class DriftMsg(_Message):
     inputs: dict[str, Any] = Field(default_factory=dict)
 
 
+class LearnMsg(_Message):
+    """One iteration of ``afmctl learn`` (``<prefix>/<scanner>/learn``): the tracking error of
+    the table just played, measured by the device's recorder, in % of the scan range —
+    over the whole table and over the central part of each line an AFM images — and what
+    the learning did next."""
+
+    t_s: float = Field(..., allow_inf_nan=False, description="wall-clock time (Unix s)")
+    iteration: int = Field(..., ge=0, le=1_000_000, description="0: the model's table, before any learning")
+    max_pct: float = Field(..., ge=0, allow_inf_nan=False, description="max |error| over the table [% of range]")
+    rms_pct: float = Field(..., ge=0, allow_inf_nan=False, description="RMS error over the table [% of range]")
+    central_max_pct: float | None = Field(None, ge=0, allow_inf_nan=False,
+                                          description="max |error| over the central part of each line [% of range]")
+    central_rms_pct: float | None = Field(None, ge=0, allow_inf_nan=False,
+                                          description="RMS error over the central part of each line [% of range]")
+    step: float | None = Field(None, ge=0, allow_inf_nan=False, description="learning gain used for the next table")
+    state: Literal["learning", "converged", "stopped", "diverged", "fault"] = "learning"
+    detail: str = Field("", max_length=500, description="why learning ended, or what changed")
+
+
 class SimTipMsg(_Message):
     """True tip position from the simulator (``<prefix>/<scanner>/sim/tip``)."""
 
