@@ -36,8 +36,13 @@ $(TEST_STAMP): $(RUNTIME_STAMP)
 demo: $(RUNTIME_STAMP)
 	$(BIN)/afmctl demo --out demo-out
 
+# mypy first (tools/typecheck.py: the whole package as it installs, zero errors), then pytest
 test: $(TEST_STAMP)
+	$(BIN)/python tools/typecheck.py
 	$(BIN)/python -m pytest -q
+
+typecheck: $(TEST_STAMP)
+	$(BIN)/python tools/typecheck.py
 
 # The inner loop: everything but the tests marked `slow` (tests/conftest.py), on two worker
 # processes (pytest-xdist): under a minute on 2 cores (docs/ARCHITECTURE.md, "Working on afmctl").

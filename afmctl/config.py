@@ -30,8 +30,8 @@ from afmctl.drivers.registry import driver_names
 from .errors import AfmctlError
 from .zenoh_api.settings import ZenohSettings
 
-AXES = ("x", "y", "z")
 Axis = Literal["x", "y", "z"]
+AXES: tuple[Axis, ...] = ("x", "y", "z")
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid")
@@ -428,7 +428,11 @@ class Config(BaseSettings):
         return (_EnvCaseSource(settings_cls, env_settings), init_settings)
 
     @model_validator(mode="after")
+    def _cross_validator(self) -> "Config":
+        return self._cross()
+
     def _cross(self) -> "Config":
+        """The checks that span sections (also rerun after command-line overrides)."""
         if self.amplifier.driver == "mdt694b" and self.scanner.axes != ["x"]:
             raise ValueError("scanner.axes must be ['x'] for the single-channel mdt694b")
         for axis in self.scanner.axes:

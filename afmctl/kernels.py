@@ -68,12 +68,14 @@ def _drift() -> None:
     DriftParams.named("physical_tube").predictor(0.01).block(np.full(20, 22.0))
 
 
-def warm_up_steps() -> list[tuple[str, Callable[[], None]]]:
+def warm_up_steps() -> list[tuple[str, Callable[[], object]]]:
     """``(name, callable)`` for every group of kernels."""
     from afmctl.compensators.models import KINDS
     kinds = [k for k in KINDS if k not in COMPOSITE_KINDS]
-    return [("simulated scanner", _sweep)] + [(f"model {kind}", _model_kind(kind)) for kind in kinds] + [
-        ("drift predictor", _drift)]
+    steps: list[tuple[str, Callable[[], object]]] = [("simulated scanner", _sweep)]
+    steps += [(f"model {kind}", _model_kind(kind)) for kind in kinds]
+    steps.append(("drift predictor", _drift))
+    return steps
 
 
 def warm_up(progress: bool = True) -> None:

@@ -144,14 +144,12 @@ class LinearCreepModel(HysteresisModel):
 
     def forward(self, dt_s: float | None = None) -> LinearCreep:
         """Operator u [V] → y [nm] at sample period ``dt_s`` [s]."""
-        _need_dt(dt_s)
-        return LinearCreep(self.time_constants_s, self.creep_weights, float(dt_s), self.initial_V,
+        return LinearCreep(self.time_constants_s, self.creep_weights, _need_dt(dt_s), self.initial_V,
                            gain=self.gain_nm_per_V, out_offset=self.offset_nm)
 
     def inverse(self, dt_s: float | None = None) -> LinearCreepInverse:
         """Compensator y [nm] → u [V] at sample period ``dt_s`` [s]."""
-        _need_dt(dt_s)
-        return LinearCreepInverse(self.time_constants_s, self.creep_weights, float(dt_s), self.initial_V,
+        return LinearCreepInverse(self.time_constants_s, self.creep_weights, _need_dt(dt_s), self.initial_V,
                                   gain=self.gain_nm_per_V, out_offset=self.offset_nm)
 
     def summary(self) -> str:
@@ -221,6 +219,8 @@ class LinearCreepModel(HysteresisModel):
                    creep_weights=c.tolist())
 
 
-def _need_dt(dt_s: Any) -> None:
+def _need_dt(dt_s: Any) -> float:
+    """The sample period [s], or :class:`ModelError` when there is none."""
     if dt_s is None or not math.isfinite(float(dt_s)) or float(dt_s) <= 0:
         raise ModelError(f"dt_s: {dt_s!r}; the creep model needs a sample period > 0 s")
+    return float(dt_s)

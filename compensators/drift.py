@@ -53,6 +53,7 @@ import json
 import logging
 import math
 from pathlib import Path
+from collections.abc import Callable
 from typing import Annotated, Any, Literal, Union
 
 import numba
@@ -220,7 +221,8 @@ class DriftParams(BaseModel):
     @classmethod
     def named(cls, name: str) -> "DriftParams":
         """A shipped parameter set: ``"physical_tube"`` or ``"table_a1"``."""
-        builders = {"physical_tube": physical_tube_params, "table_a1": table_a1_params}
+        builders: dict[str, Callable[[], DriftParams]] = {"physical_tube": physical_tube_params,
+                                                          "table_a1": table_a1_params}
         try:
             return builders[name]()
         except KeyError:
@@ -437,7 +439,7 @@ def _integrator(tz: float | None) -> tuple:
     return np.array([[0.0]]), np.array([1.0]), np.array([1.0]), 0.0 if tz is None else float(tz)
 
 
-def _continuous_ss(path: TransferPath, dt_s: float) -> tuple:
+def _continuous_ss(path: TransferPath, dt_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Continuous state space (A, B, C, D) of a :class:`TransferPath` without its delay."""
     zeros = list(path.zeros_s)
     lags = list(path.poles_s)

@@ -22,6 +22,7 @@ conjugate). :class:`LinearDynamicsModel` gives
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -79,7 +80,7 @@ class LinearDynamicsModel(HysteresisModel):
 
     # ------------------------------------------------------------------ construction
     @classmethod
-    def from_modes(cls, modes: list[tuple[float, float]] = (), real_poles_Hz: list[float] = (),
+    def from_modes(cls, modes: Sequence[tuple[float, float]] = (), real_poles_Hz: Sequence[float] = (),
                    delay_s: float = 0.0, **fields: Any) -> "LinearDynamicsModel":
         """Second-order modes ``(f_Hz, ζ)`` and first-order lags ``f_Hz`` in series."""
         poles: list[Pair] = []

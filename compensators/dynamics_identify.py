@@ -218,6 +218,7 @@ def fit_frf(frf: FRF, n_modes: int, n_lags: int, dt_s: float) -> tuple[np.ndarra
         sol = least_squares(resid, x0, bounds=(lb, ub), x_scale="jac", max_nfev=MAX_NFEV)
         if best is None or sol.cost < best.cost:
             best = sol
+    assert best is not None  # the loop above runs at least once
     rms = float(np.sqrt(2 * best.cost / frf.f_Hz.size))
     if best.status == 0:
         log.warning("dynamics fit: least squares did not converge in %d evaluations", best.nfev)

@@ -8,10 +8,11 @@ from typing import Any
 
 import numpy as np
 from pydantic import ValidationError
+from pydantic_core import ErrorDetails
 
 
 def first_validation_error(err: ValidationError, prefix: str = "",
-                           skip: tuple[str, ...] = ()) -> tuple[dict[str, Any], str]:
+                           skip: tuple[str, ...] = ()) -> tuple[ErrorDetails, str]:
     """The first error of a pydantic ``err`` and the dotted name of its field: ``prefix`` +
     the location without the parts in ``skip`` (e.g. union tags), ``"(root)"`` when empty.
     The one place that turns a pydantic error into a field name (config files, model files,

@@ -7,7 +7,7 @@ read through them (:mod:`afmctl.compensators.image_dynamics`)."""
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -33,7 +33,7 @@ def static_function(model: Any | None, gain_nm_per_V: float | None = None) -> St
 IMAGE_STRUCTURES = ("dynamics", "preisach+dynamics", "preisach+creep", "preisach+creep+dynamics")
 
 
-def identify_from_rate_scans(parts: list[Mapping[str, Any]], structure: str = "preisach+dynamics",
+def identify_from_rate_scans(parts: Sequence[Mapping[str, Any]], structure: str = "preisach+dynamics",
                              n_operators: int | None = None, static_max_Hz: float = STATIC_MAX_LINE_RATE_HZ,
                              gain_nm_per_V: float | None = None, n_modes: int | None = None, n_lags: int = 1,
                              f_max_Hz: float = 3000.0, static_error_nm: float = 1.0, **options: Any) -> Any:

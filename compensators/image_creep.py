@@ -66,13 +66,13 @@ def virtual_record(scans: Mapping[str, Any], static: Any) -> tuple[np.ndarray, n
     u = np.concatenate([np.tile(sc.u_line_V, sc.trace_nm.shape[0]) for sc in seq])
     t = (np.arange(u.size) + 0.5) * T
     s = static.forward(T).block(np.ascontiguousarray(u))
-    tk, sign, t0 = [], [], 0.0
+    tk_parts, sign_parts, t0 = [], [], 0.0
     for sc in seq:
         te, sg = scan_edges(sc)
-        tk.append(te + t0)
-        sign.append(sg)
+        tk_parts.append(te + t0)
+        sign_parts.append(sg)
         t0 += sc.trace_nm.shape[0] * sc.u_line_V.size * T
-    tk, sign = np.concatenate(tk), np.concatenate(sign)
+    tk, sign = np.concatenate(tk_parts), np.concatenate(sign_parts)
     if tk.size < 16:
         raise ModelError(f"trace_nm/retrace_nm: {tk.size} grating edges in the slow scans; need ≥ 16")
     sk = np.interp(tk, t, s)

@@ -120,7 +120,7 @@ def fit_polynomial(u_V: np.ndarray, y_nm: np.ndarray, order: int = 5) -> np.ndar
     return theta_s / s ** np.arange(order + 1)
 
 
-def poly_eval(theta: np.ndarray, u_V: np.ndarray) -> np.ndarray:
+def poly_eval(theta: np.ndarray, u_V: float | np.ndarray) -> np.ndarray:
     """Evaluate a polynomial θ (lowest power first) at u [V]."""
     return np.polynomial.polynomial.polyval(np.asarray(u_V, dtype=np.float64), theta)
 
@@ -225,13 +225,14 @@ def range_branches(trace_nm: np.ndarray, retrace_nm: np.ndarray, u_trace_V: np.n
     y_top = float(poly_eval(th_a, u_hi))
     # retrace feature j (time order, from u_max) is physical feature K0 − j: choose K0 so the
     # descending branch meets the ascending one at u_max (the mismatch is otherwise ≥ a period).
-    best = None
+    best: tuple[float, np.ndarray] | None = None
     for K0 in range(fa.size - 3, fa.size + 3):
         yd = (K0 - np.arange(fd.size)) * period_nm
         th_d = fit_polynomial(fd, yd, order)
         miss = abs(float(poly_eval(th_d, u_hi)) - y_top)
         if best is None or miss < best[0]:
             best = (miss, yd)
+    assert best is not None  # the loop above runs six times
     yd = best[1]
     # both branches together: the loop is closed at u_max (reversal point) and at u_min
     # (back in negative saturation), two equality constraints on the pair of polynomials

@@ -7,7 +7,7 @@ input, never a numba typing error or a silently wrong shape.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 
@@ -34,6 +34,21 @@ def finite_sample(name: str, x: Any) -> float:
     if v - v != 0.0:  # NaN or ±inf
         raise ModelError(f"{name}: non-finite value {v}; all values must be finite")
     return v
+
+
+@overload
+def number_option(name: str, value: Any, *, lo: float | None = None, hi: float | None = None,
+                  integer: Literal[True], allowed: str = "") -> int: ...
+
+
+@overload
+def number_option(name: str, value: Any, *, lo: float | None = None, hi: float | None = None,
+                  integer: Literal[False] = False, allowed: str = "") -> float: ...
+
+
+@overload
+def number_option(name: str, value: Any, *, lo: float | None = None, hi: float | None = None,
+                  integer: bool = False, allowed: str = "") -> float | int: ...
 
 
 def number_option(name: str, value: Any, *, lo: float | None = None, hi: float | None = None,

@@ -79,6 +79,7 @@ def fit_preisach_creep(hcls: Any, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.nda
     h = np.asarray(y_nm, dtype=float)     # first round: the output itself stands in for ĥ
     n_rounds = max(1, int(rounds))
     residuals = []
+    hyst: Any = None                      # the Preisach model of the previous round
     for r in range(n_rounds):
         if r:
             h = hyst.forward(dt).block(u_V)

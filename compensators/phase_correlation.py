@@ -113,6 +113,9 @@ def image_drift_nm(reference: np.ndarray, moved: np.ndarray, pixel_nm: float | t
                    upsample: int = 100) -> np.ndarray:
     """Drift of the *tip* [nm] ``(x, y)`` between two images of a fixed sample whose
     column index is x and row index is y: features move by −drift, hence the sign."""
-    py, px = (pixel_nm, pixel_nm) if np.isscalar(pixel_nm) else pixel_nm  # type: ignore[misc]
+    if isinstance(pixel_nm, (tuple, list, np.ndarray)):
+        py, px = pixel_nm
+    else:
+        py = px = pixel_nm
     dy, dx, _ = phase_correlation(reference, moved, upsample=upsample)
     return np.array([-dx * float(px), -dy * float(py)])

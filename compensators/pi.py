@@ -38,7 +38,7 @@ V/nm — what ``afmctl model invert`` writes). Either file describes the same sc
 from __future__ import annotations
 
 import logging
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar, Literal, overload
 
 import numpy as np
 from pydantic import Field, FiniteFloat, ValidationInfo, field_validator
@@ -394,6 +394,18 @@ def play_matrix(u: np.ndarray, r: np.ndarray, x0: np.ndarray, stride: int = 1) -
         K.play_outputs(seg, r, state, out)
         rows.append(out[::stride])
     return np.concatenate(rows, axis=0)
+
+
+@overload
+def fit_pi_weights(u: np.ndarray, y: np.ndarray, r: np.ndarray, x0: np.ndarray, *,
+                   min_slope_fraction: float = 1e-3, max_rows: int = 200_000,
+                   extra: None = None, fit_from_index: int = 0) -> tuple[np.ndarray, float]: ...
+
+
+@overload
+def fit_pi_weights(u: np.ndarray, y: np.ndarray, r: np.ndarray, x0: np.ndarray, *,
+                   min_slope_fraction: float = 1e-3, max_rows: int = 200_000,
+                   extra: np.ndarray, fit_from_index: int = 0) -> tuple[np.ndarray, float, float]: ...
 
 
 def fit_pi_weights(u: np.ndarray, y: np.ndarray, r: np.ndarray, x0: np.ndarray, *,

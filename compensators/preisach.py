@@ -110,7 +110,7 @@ class PreisachModel(HysteresisModel):
         w = cell_masses_from_nodes(G)
         tol = _NEG_TOL * max(1.0, float(np.max(np.abs(G))))
         if w.size and float(np.nanmin(w)) < -tol:
-            i, j = np.unravel_index(int(np.argmin(np.where(np.isnan(w), np.inf, w))), w.shape)
+            i, j = map(int, np.unravel_index(int(np.argmin(np.where(np.isnan(w), np.inf, w))), w.shape))
             raise ValueError(f"everett_nm: cell (alpha {i}, beta {j}) has negative Preisach mass {w[i, j]:.3g} nm; "
                              "allowed: >= 0 (the inverse needs a monotone model)")
         return self

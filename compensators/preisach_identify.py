@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -74,7 +74,7 @@ def _check_data(t_s: Any, u_V: Any, y_nm: Any) -> tuple[np.ndarray, np.ndarray]:
     return u, y
 
 
-def identify_preisach(cls: type, t_s: Any, u_V: Any, y_nm: Any, n_operators: int | None = None,
+def identify_preisach(cls: Any, t_s: Any, u_V: Any, y_nm: Any, n_operators: int | None = None,
                       **options: Any) -> Any:
     """Fit ``cls`` (a :class:`~afmctl.compensators.preisach.PreisachModel`) to the data; see the
     module docstring. ``n_operators`` (or ``levels``) is the number of grid levels.
@@ -82,7 +82,7 @@ def identify_preisach(cls: type, t_s: Any, u_V: Any, y_nm: Any, n_operators: int
     return _identify(cls, t_s, u_V, y_nm, n_operators, **options)[0]
 
 
-def identify_preisach_with_regressors(cls: type, t_s: Any, u_V: Any, y_nm: Any, regressors: np.ndarray,
+def identify_preisach_with_regressors(cls: Any, t_s: Any, u_V: Any, y_nm: Any, regressors: np.ndarray,
                                       n_operators: int | None = None, **options: Any) -> tuple[Any, np.ndarray]:
     """Fit ``y ≈ y0 + Φ(u)·w + regressors·c`` with cell masses ``w ≥ 0`` and ``c ≥ 0``
     jointly (method nnls): the model and ``c``. ``regressors`` has one row per sample, one
@@ -93,7 +93,7 @@ def identify_preisach_with_regressors(cls: type, t_s: Any, u_V: Any, y_nm: Any, 
     return _identify(cls, t_s, u_V, y_nm, n_operators, method="nnls", regressors=Z, **options)
 
 
-def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n_operators: int | None = None, *,
+def _identify(cls: Any, t_s: Any, u_V: Any, y_nm: Any, n_operators: int | None = None, *,
               u_min_V: float | None = None, u_max_V: float | None = None, method: str = "auto",
               smoothing: float = 1e-4, max_rows: int = 200000, memory_depth: int | None = None,
               levels: int | None = None, fit_from_index: int = 0,
@@ -131,7 +131,7 @@ def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n_operators: int | None 
     fields = {"memory_depth": memory_depth} if memory_depth is not None else {}
 
     chosen = method
-    G = None
+    G: Any = None
     y0 = None
     if method in ("auto", "for"):
         try:
@@ -155,7 +155,7 @@ def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n_operators: int | None 
         model = cls.from_cell_masses(w, lo, hi, y0, fit_method=how, **fields)
     r = (model.forward().block(u) - y)[fit_from_index:]
     if coef.size:
-        r = r + (regressors @ coef)[fit_from_index:]
+        r = r + (cast(np.ndarray, regressors) @ coef)[fit_from_index:]
     model.fit_residual_nm = float(np.sqrt(np.mean(r * r)))
     model.fit_max_residual_nm = float(np.max(np.abs(r)))
     log.info("identify preisach: %s, %d levels, residual %.4g nm RMS", model.fit_method, L, model.fit_residual_nm)
@@ -366,7 +366,7 @@ def _nnls_fit(u: np.ndarray, y: np.ndarray, lo: float, hi: float, L: int, cap: i
         r = rows[s0:s0 + chunk]
         F = _features(u, r, lo, hi, L, cap)
         if ne:
-            F = np.hstack([F, extra[r]])
+            F = np.hstack([F, cast(np.ndarray, extra)[r]])
         AtA += F.T @ F
         Atb += F.T @ (ysel[s0:s0 + chunk] - ymean)
         Asum += F.sum(axis=0)

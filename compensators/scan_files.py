@@ -207,19 +207,20 @@ def scans_from_images(paths: list[str | Path], *, gain_nm_per_V: Any, period_nm:
     px = {im.trace_nm.shape for im in images}
     if len(px) != 1:
         raise ModelError(f"{paths[0]}: all images must have the same lines × pixels; got {sorted(px)}")
-    ramps = []
+    ramps, retraces = [], []
     for im in images:
         if im.only_retrace:
             raise ModelError(f"{im.path}: only a retrace channel in the file; image identification needs the "
                              "trace and the retrace of each line")
         if im.retrace_nm is None or im.retrace_nm.shape != im.trace_nm.shape:
             raise ModelError(f"{im.path}: no retrace channel of the trace's shape; both are needed")
+        retraces.append(im.retrace_nm[:, ::-1])
         ramps.append(np.linspace(lo, lo + im.scan_size_nm / gain, im.trace_nm.shape[1]))
     ut = np.array(ramps)
     rates = [im.line_rate_Hz for im in images if im.line_rate_Hz is not None]
     return {"period_nm": np.float64(period), "u_trace_V": ut, "u_retrace_V": ut[:, ::-1].copy(),
             "trace_nm": np.array([im.trace_nm for im in images]),
-            "retrace_nm": np.array([im.retrace_nm[:, ::-1] for im in images]),
+            "retrace_nm": np.array(retraces),
             "skip_lines": np.int64(number_option("skip_lines", skip_lines, lo=0, integer=True)),
             "line_rate_Hz": np.float64(rates[0] if rates else np.nan)}
 
@@ -333,7 +334,7 @@ def _read_nanoscope(p: Path) -> ScanImage:
     if height is None:
         raise ModelError(f"no height channel ({' or '.join(_NANOSCOPE_HEIGHTS)} with Line Direction Trace/Retrace)")
     trace, retrace = found.get((height, "trace")), found.get((height, "retrace"))
-    first = trace if trace is not None else retrace
+    first: Any = trace if trace is not None else retrace   # one of them is there
     _check_nanoscope_shape(first.meta, np.shape(first.data))
     z, xy = _si_to_nm(first.si_unit_z), _si_to_nm(first.si_unit_xy)
     rate = _meta_value(first.meta, "Scan Rate")

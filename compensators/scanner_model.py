@@ -88,7 +88,8 @@ class ScannerModel(HysteresisModel):
     def forward(self, dt_s: float | None = None) -> StreamingOperator:
         raise ModelError("kind scanner: a scanner model holds one model per axis; choose one (e.g. --axis x)")
 
-    inverse = forward
+    def inverse(self, dt_s: float | None = None) -> StreamingOperator:
+        return self.forward(dt_s)
 
     def describe_axis(self, name: str) -> str:
         """``preisach+creep`` / ``pi`` / ``none`` for axis ``name``."""

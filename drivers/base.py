@@ -89,14 +89,14 @@ def normalize_host_limits(host_limits: HostLimits, axes: tuple[str, ...]) -> dic
                                                    and not isinstance(host_limits[0], tuple)):
         items = {a: host_limits for a in axes}
     else:
-        items = dict(host_limits)  # type: ignore[arg-type]
+        items = dict(host_limits)
         if "*" in items:
             common = items.pop("*")
             items = {**{a: common for a in axes}, **items}
     out = {}
     for axis, lim in items.items():
         if not isinstance(lim, VoltageLimits):
-            lo, hi = lim  # type: ignore[misc]
+            lo, hi = lim
             lim = VoltageLimits(float(lo), float(hi))
         if not (math.isfinite(lim.min_V) and math.isfinite(lim.max_V) and lim.min_V <= lim.max_V):
             raise LimitError(f"host limits for axis {axis}: [{lim.min_V}, {lim.max_V}] V is not a valid range")
@@ -111,7 +111,7 @@ def intersect_limits(device: Mapping[str, VoltageLimits], host: Mapping[str, Vol
     for axis, d in device.items():
         h = host.get(axis)
         lo, hi = (d.min_V, d.max_V) if h is None else (max(d.min_V, h.min_V), min(d.max_V, h.max_V))
-        if lo > hi:
+        if h is not None and lo > hi:
             raise LimitError(f"axis {axis}: host limits [{h.min_V:g}, {h.max_V:g}] V do not overlap the "
                              f"device range [{d.min_V:g}, {d.max_V:g}] V")
         out[axis] = VoltageLimits(lo, hi)

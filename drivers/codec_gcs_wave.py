@@ -16,6 +16,10 @@ servo clock), as PIPython issues the commands and PI's GCS manuals describe them
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import numpy as np
 
 from .codec_common import format_inside
 from .codec_gcs import DECIMALS, encode, parse_items, reply_lines
@@ -28,7 +32,7 @@ SERVO_UPDATE_TIME_PARAM = "0x0E000200"
 MAX_LINE = 1000
 
 
-def encode_wav_pnt(table: int, values_V: Sequence[float], lo_V: float, hi_V: float,
+def encode_wav_pnt(table: int, values_V: Sequence[float] | np.ndarray, lo_V: float, hi_V: float,
                    max_line: int = MAX_LINE) -> list[bytes]:
     """The ``WAV ... PNT`` lines that write ``values_V`` as table ``table``: the first line
     starts the table (``X``), the rest append (``&``) at their index. Every number as sent

@@ -9,6 +9,10 @@ run and stop it and ``grun`` reads 1 while it runs. Writes get no reply unless t
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import numpy as np
 
 from .codec_common import format_inside
 from .codec_nv200 import encode
@@ -24,7 +28,7 @@ def to_percent(value_V: float, dev_lo_V: float, dev_hi_V: float) -> float:
     return 100.0 * (value_V - dev_lo_V) / (dev_hi_V - dev_lo_V)
 
 
-def encode_buffer(values_V: Sequence[float], dev_lo_V: float, dev_hi_V: float,
+def encode_buffer(values_V: Sequence[float] | np.ndarray, dev_lo_V: float, dev_hi_V: float,
                   lo_V: float, hi_V: float) -> list[bytes]:
     """``gbarb,i,p`` for every sample; each percentage as sent decodes to a voltage inside
     ``[lo_V, hi_V]`` (the limits in force, within the unit's range)."""

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from typing import Any
 
 from .errors import AmplifierConnectionError, AmplifierTimeout, ProtocolError
 
@@ -52,7 +53,7 @@ class SerialTransport:
             # two programs writing to one amplifier is never intended: lock the device
             serial_options.setdefault("exclusive", True)
         self._options = serial_options
-        self._port = None
+        self._port: Any = None  # a pyserial port (pyserial ships no type information)
         self._buf = bytearray()
 
     # -- life --
@@ -176,7 +177,7 @@ class SerialTransport:
         """Without blocking: read what has arrived and return every complete frame.
         ``split(buffer)`` returns the length of the first complete frame or -1."""
         self._buf += self._read_some(block=False)
-        frames = []
+        frames: list[bytes] = []
         while True:
             n = split(self._buf)
             if n < 0:

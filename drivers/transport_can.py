@@ -5,6 +5,10 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import can
 
 from .errors import AmplifierConnectionError, AmplifierTimeout
 from .transport import parse_can_url
@@ -16,12 +20,12 @@ class CanTransport:
     """``CanTransport("virtual:afm0", **bus_options)``: the port is ``INTERFACE:CHANNEL``
     (any python-can interface). :meth:`open` creates the bus and the notifier."""
 
-    def __init__(self, port: str, **bus_options: object) -> None:
+    def __init__(self, port: str, **bus_options: Any) -> None:
         self.url = port
         self.interface, self.channel = parse_can_url(port)
         self._options = bus_options
-        self._bus = None
-        self._notifier = None
+        self._bus: can.BusABC | None = None
+        self._notifier: can.Notifier | None = None
 
     @property
     def is_open(self) -> bool:

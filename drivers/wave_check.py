@@ -26,7 +26,7 @@ class WaveStatus:
     points: dict[str, int]
 
 
-def check_table(axis: str, table_V: Sequence[float], limits: VoltageLimits, *, max_step_V: float | None,
+def check_table(axis: str, table_V: Sequence[float] | np.ndarray, limits: VoltageLimits, *, max_step_V: float | None,
                 start_V: float | None = None, wraps: bool = False) -> np.ndarray:
     """The table as a float array [V], or :class:`LimitError` naming the first bad sample
     (0-based index) and what it breaks."""

@@ -136,7 +136,7 @@ def scan_lines(scanner: Any, sample: Any, line_V: np.ndarray, lines: int, axis_i
     return u, pos, h.reshape(lines, 2, pixels, spp).mean(axis=3)
 
 
-def identify_axes_from_images(scanner: Any, axes: tuple[str, ...] = ("x", "y"), *, n_operators: int = DEFAULT_LEVELS,
+def identify_axes_from_images(scanner: Any, axes: tuple[Literal["x", "y"], ...] = ("x", "y"), *, n_operators: int = DEFAULT_LEVELS,
                               ranges_V: tuple[float, ...] = DEFAULT_RANGES_V, pixels: int = 1024,
                               lines_per_range: int = 3, line_rate_Hz: dict[str, float] | None = None,
                               reset: bool = True, **options: Any) -> dict[str, Any]:
@@ -151,7 +151,7 @@ def identify_axes_from_images(scanner: Any, axes: tuple[str, ...] = ("x", "y"), 
 
     rates = {"x": 1.0, "y": 1.0 / 512.0}
     rates.update(line_rate_Hz or {})
-    models = {}
+    models: dict[str, Any] = {}
     for ax in axes:
         if reset:
             scanner.reset()

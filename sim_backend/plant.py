@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import math
+from typing import Any
 
 import numpy as np
 from scipy.linalg import expm
@@ -133,16 +134,20 @@ class AxisPlant:
         self.lsb_V = (amp.u_max_V - amp.u_min_V) / (2**amp.bits - 1) if amp.bits > 0 else 0.0
         hyst = cfg.hysteresis
         self._external = isinstance(hyst, ExternalModelConfig)
-        if self._external:
+        #: the external model (a compensators model) or None
+        self.model: Any = None
+        #: the hysteresis operator: the Gaussian Preisach one, or the external model's forward
+        #: (built for the first sample period used); Any: the two kinds differ (saturation_nm)
+        self.hysteresis: Any = None
+        if isinstance(hyst, ExternalModelConfig):
             from afmctl.compensators.models import model_from_dict
 
             self.model = model_from_dict(hyst.model, where="hysteresis.model")
             self._hyst_ops: dict[float, StreamingOperator] = {}
-            self.hysteresis: StreamingOperator | None = None
         else:
-            self.model = None
             self.hysteresis = GaussianPreisachOperator(hyst, fast=fast)
-        self._cache: dict[float, tuple] = {}
+        #: per sample period (and ("extra", period)): the discretised coefficients
+        self._cache: dict[Any, Any] = {}
         self.reset()
 
     # ------------------------------------------------------------------ helpers
@@ -228,14 +233,16 @@ class AxisPlant:
         Preisach part sees ``v`` through an exact first-order lag (state carried) and the
         reversible part ``linear_nm_per_V`` follows ``v`` directly (rate-dependent
         hysteresis: the loop widens as the input gets faster)."""
-        tau = 0.0 if self._external else float(self.cfg.hysteresis.rate_lag_s)
+        gauss = self.cfg.hysteresis if isinstance(self.cfg.hysteresis, GaussianPreisachConfig) else None
+        tau = 0.0 if gauss is None else float(gauss.rate_lag_s)
         if tau <= 0.0 or v.size == 0:
             return self._hyst(dt_s).block(v)
         from scipy.signal import lfilter
         a = math.exp(-dt_s / tau)
         lagged, zf = lfilter([1.0 - a], [1.0, -a], v, zi=[a * self.rate_state])
         self.rate_state = float(zf[0]) / a
-        return self._hyst(dt_s).block(lagged) + self.cfg.hysteresis.linear_nm_per_V * (v - lagged)
+        assert gauss is not None  # tau > 0 only for the Gaussian Preisach hysteresis
+        return self._hyst(dt_s).block(lagged) + gauss.linear_nm_per_V * (v - lagged)
 
     def static_gain_nm_per_V(self) -> float:
         """Mean sensitivity over the full range on the major ascending branch [nm/V]

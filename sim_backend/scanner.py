@@ -83,7 +83,7 @@ class _Drift:
     def __init__(self, cfg: DriftConfig, T0_C: float) -> None:
         self.cfg = cfg
         self.T0_C = T0_C
-        self._params = None
+        self._params: Any = None   # DriftParams (imported only for kind params)
         self._warned_dt = False
         if cfg.kind == "params":
             from afmctl.compensators.drift import DriftParams
@@ -96,8 +96,8 @@ class _Drift:
     def reset(self, T0_C: float) -> None:
         self.T0_C = T0_C
         self.T_state = np.array([T0_C])
-        self._predictor = None
-        self._predictor_dt = None
+        self._predictor: Any = None   # a DriftPredictor, built for one sample period
+        self._predictor_dt: float | None = None
         self._predictor_used = False
         self.last_nm = np.zeros(3)
 

@@ -5,6 +5,7 @@ import argparse
 import logging
 import math
 import time
+from typing import Any
 
 from . import amp_wave
 
@@ -54,6 +55,7 @@ Examples:
 
 
 def _limit(text: str) -> tuple[str | None, float, float]:
+    axis: str | None
     axis, sep, rng = text.partition("=")
     if not sep:
         axis, rng = None, text
@@ -111,7 +113,8 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def _host_limits(limits):
+def _host_limits(limits: list[tuple[str | None, float, float]] | None) -> dict[str, tuple[float, float]] | None:
+    """``--limit`` options as the driver's host limits (axis -> (lo, hi) V; "*" every axis)."""
     if not limits:
         return None
     out: dict[str, tuple[float, float]] = {}
@@ -138,7 +141,7 @@ def run(args) -> int:
         args.rate = args.rate_Hz
     if args.action in ("stream", "wave"):
         rows = _load_stream(args)  # file problems are reported before connecting
-    options = {}
+    options: dict[str, Any] = {}
     host = _host_limits(args.limit)
     if host is not None:
         options["host_limits"] = host

@@ -3,7 +3,9 @@ through the inverse of any model kind."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
+from collections.abc import Callable, Iterator
 
 log = logging.getLogger(__name__)
 
@@ -68,14 +70,50 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from ..data.datafiles import read_csv, uniform_period, write_csv
+    from ..api.compensation import compensate
+    from ..api.models import LimitsExceeded
+    from ..data.datafiles import read_csv, write_csv
     from ..errors import AfmctlError
-    from afmctl.compensators.base import ModelError
     from afmctl.compensators.models import load_model
 
     if args.limits and not (np.isfinite(args.limits).all() and args.limits[0] < args.limits[1]):
         raise AfmctlError(f"--limits: {args.limits[0]} {args.limits[1]}; need finite LO < HI (V)")
     model = _axis_model(load_model(args.model), args)
+    _check_flags(args, model)
+    data = read_csv(args.target, ("t", "y"), min_rows=1)
+    t, y = data["t"], data["y"]
+    dyn = load_model(args.dynamics, expect=("dynamics",)) if args.dynamics is not None else None
+    lo, hi, source = _limits(args.limits, model)
+    limits_line = f"limits           : {lo:g} .. {hi:g} V ({source})"
+    try:
+        with _progress(y.size) as progress:
+            res = compensate(model, y, t_s=t, limits_V=(lo, hi), clip=args.clip, dynamics=dyn,
+                             slew_V_per_s=args.slew_V_per_s, model_name=str(args.model), where=str(args.target),
+                             progress=progress)
+    except LimitsExceeded as err:
+        if err.index < 0:
+            raise AfmctlError(f"{args.target}: {err.count} samples need voltages outside the limits {lo:g}..{hi:g} V "
+                              "even with the lowest band limit; add --clip to clip them") from None
+        print(limits_line)
+        raise AfmctlError(f"{args.target}: row {err.index + 2} needs {err.value_V:.6g} V, outside the limits "
+                          f"{lo:g}..{hi:g} V ({source}; {err.count} samples); give --limits LO HI, "
+                          "or add --clip to clip them") from None
+    if res.dynamics_report is not None:
+        print(f"dynamics         : {res.dynamics_report}")
+    print(limits_line)
+    if res.clipped:
+        print(f"clipped          : {res.clipped} of {res.u_V.size} samples to [{lo:g}, {hi:g}] V")
+    u = res.u_V
+    write_csv(args.out, {"t": t, "u": u})
+    print(f"written          : {args.out} ({u.size} rows, u from {u.min():.6g} to {u.max():.6g} V)")
+    return 0
+
+
+def _check_flags(args: argparse.Namespace, model) -> None:
+    """The flags that do not fit this model, one line naming the flag."""
+    import math
+
+    from ..errors import AfmctlError
     if model.kind == "dynamics":
         raise AfmctlError(f"{args.model}: field kind: a 'dynamics' model maps nm to nm, not to volts; give it as "
                           "--dynamics beside a --model that maps volts (pi, epi, creep, preisach, bouc-wen, chain)")
@@ -84,47 +122,9 @@ def run(args: argparse.Namespace) -> int:
     with_dynamics = args.dynamics is not None or getattr(model, "dynamics", None) is not None
     if args.slew_V_per_s is not None and not with_dynamics:
         raise AfmctlError("--slew-V-per-s: only used with --dynamics DYN.json or a chain model with a dynamics stage")
-    data = read_csv(args.target, ("t", "y"), min_rows=1)
-    t, y = data["t"], data["y"]
-    timed = getattr(model, "time_dependent", False) or with_dynamics
-    dt = uniform_period(t, str(args.target)) if timed else None
-    if with_dynamics:
-        def invert(target):
-            return _with_dynamics(args, model, target, dt)
-    else:
-        invert = _inverter(model, dt, args)
-    try:
-        u = invert(y)
-    except ModelError as err:
-        raise ModelError(f"{args.target}: {err}") from None
-    if not np.all(np.isfinite(u)):
-        raise AfmctlError(f"{args.model}: the inverse produced non-finite voltages for {args.target}; "
-                          "is the target inside the model's range?")
-    lo, hi, source = _limits(args.limits, model)
-    print(f"limits           : {lo:g} .. {hi:g} V ({source})")
-    bad = (u < lo) | (u > hi)
-    if np.any(bad):
-        if not args.clip:
-            i = int(np.flatnonzero(bad)[0])
-            raise AfmctlError(f"{args.target}: row {i + 2} needs {u[i]:.6g} V, outside the limits {lo:g}..{hi:g} V "
-                              f"({source}; {int(bad.sum())} samples); give --limits LO HI, "
-                              "or add --clip to clip them")
-        print(f"clipped          : {int(bad.sum())} of {u.size} samples to [{lo:g}, {hi:g}] V")
-        u = np.clip(u, lo, hi)
-    write_csv(args.out, {"t": t, "u": u})
-    print(f"written          : {args.out} ({u.size} rows, u from {u.min():.6g} to {u.max():.6g} V)")
-    return 0
-
-
-def _inverter(model, dt, args: argparse.Namespace):
-    """target [nm] → voltages [V] for a model without dynamics: its inverse streams
-    (chunked). A model that cannot be inverted is blamed on the model file."""
-    from afmctl.compensators.base import ModelError
-    try:
-        inverse = model.inverse(dt)
-    except ModelError as err:  # e.g. a Bouc–Wen model that is not invertible
-        raise ModelError(f"{args.model}: {err}") from None
-    return lambda y: _run_chunked(inverse, y)
+    slew = args.slew_V_per_s
+    if slew is not None and not (math.isfinite(slew) and slew > 0):
+        raise AfmctlError(f"--slew-V-per-s: {slew}; need a finite rate > 0 V/s")
 
 
 def _axis_model(model, args: argparse.Namespace):
@@ -143,60 +143,22 @@ def _axis_model(model, args: argparse.Namespace):
     return axis_model
 
 
-CHUNK = 200_000
-#: limits when neither --limits nor the model file gives a voltage range [V]
-FALLBACK_LIMITS_V = (0.0, 150.0)
-
-
 def _limits(given, model) -> tuple[float, float, str]:
     """``(lo, hi, where from)`` [V]: --limits, else the model's voltage range, else 0..150 V."""
+    from ..api.models import model_limits_V
+    lo, hi, source = model_limits_V(model, tuple(given) if given else None)
     if given:
-        return float(given[0]), float(given[1]), "--limits"
-    known = model.voltage_range_V()
-    if known is not None:
-        return float(known[0]), float(known[1]), "the model's voltage range"
-    return (*FALLBACK_LIMITS_V, "the model file records no voltage range; give --limits")
+        return lo, hi, "--limits"
+    return lo, hi, source.replace("give limits", "give --limits")
 
 
-def _with_dynamics(args, model, y, dt):
-    """The offline inverse within --limits/--slew-V-per-s: a chain model's own dynamics
-    stage (:meth:`ChainModel.inverse_within_limits`), or --dynamics then ``model``'s
-    inverse — the same :func:`invert_within_limits` either way."""
-    import math
-
-    from ..errors import AfmctlError
-    from afmctl.compensators.dynamics_limits import invert_within_limits
-    from afmctl.compensators.models import load_model
-
-    slew = args.slew_V_per_s
-    if slew is not None and not (math.isfinite(slew) and slew > 0):
-        raise AfmctlError(f"--slew-V-per-s: {slew}; need a finite rate > 0 V/s")
-    lo, hi, _ = _limits(args.limits, model)
-    if args.dynamics is None:
-        res = model.inverse_within_limits(y, dt, lo, hi, slew)
-    else:
-        dyn = load_model(args.dynamics, expect=("dynamics",))
-        res = invert_within_limits(dyn, y, dt, lambda: model.inverse(dt), lo, hi, slew)
-    print(f"dynamics         : {res.report()}")
-    if res.clipped and not args.clip:
-        raise AfmctlError(f"{args.target}: {res.clipped} samples need voltages outside the limits {lo:g}..{hi:g} V "
-                          "even with the lowest band limit; add --clip to clip them")
-    return res.u_V
-
-
-def _run_chunked(op, y):
-    """``op.block(y)`` in chunks (state carries over, so the result is identical) with a
-    progress bar on long files when stderr is a terminal."""
-    import numpy as np
-
-    if y.size <= CHUNK:
-        return op.block(y)
+@contextlib.contextmanager
+def _progress(n: int) -> Iterator[Callable[[int], None] | None]:
+    """A progress bar on long targets when stderr is a terminal (tqdm): its ``update``."""
+    from ..api.models import CHUNK
+    if n <= CHUNK:
+        yield None
+        return
     from tqdm import tqdm
-
-    out = np.empty_like(y)
-    with tqdm(total=y.size, unit="sample", unit_scale=True, desc="compensate", disable=None) as bar:
-        for start in range(0, y.size, CHUNK):
-            seg = y[start:start + CHUNK]
-            out[start:start + seg.size] = op.block(seg)
-            bar.update(seg.size)
-    return out
+    with tqdm(total=n, unit="sample", unit_scale=True, desc="compensate", disable=None) as bar:
+        yield bar.update

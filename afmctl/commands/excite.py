@@ -62,17 +62,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from ..api.excite import excite
     from ..data.datafiles import write_csv
-    from ..data.excitation import ExcitationSpec, excitation
 
-    spec = ExcitationSpec(u_min_V=args.u_min_V, u_max_V=args.u_max_V, rate_Hz=args.rate_Hz,
-                          sweep_V_per_s=args.sweep_V_per_s, slew_V_per_s=args.slew_V_per_s, dwell_s=args.dwell_s,
-                          gap_s=args.gap_s, amplitude_frac=args.amplitude_pct / 100.0, f_min_Hz=args.f_min_Hz,
-                          f_max_Hz=args.f_max_Hz, periods=args.periods, seed=args.seed)
-    u = excitation(args.kind, spec)
-    t = np.arange(u.size) / spec.rate_Hz
+    t, u = excite(args.kind, args.u_min_V, args.u_max_V, args.rate_Hz, sweep_V_per_s=args.sweep_V_per_s,
+                  slew_V_per_s=args.slew_V_per_s, dwell_s=args.dwell_s, gap_s=args.gap_s,
+                  amplitude_frac=args.amplitude_pct / 100.0, f_min_Hz=args.f_min_Hz, f_max_Hz=args.f_max_Hz,
+                  periods=args.periods, seed=args.seed)
     write_csv(args.out, {"t": t, "u": u})
-    slew = float(np.max(np.abs(np.diff(u)))) * spec.rate_Hz if u.size > 1 else 0.0
-    print(f"written          : {args.out} ({u.size} rows, {t[-1]:.6g} s at {spec.rate_Hz:g} Hz)")
+    slew = float(np.max(np.abs(np.diff(u)))) * args.rate_Hz if u.size > 1 else 0.0
+    print(f"written          : {args.out} ({u.size} rows, {t[-1]:.6g} s at {args.rate_Hz:g} Hz)")
     print(f"voltage          : {u.min():.6g} … {u.max():.6g} V, fastest change {slew:.6g} V/s")
     return 0

@@ -101,7 +101,10 @@ def run_invert(args: argparse.Namespace) -> int:
     from ..errors import AfmctlError
     from afmctl.compensators.models import load_model, save_model
 
+    from afmctl.compensators.pi import PIFamilyModel
+
     model = load_model(args.model, expect=("pi", "epi"))
+    assert isinstance(model, PIFamilyModel)  # the kinds pi and epi
     inv = model.inverted()
     try:
         save_model(inv, args.out)
@@ -122,51 +125,40 @@ def _warm(path: str | None):
 
 
 def run_predict(args: argparse.Namespace) -> int:
+    from ..api.models import predict
     from ..data.datafiles import read_csv, write_csv
-    from ..data.identdata import U_LIMIT_V
-    from ..errors import AfmctlError
-    from ..data.prediction import predict_nm
     from afmctl.compensators.models import load_model
 
     model = load_model(args.model)
     v = read_csv(args.voltages, ("t", "u"), min_rows=1)
-    if float(abs(v["u"]).max()) > U_LIMIT_V:
-        raise AfmctlError(f"{args.voltages}: column u: {float(abs(v['u']).max()):g} V is outside the allowed "
-                          f"range −{U_LIMIT_V:g}…{U_LIMIT_V:g} V")
-    y = predict_nm(model, v["t"], v["u"], str(args.voltages), warm=_warm(args.warm_start))
+    y = predict(model, v["t"], v["u"], warm=_warm(args.warm_start), where=str(args.voltages))
     write_csv(args.out, {"t": v["t"], "y": y})
     print(f"model predict: {y.size} rows, y {float(y.min()):.6g} … {float(y.max()):.6g} nm -> {args.out}")
     return 0
 
 
 def run_validate(args: argparse.Namespace) -> int:
+    from ..api.models import validate
     from ..data.datafiles import read_csv
     from ..errors import AfmctlError
-    from ..data.identdata import Y_UNITS, burn_in_index, check_units
-    from ..data.prediction import HEADER, predict_nm, score
+    from ..data.identdata import Y_UNITS
     from afmctl.compensators.models import load_model
 
     model = load_model(args.model)
     if args.y_unit not in Y_UNITS:
         raise AfmctlError(f"--y-unit: {args.y_unit!r} is not known; allowed: nm, um")
     d = read_csv(args.data, ("t", "u", "y"), min_rows=2)
-    t, u, y = d["t"], d["u"], d["y"] * Y_UNITS[args.y_unit]
-    check_units(u, y, str(args.data))
-    warm = _warm(args.warm_start)
-    y_pred = predict_nm(model, t, u, str(args.data), warm=warm)
-    start = 0 if warm is not None else burn_in_index(u)
-    if start >= t.size - 1:
-        start = 0
-    stats = score(t, u, y, y_pred, start)
+    t, u = d["t"], d["u"]
+    res = validate(model, t, u, d["y"], warm=_warm(args.warm_start), y_unit=args.y_unit, where=str(args.data))
+    start, stats = res.start, res.stats
     print(f"model            : {args.model} (kind {model.kind})")
     print(f"data             : {args.data}, {t.size} rows"
           + (f"; scored from t = {float(t[start]):.4g} s (burn-in until the input passed both extremes)" if start else ""))
     print(f"errors [nm]      : model − measured; '-mean' with the mean offset removed; % of the {stats[0].span_nm:.4g} nm span")
-    print(HEADER)
-    for s in stats:
-        print(s.row())
+    print(res.table())
     if args.plot:
         from ..data.prediction import plot_validation
-        plot_validation(args.plot, t, u, y, y_pred, start, f"{model.kind} model, {args.data}")
+        plot_validation(args.plot, t, u, d["y"] * Y_UNITS[args.y_unit], res.y_pred_nm, start,
+                        f"{model.kind} model, {args.data}")
         print(f"plot             : {args.plot}")
     return 0

@@ -106,9 +106,10 @@ def save_learned(path: str | Path, learned: LearnedTable) -> Path:
             "target_sha256": learned.target_sha256, "history": learned.history, "report": list(t.report)}
     tmp = path.with_name(path.name + ".part")
     try:
+        # Any: numpy's stubs would match **arrays against savez's allow_pickle: bool
+        arrays: dict[str, Any] = {name: np.asarray(getattr(t, name), dtype=np.float64) for name in _ARRAYS}
         with open(tmp, "wb") as fh:
-            np.savez(fh, meta_json=np.array(json.dumps(meta)),
-                     **{name: np.asarray(getattr(t, name), dtype=np.float64) for name in _ARRAYS})
+            np.savez(fh, meta_json=np.array(json.dumps(meta)), **arrays)
         tmp.replace(path)
     except OSError as err:
         raise AfmctlError(f"{path}: cannot write the learned table ({err.strerror or err})") from None

@@ -33,7 +33,7 @@ import collections
 import enum
 import math
 import time
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -334,7 +334,7 @@ class LoopMachine:
         resuming, else send it."""
         if self.cur is None and not self._next_sample():
             return True
-        cur = self.cur
+        cur = cast("tuple[Any, ...]", self.cur)  # _next_sample() set it
         safety = self.safety
         if self.need_ramp:
             self.need_ramp = False

@@ -79,7 +79,7 @@ class CompensationPipeline:
         self.latency_samples: int = lat
         #: per axis, a whole-target inverse nm → V within the amplifier's limits (or None),
         #: used by :meth:`block` with ``preview`` (see :func:`offline_inverse`)
-        self.offline = list(offline) if offline is not None else [None, None, None]
+        self.offline: list[Any] = list(offline) if offline is not None else [None, None, None]
         if len(self.offline) != 3:
             raise ValueError("offline: one entry per axis x, y, z")
         self.drift = drift
@@ -258,13 +258,14 @@ def axis_models(config) -> tuple[list[tuple[Any, str | None]], np.ndarray | None
     from afmctl.compensators.base import ModelError
     from afmctl.compensators.models import load_model
     comp = config.compensation
-    scanner = None
+    scanner: Any = None   # a ScannerModel
     if comp.scanner_model is not None:
         scanner = load_model(comp.scanner_model, expect=("scanner",))
     models: list[tuple[Any, str | None]] = []
     for axis in ("x", "y", "z"):
         spec = comp.axis(axis)
-        model, source = None, None
+        model: Any = None
+        source: str | None = None
         if spec.model is not None:
             try:
                 model, source = load_model(spec.model), spec.model

@@ -65,7 +65,7 @@ def encode_header(meta: dict[str, Any]) -> bytes:
     return MAGIC + _HEAD.pack(len(body), zlib.crc32(body)) + body
 
 
-def chunk_crc(kind: int, n_records: int, payload: bytes) -> int:
+def chunk_crc(kind: int, n_records: int, payload: bytes | memoryview) -> int:
     """CRC-32 over kind, record count and payload."""
     return zlib.crc32(payload, zlib.crc32(struct.pack("<BI", kind, n_records)))
 

@@ -157,7 +157,7 @@ class StreamMachine(LoopMachine):
         if (not self.batch_ok or self.mode is not Mode.RUN or self.need_ramp or self.ramping
                 or self.cur is not None or not self.primed or ctl._state is not State.RUNNING or ctl._drift_meas):
             return None
-        blk = self.blk
+        blk: Any = self.blk
         k = 0 if blk is None else min(n, (len(blk) - self.bi) // 3)
         if k < 2:
             return None
@@ -168,6 +168,9 @@ class StreamMachine(LoopMachine):
             self.hold_left = self.latency
         d, c, u = pipe.block(inp, self.T_C, np.zeros((k, 3)))
         aims, out = self.aims, []
+        tgt: Any
+        cor: Any
+        dd: Any
         for tgt, cor, dd, uu in zip(inp.tolist(), c.tolist(), d.tolist(), u.tolist()):
             tgt, cor, dd = tuple(tgt), tuple(cor), tuple(dd)
             if self.latency:
@@ -190,7 +193,7 @@ class StreamMachine(LoopMachine):
         if mode is Mode.RUN:
             if self.cur is None and not self._next_sample():
                 return self._stalled_row()
-            cur = self.cur
+            cur: Any = self.cur  # _next_sample() set it
             if self.need_ramp:
                 self.need_ramp = False
                 self.ramping = True

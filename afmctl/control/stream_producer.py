@@ -26,6 +26,7 @@ import logging
 import math
 import threading
 import time
+from typing import Any
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -84,7 +85,7 @@ class StreamProducer:
     def limit_block(self, block_V: np.ndarray) -> list[tuple[float, float, float]]:
         """Rows x, y, z [V] limited sample by sample (limits, slew per period); updates the
         safety layer's reference to the last row."""
-        out = []
+        out: list[Any] = []   # rows (x, y, z) [V]
         s = self.safety
         for row in block_V:
             new = [s.limit(i, float(row[k]), self.max_step_V) for i, k in enumerate(s.index)]

@@ -133,7 +133,7 @@ def plan_table(config, pipeline, targets_nm: np.ndarray, T_C: float | np.ndarray
          else np.full(len(tgt), float(T)))
     report: list[str] = []
     slew = max_step_V / config.dt_s
-    models = getattr(pipeline, "models", None)
+    models: Any = getattr(pipeline, "models", None)
     if not any(m is not None for m in models or ()):   # a pipeline not built from the config
         models = [model for model, _source in axis_models(config)[0]]
     pipe = copy.copy(pipeline)
@@ -157,7 +157,7 @@ def plan_table(config, pipeline, targets_nm: np.ndarray, T_C: float | np.ndarray
 
 
 def driven_steps_ok(u_V: np.ndarray, axes: Sequence[str], limits_V: dict[str, tuple[float, float]],
-                    max_step_V: float, start_V: Sequence[float]) -> bool:
+                    max_step_V: float, start_V: Sequence[float] | np.ndarray) -> bool:
     """Whether every driven column of ``u_V`` is inside its limits and changes by at most
     ``max_step_V`` per row, starting from ``start_V`` (per driven axis) — the invariant the
     players rely on (checked again before anything is sent)."""

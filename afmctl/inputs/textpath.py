@@ -15,7 +15,7 @@ from ..errors import AfmctlError
 #: glyph cell height and the advance from one glyph to the next, in cell units (cells are 4 wide)
 CELL_H, ADVANCE = 6.0, 5.5
 
-_O = [(0, 1), (1, 0), (3, 0), (4, 1), (4, 5), (3, 6), (1, 6), (0, 5), (0, 1)]
+_O: list[tuple[float, float]] = [(0, 1), (1, 0), (3, 0), (4, 1), (4, 5), (3, 6), (1, 6), (0, 5), (0, 1)]
 
 #: glyph → strokes (polylines on the 4 × 6 cell)
 GLYPHS: dict[str, list[list[tuple[float, float]]]] = {

@@ -73,7 +73,7 @@ def move_duration(distance_nm: float, v_max: float, a_max: float, j_max: float) 
     return max(_Q_V * d / v_max, math.sqrt(_Q_A * d / a_max), (_Q_J * d / j_max) ** (1.0 / 3.0))
 
 
-def smooth_move(p0: Sequence[float], p1: Sequence[float], dt_s: float, v_max: float = 5000.0,
+def smooth_move(p0: Sequence[float] | np.ndarray, p1: Sequence[float] | np.ndarray, dt_s: float, v_max: float = 5000.0,
                 a_max: float = 1e5, j_max: float = 1e7) -> np.ndarray:
     """Samples (N, 3) [nm] of a straight move from ``p0`` (excluded) to ``p1`` (included)
     along the minimum-jerk quintic, timed so that |v| ≤ v_max, |a| ≤ a_max, |j| ≤ j_max
@@ -90,7 +90,7 @@ def smooth_move(p0: Sequence[float], p1: Sequence[float], dt_s: float, v_max: fl
     return a + s[:, None] * (b - a)
 
 
-def hold(p: Sequence[float], duration_s: float, dt_s: float) -> np.ndarray:
+def hold(p: Sequence[float] | np.ndarray, duration_s: float, dt_s: float) -> np.ndarray:
     """Samples (N, 3) holding position ``p`` for ``duration_s``."""
     n = int(round(duration_s / dt_s))
     return np.tile(np.asarray(p, dtype=np.float64), (n, 1))
@@ -102,7 +102,10 @@ def moves(points: Sequence[Sequence[float]], dt_s: float, *, start: Sequence[flo
     """Point-to-point moves through ``points`` (each (x, y, z) nm), starting at ``start``
     (which is emitted as the first sample), dwelling ``dwell_s`` after each arrival."""
     pts = [np.asarray(p, dtype=np.float64) for p in points]
-    dw = [float(dwell_s)] * len(pts) if np.isscalar(dwell_s) else [float(d) for d in dwell_s]  # type: ignore[arg-type]
+    if isinstance(dwell_s, (int, float, np.integer, np.floating)):
+        dw = [float(dwell_s)] * len(pts)
+    else:                               # a sequence or an array, one per point
+        dw = [float(d) for d in dwell_s]
     cur = np.asarray(start, dtype=np.float64)
     yield cur[None, :].copy()
     for p, d in zip(pts, dw):

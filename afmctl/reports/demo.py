@@ -84,6 +84,12 @@ class DemoOptions:
             # keep the simulation period ≤ 0.2 ms: far above the 1 kHz structural mode
             self.samples_per_pixel = max(2, math.ceil(1.0 / (2.0 * self.line_rate_Hz * self.size * 2e-4)))
 
+    @property
+    def pixel_samples(self) -> int:
+        """Samples per pixel (``samples_per_pixel``, chosen in ``__post_init__`` when None)."""
+        assert self.samples_per_pixel is not None
+        return self.samples_per_pixel
+
 
 @dataclass
 class ScanResult:
@@ -101,7 +107,7 @@ class DemoContext:
     excitation: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     dyn_excitation: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     coupling: np.ndarray = field(default_factory=lambda: np.eye(3))
-    models: dict[str, dict[str, Any]] = field(default_factory=dict)
+    models: dict[str, Any] = field(default_factory=dict)
     skipped: dict[str, str] = field(default_factory=dict)
     scans: dict[str, ScanResult] = field(default_factory=dict)
     true_drift_nm: np.ndarray | None = None
@@ -276,7 +282,7 @@ def _scan(ctx: DemoContext, name: str, compensator: Any, drift: bool = True) -> 
     scanner = _new_scanner(ctx, drift=drift)
     return raster_image(scanner, Grating2D(period_nm=1667.0), scan_size_nm=o.scan_nm, pixels=o.size,
                         line_rate_Hz=o.line_rate_Hz, origin_nm=(o.origin_nm, o.origin_nm),
-                        samples_per_pixel=o.samples_per_pixel, compensator=compensator,
+                        samples_per_pixel=o.pixel_samples, compensator=compensator,
                         T_C=ctx.scan_T() if drift else None, settle_lines=1, keep_signals=(name == "none"))
 
 
@@ -370,7 +376,7 @@ def _compensator(ctx: DemoContext, kind: str, drift: bool = True) -> PipelineCom
     """The compensator of ``kind`` for one scan (with or without the drift prediction);
     its time origin is the scan's, after the one settling line."""
     o = ctx.options
-    ns = o.size * o.samples_per_pixel
+    ns = o.size * o.pixel_samples
     dt = 1.0 / (2.0 * o.line_rate_Hz * ns)
     gain = _new_scanner(ctx, drift=False).nominal_gain_nm_per_V()
     pipe = scan_pipeline(ctx, kind, dt, drift)
@@ -410,7 +416,7 @@ def step_drift_effect(ctx: DemoContext) -> None:
     compensated = {k: _max_pct(ctx, r.err_nm) for k, r in ctx.scans.items() if k != "none"}
     if ctx.drift_params is None or not compensated:
         return
-    best = min(compensated, key=compensated.get)
+    best = min(compensated, key=lambda k: compensated[k])
     img = _scan(ctx, best, _compensator(ctx, best, drift=False))
     ctx.drift_effect = {"compensator": best, "max_error_pct_with_drift_correction": compensated[best],
                         "max_error_pct_without_drift_correction": _max_pct(ctx, _errors(img))}
@@ -487,7 +493,7 @@ def step_metrics(ctx: DemoContext) -> None:
     max_pct = {name: _max_pct(ctx, res.err_nm) for name, res in ctx.scans.items()}
     rms_pct = {name: _rms_pct(ctx, res.err_nm) for name, res in ctx.scans.items()}
     compensated = {k: v for k, v in max_pct.items() if k != "none"}
-    best = min(compensated, key=compensated.get) if compensated else None
+    best = min(compensated, key=lambda k: compensated[k]) if compensated else None
     ctx.metrics = {
         "max_error_pct": max_pct,
         "rms_error_pct": rms_pct,
@@ -495,7 +501,7 @@ def step_metrics(ctx: DemoContext) -> None:
         "improvement_max": (round(max_pct["none"] / max_pct[best], 2) if best and max_pct[best] > 0 else None),
         "skipped": dict(ctx.skipped),
         "scan": {"size_px": o.size, "range_nm": o.scan_nm, "origin_nm": o.origin_nm, "line_rate_Hz": o.line_rate_Hz,
-                 "samples_per_pixel": o.samples_per_pixel, "sample": "grating-2d, 1667 nm period, 100 nm steps"},
+                 "samples_per_pixel": o.pixel_samples, "sample": "grating-2d, 1667 nm period, 100 nm steps"},
         "drift": ({"warming_K": o.warming_K, "model": "physical_tube", "gain": o.drift_gain,
                    "max_true_drift_nm": (round(float(np.max(np.abs(ctx.true_drift_nm[:, :2]))), 3)
                                          if ctx.true_drift_nm is not None else None)}
@@ -562,7 +568,8 @@ def format_ladder(ladder: dict[str, Any]) -> str:
     head = "| lines/s | " + " | ".join(f"{k} max / rms [%]" for k in labels) + " | controller output |"
     lines = [head, "|" + "---|" * (len(labels) + 2)]
     for rate, row in ladder.items():
-        cells, loops = [], {}
+        cells: list[str] = []
+        loops: dict[str, Any] = {}
         for k in labels:
             c = row.get(k, {})
             if "max_error_pct" not in c:

@@ -105,7 +105,7 @@ class SimService:
     ``pty_path``, ``scanner``.
     """
 
-    def __init__(self, settings, *, on_tick: Callable[[float, Any], None] | None = None,
+    def __init__(self, settings, *, on_tick: Callable[[float, Any], object] | None = None,
                  record: Path | None = None) -> None:
         from afmctl.sim_backend.amplifiers import make_device
         from afmctl.sim_backend.amplifiers.base import CsvRecorder, elapsed_clock
@@ -126,7 +126,7 @@ class SimService:
         if amp.tcp is not None:
             from afmctl.sim_backend.amplifiers.tcp_server import TcpServer, parse_endpoint
             host, port = parse_endpoint(amp.tcp)
-            self.server = TcpServer(self.device, host=host, port=port)
+            self.server: TcpServer | PtyServer = TcpServer(self.device, host=host, port=port)
         else:
             self.server = PtyServer(self.device, baud=amp.baud, link=amp.link)
         self._stop = threading.Event()

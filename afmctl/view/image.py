@@ -51,11 +51,11 @@ class HeightImage:
             r, c = np.nonzero(np.isfinite(old_h))
             x = old_area[0, 0] + (c + 0.5) / self.cols * (old_area[1, 0] - old_area[0, 0])
             y = old_area[0, 1] + (r + 0.5) / self.rows * (old_area[1, 1] - old_area[0, 1])
-            rr, cc = self._pixel(x, y)
+            rr, cc = self._pixel(area, x, y)
             self._h[rr, cc] = old_h[r, c]
 
-    def _pixel(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        a = self._area
+    def _pixel(self, a: np.ndarray, x: float | np.ndarray, y: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Row and column of positions ``x, y`` [nm] in the scan area ``a``."""
         c = np.floor((np.asarray(x) - a[0, 0]) / (a[1, 0] - a[0, 0]) * self.cols).astype(int)
         r = np.floor((np.asarray(y) - a[0, 1]) / (a[1, 1] - a[0, 1]) * self.rows).astype(int)
         return np.clip(r, 0, self.rows - 1), np.clip(c, 0, self.cols - 1)
@@ -68,7 +68,7 @@ class HeightImage:
         if a is None or not (a[0, 0] <= x_nm <= a[1, 0] and a[0, 1] <= y_nm <= a[1, 1]):
             self.outside += 1
             return
-        r, c = self._pixel(x_nm, y_nm)
+        r, c = self._pixel(a, x_nm, y_nm)
         self._h[r, c] = height_nm
         self._h_min, self._h_max = min(self._h_min, height_nm), max(self._h_max, height_nm)
 

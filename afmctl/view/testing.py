@@ -14,6 +14,7 @@ import subprocess
 import sys
 import threading
 import time
+from typing import Any
 from pathlib import Path
 
 from ..testing import wait_for
@@ -238,7 +239,8 @@ class Browser:
     def __init__(self, user_data_dir: Path, width: int = 1500, height: int = 1000) -> None:
         self.user_data_dir = Path(user_data_dir)
         self.viewport = {"width": width, "height": height}
-        self._pw = self._ctx = None
+        self._pw: Any = None    # playwright's handle and its browser context, while entered
+        self._ctx: Any = None
 
     def __enter__(self) -> "Browser":
         from playwright.sync_api import sync_playwright

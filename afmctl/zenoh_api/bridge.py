@@ -326,7 +326,7 @@ class ZenohBridge:
                 req = decode_json(payload.to_bytes(), CmdRequest, self.settings.max_message_bytes)
             else:
                 params = dict(query.parameters) if query.parameters is not None else {}
-                req = CmdRequest(cmd=params.get("cmd", ""))  # type: ignore[arg-type]
+                req = CmdRequest(cmd=params.get("cmd", ""))
         except (MessageError, ValueError) as err:
             msg = str(err) if isinstance(err, MessageError) else "field cmd: allowed: " + ", ".join(CMD_NAMES)
             self._reply(query, CmdReply(seq=0, cmd="?", ok=False, error=msg))

@@ -39,7 +39,7 @@ from afmctl.compensators.temperature import T_MAX_C, T_MIN_C
 from ..errors import AfmctlError
 
 #: version of every payload schema in this module
-SCHEMA_VERSION = 1
+SCHEMA_VERSION: Literal[1] = 1
 
 #: absolute bound on any position in a message [nm] (1 mm; the controller's safety layer
 #: applies the real, tighter voltage limits)
@@ -333,7 +333,7 @@ def as_setpoint_records(batch: np.ndarray) -> np.ndarray:
     if batch.dtype == SETPOINT_DTYPE:
         return np.ascontiguousarray(batch)
     out = np.empty(len(batch), dtype=SETPOINT_DTYPE)
-    for name in SETPOINT_DTYPE.names:
+    for name in SETPOINT_DTYPE.names or ():
         out[name] = batch[name]
     return out
 

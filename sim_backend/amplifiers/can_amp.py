@@ -30,6 +30,10 @@ import time
 from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import can
 
 from .base import Sink, elapsed_clock
 from .can_recorder import CAPACITY as REC_CAPACITY, RecState, TickRecorder
@@ -73,7 +77,7 @@ class SimCANAmplifier:
     def __init__(self, channel: str = "afm0", sink: Sink | None = None, *, interface: str = "virtual",
                  now: Callable[[], float] | None = None, min_V: float = 0.0, max_V: float = 150.0,
                  dbc_path: str | Path | None = None, record_seq: bool = False, fifo_log2: int = 12,
-                 **bus_options: object) -> None:
+                 **bus_options: Any) -> None:
         self.channel = channel
         self.interface = interface
         self.sink = sink
@@ -105,8 +109,8 @@ class SimCANAmplifier:
         self.requested_V: dict[str, tuple[float, float]] = {}
         self._silent = False
         self._inject: int | None = None
-        self._bus = None
-        self._notifier = None
+        self._bus: can.BusABC | None = None
+        self._notifier: can.Notifier | None = None
         self._lock = threading.Lock()
         self._send_lock = threading.Lock()
         #: guards the stream player (notifier thread pushes, player thread plays)

@@ -21,7 +21,8 @@ clamped to VMI..VMA (and recorded as requested). It plays on the controller's se
 """
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from typing import cast
 
 from .base import SimDevice, Sink
 from .gcs_recorder import (DATA_REC_CHAN_NUMBER_PARAM, DATA_REC_MAX_POINTS_PARAM, N_TABLES, TOTAL_POINTS,
@@ -101,13 +102,13 @@ class SimGCS(SimDevice):
         handed to the sink in one block (``sink.play(t_s, rows_V)`` where the sink has it —
         the simulated scanner simulates a block in one call, which 20 kHz on three axes
         needs — else one ``apply`` per change)."""
-        play = getattr(self.sink, "play", None)
+        play: Callable[..., None] | None = getattr(self.sink, "play", None)
         self._played = [] if play is not None else None
         try:
             self.wave.run_until(self.now())
         finally:
             played, self._played = self._played, None
-        if played:
+        if played and play is not None:
             play([t for t, _ in played], [row for _, row in played])
 
     def _wave_apply(self, gen: int, value: float, t_s: float) -> None:
@@ -304,7 +305,7 @@ class SimGCS(SimDevice):
         self.commands += 1
         injected = self._take_injected()
         if injected is not None:
-            self._latch(302 if injected is True else int(injected))  # type: ignore[arg-type]
+            self._latch(302 if injected is True else int(cast(int, injected)))  # tests inject a code
         try:
             tokens = line.decode("ascii").split()
         except UnicodeDecodeError:
@@ -349,7 +350,7 @@ class SimGCS(SimDevice):
             keys = args or list(_AXIS)
             if any(k not in _AXIS for k in keys):
                 return self._latch(15)
-            table = {"SVO?": {k: int(v) for k, v in self.servo.items()},
+            tables: dict[str, Mapping[str, object]] = {"SVO?": {k: int(v) for k, v in self.servo.items()},
                      "SVA?": {k: f"{self.outputs[a]:.4f}" for k, a in _AXIS.items()},
                      "VOL?": {k: f"{self.outputs[a]:.4f}" for k, a in _AXIS.items()},
                      "VMA?": {k: f"{v:.4f}" for k, v in self.vma.items()},
@@ -358,7 +359,8 @@ class SimGCS(SimDevice):
                      "MOV?": {k: f"{v:.4f}" for k, v in self.target.items()},
                      "ONT?": {k: 1 for k in _AXIS},
                      "TMN?": {k: f"{self.travel_um[0]:.4f}" for k in _AXIS},
-                     "TMX?": {k: f"{self.travel_um[1]:.4f}" for k in _AXIS}}[cmd]
+                     "TMX?": {k: f"{self.travel_um[1]:.4f}" for k in _AXIS}}
+            table = tables[cmd]
             return self._items([(k, str(table[k])) for k in keys])
         return self._latch(2)
 

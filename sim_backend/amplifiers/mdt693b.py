@@ -139,8 +139,8 @@ class SimMDT693B(SimDevice):
                 return self._undefined()
             self._set_channels({a: self._clamp(a, float(m.group(2)))})
             return self._ok()
-        if len(cmd) == 9 and cmd[1:] == b"VOLTAGE?" and self._axis(cmd[:1]):
-            return self._readback([self._axis(cmd[:1])])  # type: ignore[list-item]
+        if len(cmd) == 9 and cmd[1:] == b"VOLTAGE?" and (a := self._axis(cmd[:1])):
+            return self._readback([a])
         if self.channels == 3 and (m := _SET3.fullmatch(cmd)):
             self._set_channels({a: self._clamp(a, float(m.group(k + 1))) for k, a in enumerate(self.axes)})
             return self._ok()
@@ -157,8 +157,7 @@ class SimMDT693B(SimDevice):
             which, kind, v = m.group(1), m.group(2), float(m.group(3))
             axes = self.axes if which == b"SYS" else [self._axis(which)] if self._axis(which) else None
             return self._set_limit(axes, kind == b"MIN", v)
-        if len(cmd) == 5 and cmd[1:] in (b"MIN?", b"MAX?") and self._axis(cmd[:1]):
-            a = self._axis(cmd[:1])
+        if len(cmd) == 5 and cmd[1:] in (b"MIN?", b"MAX?") and (a := self._axis(cmd[:1])):
             return self._ok(f"{(self.min_V if cmd[1:] == b'MIN?' else self.max_V)[a]:.2f}".encode())
         if cmd in (b"SYSMIN?", b"SYSMAX?"):
             vals = self.min_V.values() if cmd == b"SYSMIN?" else self.max_V.values()
@@ -223,18 +222,18 @@ class SimMDT693B(SimDevice):
             return None
         if m := _SHORT_SET.fullmatch(cmd):
             v = float(m.group(2))
-            axes = list(self.axes) if m.group(1) == b"A" else [self._axis(m.group(1))]
-            if None in axes:
+            one = self._axis(m.group(1))
+            if m.group(1) != b"A" and one is None:
                 return self._undefined()
-            self._set_channels({a: self._clamp(a, v) for a in axes})  # type: ignore[misc]
+            axes = list(self.axes) if one is None else [one]
+            self._set_channels({a: self._clamp(a, v) for a in axes})
             return self._ok()
-        if len(cmd) in (2, 3) and cmd[1:2] == b"R" and cmd[2:] in (b"", b"?") and self._axis(cmd[:1]):
-            return self._readback([self._axis(cmd[:1])])  # type: ignore[list-item]
+        if len(cmd) in (2, 3) and cmd[1:2] == b"R" and cmd[2:] in (b"", b"?") and (a := self._axis(cmd[:1])):
+            return self._readback([a])
         if m := _SHORT_LIM.fullmatch(cmd):
             a = self._axis(m.group(1))
             return self._set_limit([a] if a else None, m.group(2) == b"L", float(m.group(3)))
-        if len(cmd) == 3 and cmd[1:2] in (b"H", b"L") and cmd[2:] == b"?" and self._axis(cmd[:1]):
-            a = self._axis(cmd[:1])
+        if len(cmd) == 3 and cmd[1:2] in (b"H", b"L") and cmd[2:] == b"?" and (a := self._axis(cmd[:1])):
             return self._ok(f"{(self.max_V if cmd[1:2] == b'H' else self.min_V)[a]:.2f}".encode())
         if cmd == b"%":
             return self._ok(f"[{self.vlimit_V:.0f}]".encode())

@@ -26,6 +26,7 @@ unit's 50 us clock; every command and :meth:`SimNV200.poll` apply the samples du
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import cast
 
 from .base import SimDevice, Sink
 from .nv200_recorder import NV200Recorder
@@ -104,7 +105,7 @@ class SimNV200(SimDevice):
         self.recorder.output_changed(now, self.outputs["x"], self.params["set"])
 
     # -- wire --
-    def _reply(self, name: str, value: object) -> bytes:
+    def _reply(self, name: str, value: str | float) -> bytes:
         if isinstance(value, str):
             text = value
         else:
@@ -172,7 +173,7 @@ class SimNV200(SimDevice):
         self.commands += 1
         injected = self._take_injected()
         if injected is not None:
-            return self._error(4 if injected is True else int(injected))  # type: ignore[arg-type]
+            return self._error(4 if injected is True else int(cast(int, injected)))  # tests inject a code
         try:
             fields = [f.strip() for f in line.decode("ascii").strip().split(",")]
         except UnicodeDecodeError:

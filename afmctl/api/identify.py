@@ -1,0 +1,183 @@
+"""Fit a model of the scanner to a recording t [s], u [V], y [nm]: any kind, a chain
+(``preisach+creep``...) or ``auto`` (held-out selection). The same steps as ``afmctl identify
+--data``: the recording is conditioned (units, spikes, uniform sampling, burn-in, sensor
+delay: :func:`afmctl.data.identdata.condition`), then fitted by the kind's own ``identify``
+(:mod:`afmctl.compensators`) or :func:`afmctl.compensators.selection.select_model`; the fit
+residual is counted after the burn-in, as the command prints it."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from afmctl.compensators.base import ModelError
+from afmctl.compensators.models import HysteresisModel, model_class
+
+from ..data.datafiles import read_csv
+from ..data.identdata import Y_UNITS, Conditioned, condition, delayed, excitation_notes
+from ..data.prediction import predict_nm
+from ..errors import AfmctlError
+
+
+@dataclass
+class Identified:
+    """A fitted ``model`` and how well it fits: ``y_fit_nm`` is its output over ``t_s`` (the
+    conditioned record from sample ``first``); ``rms_nm``/``max_nm`` the residual from the
+    end of the burn-in, ``span_nm`` the measured span there; ``notes`` what conditioning did,
+    ``excitation`` what the input cannot identify; ``table`` the held-out ranking (auto)."""
+
+    model: HysteresisModel
+    t_s: np.ndarray
+    u_V: np.ndarray
+    y_nm: np.ndarray
+    y_fit_nm: np.ndarray
+    fit_from_s: float | None
+    rms_nm: float
+    max_nm: float
+    span_nm: float
+    notes: list[str] = field(default_factory=list)
+    excitation: list[str] = field(default_factory=list)
+    table: list[Any] | None = None
+
+    def residual(self) -> str:
+        """The fit residual as ``afmctl identify`` prints it."""
+        return (f"rms {self.rms_nm:.4g} nm, max {self.max_nm:.4g} nm ({100 * self.max_nm / self.span_nm:.3g} % of "
+                f"the {self.span_nm:.4g} nm span)" + (f", from t = {self.fit_from_s:.4g} s" if self.fit_from_s else ""))
+
+
+def read_recording(path: str | Path, columns: tuple[str, ...] = ("t", "u", "y")) -> dict[str, np.ndarray]:
+    """The named columns of a CSV file (header row) as float64 arrays; ``t`` strictly
+    increasing. Errors name the file, the row and the column."""
+    return read_csv(path, columns, min_rows=2)
+
+
+def identify(kind: str, data: str | Path | None = None, *, t_s: np.ndarray | None = None,
+             u_V: np.ndarray | None = None, y_nm: np.ndarray | None = None, n_operators: int | None = None,
+             y_unit: str = "nm", burn_in: str = "auto", delay: str = "auto", despike: bool = True,
+             **params: Any) -> Identified:
+    """Fit ``kind`` (pi, epi, creep, preisach, bouc-wen, dynamics, ``KIND+creep[+dynamics]``
+    or ``auto``) to a CSV file ``data`` (columns t,u,y) or to arrays ``t_s``, ``u_V``,
+    ``y_nm`` (y in ``y_unit``: nm or um). ``burn_in``: ``auto`` (until the input has passed
+    both extremes), ``none`` or seconds; ``delay``: ``auto`` or seconds; ``params``: the
+    kind's options (``afmctl identify --help``, ``--param``), for auto also ``candidates``,
+    ``holdout_fraction``, ``criterion``, ``with_dynamics``."""
+    t, u, y, where = _inputs(data, t_s, u_V, y_nm)
+    if y_unit not in Y_UNITS:
+        raise AfmctlError(f"y_unit: {y_unit!r} is not known; allowed: nm, um")
+    if n_operators is not None and n_operators < 1:
+        raise AfmctlError(f"n_operators: {n_operators} must be ≥ 1")
+    if kind == "auto" or "+" in kind:
+        c = condition(t, u, y * Y_UNITS[y_unit], where, burn_in=burn_in, delay=delay, despike=despike, uniform=True)
+        return _chain(kind, c, n_operators, params, where)
+    cls = model_class(kind)
+    if cls.has_own_delay and delay == "auto":  # the kind fits its delay itself
+        delay = "0"
+    c = condition(t, u, y * Y_UNITS[y_unit], where, burn_in=burn_in, delay=delay, despike=despike,
+                  uniform=getattr(cls, "time_dependent", False))
+    return _single(cls, kind, c, n_operators, params, where)
+
+
+def _inputs(data: str | Path | None, t_s: np.ndarray | None, u_V: np.ndarray | None, y_nm: np.ndarray | None,
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+    arrays = (t_s, u_V, y_nm)
+    if data is not None:
+        if any(a is not None for a in arrays):
+            raise AfmctlError("identify: give either data (a CSV path) or the arrays t_s, u_V, y_nm, not both")
+        d = read_recording(data)
+        return d["t"], d["u"], d["y"], str(data)
+    if t_s is None or u_V is None or y_nm is None:
+        raise AfmctlError("identify: give data (a CSV path with columns t,u,y) or all of t_s, u_V, y_nm")
+    t, u, y = (np.ascontiguousarray(a, dtype=np.float64).reshape(-1) for a in (t_s, u_V, y_nm))
+    if not t.size == u.size == y.size or t.size < 2:
+        raise AfmctlError(f"identify: t_s, u_V, y_nm need one equal length ≥ 2 (got {t.size}, {u.size}, {y.size})")
+    if not np.all(np.isfinite(np.concatenate([t, u, y]))) or np.any(np.diff(t) <= 0):
+        raise AfmctlError("identify: t_s, u_V, y_nm must be finite and t_s strictly increasing")
+    return t, u, y, "data"
+
+
+def _fit_errors(kind: str, where: str, err: Exception) -> Exception:
+    """A fit's exception as the one clear error the command line shows too."""
+    if isinstance(err, TypeError):
+        return AfmctlError(f"params: not accepted by kind {kind!r} ({err})")
+    if isinstance(err, np.linalg.LinAlgError):
+        return ModelError(f"{where}: the fit failed ({err}); is the input excited over its range?")
+    if isinstance(err, ValueError) and not isinstance(err, ModelError):
+        return AfmctlError(f"params: a value is not accepted by kind {kind!r} ({err})")
+    return ModelError(f"{where}: {err}")
+
+
+def _single(cls: type[HysteresisModel], kind: str, c: Conditioned, n_operators: int | None,
+            params: dict[str, Any], where: str) -> Identified:
+    """One kind, as ``afmctl identify`` fits it: kinds that take ``fit_from_index`` run
+    through the burn-in, others are fitted after it."""
+    opts = dict(params)
+    t, u, y, k0 = c.t_s, delayed(c.t_s, c.u_V, c.delay_s), c.y_nm, c.fit_from
+    if k0 and getattr(cls, "fits_with_burn_in", False):
+        opts.setdefault("fit_from_index", k0)
+    elif k0:
+        t, u, y, k0 = t[k0:], u[k0:], y[k0:], 0
+    try:
+        model = cls.identify(t, u, y, n_operators=n_operators, **opts)
+    except (TypeError, ValueError, ModelError, np.linalg.LinAlgError) as err:
+        raise _fit_errors(kind, where, err) from None
+    if not cls.has_own_delay:
+        model.delay_s = c.delay_s
+    if model.u_range_V is None:        # compensate's default limits
+        model.u_range_V = (float(c.u_V.min()), float(c.u_V.max()))
+    first = c.u_V.size - t.size
+    predict = getattr(model, "predict_linear", None)  # dynamics: nm → nm, needs the fitted gain
+    y_fit = (predict(t, u, y, float(np.median(np.diff(t)))) if predict is not None
+             else predict_nm(model, t, c.u_V[first:], where))
+    return _result(model, c, first, np.asarray(y_fit))
+
+
+def _result(model: HysteresisModel, c: Conditioned, first: int, y_fit: np.ndarray,
+            table: list[Any] | None = None) -> Identified:
+    t, u, y = c.t_s[first:], c.u_V[first:], c.y_nm[first:]
+    k = c.fit_from - first
+    seen = np.isfinite(y_fit[k:])          # dynamics: only its fitted segment is predicted
+    res = (y_fit - y)[k:][seen]
+    span = float(np.ptp(y[k:][seen])) or 1.0
+    return Identified(model, t, u, y, y_fit, float(c.t_s[c.fit_from]) if c.fit_from else None,
+                      float(np.sqrt(np.mean(res ** 2))), float(np.max(np.abs(res))), span, list(c.notes),
+                      excitation_notes(c.t_s, c.u_V), table)
+
+
+def _chain(kind: str, c: Conditioned, n_operators: int | None, params: dict[str, Any], where: str) -> Identified:
+    """A chain or ``auto``, as ``afmctl identify`` fits them (the whole record, the burn-in
+    only setting the memory)."""
+    from afmctl.compensators.chain import ChainModel, parse_structure
+    from afmctl.compensators.selection import CRITERIA, select_model
+
+    opts = dict(params)
+    if n_operators is not None:
+        opts["n_operators"] = n_operators
+    t, u, y, k = c.t_s, delayed(c.t_s, c.u_V, c.delay_s), c.y_nm, c.fit_from
+    table = None
+    try:
+        if kind == "auto":
+            holdout = float(opts.pop("holdout_fraction", 0.3))
+            candidates = opts.pop("candidates", None)
+            criterion = opts.pop("criterion", "rms")
+            with_dynamics = opts.pop("with_dynamics", True)
+            if not isinstance(with_dynamics, bool):
+                raise AfmctlError(f"with_dynamics: {with_dynamics!r}; allowed true or false")
+            if criterion not in CRITERIA:
+                raise AfmctlError(f"criterion: {criterion!r}; allowed {', '.join(CRITERIA)} (held-out error)")
+            extra = {"candidates": tuple(candidates)} if candidates else {}
+            model, table = select_model(t, u, y, holdout_fraction=holdout, options=opts, fit_from_index=k,
+                                        criterion=criterion, with_dynamics=with_dynamics, **extra)
+        else:
+            parse_structure(kind)
+            model = ChainModel.identify(t, u, y, structure=kind, fit_from_index=k, **opts)
+    except (TypeError, ModelError, np.linalg.LinAlgError) as err:
+        raise _fit_errors(kind, where, err) from None
+    y_fit = np.asarray(model.forward(float(np.median(np.diff(t)))).block(np.ascontiguousarray(u)))
+    model.delay_s = c.delay_s
+    if model.u_range_V is None:        # compensate's default limits
+        model.u_range_V = (float(np.min(u)), float(np.max(u)))
+    out = _result(model, c, 0, y_fit, table)
+    out.u_V = u
+    return out
