@@ -297,6 +297,8 @@ class Amplifier(AmplifierInterface):
     # ---- recorder hooks (a backend with a data recorder sets has_recorder and fills these) ----
     #: the device has a data recorder this driver drives (see :meth:`configure_recorder`)
     has_recorder: bool = False
+    #: the recording armed last (:meth:`configure_recorder`), None before or after it is dropped
+    _recorder_setup: RecorderSetup | None = None
 
     def _recorder_clock_s(self) -> float:
         """The recorder's base sample period [s] (one tick of the device clock)."""

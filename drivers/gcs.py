@@ -16,6 +16,8 @@ plays the uploaded tables on the controller's servo clock (axis k on generator a
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any, cast
+
 import numpy as np
 
 from . import codec_gcs as codec
@@ -299,7 +301,7 @@ class GCSAmplifier(SerialAmplifier):
                              {"tables": where})
 
     def _recorded_points(self, setup: RecorderSetup) -> int:
-        tables = sorted(setup.extra["tables"].values())  # type: ignore[union-attr]
+        tables = sorted(cast("dict[Any, int]", setup.extra["tables"]).values())
         counts = rcodec.parse_counts(self._query("DRL? " + " ".join(map(str, tables))), tables)
         return min(counts.values())
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any
+from typing import Any, cast
 
 from collections.abc import Sequence
 
@@ -298,6 +298,8 @@ class NV200(SerialAmplifier):
         cache; one never started (or not ending) is stopped and dropped, with a warning."""
         setup = self._recorder_setup
         self._rec_pending = False
+        if setup is None:
+            return
         deadline = time.monotonic() + setup.points * setup.period_s + 2.0
         while self._rec_triggered and self._read("recrun"):
             if time.monotonic() > deadline:
@@ -314,7 +316,8 @@ class NV200(SerialAmplifier):
 
     def _read_channels(self, setup: RecorderSetup) -> Recording:
         values = {}
-        for sig, ch in setup.extra["channels"].items():  # type: ignore[union-attr]
+        channels = cast("dict[str, int]", setup.extra["channels"])
+        for sig, ch in channels.items():
             self._drain()
             self.transport.write(codec.encode(f"recoutf,{ch}"))
             values[sig] = rcodec.parse_recoutf(self.transport.read_frame(rcodec.split_recoutf, timeout_s=max(

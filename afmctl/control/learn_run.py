@@ -280,7 +280,7 @@ class LearnRun:
         is refused (:func:`afmctl.drivers.recording.align_to_table`)."""
         from afmctl.drivers.recording import RecordingMismatch, align_to_table
         rec = self.amp.read_recording(timeout_s=self.options.record_timeout_s)
-        tables = {a: table.u_V[:, "xyz".index(a)] for a in setup.axes}
+        tables: dict[str, Any] = {a: table.u_V[:, "xyz".index(a)] for a in setup.axes}
         try:
             rec = align_to_table(rec, tables, tol_V=OUTPUT_TOL_V)
         except RecordingMismatch as err:

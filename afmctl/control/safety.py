@@ -28,6 +28,7 @@ import logging
 import math
 import time
 from collections.abc import Sequence
+from typing import Any
 
 from ..errors import AfmctlError
 from afmctl.drivers.base import Amplifier
@@ -117,7 +118,7 @@ class SafetyLayer:
         before the output is read back: host setpoints must never compete with the device's
         own clock (they would alternate with the table's samples, far beyond the slew limit).
         Returns one line per thing stopped."""
-        amp = self.amplifier
+        amp: Any = self.amplifier            # the optional device-timed methods of a driver
         notes: list[str] = []
         if hasattr(amp, "wave_status"):
             st = amp.wave_status()

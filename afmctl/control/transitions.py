@@ -162,12 +162,12 @@ def missing_pairs(table: Mapping[tuple[Phase, Event], Phase]) -> list[tuple[Phas
     return [(p, e) for p in Phase for e in Event if not isinstance(table.get((p, e)), Phase)]
 
 
-def stop_escapes(table: Mapping[tuple[Phase, Event], Phase]) -> list[tuple[Phase, ...]]:
+def stop_escapes(table: Mapping[tuple[Phase, Event], Phase]) -> list[tuple[Phase, Phase | None]]:
     """Paths that break the stop bound: from some phase a request leads somewhere other than
     FINISH or a terminal phase, or a phase reachable after it leads out of that set again.
     Empty for a table that honours every stop."""
     ok = TERMINAL | {Phase.FINISH}
-    bad: list[tuple[Phase, ...]] = []
+    bad: list[tuple[Phase, Phase | None]] = []
     for p in Phase:
         for r in REQUESTS:
             q = table.get((p, r))

@@ -64,7 +64,7 @@ def _on_target_rows(tm: np.ndarray, ym: np.ndarray, t: np.ndarray, dt: float, wh
 def _model(args: argparse.Namespace) -> Any:
     from afmctl.compensators.models import load_model
 
-    model = load_model(args.model)
+    model: Any = load_model(args.model)
     if model.kind == "scanner":
         if not args.axis:
             raise AfmctlError(f"--axis: {args.model} is a scanner model; choose the axis with --axis x|y|z")

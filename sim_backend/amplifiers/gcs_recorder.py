@@ -102,7 +102,7 @@ class DataRecorder:
             return
         period = self.rate * self.servo_cycle_s
         for tab in self._filling:
-            if tab.filled >= self.max_points:
+            if tab.filled >= self.max_points or tab.t0_s is None:
                 continue
             x = (t_s - tab.t0_s) / period
             last = math.ceil(x - 1e-9) - 1 if strict else math.floor(x + 1e-9)

@@ -165,7 +165,7 @@ class SimNV200(SimDevice):
             return self._error(4)
         if name == "grun" and nums[0] == 1 and not was_running and self.params["recast"] == 2:
             # recast 2: the recorder starts with the generator, on the tick of its sample 0
-            self.recorder.start(self.wave.t0_s, self.params["recstr"], self.params["reclen"])
+            self.recorder.start(self.wave.t0_s, int(self.params["recstr"]), int(self.params["reclen"]))
         return b""
 
     def command(self, line: bytes) -> bytes:
@@ -222,7 +222,7 @@ class SimNV200(SimDevice):
                 return self._error(4)
             self.params["set"] = v
             if self.recorder.state == "armed" and self.params["recast"] == 1:
-                self.recorder.start(self.now(), self.params["recstr"], self.params["reclen"])
+                self.recorder.start(self.now(), int(self.params["recstr"]), int(self.params["reclen"]))
             if self.params["modsrc"] == 0:
                 self._apply({"x": v})
             return b""
@@ -243,7 +243,7 @@ class SimNV200(SimDevice):
         if v == 0:
             self.recorder.stop()
         elif self.params["recast"] == 0:
-            self.recorder.start(now, self.params["recstr"], self.params["reclen"])
+            self.recorder.start(now, int(self.params["recstr"]), int(self.params["reclen"]))
         else:
             self.recorder.arm()
 
