@@ -22,7 +22,9 @@ voltages ``u_{k+1}`` (:meth:`Learner.step` → :class:`LearnResult`):
    is ever returned;
 5. *guards* — the **divergence guard**: when the weighted error has risen on
    ``max_rises`` (2) iterations in a row, learning stops and the best table sent so far
-   is returned; the **convergence check**: when the model's measured phase error
+   is returned; a table that did not beat the best is not learned from: the next one is
+   learned from the best table with half the step (a quarter after two such, …); the
+   **convergence check**: when the model's measured phase error
    exceeds 90° at a learned harmonic that holds more than ``stall_share`` of the
    remaining weighted error, the model-based law cannot converge there (``|1 − ρR| ≥ 1``
    for every ρ > 0): learning stops and says so, keeping the best table.
@@ -106,7 +108,8 @@ class LearnState:
     """What the learner carries between iterations: ``iteration`` (steps taken),
     ``history`` (one dict of error figures per step, of the table that was *sent*),
     ``best_u_V``/``best_metric_pct``/``best_iteration`` (the sent table with the least
-    weighted error), ``rises`` (iterations of rising error in a row), ``stopped`` and
+    weighted error), ``rises`` (iterations of rising error in a row), ``misses``
+    (iterations in a row that did not beat the best: each halves the step), ``stopped`` and
     ``reason``, ``target_digest`` (which target it belongs to), and the last iteration's
     table and recording ``previous_u_V``/``previous_y_nm`` (for the secant estimate of
     the model's error), ``best_y_nm`` (the best table's recording), and the model's error
@@ -119,6 +122,7 @@ class LearnState:
     best_metric_pct: float = math.inf
     best_iteration: int = -1
     rises: int = 0
+    misses: int = 0
     stopped: bool = False
     reason: str = ""
     previous_u_V: list[float] | None = None
@@ -144,6 +148,7 @@ class LearnState:
                         best_u_V=None if best is None else [float(v) for v in best],
                         best_metric_pct=math.inf if d.get("best_metric_pct") is None else float(d["best_metric_pct"]),
                         best_iteration=int(d.get("best_iteration", -1)), rises=int(d.get("rises", 0)),
+                        misses=int(d.get("misses", 0)),
                         stopped=bool(d.get("stopped", False)), reason=str(d.get("reason", "")),
                         previous_u_V=None if prev_u is None else [float(v) for v in prev_u],
                         previous_y_nm=None if prev_y is None else [float(v) for v in prev_y],
@@ -221,6 +226,8 @@ class Learner:
         w = error_weights(self.target_nm, self.settings.central_pct, self.settings.lines_only, self.lines)
         self.reference_nm = rounded_reference(self.target_nm, w, self.lines)
         self.weights = np.where(w > 0, 1.0, self.settings.turnaround_weight if self.lines else 0.0)
+        #: where the guards judge the error: the weighted parts (the lines' central parts of a raster)
+        self.judged = w > 0
         self.grid = Grid.for_record(self.target_nm.size, self.dt_s, self.settings.periodic)
         self.digest = target_digest(self.target_nm, self.dt_s)
         if state is not None and state.target_digest != self.digest:
@@ -258,7 +265,7 @@ class Learner:
             y = _shift(y, -int(round(lag)), s.periodic)
         errors = error_figures(y, self.target_nm, self.lines)
         e = self.reference_nm - y
-        metric = _weighted_max_pct(e, self.weights >= 1.0, self.target_nm, self.lines)
+        metric = _weighted_max_pct(e, self.judged, self.target_nm, self.lines)
         previous = self._previous()
         stop_reason = self._record(u, y, errors, metric)
         base = self._base(u, y)
@@ -289,7 +296,7 @@ class Learner:
         st = self.state
         best = np.asarray(st.best_u_V if st.best_u_V is not None else u, dtype=float)
         errors = error_figures(y, self.target_nm, self.lines)
-        metric = _weighted_max_pct(self.reference_nm - y, self.weights >= 1.0, self.target_nm, self.lines)
+        metric = _weighted_max_pct(self.reference_nm - y, self.judged, self.target_nm, self.lines)
         du = best - u
         return LearnResult(best, st.iteration, self.law, errors, metric, 0.0, False, float(np.max(np.abs(du))),
                            float(np.sqrt(np.mean(du * du))), 0, 0, 0.0, math.nan, 0.0, 0.0, True, st.reason,
@@ -327,6 +334,7 @@ class Learner:
         prev = st.history[-1]["weighted_max_pct"] if st.history else math.inf
         st.history.append({**errors, "weighted_max_pct": metric})
         st.iteration += 1
+        st.misses = st.misses + 1 if metric >= st.best_metric_pct else 0
         if metric < st.best_metric_pct:
             st.best_metric_pct, st.best_u_V, st.best_iteration = metric, u.tolist(), st.iteration - 1
             st.best_y_nm = y.tolist()
@@ -350,7 +358,7 @@ class Learner:
     def _increment(self, base: tuple[np.ndarray, np.ndarray], werr: np.ndarray,
                    secant: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None) -> Increment:
         s = self.settings
-        rho = s.rho_max if s.rho_max is not None else DEFAULT_STEP[self.law]
+        rho = (s.rho_max if s.rho_max is not None else DEFAULT_STEP[self.law]) * 0.5 ** self.state.misses
         if self.model is None:
             prev = None if secant is None else (secant[2], secant[3])
             return model_free_increment(self.grid, base[0], base[1], werr, rho, s.q_cutoff_Hz, prev)
