@@ -279,22 +279,19 @@ class Learner:
                            "cannot converge there (re-identify the model, or learn without --model)")
         if stop_reason:
             self.state.stopped, self.state.reason = True, self.state.reason or stop_reason
-        if self.state.stopped:
-            nxt = np.asarray(self.state.best_u_V, dtype=float)
-            clipped = limited = 0
-        else:
-            nxt, clipped, limited = self._within_limits(base[0] + inc.du_V)
+        best = np.asarray(self.state.best_u_V, dtype=float) if self.state.stopped else base[0] + inc.du_V
+        nxt, clipped, limited = self._within_limits(best)    # a user's first table may be beyond them
         du = nxt - u
-        learned = inc.reliable & (inc.rho > 0)
+        band = (self.grid.f_Hz > 0) & (self.grid.f_Hz <= inc.q_cutoff_Hz)
         return LearnResult(nxt, self.state.iteration, self.law, errors, metric, float(lag), aligned,
                            float(np.max(np.abs(du))), float(np.sqrt(np.mean(du * du))), clipped, limited,
-                           float(np.median(inc.rho[learned])) if np.any(learned) else 0.0, inc.q_cutoff_Hz,
+                           float(np.median(inc.rho[band])) if np.any(band) else 0.0, inc.q_cutoff_Hz,
                            phase_deg, phase_f, self.state.stopped, self.state.reason, self.state.best_iteration)
 
     def _stopped_result(self, u: np.ndarray, y: np.ndarray) -> LearnResult:
         """After a stop: the best table again, nothing learned, nothing recorded."""
         st = self.state
-        best = np.asarray(st.best_u_V if st.best_u_V is not None else u, dtype=float)
+        best = self._within_limits(np.asarray(st.best_u_V if st.best_u_V is not None else u, dtype=float))[0]
         errors = error_figures(y, self.target_nm, self.lines)
         metric = _weighted_max_pct(self.reference_nm - y, self.judged, self.target_nm, self.lines)
         du = best - u
