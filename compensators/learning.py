@@ -357,8 +357,7 @@ class Learner:
         s = self.settings
         rho = (s.rho_max if s.rho_max is not None else DEFAULT_STEP[self.law]) * 0.5 ** self.state.misses
         if self.model is None:
-            prev = None if secant is None else (secant[2], secant[3])
-            return model_free_increment(self.grid, base[0], base[1], werr, rho, s.q_cutoff_Hz, prev)
+            return model_free_increment(self.grid, base, werr, rho, s.q_cutoff_Hz, secant)
         return model_based_increment(self.grid, self.model, self.dt_s, base, werr, rho, s.q_cutoff_Hz, secant,
                                      self._known())
 
