@@ -47,7 +47,8 @@ from .base import ModelError
 from .dynamics_limits import rate_limit
 from .learning_laws import Increment, model_based_increment, model_free_increment, periodic_run
 from .learning_spectra import Grid, estimate_lag_samples
-from .learning_weights import error_figures, error_weights, find_lines, rounded_reference
+from .learning_weights import (REPORT_CENTRAL_PCT, error_figures, error_weights, find_lines, lines_mask,
+                               rounded_reference)
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +67,8 @@ class LearnSettings:
     weighted share of each raster line [%] (100: no weighting); ``lines_only``: weight 0
     off the lines; ``periodic``: the table is played cyclically and recorded in steady
     state; ``u_min_V``/``u_max_V``/``slew_V_per_s``: the amplifier's limits;
-    ``max_rises``: iterations of rising error in a row that stop learning;
+    ``max_rises``: iterations of rising error in a row that stop learning; ``max_misses``:
+    iterations in a row without a better table that stop it (the floor is reached);
     ``phase_limit_deg``: the convergence check's bound; ``stall_share``: the share of
     the weighted error energy beyond it that stops learning; ``align``: shift the
     recording by the estimated lag; ``turnaround_weight``: the weight of the error in the
@@ -82,6 +84,7 @@ class LearnSettings:
     u_max_V: float = math.inf
     slew_V_per_s: float | None = None
     max_rises: int = 2
+    max_misses: int = 4
     phase_limit_deg: float = 90.0
     stall_share: float = 0.5
     align: bool = False
@@ -95,6 +98,7 @@ class LearnSettings:
                   ("u_min_V/u_max_V", self.u_min_V < self.u_max_V, "u_min_V < u_max_V"),
                   ("slew_V_per_s", self.slew_V_per_s is None or self.slew_V_per_s > 0, "> 0 V/s"),
                   ("max_rises", self.max_rises >= 1, "≥ 1"),
+                  ("max_misses", self.max_misses >= 1, "≥ 1"),
                   ("phase_limit_deg", 0 < self.phase_limit_deg <= 180, "0 … 180°"),
                   ("stall_share", 0 < self.stall_share <= 1, "0 < stall_share ≤ 1"),
                   ("turnaround_weight", 0 <= self.turnaround_weight <= 1, "0 … 1")]
@@ -226,8 +230,9 @@ class Learner:
         w = error_weights(self.target_nm, self.settings.central_pct, self.settings.lines_only, self.lines)
         self.reference_nm = rounded_reference(self.target_nm, w, self.lines)
         self.weights = np.where(w > 0, 1.0, self.settings.turnaround_weight if self.lines else 0.0)
-        #: where the guards judge the error: the weighted parts (the lines' central parts of a raster)
-        self.judged = w > 0
+        #: where the guards judge the error: the central 80 % of each line of a raster (what an AFM
+        #: images, and what the error report calls central), else the weighted parts
+        self.judged = lines_mask(self.target_nm.size, self.lines, REPORT_CENTRAL_PCT) > 0 if self.lines else w > 0
         self.grid = Grid.for_record(self.target_nm.size, self.dt_s, self.settings.periodic)
         self.digest = target_digest(self.target_nm, self.dt_s)
         if state is not None and state.target_digest != self.digest:
@@ -339,6 +344,9 @@ class Learner:
         if st.rises >= self.settings.max_rises:
             return (f"the weighted error rose {st.rises} times in a row (to {metric:.3g} %): diverging; "
                     f"keeping the best table (iteration {st.best_iteration}, {st.best_metric_pct:.3g} %)")
+        if st.misses >= self.settings.max_misses:
+            return (f"no better table in {st.misses} iterations (steps down to 1/{2 ** st.misses}): the floor is "
+                    f"reached; keeping the best table (iteration {st.best_iteration}, {st.best_metric_pct:.3g} %)")
         return ""
 
     def _base(self, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
