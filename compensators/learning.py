@@ -25,9 +25,10 @@ voltages ``u_{k+1}`` (:meth:`Learner.step` → :class:`LearnResult`):
    is returned; a table that did not beat the best is not learned from: the next one is
    learned from the best table with half the step (a quarter after two such, …); the
    **convergence check**: when the model's measured phase error
-   exceeds 90° at a learned harmonic that holds more than ``stall_share`` of the
-   remaining weighted error, the model-based law cannot converge there (``|1 − ρR| ≥ 1``
-   for every ρ > 0): learning stops and says so, keeping the best table.
+   exceeds 90° at learned harmonics that hold more than ``stall_share`` of the
+   remaining weighted error, and the last table did not beat the best, the model-based
+   law cannot converge there (``|1 − ρR| ≥ 1`` for every ρ > 0): learning stops and says
+   so, keeping the best table.
 
 The iteration state (:class:`LearnState`: history, best table, stop reason) is plain data
 (:meth:`LearnState.to_dict` / :meth:`LearnState.from_dict`) so a command line can keep it
@@ -278,7 +279,7 @@ class Learner:
         inc = self._increment(base, werr, (u, y) + previous if previous else None)
         self._remember(inc)
         phase_deg, phase_f, stalled = self._phase_check(inc, werr)
-        if not stop_reason and stalled:
+        if not stop_reason and stalled and self.state.misses > 0:
             stop_reason = (f"the model's phase error is {phase_deg:.0f}° (over {s.phase_limit_deg:g}°) at "
                            f"{phase_f:.4g} Hz, and most of the remaining error lies where it is: the model-based law "
                            "cannot converge there (re-identify the model, or learn without --model)")
