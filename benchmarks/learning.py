@@ -208,10 +208,10 @@ def figure(rows: list[dict], path: Path) -> None:
             ax.semilogy(range(len(r["errors"])), r["errors"], marker="o", ms=3, label=f"{r['plant']} {r['rate']:g}/s")
         ax.axhline(GOALS[start][0], color="k", ls="--", lw=0.8)
         ax.set_title(f"start: {start}")
-        ax.set_xlabel("iteration")
+        ax.set_xlabel("table (0 = the first)")
         ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=6)
     axes[0][0].set_ylabel("max error, central 80 % of lines [% of line]")
-    axes[0][-1].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -250,7 +250,7 @@ def main(argv: list[str] | None = None) -> int:
                       f"`.venv/bin/python benchmarks/learning.py --figure` ({time.perf_counter() - t0:.0f} s, "
                       "models identified once and cached in `--work`). Noise-free replay of each table through a "
                       "fresh simulated plant; max error over the central 80 % of each line, % of the line; "
-                      "column 'errors' lists the first table then every learned one. Starts: `auto` = the chain "
+                      "column 'errors' lists the first table then every learned one (after a stop, the last entry is the best table, which the learner keeps writing). Starts: `auto` = the chain "
                       "from `identify --model auto` (goal ≤ 0.3 % within 10), `none` = linear calibration, no "
                       "model (≤ 0.5 % within 20), `wrong+30%` = the auto chain with its modes 30 % too high, `bad` "
                       "= its delay 3/8 of a line period too long (> 90° phase error at the line rate: the guard must "
