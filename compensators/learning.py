@@ -22,10 +22,13 @@ voltages ``u_{k+1}`` (:meth:`Learner.step` → :class:`LearnResult`):
    is ever returned;
 5. *guards* — the **divergence guard**: when the weighted error has risen on
    ``max_rises`` (2) iterations in a row, learning stops and the best table sent so far
-   is returned; the **convergence check**: when the model's measured phase error
-   exceeds 90° at a learned harmonic that holds more than ``stall_share`` of the
-   remaining weighted error, the model-based law cannot converge there (``|1 − ρR| ≥ 1``
-   for every ρ > 0): learning stops and says so, keeping the best table.
+   is returned; a table that did not beat the best is not learned from: the next one is
+   learned from the best table with half the step (a quarter after two such, …); the
+   **convergence check**: when the model's measured phase error
+   exceeds 90° at learned harmonics that hold more than ``stall_share`` of the
+   remaining weighted error, and the last table did not beat the best, the model-based
+   law cannot converge there (``|1 − ρR| ≥ 1`` for every ρ > 0): learning stops and says
+   so, keeping the best table.
 
 The iteration state (:class:`LearnState`: history, best table, stop reason) is plain data
 (:meth:`LearnState.to_dict` / :meth:`LearnState.from_dict`) so a command line can keep it
@@ -45,7 +48,8 @@ from .base import ModelError
 from .dynamics_limits import rate_limit
 from .learning_laws import Increment, model_based_increment, model_free_increment, periodic_run
 from .learning_spectra import Grid, estimate_lag_samples
-from .learning_weights import error_figures, error_weights, find_lines, rounded_reference
+from .learning_weights import (REPORT_CENTRAL_PCT, error_figures, error_weights, find_lines, lines_mask,
+                               rounded_reference)
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +68,8 @@ class LearnSettings:
     weighted share of each raster line [%] (100: no weighting); ``lines_only``: weight 0
     off the lines; ``periodic``: the table is played cyclically and recorded in steady
     state; ``u_min_V``/``u_max_V``/``slew_V_per_s``: the amplifier's limits;
-    ``max_rises``: iterations of rising error in a row that stop learning;
+    ``max_rises``: iterations of rising error in a row that stop learning; ``max_misses``:
+    iterations in a row without a better table that stop it (the floor is reached);
     ``phase_limit_deg``: the convergence check's bound; ``stall_share``: the share of
     the weighted error energy beyond it that stops learning; ``align``: shift the
     recording by the estimated lag; ``turnaround_weight``: the weight of the error in the
@@ -80,6 +85,7 @@ class LearnSettings:
     u_max_V: float = math.inf
     slew_V_per_s: float | None = None
     max_rises: int = 2
+    max_misses: int = 4
     phase_limit_deg: float = 90.0
     stall_share: float = 0.5
     align: bool = False
@@ -93,6 +99,7 @@ class LearnSettings:
                   ("u_min_V/u_max_V", self.u_min_V < self.u_max_V, "u_min_V < u_max_V"),
                   ("slew_V_per_s", self.slew_V_per_s is None or self.slew_V_per_s > 0, "> 0 V/s"),
                   ("max_rises", self.max_rises >= 1, "≥ 1"),
+                  ("max_misses", self.max_misses >= 1, "≥ 1"),
                   ("phase_limit_deg", 0 < self.phase_limit_deg <= 180, "0 … 180°"),
                   ("stall_share", 0 < self.stall_share <= 1, "0 < stall_share ≤ 1"),
                   ("turnaround_weight", 0 <= self.turnaround_weight <= 1, "0 … 1")]
@@ -106,7 +113,8 @@ class LearnState:
     """What the learner carries between iterations: ``iteration`` (steps taken),
     ``history`` (one dict of error figures per step, of the table that was *sent*),
     ``best_u_V``/``best_metric_pct``/``best_iteration`` (the sent table with the least
-    weighted error), ``rises`` (iterations of rising error in a row), ``stopped`` and
+    weighted error), ``rises`` (iterations of rising error in a row), ``misses``
+    (iterations in a row that did not beat the best: each halves the step), ``stopped`` and
     ``reason``, ``target_digest`` (which target it belongs to), and the last iteration's
     table and recording ``previous_u_V``/``previous_y_nm`` (for the secant estimate of
     the model's error), ``best_y_nm`` (the best table's recording), and the model's error
@@ -119,6 +127,7 @@ class LearnState:
     best_metric_pct: float = math.inf
     best_iteration: int = -1
     rises: int = 0
+    misses: int = 0
     stopped: bool = False
     reason: str = ""
     previous_u_V: list[float] | None = None
@@ -144,6 +153,7 @@ class LearnState:
                         best_u_V=None if best is None else [float(v) for v in best],
                         best_metric_pct=math.inf if d.get("best_metric_pct") is None else float(d["best_metric_pct"]),
                         best_iteration=int(d.get("best_iteration", -1)), rises=int(d.get("rises", 0)),
+                        misses=int(d.get("misses", 0)),
                         stopped=bool(d.get("stopped", False)), reason=str(d.get("reason", "")),
                         previous_u_V=None if prev_u is None else [float(v) for v in prev_u],
                         previous_y_nm=None if prev_y is None else [float(v) for v in prev_y],
@@ -221,6 +231,9 @@ class Learner:
         w = error_weights(self.target_nm, self.settings.central_pct, self.settings.lines_only, self.lines)
         self.reference_nm = rounded_reference(self.target_nm, w, self.lines)
         self.weights = np.where(w > 0, 1.0, self.settings.turnaround_weight if self.lines else 0.0)
+        #: where the guards judge the error: the central 80 % of each line of a raster (what an AFM
+        #: images, and what the error report calls central), else the weighted parts
+        self.judged = lines_mask(self.target_nm.size, self.lines, REPORT_CENTRAL_PCT) > 0 if self.lines else w > 0
         self.grid = Grid.for_record(self.target_nm.size, self.dt_s, self.settings.periodic)
         self.digest = target_digest(self.target_nm, self.dt_s)
         if state is not None and state.target_digest != self.digest:
@@ -258,7 +271,7 @@ class Learner:
             y = _shift(y, -int(round(lag)), s.periodic)
         errors = error_figures(y, self.target_nm, self.lines)
         e = self.reference_nm - y
-        metric = _weighted_max_pct(e, self.weights >= 1.0, self.target_nm, self.lines)
+        metric = _weighted_max_pct(e, self.judged, self.target_nm, self.lines)
         previous = self._previous()
         stop_reason = self._record(u, y, errors, metric)
         base = self._base(u, y)
@@ -266,30 +279,27 @@ class Learner:
         inc = self._increment(base, werr, (u, y) + previous if previous else None)
         self._remember(inc)
         phase_deg, phase_f, stalled = self._phase_check(inc, werr)
-        if not stop_reason and stalled:
+        if not stop_reason and stalled and self.state.misses > 0:
             stop_reason = (f"the model's phase error is {phase_deg:.0f}° (over {s.phase_limit_deg:g}°) at "
                            f"{phase_f:.4g} Hz, and most of the remaining error lies where it is: the model-based law "
                            "cannot converge there (re-identify the model, or learn without --model)")
         if stop_reason:
             self.state.stopped, self.state.reason = True, self.state.reason or stop_reason
-        if self.state.stopped:
-            nxt = np.asarray(self.state.best_u_V, dtype=float)
-            clipped = limited = 0
-        else:
-            nxt, clipped, limited = self._within_limits(base[0] + inc.du_V)
+        best = np.asarray(self.state.best_u_V, dtype=float) if self.state.stopped else base[0] + inc.du_V
+        nxt, clipped, limited = self._within_limits(best)    # a user's first table may be beyond them
         du = nxt - u
-        learned = inc.reliable & (inc.rho > 0)
+        band = (self.grid.f_Hz > 0) & (self.grid.f_Hz <= inc.q_cutoff_Hz)
         return LearnResult(nxt, self.state.iteration, self.law, errors, metric, float(lag), aligned,
                            float(np.max(np.abs(du))), float(np.sqrt(np.mean(du * du))), clipped, limited,
-                           float(np.median(inc.rho[learned])) if np.any(learned) else 0.0, inc.q_cutoff_Hz,
+                           float(np.median(inc.rho[band])) if np.any(band) else 0.0, inc.q_cutoff_Hz,
                            phase_deg, phase_f, self.state.stopped, self.state.reason, self.state.best_iteration)
 
     def _stopped_result(self, u: np.ndarray, y: np.ndarray) -> LearnResult:
         """After a stop: the best table again, nothing learned, nothing recorded."""
         st = self.state
-        best = np.asarray(st.best_u_V if st.best_u_V is not None else u, dtype=float)
+        best = self._within_limits(np.asarray(st.best_u_V if st.best_u_V is not None else u, dtype=float))[0]
         errors = error_figures(y, self.target_nm, self.lines)
-        metric = _weighted_max_pct(self.reference_nm - y, self.weights >= 1.0, self.target_nm, self.lines)
+        metric = _weighted_max_pct(self.reference_nm - y, self.judged, self.target_nm, self.lines)
         du = best - u
         return LearnResult(best, st.iteration, self.law, errors, metric, 0.0, False, float(np.max(np.abs(du))),
                            float(np.sqrt(np.mean(du * du))), 0, 0, 0.0, math.nan, 0.0, 0.0, True, st.reason,
@@ -327,6 +337,7 @@ class Learner:
         prev = st.history[-1]["weighted_max_pct"] if st.history else math.inf
         st.history.append({**errors, "weighted_max_pct": metric})
         st.iteration += 1
+        st.misses = st.misses + 1 if metric >= st.best_metric_pct else 0
         if metric < st.best_metric_pct:
             st.best_metric_pct, st.best_u_V, st.best_iteration = metric, u.tolist(), st.iteration - 1
             st.best_y_nm = y.tolist()
@@ -334,6 +345,9 @@ class Learner:
         if st.rises >= self.settings.max_rises:
             return (f"the weighted error rose {st.rises} times in a row (to {metric:.3g} %): diverging; "
                     f"keeping the best table (iteration {st.best_iteration}, {st.best_metric_pct:.3g} %)")
+        if st.misses >= self.settings.max_misses:
+            return (f"no better table in {st.misses} iterations (steps down to 1/{2 ** st.misses}): the floor is "
+                    f"reached; keeping the best table (iteration {st.best_iteration}, {st.best_metric_pct:.3g} %)")
         return ""
 
     def _base(self, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -350,10 +364,9 @@ class Learner:
     def _increment(self, base: tuple[np.ndarray, np.ndarray], werr: np.ndarray,
                    secant: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None) -> Increment:
         s = self.settings
-        rho = s.rho_max if s.rho_max is not None else DEFAULT_STEP[self.law]
+        rho = (s.rho_max if s.rho_max is not None else DEFAULT_STEP[self.law]) * 0.5 ** self.state.misses
         if self.model is None:
-            prev = None if secant is None else (secant[2], secant[3])
-            return model_free_increment(self.grid, base[0], base[1], werr, rho, s.q_cutoff_Hz, prev)
+            return model_free_increment(self.grid, base, werr, rho, s.q_cutoff_Hz, secant)
         return model_based_increment(self.grid, self.model, self.dt_s, base, werr, rho, s.q_cutoff_Hz, secant,
                                      self._known())
 

@@ -136,17 +136,20 @@ def _predict(dyn, x: np.ndarray, dt_s: float, periodic: bool) -> np.ndarray:
     return periodic_run(lambda: dyn.forward(dt_s, initial_nm=x0), x, periodic)
 
 
-def model_free_increment(grid: Grid, sent_V: np.ndarray, measured_nm: np.ndarray, werr_nm: np.ndarray,
-                         rho_max: float, q_cutoff_Hz: float | None,
-                         previous: tuple[np.ndarray, np.ndarray] | None = None) -> Increment:
-    """Law (1) with ``Ĝ_k`` estimated from the iterations themselves (module docstring):
-    the secant ``Δy/Δu`` between the last two iterations (3) where their change excites a
-    bin, else this iteration's ``Y_k/U_k``; the DC gain from the linear calibration."""
+def model_free_increment(grid: Grid, base: tuple[np.ndarray, np.ndarray], werr_nm: np.ndarray, rho_max: float,
+                         q_cutoff_Hz: float | None,
+                         secant: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None) -> Increment:
+    """Law (1) with ``Ĝ_k`` estimated from the iterations themselves (module docstring),
+    applied to the table ``base = (u [V], y [nm])``: the secant (3) between the two
+    tables and recordings of ``secant = (u_a, y_a, u_b, y_b)`` where their difference
+    excites a bin, else the base's own ``Y/U``; the DC gain from the linear calibration."""
     f = grid.f_Hz
+    sent_V, measured_nm = base
     g, reliable = smoothed_ratio(grid.diff_spectrum(measured_nm), grid.diff_spectrum(sent_V), f)
-    if previous is not None:
-        g_sec, rel_sec = smoothed_ratio(grid.diff_spectrum(measured_nm - previous[1]),
-                                        grid.diff_spectrum(sent_V - previous[0]), f, threshold=SECANT_RELIABLE)
+    if secant is not None:
+        u_a, y_a, u_b, y_b = secant
+        g_sec, rel_sec = smoothed_ratio(grid.diff_spectrum(y_a - y_b), grid.diff_spectrum(u_a - u_b), f,
+                                        threshold=SECANT_RELIABLE)
         g = np.where(rel_sec, g_sec, g)
         reliable = reliable | rel_sec
     gain, offset = calibration(sent_V, measured_nm)

@@ -76,13 +76,13 @@ def error_weights(y_nm: np.ndarray, central_pct: float = 80.0, lines_only: bool 
     y = np.asarray(y_nm, dtype=float)
     found = find_lines(y) if lines is None else lines
     if not found or central_pct >= 100.0:
-        return np.ones(y.size) if not (found and lines_only) else _lines_mask(y.size, found, 100.0)
+        return np.ones(y.size) if not (found and lines_only) else lines_mask(y.size, found, 100.0)
     w = np.zeros(y.size) if lines_only else np.ones(y.size)
     for ln in found:
         m = int(round(ln.n * (100.0 - central_pct) / 200.0))
         w[max(0, ln.start - m): ln.start + m] = 0.0
         w[max(0, ln.stop - m): ln.stop + m] = 0.0
-    return np.maximum(w, _lines_mask(y.size, found, central_pct))
+    return np.maximum(w, lines_mask(y.size, found, central_pct))
 
 
 def rounded_reference(y_nm: np.ndarray, weights: np.ndarray, lines: list[Line]) -> np.ndarray:
@@ -106,7 +106,8 @@ def rounded_reference(y_nm: np.ndarray, weights: np.ndarray, lines: list[Line]) 
     return np.where(zero, smooth, y)
 
 
-def _lines_mask(n: int, lines: list[Line], pct: float) -> np.ndarray:
+def lines_mask(n: int, lines: list[Line], pct: float) -> np.ndarray:
+    """1 on the central ``pct`` % of each line, 0 elsewhere (``n`` samples)."""
     w = np.zeros(n)
     for ln in lines:
         w[ln.central(pct)] = 1.0
@@ -125,7 +126,7 @@ def error_figures(y_nm: np.ndarray, target_nm: np.ndarray, lines: list[Line] | N
     found = find_lines(tgt) if lines is None else lines
     if found:
         line = float(np.median([np.ptp(tgt[ln.start:ln.stop]) for ln in found])) or 1.0
-        c = 100.0 * e[_lines_mask(tgt.size, found, REPORT_CENTRAL_PCT) > 0] / line
+        c = 100.0 * e[lines_mask(tgt.size, found, REPORT_CENTRAL_PCT) > 0] / line
         out["central_max_pct"] = float(np.max(np.abs(c)))
         out["central_rms_pct"] = float(np.sqrt(np.mean(c * c)))
     return out

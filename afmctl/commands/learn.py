@@ -121,7 +121,6 @@ SUBCOMMANDS: dict[str, Callable[[argparse._SubParsersAction], None]] = {"step": 
 
 
 def run_step(args: argparse.Namespace) -> int:
-    import numpy as np
 
     from ..data.datafiles import write_csv
     from ..data.learnfiles import load_inputs, load_state, save_state, settings_from_args
