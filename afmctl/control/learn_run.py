@@ -117,6 +117,57 @@ class IterationReport:
         return {k: max((e[k] for e in self.errors.values() if k in e), default=None) for k in keys}
 
 
+def arm_recorder(amp: Any, config: Any, points: int, axes: list[str]) -> Any:
+    """Arm ``amp``'s data recorder for ``points`` points of the measured position and the
+    output of ``axes``, one per table row (the recorder's divider = the loop period)."""
+    clock = amp.recorder_clock_s()
+    divider = max(1, round(config.dt_s / clock))
+    if abs(divider * clock - config.dt_s) > 1e-9 * config.dt_s + 1e-12:
+        raise AfmctlError(f"loop.rate_Hz: {config.loop.rate_Hz:g} Hz is not a whole number of the "
+                          f"recorder's {clock:g} s ticks")
+    return amp.configure_recorder(axes, points=points, divider=divider, signals=("y_nm", "u_V"))
+
+
+def read_aligned(amp: Any, table: WaveTable, setup: Any, timeout_s: float) -> dict[str, np.ndarray]:
+    """The measured position [nm] per recorded axis, one point per table row; a recording
+    whose length or recorded output voltages do not match the table (a trigger offset) is
+    refused (:func:`afmctl.drivers.recording.align_to_table`)."""
+    from afmctl.drivers.recording import RecordingMismatch, align_to_table
+    rec = amp.read_recording(timeout_s=timeout_s)
+    tables: dict[str, Any] = {a: table.u_V[:, "xyz".index(a)] for a in setup.axes}
+    try:
+        rec = align_to_table(rec, tables, tol_V=OUTPUT_TOL_V)
+    except RecordingMismatch as err:
+        raise RecordingRefused(f"learn: {err}") from None
+    missing = [a for a in setup.axes if a not in rec.y_nm]
+    if missing:
+        raise RecordingRefused(f"learn: the recording has no measured position of axis {missing[0]}; "
+                               "not learned from")
+    return {a: np.asarray(rec.y_nm[a], dtype=float) for a in setup.axes}
+
+
+def play_recorded(config: Any, amp: Any, source: LearnedSource, axes: list[str],
+                  timeout_s: float = 30.0) -> dict[str, np.ndarray]:
+    """Play a learned table as ``afmctl run`` does (``config``: a run configuration with
+    ``output = "wave"``) and record it with the device's recorder: the measured position
+    [nm] per axis of ``axes``, one point per table row — how a learned table is checked
+    after learning (the same sensor, the same protocol)."""
+    table = source.learned.table
+    armed: list[Any] = []
+    ctl = Controller(config, amp)
+    ctl.before_wave_start = lambda: armed.append(arm_recorder(amp, config, len(table), axes))
+    try:
+        ctl.start(source)
+        while not ctl.wait(0.05):
+            pass
+    finally:
+        ctl.close()
+    if ctl.state is not State.STOPPED or not armed:
+        raise AfmctlError(f"the learned table did not play to the end ({ctl.state.value}: "
+                          f"{ctl.trajectory_error or ctl.stats().get('last_error')})")
+    return read_aligned(amp, table, armed[0], timeout_s)
+
+
 class LearnRun:
     """Learning on one open amplifier (module docstring). ``config``: the run's
     configuration (``amplifier.output = "wave"``, a finite trajectory); ``amplifier``: open,
@@ -200,25 +251,38 @@ class LearnRun:
 
     def iterate(self, k: int, table: WaveTable, learners: dict[str, Learner]
                 ) -> tuple[IterationReport, WaveTable | None]:
-        """Steps check → arm → play → read → learn of iteration ``k`` (module docstring)."""
+        """Steps check → play (arm) → read → learn of iteration ``k`` (module docstring). A
+        link fault during the play or the read-back reconnects and plays the table again,
+        at most ``link_retries`` times."""
         self.step = Step.CHECK
         self._check(table)
         for attempt in range(self.options.link_retries + 1):
-            self.step = Step.PLAY
-            armed: list[Any] = []
-            ended = self._play(table, lambda: armed.append(self._arm(table, list(learners))))
-            if ended is None or ended[0] != "fault" or attempt == self.options.link_retries or self._stop.is_set():
+            got = self._play_and_read(table, list(learners))
+            if isinstance(got, dict):
+                self.step = Step.LEARN
+                return self._learn(k, table, learners, got)
+            if got[0] != "fault" or attempt == self.options.link_retries or self._stop.is_set():
                 break
-            log.warning("learn: iteration %d: %s; reconnecting and playing the table again", k, ended[1])
+            log.warning("learn: iteration %d: %s; reconnecting and playing the table again", k, got[1])
             self._reconnect()
+        return IterationReport(k, {}, float("nan"), state=got[0], detail=got[1]), None
+
+    def _play_and_read(self, table: WaveTable, axes: list[str]) -> dict[str, np.ndarray] | tuple[str, str]:
+        """The measured motion per axis, or ``(state, why)`` when the play or the read-back
+        did not complete."""
+        from afmctl.drivers.errors import AmplifierConnectionError, AmplifierTimeout
+        self.step = Step.PLAY
+        armed: list[Any] = []
+        ended = self._play(table, lambda: armed.append(self._arm(table, axes)))
         if ended is not None:
-            return IterationReport(k, {}, float("nan"), state=ended[0], detail=ended[1]), None
+            return ended
         if not armed:
             raise AfmctlError("learn: the play ended without arming the recorder")
         self.step = Step.READ
-        measured = self._read(table, armed[0])
-        self.step = Step.LEARN
-        return self._learn(k, table, learners, measured)
+        try:
+            return self._read(table, armed[0])
+        except (AmplifierTimeout, AmplifierConnectionError) as err:
+            return "fault", f"reading the recording failed: {err}"
 
     def _check(self, table: WaveTable) -> None:
         start = table.u_V[0, ["xyz".index(a) for a in self.axes]]
@@ -226,12 +290,7 @@ class LearnRun:
             raise AfmctlError("learn: the next table breaks the limits or the slew limit; nothing was sent")
 
     def _arm(self, table: WaveTable, axes: list[str]) -> Any:
-        clock = self.amp.recorder_clock_s()
-        divider = max(1, round(self.config.dt_s / clock))
-        if abs(divider * clock - self.config.dt_s) > 1e-9 * self.config.dt_s + 1e-12:
-            raise AfmctlError(f"loop.rate_Hz: {self.config.loop.rate_Hz:g} Hz is not a whole number of the "
-                              f"recorder's {clock:g} s ticks")
-        return self.amp.configure_recorder(axes, points=len(table), divider=divider, signals=("y_nm", "u_V"))
+        return arm_recorder(self.amp, self.config, len(table), axes)
 
     def _play(self, table: WaveTable, arm: Callable[[], None]) -> tuple[str, str] | None:
         """Play ``table`` as a run plays a learned table, ``arm`` called just before its first
@@ -275,21 +334,7 @@ class LearnRun:
             log.warning("learn: reconnect failed: %s", err)
 
     def _read(self, table: WaveTable, setup: Any) -> dict[str, np.ndarray]:
-        """The measured position per learned axis, one point per table row; a recording
-        whose length or recorded output voltages do not match the table (a trigger offset)
-        is refused (:func:`afmctl.drivers.recording.align_to_table`)."""
-        from afmctl.drivers.recording import RecordingMismatch, align_to_table
-        rec = self.amp.read_recording(timeout_s=self.options.record_timeout_s)
-        tables: dict[str, Any] = {a: table.u_V[:, "xyz".index(a)] for a in setup.axes}
-        try:
-            rec = align_to_table(rec, tables, tol_V=OUTPUT_TOL_V)
-        except RecordingMismatch as err:
-            raise RecordingRefused(f"learn: {err}") from None
-        missing = [a for a in setup.axes if a not in rec.y_nm]
-        if missing:
-            raise RecordingRefused(f"learn: the recording has no measured position of axis {missing[0]}; "
-                                   "not learned from")
-        return {a: np.asarray(rec.y_nm[a], dtype=float) for a in setup.axes}
+        return read_aligned(self.amp, table, setup, self.options.record_timeout_s)
 
     def _learn(self, k: int, table: WaveTable, learners: dict[str, Learner], measured: dict[str, np.ndarray]
                ) -> tuple[IterationReport, WaveTable | None]:
