@@ -256,16 +256,18 @@ class LearnRun:
         at most ``link_retries`` times."""
         self.step = Step.CHECK
         self._check(table)
+        ended = ("fault", "no play")
         for attempt in range(self.options.link_retries + 1):
             got = self._play_and_read(table, list(learners))
             if isinstance(got, dict):
                 self.step = Step.LEARN
                 return self._learn(k, table, learners, got)
+            ended = got
             if got[0] != "fault" or attempt == self.options.link_retries or self._stop.is_set():
                 break
             log.warning("learn: iteration %d: %s; reconnecting and playing the table again", k, got[1])
             self._reconnect()
-        return IterationReport(k, {}, float("nan"), state=got[0], detail=got[1]), None
+        return IterationReport(k, {}, float("nan"), state=ended[0], detail=ended[1]), None
 
     def _play_and_read(self, table: WaveTable, axes: list[str]) -> dict[str, np.ndarray] | tuple[str, str]:
         """The measured motion per axis, or ``(state, why)`` when the play or the read-back
