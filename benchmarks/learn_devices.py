@@ -7,8 +7,8 @@ Per device and raster (4 µm lines at 50 lines/s, 1 µm at 100 and 200 lines/s),
 command line as a user runs it: the progress lines of ``afmctl learn`` (error of each table
 measured by the device's recorder, max over the central 80 % of each line, % of the line),
 the best iteration, the wall time per iteration (upload + play + read-back + learning), and
-the error of the learned table played by ``afmctl run`` (its run log's voltages replayed
-through a fresh simulated scanner, the true tip, central 80 % of each line).
+the error of the learned table when ``afmctl run`` has played it (exit 0) and the controller
+plays it again with the device's recorder armed (the same sensor that learning used).
 
     .venv/bin/python benchmarks/learn_devices.py --model MODEL.json [--devices gcs can nv200]
         [--rates 50 100 200] [--iterations 10] [--work DIR] [--no-write]
@@ -28,15 +28,15 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from afmctl.compensators.learning_weights import error_figures  # noqa: E402
-from afmctl.control.learned_table import load_learned  # noqa: E402
-from afmctl.control.runlog import RunLogReader  # noqa: E402
-from afmctl.simulation.link import replay_voltages_nm  # noqa: E402
+from afmctl.config import load_config  # noqa: E402
+from afmctl.control.learn_run import play_recorded  # noqa: E402
+from afmctl.control.learned_table import LearnedSource  # noqa: E402
+from afmctl.simulation.link import simulated_amplifier  # noqa: E402
 from sections import write_section  # noqa: E402
 
 NAME = "learn_devices"
@@ -87,14 +87,14 @@ def afmctl(*args: str, timeout: float = 1800.0) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "afmctl", *args], capture_output=True, text=True, timeout=timeout)
 
 
-def played_error(run_toml: Path, log: Path, table, scanner_file=None) -> float:
-    """Central max [% of the line] of the learned table as ``afmctl run`` played it."""
-    reader = RunLogReader(log)
-    sp, ev = reader.setpoints(), {e["event"]: e["seq"] for e in reader.events()}
-    sel = (sp["seq"] >= ev["ramp-done"]) & (sp["seq"] < ev["end"])
-    dt = float(np.median(np.diff(sp["t_s"])))
-    y = replay_voltages_nm(sp["u_V"], dt, scanner_file)[sel, 0]
-    return error_figures(y, table.target_nm[:int(sel.sum()), 0])["central_max_pct"]
+def played_error(run_toml: Path, table_file: Path) -> float:
+    """Central max [% of the line] of the learned table as ``afmctl run`` plays it, measured
+    by the device's recorder (:func:`afmctl.control.learn_run.play_recorded`)."""
+    config = load_config(run_toml)
+    learned = LearnedSource.from_file(table_file)
+    with simulated_amplifier(config) as (amp, _scanner):
+        y = play_recorded(config, amp, learned, ["x"])["x"]
+    return error_figures(y, learned.learned.table.target_nm[:, 0])["central_max_pct"]
 
 
 def one(driver: str, line_rate: int, model: str | None, iterations: int, work: Path) -> dict:
@@ -114,20 +114,19 @@ def one(driver: str, line_rate: int, model: str | None, iterations: int, work: P
     best_it, best = min(its, key=lambda x: x[1])
     row.update(best_pct=best, best_iteration=best_it,
                reached=next((i for i, c in its if c <= (0.5 if line_rate >= 200 else 0.2)), None))
-    learned = load_learned(d / "L.afmwave")
     (d / "run.toml").write_text(config_text(driver, line_rate, model, d,
                                             f'kind = "learned"\nfile = "{d / "L.afmwave"}"'))
     run = afmctl("run", "--config", str(d / "run.toml"), "--log", str(d / "run.afmlog"), "--quiet")
     row["run_exit"] = run.returncode
     if run.returncode == 0:
-        row["run_pct"] = played_error(d / "run.toml", d / "run.afmlog", learned.table)
+        row["run_pct"] = played_error(d / "run.toml", d / "L.afmwave")
     return row
 
 
 def table_md(rows: list[dict], model: str | None, command: str) -> str:
     out = [f"`{command}`, model: {Path(model).name if model else 'none (linear calibration)'}; error = max over the "
            "central 80 % of each line, % of the line; 'recorded' = the device's recorder (sensor noise 0.2 nm "
-           "RMS), 'run' = the learned table played by `afmctl run`, the true tip.", "",
+           "RMS), 'run' = the learned table played again as `afmctl run` plays it, recorded the same way.", "",
            "| device | lines/s | first [%] | best [%] (iteration) | at goal by iteration | run [%] | s / iteration |",
            "|---|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
