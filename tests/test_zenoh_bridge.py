@@ -304,7 +304,7 @@ def test_service_still_answers_after_abuse(service):
 
 def test_sim_publisher_tip_positions(service):
     from afmctl.zenoh_api.messages import SimTipMsg, decode_json
-    from afmctl.zenoh_api.bridge import SimPublisher
+    from afmctl.zenoh_api.sim_publisher import SimPublisher
     _, bridge, client = service
     got: list = []
     sub = client.session.declare_subscriber("afm/s1/sim/**", lambda s: got.append((str(s.key_expr),
