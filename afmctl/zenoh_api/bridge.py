@@ -48,8 +48,8 @@ __all__ = ["RECENT_ERRORS", "SimPublisher", "ZenohBridge", "open_session", "posi
 log = logging.getLogger(__name__)
 
 #: the loggers of the bridge's parts (a child process forwards their records, see .process)
-LOGGERS = (__name__, "afmctl.zenoh_api.publishers", "afmctl.zenoh_api.inputs",
-           "afmctl.zenoh_api.cmd_queryable", "afmctl.zenoh_api.worker", "afmctl.zenoh_api.ledger")
+LOGGERS = (__name__, "afmctl.zenoh_api.inputs", "afmctl.zenoh_api.cmd_queryable",
+           "afmctl.zenoh_api.worker", "afmctl.zenoh_api.ledger")
 
 
 class ZenohBridge:
