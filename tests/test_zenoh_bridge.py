@@ -304,7 +304,7 @@ def test_service_still_answers_after_abuse(service):
 
 def test_sim_publisher_tip_positions(service):
     from afmctl.zenoh_api.messages import SimTipMsg, decode_json
-    from afmctl.zenoh_api.bridge import SimPublisher
+    from afmctl.zenoh_api.sim_publisher import SimPublisher
     _, bridge, client = service
     got: list = []
     sub = client.session.declare_subscriber("afm/s1/sim/**", lambda s: got.append((str(s.key_expr),
@@ -396,3 +396,22 @@ def test_non_finite_drift_is_reported_not_published(service):
     assert err.source == "drift" and "not published" in err.message
     time.sleep(0.1)
     assert len(client.drift) == n
+
+
+def test_the_child_process_forwards_every_bridge_part_logger():
+    """ZenohBridgeProcess sets the child's log level from bridge.LOGGERS: every module the
+    bridge is built from that logs must be listed there."""
+    import importlib
+    import logging
+    import pkgutil
+    import afmctl.zenoh_api as pkg
+    from afmctl.zenoh_api.bridge import LOGGERS
+    parts = [m.name for m in pkgutil.iter_modules(pkg.__path__) if m.name not in ("process", "learn")]
+    logging_parts = []
+    for name in parts:
+        module = importlib.import_module(f"afmctl.zenoh_api.{name}")
+        log = getattr(module, "log", None)
+        if isinstance(log, logging.Logger):
+            logging_parts.append(log.name)
+    assert {"afmctl.zenoh_api.bridge", "afmctl.zenoh_api.worker"} <= set(logging_parts)
+    assert set(logging_parts) <= set(LOGGERS), set(logging_parts) - set(LOGGERS)

@@ -3,7 +3,7 @@ process. The first line printed is the pty path to give to ``afmctl amp``/``afmc
 
 With ``--zenoh`` (off by default) the true tip position [nm] is published on
 ``<prefix>/<scanner>/sim/tip`` through :class:`TipPublisher` (decimated, own thread,
-drop-oldest queue) and :class:`afmctl.zenoh_api.bridge.SimPublisher`."""
+drop-oldest queue) and :class:`afmctl.zenoh_api.sim_publisher.SimPublisher`."""
 from __future__ import annotations
 
 import argparse
@@ -189,7 +189,7 @@ def run(args) -> int:
     try:
         with contextlib.ExitStack() as stack:
             if settings.zenoh.enabled:            # first: a taken port fails before the pty opens
-                from ..zenoh_api.bridge import SimPublisher
+                from ..zenoh_api.sim_publisher import SimPublisher
                 sim_pub = SimPublisher(settings.zenoh, name)
                 stack.callback(sim_pub.close)
                 publish = sim_pub.publish_tip if args.sample is None else image_publisher(sim_pub, args.sample)

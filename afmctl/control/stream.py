@@ -61,7 +61,11 @@ def sleep_to_next_wake(ctl: Any, next_wake_s: float, poll_s: float) -> float:
 
 
 class StreamMachine(LoopMachine):
-    """One stream-mode run of the loop thread of ``ctl`` (see the module docstring)."""
+    """One stream-mode run of the loop thread of ``ctl`` (see the module docstring).
+
+    The limits and the slew limit per sample are :class:`StreamProducer`'s (``limit_row``,
+    ``ramp_row``); this class decides which sample comes next and when the FIFO is topped up.
+    """
 
     def __init__(self, ctl: Any) -> None:
         super().__init__(ctl)
@@ -167,7 +171,7 @@ class StreamMachine(LoopMachine):
         if self.latency:
             self.hold_left = self.latency
         d, c, u = pipe.block(inp, self.T_C, np.zeros((k, 3)))
-        aims, out = self.aims, []
+        aims, out, limit_row = self.aims, [], self.producer.limit_row
         tgt: Any
         cor: Any
         dd: Any
@@ -179,7 +183,7 @@ class StreamMachine(LoopMachine):
                 tgt, cor, dd = aims.popleft()
             self.last_tgt, self.last_cor, self.last_d = tgt, cor, dd
             self.last_u_cmd = tuple(uu)
-            out.append(self._queue_row(self._limit_row(uu)))
+            out.append(self._queue_row(limit_row(uu)))
         return out
 
     def _queue(self, rows: list[tuple[float, float, float]]) -> None:
@@ -198,7 +202,7 @@ class StreamMachine(LoopMachine):
                 self.need_ramp = False
                 self.ramping = True
             if self.ramping:
-                row, reached = self._ramp_row(cur[6:9], self.ramp_rate_V_per_s)
+                row, reached = self.producer.ramp_row(cur[6:9], self.ramp_rate_V_per_s, self.period_s)
                 if reached:
                     self.ramping = False
                     self.cur = None
@@ -207,9 +211,9 @@ class StreamMachine(LoopMachine):
                     self.ctl._event("ramp-done")
                 return self._queue_row(row)
             self.cur = None
-            return self._queue_row(self._limit_row(cur[6:9]))
+            return self._queue_row(self.producer.limit_row(cur[6:9]))
         if mode is Mode.SETTLE:
-            row, reached = self._ramp_row(self.last_u_cmd, self.safety.slew_V_per_s)
+            row, reached = self.producer.ramp_row(self.last_u_cmd, self.safety.slew_V_per_s, self.period_s)
             if reached:
                 self.fsm.fire(Event.DONE)
                 self.mode = Mode.FINISH
@@ -217,7 +221,7 @@ class StreamMachine(LoopMachine):
         if self.finish_hold:
             self.done = True
             return None
-        row, reached = self._ramp_row(self.safe_V_xyz(), self.finish_rate_V_per_s)
+        row, reached = self.producer.ramp_row(self.safe_V_xyz(), self.finish_rate_V_per_s, self.period_s)
         if reached:
             self.done = True
         return self._queue_row(row)
@@ -228,7 +232,7 @@ class StreamMachine(LoopMachine):
         if self.mode is not Mode.RUN:    # the trajectory ended: settle / finish next
             return self._produce_one()
         if self.ctl._state is State.HOLDING and self.on_stall == "safe":
-            row, _ = self._ramp_row(self.safe_V_xyz(), self.ramp_rate_V_per_s)
+            row, _ = self.producer.ramp_row(self.safe_V_xyz(), self.ramp_rate_V_per_s, self.period_s)
             return self._queue_row(row)
         return None
 
@@ -237,35 +241,6 @@ class StreamMachine(LoopMachine):
 
     def safe_V_xyz(self) -> list[float]:
         return self.safety.xyz(self.safe_V, fill=math.nan)
-
-    def _limit_row(self, u_xyz: Any) -> tuple[float, float, float]:
-        """``u_xyz`` [V] through the safety limiter (limits, slew per sample); counted."""
-        s = self.safety
-        m = self.max_step_V
-        new = [s.limit(i, float(u_xyz[k]), m) for i, k in enumerate(s.index)]
-        s.last[:] = new
-        x, y, z = s.xyz(new, fill=0.0)
-        return (x, y, z)
-
-    def _ramp_row(self, u_xyz: Any, rate_V_per_s: float) -> tuple[tuple[float, float, float], bool]:
-        """One ramp sample towards ``u_xyz`` [V] (clamped into the limits; NaN: hold) at
-        ``rate_V_per_s`` (capped by the slew limit); True when it is the goal."""
-        s = self.safety
-        m = min(min(rate_V_per_s, s.slew_V_per_s) * self.period_s, self.max_step_V)
-        reached = True
-        for i, k in enumerate(s.index):
-            t = float(u_xyz[k])
-            if not math.isfinite(t):
-                t = s.last[i]
-            t = min(max(t, s.lo[i]), s.hi[i])
-            d = t - s.last[i]
-            if d > m:
-                t, reached = s.last[i] + m, False
-            elif d < -m:
-                t, reached = s.last[i] - m, False
-            s.last[i] = t
-        x, y, z = s.xyz(s.last, fill=0.0)
-        return (x, y, z), reached
 
     def _queue_row(self, row: tuple[float, float, float]) -> tuple[float, float, float]:
         """Record the sample (``t_s`` = its play time on the amplifier's clock)."""
@@ -287,7 +262,7 @@ class StreamMachine(LoopMachine):
         s.last[:] = [held[a] for a in s.axes]
         ramp = []
         while True:
-            row, reached = self._ramp_row(self.safe_V_xyz(), s.slew_V_per_s)
+            row, reached = self.producer.ramp_row(self.safe_V_xyz(), s.slew_V_per_s, self.period_s)
             ramp.append(self._queue_row(row))
             if reached:
                 break

@@ -85,13 +85,40 @@ class StreamProducer:
     def limit_block(self, block_V: np.ndarray) -> list[tuple[float, float, float]]:
         """Rows x, y, z [V] limited sample by sample (limits, slew per period); updates the
         safety layer's reference to the last row."""
-        out: list[Any] = []   # rows (x, y, z) [V]
+        return [self.limit_row(row) for row in block_V]
+
+    def limit_row(self, u_xyz: Any) -> tuple[float, float, float]:
+        """One row x, y, z [V] through the safety limiter (limits; at most :attr:`max_step_V`
+        from the row before); updates the safety layer's reference to it."""
         s = self.safety
-        for row in block_V:
-            new = [s.limit(i, float(row[k]), self.max_step_V) for i, k in enumerate(s.index)]
-            s.last[:] = new
-            out.append(tuple(s.xyz(new, fill=0.0)))
-        return out
+        m = self.max_step_V
+        new = [s.limit(i, float(u_xyz[k]), m) for i, k in enumerate(s.index)]
+        s.last[:] = new
+        x, y, z = s.xyz(new, fill=0.0)
+        return (x, y, z)
+
+    def ramp_row(self, u_xyz: Any, rate_V_per_s: float,
+                 period_s: float) -> tuple[tuple[float, float, float], bool]:
+        """One ramp row x, y, z [V] towards ``u_xyz`` [V] (clamped into the limits; NaN:
+        hold) at ``rate_V_per_s`` (capped by the slew limit) for samples ``period_s`` [s]
+        apart, at most :attr:`max_step_V` per row; True when it is the goal. Updates the
+        safety layer's reference to it."""
+        s = self.safety
+        m = min(min(rate_V_per_s, s.slew_V_per_s) * period_s, self.max_step_V)
+        reached = True
+        for i, k in enumerate(s.index):
+            t = float(u_xyz[k])
+            if not math.isfinite(t):
+                t = s.last[i]
+            t = min(max(t, s.lo[i]), s.hi[i])
+            d = t - s.last[i]
+            if d > m:
+                t, reached = s.last[i] + m, False
+            elif d < -m:
+                t, reached = s.last[i] - m, False
+            s.last[i] = t
+        x, y, z = s.xyz(s.last, fill=0.0)
+        return (x, y, z), reached
 
     def status(self) -> dict:
         """The FIFO figures of ``Controller.stats()["stream"]``: device ``underruns``, the

@@ -193,7 +193,7 @@ class TipPublisher:
     """Decimates the simulator's ticks and publishes them from its own thread.
 
     ``TipPublisher(publish, rate_Hz=100.0, queue_size=64)``: ``publish(t_s, position_nm)``
-    is the slow part (e.g. :meth:`afmctl.zenoh_api.bridge.SimPublisher.publish_tip`, which uses
+    is the slow part (e.g. :meth:`afmctl.zenoh_api.sim_publisher.SimPublisher.publish_tip`, which uses
     blocking congestion control). :meth:`offer` is what the simulator's loop calls on each
     tick: it keeps at most one sample per ``1/rate_Hz`` seconds of simulated time ``t_s``
     [s] (consecutive samples at least ``1/rate_Hz`` apart), copies the position [nm] into a bounded queue and returns at once; when the queue

@@ -63,7 +63,7 @@ class ViewFeed:
         return [f"{self.settings.prefix}/{n}/{leaf}" for n in names for leaf in LEAVES]
 
     def start(self) -> "ViewFeed":
-        from ..zenoh_api.bridge import open_session
+        from ..zenoh_api.session import open_session
         keys = self.keys()
         self._session = open_session(self.settings)
         for key in keys:

@@ -7,7 +7,7 @@ import logging
 import time
 from typing import Any
 
-from .bridge import open_session
+from .session import open_session
 from .messages import LearnMsg
 from .settings import ZenohSettings
 

@@ -21,9 +21,9 @@ class. Between the two processes:
   bridge makes from its worker thread, off the loop thread. An error raised by the
   controller comes back with its message (one line naming the field and the range).
 
-* **log records** — the child's records (from the level of this process's
-  ``afmctl.zenoh_api.bridge`` logger up) come back over a third pipe and go to this process's
-  loggers of the same name.
+* **log records** — the child's records (from the lowest level of this process's loggers
+  of the bridge's parts, :data:`afmctl.zenoh_api.bridge.LOGGERS`, up) come back over a
+  third pipe and go to this process's loggers of the same name.
 
 A bridge that cannot start (e.g. the listen port is taken) raises :class:`AfmctlError` here
 with the child's message. Ctrl-C is left to this process (the child ignores SIGINT); the
@@ -82,7 +82,8 @@ class ZenohBridgeProcess:
         self._rpc, rpc_child = ctx.Pipe(duplex=True)
         self._logs, logs_child = ctx.Pipe(duplex=False)
         config = getattr(controller, "config", None)
-        log_level = logging.getLogger("afmctl.zenoh_api.bridge").getEffectiveLevel()
+        from .bridge import LOGGERS as BRIDGE_LOGGERS
+        log_level = min(logging.getLogger(name).getEffectiveLevel() for name in BRIDGE_LOGGERS)
         self._proc = ctx.Process(target=_child_main, name=f"afmctl-zenoh-{scanner_name}", daemon=True,
                                  args=(settings, scanner_name, config, data_in, rpc_child, bridge_options,
                                        logs_child, log_level))
