@@ -285,6 +285,8 @@ class LearnRun:
             return self._read(table, armed[0])
         except (AmplifierTimeout, AmplifierConnectionError) as err:
             return "fault", f"reading the recording failed: {err}"
+        except RecordingRefused as err:       # not learned from: the table plays again
+            return "fault", str(err)
 
     def _check(self, table: WaveTable) -> None:
         start = table.u_V[0, ["xyz".index(a) for a in self.axes]]
