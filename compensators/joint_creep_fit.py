@@ -78,7 +78,6 @@ def fit_preisach_creep(hcls: Any, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.nda
 
     h = np.asarray(y_nm, dtype=float)     # first round: the output itself stands in for ĥ
     n_rounds = max(1, int(rounds))
-    residuals = []
     for r in range(n_rounds):
         if r:
             h = hyst.forward(dt).block(u_V)
@@ -88,10 +87,9 @@ def fit_preisach_creep(hcls: Any, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.nda
                                                     n_operators=levels, **opts)
         log.info("joint preisach+creep round %d: creep fractions %s, residual %.4g nm RMS", r + 1,
                  np.array2string(c, precision=4), hyst.fit_residual_nm)
-        residuals.append(float(hyst.fit_residual_nm))
-    if len(residuals) > 1 and residuals[-1] > 1.5 * residuals[0]:
-        note_problem(hyst, f"preisach+creep: the joint fit did not converge (residual grew from {residuals[0]:.4g} "
-                           f"to {residuals[-1]:.4g} nm RMS over {n_rounds} rounds)")
+    # (the rounds' residuals are not comparable: the first one's creep regressors are built
+    # from the measured output itself, which flatters it; a diverged result shows in the
+    # chain's training error against the straight line's, fit_health)
     if float(np.sum(c)) >= 1.0:
         note_problem(hyst, f"preisach+creep: the creep fractions sum to {float(np.sum(c)):.3g}, on their bound 1 "
                            "(the creep would take the whole step back); rescaled to 0.999")

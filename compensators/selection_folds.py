@@ -98,7 +98,10 @@ def _wins_most_folds(rich: dict[str, Any], simple: dict[str, Any]) -> bool:
 def choose(table: list[dict[str, Any]], margin: float = MARGIN) -> dict[str, Any]:
     """The selected row (module docstring); its ``why`` field says why it won. Rows with an
     ``error`` are never chosen; the table must hold at least one without."""
-    ok = sorted([r for r in table if "error" not in r], key=lambda r: (_mean_rms(r), complexity(r["structure"])))
+    ok = [r for r in table if "error" not in r]
+    if any("fold_rms_nm" in r for r in ok):   # the others were screened out on the main split
+        ok = [r for r in ok if "fold_rms_nm" in r]
+    ok.sort(key=lambda r: (_mean_rms(r), complexity(r["structure"])))
     best = ok[0]
     winner = best
     for cand in sorted(ok, key=lambda r: (complexity(r["structure"]), _mean_rms(r))):

@@ -118,3 +118,9 @@ def test_auto_on_a_second_recording_is_within_10_percent_of_the_best_single_kind
     from afmctl.compensators.chain import ChainModel
     singles = {kind: second(ChainModel.identify(t1, u[:k], y[:k], structure=kind)) for kind in kinds}
     assert second(best) <= 1.1 * min(singles.values()), (best.structure, singles)
+
+
+def test_candidates_screened_out_on_the_main_split_do_not_win_on_their_single_score():
+    screened = {"structure": "pi+creep", "heldout_rms_nm": 32.7, "heldout_max_nm": 112.0}
+    pre = _row("preisach", [17.9, 46.2, 42.3])
+    assert choose([screened, pre]) is pre
