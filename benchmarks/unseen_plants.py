@@ -113,6 +113,7 @@ def one_plant(name: str, cfg: ScannerConfig, rates: list[float], work: Path, par
     t0 = time.perf_counter()
     out = sl.cli("identify", "--model", "auto", "--data", str(data), "--out", str(model),
                  *[a for p in params for a in ("--param", p)])
+    print(out[out.index("held-out prediction error"):out.index("selected ")], flush=True)
     ident_s = time.perf_counter() - t0
     selected = next(ln.split(":", 1)[1].strip() for ln in out.splitlines() if ln.startswith("selected"))
     row = {}
@@ -120,8 +121,9 @@ def one_plant(name: str, cfg: ScannerConfig, rates: list[float], work: Path, par
         tgt, start, n, lines = raster_for(cfg, r)
         target, volts = work / "target.csv", work / "volts.csv"
         write_csv(target, {"t": np.arange(tgt.size) * sl.DT_S, "y": tgt})
+        slew_args = ("--slew-V-per-s", f"{slew:g}") if "dynamics" in selected else ()
         sl.cli("compensate", "--model", str(model), "--target", str(target), "--out", str(volts),
-               "--limits", "0", "150", "--slew-V-per-s", f"{slew:g}", "--clip")
+               "--limits", "0", "150", *slew_args, "--clip")
         row[r] = sl.line_error_pct(play_x(cfg, read_csv(volts, ("t", "u"))["u"], sl.DT_S), tgt, start, n, lines)
         print(f"{name} {r:g} lines/s: {row[r]['max_error_pct']:.2f} / {row[r]['rms_error_pct']:.2f} %", flush=True)
     return row, f"{selected} (identify {ident_s:.0f} s)"
