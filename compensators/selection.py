@@ -107,9 +107,18 @@ def score_candidate(structure: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.n
     rms = float(np.sqrt(np.mean(e_test ** 2)))
     peak = float(np.max(np.abs(e_test)))
     train_rms = float(np.sqrt(np.mean(e_train ** 2)))
+    fast = small_signal_bounds(u_V, t_s)
+    if fast is not None and max(fast[0], split) < min(fast[1], stop):
+        a, b = max(fast[0], split), min(fast[1], stop)
+        e_fast = pred[a:b] - y_nm[a:b]
+        fast_rms: float | None = float(np.sqrt(np.mean((e_fast - np.mean(e_fast)) ** 2)))
+    else:
+        fast_rms = None
     row = {"structure": structure, "heldout_rms_nm": round(rms, 4), "heldout_max_nm": round(peak, 4),
            "heldout_rms_pct": round(100.0 * rms / span, 4), "heldout_max_pct": round(100.0 * peak / span, 4),
            "train_rms_nm": round(train_rms, 4)}
+    if fast_rms is not None:    # the held-out small-signal (fast) part, mean removed
+        row["fast_rms_nm"] = round(fast_rms, 4)
     reason = failure_reason(model, train_rms, linear_fit_rms(u_V[fit_from_index:split], y_nm[fit_from_index:split]))
     if reason:
         row["error"] = reason
