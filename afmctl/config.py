@@ -28,7 +28,7 @@ from afmctl.compensators.temperature import T_MAX_C, T_MIN_C
 from afmctl.drivers.registry import driver_names
 
 from .errors import AfmctlError
-from .zenoh_config import ZenohSettings
+from .zenoh_api.settings import ZenohSettings
 
 AXES = ("x", "y", "z")
 Axis = Literal["x", "y", "z"]
@@ -239,7 +239,7 @@ class CompensationSection(_Strict):
 
 # --------------------------------------------------------------------------- safety
 class SafetySection(_Strict):
-    """Limits applied last, to every value sent to the amplifier (afmctl.safety)."""
+    """Limits applied last, to every value sent to the amplifier (afmctl.control.safety)."""
 
     limits_V: dict[Axis, Limits] = Field(default_factory=dict,
                                          description="extra (tighter) voltage limits per axis [V]")
@@ -348,6 +348,15 @@ class FileSpec(_Strict):
     path: Path
 
 
+class LearnedSpec(_Strict):
+    """A table of voltages learned from the scanner's measured motion (``afmctl learn``),
+    played as it is with ``amplifier.output = "wave"``; refused when the trajectory, the
+    amplifier, its limits or the model files differ from those it was learned with."""
+
+    kind: Literal["learned"] = "learned"
+    file: Path = Field(description="learned table (.afmwave) written by afmctl learn")
+
+
 class QueueSpec(_Strict):
     """Segments arriving at run time (zenoh, Controller.submit_segment)."""
 
@@ -356,13 +365,13 @@ class QueueSpec(_Strict):
 
 
 TrajectorySpec = Annotated[
-    RasterSpec | MovesSpec | IndentationSpec | TextSpec | SpiralSpec | FileSpec | QueueSpec,
+    RasterSpec | MovesSpec | IndentationSpec | TextSpec | SpiralSpec | FileSpec | LearnedSpec | QueueSpec,
     Field(discriminator="kind")]
 
 
 # --------------------------------------------------------------------------- run log, simulation
 class RunLogSection(_Strict):
-    """Crash-safe log of every setpoint, drift estimate and state change (afmctl.runlog)."""
+    """Crash-safe log of every setpoint, drift estimate and state change (afmctl.control.runlog)."""
 
     enabled: bool = True
     dir: Path = Field(Path("runs"), description="directory for run logs (RUN-NAME.afmlog)")
@@ -425,6 +434,9 @@ class Config(BaseSettings):
                                  f"(intersection [{lo:g}, {hi:g}] V)")
         if not self.simulation.enabled and not self.amplifier.port:
             raise ValueError("amplifier.port is required unless simulation.enabled = true")
+        if self.trajectory.kind == "learned" and self.amplifier.output != "wave":
+            raise ValueError("trajectory.kind = 'learned' plays a learned table on the amplifier's clock: "
+                             "set amplifier.output = 'wave'")
         return self
 
     # convenience -----------------------------------------------------------
@@ -446,7 +458,7 @@ class Config(BaseSettings):
 
 
 _TRAJ_KINDS = {"raster": RasterSpec, "moves": MovesSpec, "indentation": IndentationSpec, "text": TextSpec,
-               "spiral": SpiralSpec, "file": FileSpec, "queue": QueueSpec}
+               "spiral": SpiralSpec, "file": FileSpec, "learned": LearnedSpec, "queue": QueueSpec}
 
 
 def _model_of(annotation: Any) -> Any:

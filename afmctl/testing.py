@@ -97,13 +97,13 @@ class HostStalls:
 
 def bridge_on_free_port(controller, scanner_name: str = "s1", server=None, *, attempts: int = 3,
                         **bridge_options):
-    """A :class:`afmctl.zenoh_api.ZenohBridge` for ``controller`` listening on a fresh
+    """A :class:`afmctl.zenoh_api.bridge.ZenohBridge` for ``controller`` listening on a fresh
     loopback port, and the client settings that reach it: ``(bridge, client_settings)``.
     Retried ``attempts`` times, because another process may take the port between choosing
-    and binding it. ``server``: base server settings for :func:`afmctl.zenoh_config.loopback_pair`."""
+    and binding it. ``server``: base server settings for :func:`afmctl.zenoh_api.settings.loopback_pair`."""
     from .errors import AfmctlError
-    from .zenoh_api import ZenohBridge
-    from .zenoh_config import loopback_pair
+    from .zenoh_api.bridge import ZenohBridge
+    from .zenoh_api.settings import loopback_pair
     for attempt in range(attempts):
         srv, cli = loopback_pair(server)
         try:

@@ -1,11 +1,11 @@
-"""Loop timing of afmctl.loop.Controller: lateness p50/p99/max and missed deadlines.
+"""Loop timing of afmctl.control.controller.Controller: lateness p50/p99/max and missed deadlines.
 
 Runs the controller at ``--rate`` Hz (1 kHz default) for ``--seconds`` (60 s default) over
 a raster scan through the whole chain — drift predictor (physical_tube), PI inverse model
 per axis (identified from the default simulated scanner), safety layer — into an
 amplifier, with the run log and the dispatcher running as in service. Amplifiers:
 
-* ``memory`` (default): :class:`afmctl.simlink.RecordingAmplifier`, the loop's own cost;
+* ``memory`` (default): :class:`afmctl.simulation.link.RecordingAmplifier`, the loop's own cost;
 * ``can``: the real CAN driver on the python-can virtual bus with the simulated CAN
   amplifier (and a recording load) in the same process.
 
@@ -37,22 +37,22 @@ from sections import write_section as _write_section  # noqa: E402  (benchmarks/
 
 
 def _pi_models(d: Path) -> dict[str, Path]:
-    from afmctl.simlink import identify_pi_models
+    from afmctl.simulation.link import identify_pi_models
     return identify_pi_models(d, "xyz", 1e-3, n=300)
 
 
 def run_once(rate: float, seconds: float, amp_kind: str, tmp: Path, models: dict[str, Path],
              rt: int | None = None, zenoh: str = "off", cpu: str = "auto") -> dict:
     """One timed run; ``zenoh``: ``off``, ``inproc`` (ZenohBridge in this process) or
-    ``child`` (the bridge in a child process, afmctl.zenoh_process) — with a subscriber in
+    ``child`` (the bridge in a child process, afmctl.zenoh_api.process) — with a subscriber in
     another process receiving every setpoint batch. ``cpu``: ``loop.cpu`` (auto, none or a
     CPU number); this thread (and so the subscriber process) keeps off the loop's CPU, as in
     ``afmctl run``."""
-    from afmctl import cpu_pinning
+    from afmctl.control import cpu_pinning
     from afmctl.config import load_config
-    from afmctl.loop import Controller
-    from afmctl.hardware import open_driver
-    from afmctl.simlink import RecordingAmplifier
+    from afmctl.control.controller import Controller
+    from afmctl.control.hardware import open_driver
+    from afmctl.simulation.link import RecordingAmplifier
     comp = "".join(f'[compensation.{a}]\nmodel = "{p}"\n' for a, p in models.items())
     line_rate = 2.0
     lines = max(1, int(round(seconds * line_rate)))
@@ -131,13 +131,13 @@ def _zenoh_side(ctl, cfg, mode: str):
     if mode == "off":
         yield out
         return
-    from afmctl.zenoh_config import loopback_pair
+    from afmctl.zenoh_api.settings import loopback_pair
     srv, cli = loopback_pair()
     if mode == "inproc":
-        from afmctl.zenoh_api import ZenohBridge
+        from afmctl.zenoh_api.bridge import ZenohBridge
         bridge = ZenohBridge(ctl, srv, "bench")
     else:
-        from afmctl.zenoh_process import ZenohBridgeProcess
+        from afmctl.zenoh_api.process import ZenohBridgeProcess
         bridge = ZenohBridgeProcess(ctl, srv, "bench")
     sub = subprocess.Popen([sys.executable, str(ROOT / "benchmarks" / "zenoh_counter.py"), cli.model_dump_json(),
                             "bench"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
@@ -248,9 +248,9 @@ repetition (same machine state for each); {platform.python_implementation()} {pl
 The bench:loop chain at {args.rate:g} Hz; with zenoh the bridge publishes every setpoint batch, drift
 estimate and status, and a subscriber in another process (benchmarks/zenoh_counter.py) receives every
 setpoint batch (checked: no gap, every sample). *off*: no bridge; *inproc*: `ZenohBridge` in the loop's
-process; *child*: `afmctl.zenoh_process.ZenohBridgeProcess` (what `afmctl run` uses), the bridge in
+process; *child*: `afmctl.zenoh_api.process.ZenohBridgeProcess` (what `afmctl run` uses), the bridge in
 its own process fed through a pipe. `loop.cpu` {args.cpu}: {'the loop thread on a CPU of its own, every other thread (dispatcher, feeder, zenoh process, subscriber) on the others' if args.cpu != 'none' else 'no CPU pinning'}; the dispatcher works in the quiet part of the loop period
-(`afmctl.loop.quiet_window_wait_s`). Target (#14): p99 with zenoh ≤ 1.2 × off and ≤ 150 µs.
+(`afmctl.control.controller.quiet_window_wait_s`). Target (#14): p99 with zenoh ≤ 1.2 × off and ≤ 150 µs.
 
 | zenoh | lateness p50 | lateness p99 | p99 / off | max | missed | work p50 | p99 of each run [µs] |
 |---|---|---|---|---|---|---|---|

@@ -22,10 +22,10 @@ import uuid
 import numpy as np
 
 from afmctl.drivers.can_amp import CANAmplifier
-from afmctl.safety import SafetyLayer
+from afmctl.control.safety import SafetyLayer
 from afmctl.sim_backend.amplifiers.base import RecordingSink
 from afmctl.sim_backend.testing import serve_can
-from afmctl.stream_producer import StreamProducer
+from afmctl.control.stream_producer import StreamProducer
 
 CAN_1M_FRAMES_PER_S = (1e6 / 135, 1e6 / 111)
 

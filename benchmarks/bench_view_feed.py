@@ -25,7 +25,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from sections import write_section  # noqa: E402
 
-from afmctl.messages import (SETPOINT_DTYPE, DriftMsg, SimImageMsg, SimTipMsg, StatusMsg,  # noqa: E402
+from afmctl.zenoh_api.messages import (SETPOINT_DTYPE, DriftMsg, SimImageMsg, SimTipMsg, StatusMsg,  # noqa: E402
                              encode_setpoints)
 from afmctl.view.scanner_feed import ScannerFeed  # noqa: E402
 

@@ -43,7 +43,7 @@ if str(ROOT) not in sys.path:
 
 from afmctl.compensators.drift import DriftParams, TransferPath  # noqa: E402
 from afmctl.compensators.drift_kalman import DriftKalman, KalmanParams  # noqa: E402
-from afmctl.drift_images import FrameDriftMeter, ImageDriftFeeder  # noqa: E402
+from afmctl.inputs.drift_images import FrameDriftMeter, ImageDriftFeeder  # noqa: E402
 from afmctl.compensators.temperature import TemperatureProfile  # noqa: E402
 
 
@@ -262,7 +262,7 @@ def run_scenario(setup: Setup | None = None, true_params: DriftParams | None = N
     px, py = setup.scan_nm / setup.pixels, setup.scan_nm / setup.lines
     pos = np.empty((n, 3))
     plant.start()
-    # the product's glue (afmctl.drift_images): frame f against frame 0 by phase correlation,
+    # the product's glue (afmctl.inputs.drift_images): frame f against frame 0 by phase correlation,
     # plus the change of the mean correction applied during the frames (the image shows the
     # residual drift), compared with the model's m_f − m_0 (the bias at frame 0 is taken as 0)
     masks: list[np.ndarray] = []

@@ -12,7 +12,7 @@ On the default simulated scanner (x axis):
   (and creep) stage and its small-signal multisine at 10 kHz for the dynamics (what
   ``afmctl identify`` fits), preisach+dynamics and preisach+creep+dynamics.
 
-Each chain compensates 4 µm raster lines offline (:func:`afmctl.speed_ladder.offline_errors_nm`,
+Each chain compensates 4 µm raster lines offline (:func:`afmctl.reports.speed_ladder.offline_errors_nm`,
 the chain's offline inverse within 0…150 V); the table gives the x error over the central
 80 % of every trace and retrace, % of the line.
 
@@ -58,8 +58,8 @@ def sensor_chain(cfg: ScannerConfig, creep: bool = False) -> Any:
     multisine at 10 kHz for the dynamics."""
     from afmctl.compensators.chain import ChainModel
     from afmctl.compensators.models import model_class
-    from afmctl.demo import EXCITE_DECIMATE, EXCITE_SIM_DT_S, excitation_voltage
-    from afmctl.excitation import ExcitationSpec, excitation
+    from afmctl.reports.demo import EXCITE_DECIMATE, EXCITE_SIM_DT_S, excitation_voltage
+    from afmctl.data.excitation import ExcitationSpec, excitation
     dt, m = EXCITE_SIM_DT_S, EXCITE_DECIMATE
     u1 = excitation_voltage(dt * m, True)
     u = np.zeros((u1.size * m, 3))
@@ -84,7 +84,7 @@ def sensor_chain(cfg: ScannerConfig, creep: bool = False) -> Any:
 def x_errors_pct(cfg: ScannerConfig, chain: Any, rate_Hz: float) -> dict[str, float]:
     """Max / RMS x error [% of the 4 µm line] of raster lines at ``rate_Hz`` compensated
     offline by ``chain`` on x (y: the linear calibration)."""
-    from afmctl.speed_ladder import error_pct, offline_errors_nm
+    from afmctl.reports.speed_ladder import error_pct, offline_errors_nm
 
     def make(dt: float):
         lo, gain = Scanner(cfg).voltage_limits_V()[:, 0], Scanner(cfg).nominal_gain_nm_per_V()

@@ -6,7 +6,7 @@ identified on the default simulated scanner, per-axis chains + x/y coupling) loa
 scans 4 µm raster lines (trace and retrace) on the simulated scanner behind the CAN
 amplifier on python-can's virtual bus (hardware in the loop). With a dynamics stage the
 controller reads the trajectory ``latency_s`` ahead. The run log's voltages are replayed
-through the simulated scanner (:func:`afmctl.speed_ladder.runlog_errors_nm`): error of x
+through the simulated scanner (:func:`afmctl.reports.speed_ladder.runlog_errors_nm`): error of x
 and y over the central 80 % of each line after the first, % of the line.
 
 Beside each figure: the loop's p99 lateness and missed deadlines (a shared machine: the
@@ -38,7 +38,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from afmctl import speed_ladder as sl  # noqa: E402
+from afmctl.reports import speed_ladder as sl  # noqa: E402
 from afmctl.config import load_config  # noqa: E402
 from afmctl.sim_backend.scanner import DriftConfig, Scanner, default_scanner_config  # noqa: E402
 from sections import write_section  # noqa: E402  (benchmarks/sections.py)

@@ -24,7 +24,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 from afmctl.compensators.dynamics import LinearDynamicsModel  # noqa: E402
 from afmctl.compensators.dynamics_identify import measure_frf, small_signal_segment  # noqa: E402
-from afmctl.excitation import ExcitationSpec, excitation  # noqa: E402
+from afmctl.data.excitation import ExcitationSpec, excitation  # noqa: E402
 from afmctl.sim_backend.scanner import Scanner, default_scanner_config  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -45,7 +45,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from afmctl.cli import main as afmctl  # noqa: E402
 from afmctl.compensators.chain import ChainModel  # noqa: E402
 from afmctl.compensators.models import load_model, save_model  # noqa: E402
-from afmctl.datafiles import read_csv, write_csv  # noqa: E402
+from afmctl.data.datafiles import read_csv, write_csv  # noqa: E402
 from afmctl.sim_backend.scanner import Scanner, default_scanner_config  # noqa: E402
 from sections import write_section  # noqa: E402  (benchmarks/sections.py)
 

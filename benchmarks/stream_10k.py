@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from afmctl.drivers.can_amp import CANAmplifier  # noqa: E402
-from afmctl.loop import Controller  # noqa: E402
+from afmctl.control.controller import Controller  # noqa: E402
 from afmctl.sim_backend.amplifiers.base import RecordingSink  # noqa: E402
 from afmctl.sim_backend.testing import serve_can  # noqa: E402
 from afmctl.testing import make_config  # noqa: E402

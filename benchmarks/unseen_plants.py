@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import speed_ladder as sl  # noqa: E402
-from afmctl.datafiles import read_csv, write_csv  # noqa: E402
+from afmctl.data.datafiles import read_csv, write_csv  # noqa: E402
 from afmctl.sim_backend.config import (AmplifierConfig, CreepConfig, DynamicsConfig,  # noqa: E402
                                        GaussianPreisachConfig, PreisachComponent, ScannerConfig)
 from afmctl.sim_backend.scanner import Scanner, default_scanner_config  # noqa: E402

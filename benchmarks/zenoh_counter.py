@@ -2,7 +2,7 @@
 
     python benchmarks/zenoh_counter.py SETTINGS_JSON SCANNER [SLOW_S]
 
-Connects with the client settings (JSON of afmctl.zenoh_config.ZenohSettings), subscribes
+Connects with the client settings (JSON of afmctl.zenoh_api.settings.ZenohSettings), subscribes
 to ``<prefix>/<scanner>/setpoint``, prints ``ready`` and, when its stdin closes, one line
 ``batches N samples M gaps G`` (G = batch sequence gaps). ``SLOW_S``: sleep that long in
 every callback (a slow subscriber).
@@ -16,9 +16,9 @@ import time
 def main() -> int:
     import zenoh
 
-    from afmctl.messages import decode_setpoints
-    from afmctl.zenoh_api import open_session
-    from afmctl.zenoh_config import ZenohSettings
+    from afmctl.zenoh_api.messages import decode_setpoints
+    from afmctl.zenoh_api.bridge import open_session
+    from afmctl.zenoh_api.settings import ZenohSettings
     settings = ZenohSettings.model_validate_json(sys.argv[1])
     scanner = sys.argv[2]
     slow_s = float(sys.argv[3]) if len(sys.argv) > 3 else 0.0

@@ -133,7 +133,7 @@ def _volts(axis: object, value: object) -> float:
 class AmplifierInterface(ABC):
     """What the controller and the safety layer use of an amplifier. Every hardware
     backend implements it through the :class:`Amplifier` template; in-memory test doubles
-    (``afmctl.simlink.RecordingAmplifier``) implement it directly."""
+    (``afmctl.simulation.link.RecordingAmplifier``) implement it directly."""
 
     name: str = ""
 

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from afmctl.datafiles import read_csv, write_csv
+from afmctl.data.datafiles import read_csv, write_csv
 from afmctl.sim_backend.scanner import Scanner, default_scanner_config
 
 DT_S = 1e-3          # sample period of the files [s]

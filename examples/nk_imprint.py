@@ -6,8 +6,8 @@ each other. This script does the same offline on the simulated scanner:
 
 1. identify a PI model per axis from a sweep of the simulated scanner (no position sensor
    needed in the simulation; with hardware use `afmctl identify`);
-2. build the 'NK' path (afmctl.trajectories.text, the single-stroke font);
-3. run it through the controller's compensation chain (afmctl.pipeline) twice — linear
+2. build the 'NK' path (afmctl.inputs.trajectories.text, the single-stroke font);
+3. run it through the controller's compensation chain (afmctl.control.pipeline) twice — linear
    calibration only, and the PI inverse models — and through the simulated scanner;
 4. plot where the tip really went while the pen was down.
 
@@ -27,15 +27,15 @@ import numpy as np
 
 def identify_pi(dt_s: float, folder: Path) -> dict[str, Path]:
     """PI models of x and y identified from the default simulated scanner."""
-    from afmctl.simlink import identify_pi_models
+    from afmctl.simulation.link import identify_pi_models
     return identify_pi_models(folder, "xy", dt_s)
 
 
 def imprint(models: dict[str, Path] | None, height_nm: float, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
     """(target, true tip position) (N, 3) [nm] of the 'NK' path on a fresh scanner."""
-    from afmctl import trajectories as tr
+    from afmctl.inputs import trajectories as tr
     from afmctl.config import load_config
-    from afmctl.pipeline import build_pipeline
+    from afmctl.control.pipeline import build_pipeline
     from afmctl.sim_backend.scanner import Scanner, default_scanner_config
     comp = "".join(f'[compensation.{a}]\nmodel = "{p}"\n' for a, p in (models or {}).items())
     cfg = load_config(text=f"[simulation]\nenabled = true\n[loop]\nrate_Hz = {1 / dt_s}\n"

@@ -4,6 +4,10 @@
   (``afmctl`` core) may import the three others; ``afmctl.sim_backend`` may import
   ``afmctl.compensators`` only; ``afmctl.compensators`` and ``afmctl.drivers`` import neither
   each other nor the service;
+* the arrows between the service's own subpackages (``afmctl.control``, ``afmctl.zenoh_api``,
+  ...: :data:`SERVICE_ARROWS`), so that the tree reads as the architecture, and that every
+  module of the service sits in one of them or is one of the few entry points
+  (:data:`SERVICE_TOP_LEVEL`);
 * no import cycle between files (deferred imports inside functions count too);
 * no function longer than 100 lines.
 
@@ -34,6 +38,22 @@ ALLOWED = {
     "afmctl.compensators": set(),
     "afmctl.drivers": set(),
 }
+
+# The service's subpackages by role, and which may import which (besides itself). The
+# top-level modules of SERVICE_TOP_LEVEL are entry points and shared basics: they may import
+# any subpackage, and every subpackage may import them (docs/ARCHITECTURE.md, "The service").
+SERVICE_ARROWS: dict[str, set[str]] = {
+    "data": set(),
+    "inputs": {"data"},
+    "control": {"data", "inputs"},
+    "zenoh_api": {"control"},
+    "simulation": {"control", "zenoh_api"},
+    "reports": {"control", "data", "simulation"},
+    "view": {"zenoh_api"},
+    "commands": {"control", "data", "inputs", "reports", "simulation", "zenoh_api", "view"},
+}
+SERVICE_TOP_LEVEL = {"__init__", "__main__", "cli", "config", "errors", "figures", "kernels",
+                     "testing"}
 
 # Known exceptions other engineers are removing in parallel. THE MERGER EMPTIES THESE LISTS.
 KNOWN_CYCLES_TO_BREAK: list[frozenset[str]] = []
@@ -116,6 +136,32 @@ def arrow_violations(graph: dict[str, set[str]]) -> list[str]:
     return bad
 
 
+def service_room(module: str) -> str | None:
+    """The service subpackage a module of the ``afmctl`` core sits in (None: top level)."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 2 or (len(parts) == 2 and parts[1] in SERVICE_ARROWS) else None
+
+
+def service_arrow_violations(graph: dict[str, set[str]],
+                             arrows: dict[str, set[str]] = SERVICE_ARROWS) -> list[str]:
+    bad = []
+    for src, targets in sorted(graph.items()):
+        if layer_of(src) != CORE or (room := service_room(src)) is None:
+            continue
+        for dst in sorted(targets):
+            if layer_of(dst) != CORE or (to := service_room(dst)) is None or to == room:
+                continue
+            if to not in arrows.get(room, set()):
+                bad.append(f"{src} imports {dst} (afmctl.{room} may not import afmctl.{to})")
+    return bad
+
+
+def misplaced_service_modules(graph: dict[str, set[str]]) -> list[str]:
+    """Service modules at the top of ``afmctl`` that are not listed entry points."""
+    return sorted(m for m in graph if layer_of(m) == CORE and m != CORE
+                  and service_room(m) is None and m.split(".")[1] not in SERVICE_TOP_LEVEL)
+
+
 def file_cycles(graph: dict[str, set[str]]) -> list[frozenset[str]]:
     """Strongly connected components of more than one file (Tarjan)."""
     index: dict[str, int] = {}
@@ -180,7 +226,7 @@ def long_functions(root: Path, folders: dict[str, str] = FOLDERS,
 
 def test_every_source_file_is_seen():
     graph = import_graph(ROOT)
-    assert "afmctl.loop" in graph and "afmctl.drivers.registry" in graph
+    assert "afmctl.control.controller" in graph and "afmctl.drivers.registry" in graph
     assert "afmctl.sim_backend.amplifiers.base" in graph
     # Relative imports are resolved: the registry reaches the codecs through its drivers.
     assert "afmctl.drivers.errors" in graph["afmctl.drivers.base"] | graph["afmctl.drivers.registry"]
@@ -188,6 +234,17 @@ def test_every_source_file_is_seen():
 
 def test_arrows_point_one_way():
     assert arrow_violations(import_graph(ROOT)) == []
+
+
+def test_service_subpackage_arrows_point_one_way():
+    assert service_arrow_violations(import_graph(ROOT)) == []
+
+
+def test_every_service_module_sits_in_a_room():
+    graph = import_graph(ROOT)
+    assert misplaced_service_modules(graph) == []
+    assert set(SERVICE_ARROWS) == {service_room(m) for m in graph
+                                   if layer_of(m) == CORE and service_room(m)}
 
 
 def test_no_file_level_import_cycles():
@@ -255,6 +312,29 @@ def test_checker_fails_on_a_reversed_arrow(tmp_path, src, text):
     })
     (root / src).write_text(text, encoding="utf-8")
     assert len(arrow_violations(import_graph(root))) == 1
+
+
+@pytest.mark.parametrize("src, text", [
+    ("afmctl/control/loop.py", "from ..reports.plots import p\n"),             # reversed, relative
+    ("afmctl/zenoh_api/bridge.py", "from afmctl.view.feed import f\n"),        # sideways
+    ("afmctl/data/files.py", "def g():\n    from afmctl.control import loop\n"),  # deferred
+])
+def test_service_checker_fails_on_a_reversed_arrow(tmp_path, src, text):
+    root = _tree(tmp_path, {
+        "afmctl/control/__init__.py": "", "afmctl/control/loop.py": "from ..data.files import f\n",
+        "afmctl/reports/__init__.py": "", "afmctl/reports/plots.py": "from ..control.loop import L\n",
+        "afmctl/zenoh_api/__init__.py": "", "afmctl/zenoh_api/bridge.py": "b = 1\n",
+        "afmctl/view/__init__.py": "", "afmctl/view/feed.py": "from ..zenoh_api.bridge import b\n",
+        "afmctl/data/__init__.py": "", "afmctl/data/files.py": "f = 1\n",
+    })
+    assert service_arrow_violations(import_graph(root)) == []
+    (root / src).write_text(text, encoding="utf-8")
+    assert len(service_arrow_violations(import_graph(root))) == 1
+
+
+def test_service_checker_finds_a_module_outside_the_rooms(tmp_path):
+    root = _tree(tmp_path, {"afmctl/cli.py": "x = 1\n", "afmctl/loop_thing.py": "y = 1\n"})
+    assert misplaced_service_modules(import_graph(root)) == ["afmctl.loop_thing"]
 
 
 def test_checker_finds_a_cycle_through_a_deferred_import(tmp_path):

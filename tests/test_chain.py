@@ -13,7 +13,7 @@ from afmctl.compensators.base import ModelError
 from afmctl.compensators.chain import ChainModel, parse_structure
 from afmctl.compensators.models import load_model, model_from_dict, save_model
 from afmctl.compensators.scanner_model import ScannerModel
-from afmctl.datafiles import read_csv, write_csv
+from afmctl.data.datafiles import read_csv, write_csv
 
 DT = 2e-3
 
@@ -208,7 +208,7 @@ def test_pipeline_block_equals_step_with_coupling_and_drift(chain):
     """CompensationPipeline.block (the demo's path) gives bit for bit what step() gives
     per sample with the same heat input; the decoupler C⁻¹ is applied before the inverses."""
     from afmctl.compensators.drift import DriftParams
-    from afmctl.pipeline import CompensationPipeline, LinearAxis
+    from afmctl.control.pipeline import CompensationPipeline, LinearAxis
 
     C = np.array([[1.0, 0.03, 0.0], [-0.02, 1.0, 0.0], [0.0, 0.0, 1.0]])
     params = DriftParams.named("physical_tube").scaled(60.0)

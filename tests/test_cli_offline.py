@@ -11,7 +11,7 @@ import pytest
 from plants import RelayPreisachPlant, decaying_triangle, staircase, triangle
 
 from afmctl.cli import main
-from afmctl.datafiles import read_csv, write_csv
+from afmctl.data.datafiles import read_csv, write_csv
 from afmctl.compensators.models import load_model
 
 

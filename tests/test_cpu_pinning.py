@@ -9,10 +9,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from afmctl.config import load_config
-from afmctl.cpu_pinning import plan
+from afmctl.control.cpu_pinning import plan
 from afmctl.errors import AfmctlError
-from afmctl.loop import Controller, quiet_window_wait_s
-from afmctl.simlink import RecordingAmplifier
+from afmctl.control.controller import Controller, quiet_window_wait_s
+from afmctl.simulation.link import RecordingAmplifier
 from afmctl.testing import make_config, wait_for
 
 TWO = frozenset({0, 1})

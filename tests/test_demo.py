@@ -68,7 +68,7 @@ def test_demo_error_is_actual_minus_commanded_over_every_sample(tmp_path):
     position and commanded target per sample, settle line dropped, averaged per pixel):
     every pixel of trace and retrace, x and y — nothing left out."""
     import numpy as np
-    from afmctl.demo import DemoOptions, run_demo
+    from afmctl.reports.demo import DemoOptions, run_demo
     ctx = run_demo(DemoOptions(out=tmp_path, size=16, quick=True, compensators=()), progress=False)
     o = ctx.options
     sig = ctx.scans["none"].image.signals
@@ -142,7 +142,7 @@ def test_afmctl_run_scans_50_lines_per_s_within_2_percent(demo_run, tmp_path, pa
     import subprocess
     import sys
 
-    from afmctl import speed_ladder as sl
+    from afmctl.reports import speed_ladder as sl
     from afmctl.config import load_config
     from afmctl.sim_backend.scanner import DriftConfig, Scanner, default_scanner_config
     _, out = demo_run

@@ -13,10 +13,10 @@ from hypothesis import strategies as st
 
 from afmctl.config import load_config
 from afmctl.errors import AfmctlError
-from afmctl.loop import Controller, State
-from afmctl.pipeline import build_pipeline
-from afmctl.runlog import RunLogReader
-from afmctl.simlink import RecordingAmplifier
+from afmctl.control.controller import Controller, State
+from afmctl.control.pipeline import build_pipeline
+from afmctl.control.runlog import RunLogReader
+from afmctl.simulation.link import RecordingAmplifier
 from afmctl.testing import assert_no_threads_left, bridge_on_free_port, make_config
 from afmctl.testing import wait_until as wait_for
 
@@ -84,7 +84,7 @@ def test_loop_estimate_model_then_measurement(tmp_path):
     # the model alone, replayed offline on the logged temperatures and voltages
     log = RunLogReader(ctl.runlog_path)
     sp, dr = log.setpoints()[:n_run], log.drift()[:n_run]
-    from afmctl.pipeline import load_drift_params
+    from afmctl.control.pipeline import load_drift_params
     model = load_drift_params("physical_tube").predictor(cfg.dt_s)
     u_prev = np.zeros(3)
     m = np.zeros((len(dr), 3))
@@ -223,7 +223,7 @@ def test_drift_measurement_over_zenoh_cmd(tmp_path):
     import zenoh
     import json
 
-    from afmctl.messages import CmdRequest
+    from afmctl.zenoh_api.messages import CmdRequest
 
     cfg = cfg_for(tmp_path, extra='[scanner]\nname = "s1"\n')
     ctl = Controller(cfg, RecordingAmplifier())

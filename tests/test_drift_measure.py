@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from afmctl.cli import main
-from afmctl.datafiles import read_csv
+from afmctl.data.datafiles import read_csv
 from afmctl.sim_backend.samples import Nanoparticles
 
 SCAN_NM, PX = 400.0, 128

@@ -57,7 +57,7 @@ def test_image_measurements_track_the_true_drift(result):
 
 
 def test_image_fed_kalman_cuts_the_error_5x_against_prediction_alone(result):
-    """Issue #13: frames measured by afmctl.drift_images (phase correlation) and fed to the
+    """Issue #13: frames measured by afmctl.inputs.drift_images (phase correlation) and fed to the
     Kalman filter cut the drift error ≥ 5× against the 30 %-off prediction alone, per axis."""
     res, _ = result
     gain = res.ratio("predicted (params 30% off)") / res.ratio("params 30% off + Kalman (1 meas./frame)")

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from afmctl.config import load_config
-from afmctl.drift_watch import DriftImageWatcher
+from afmctl.inputs.drift_watch import DriftImageWatcher
 from afmctl.errors import AfmctlError
-from afmctl.loop import Controller
-from afmctl.simlink import RecordingAmplifier
+from afmctl.control.controller import Controller
+from afmctl.simulation.link import RecordingAmplifier
 from afmctl.testing import assert_no_threads_left, wait_until
 
 BASE = """

@@ -12,8 +12,8 @@ from afmctl.cli import main
 from afmctl.compensators.dynamics import LinearDynamicsModel
 from afmctl.compensators.dynamics_limits import invert_within_limits, rate_limit
 from afmctl.compensators.models import load_model
-from afmctl.datafiles import read_csv, write_csv
-from afmctl.excitation import ExcitationSpec, excitation
+from afmctl.data.datafiles import read_csv, write_csv
+from afmctl.data.excitation import ExcitationSpec, excitation
 from afmctl.sim_backend.scanner import Scanner, default_scanner_config
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from afmctl.cli import main
-from afmctl.runlog import SETPOINT_DTYPE, RunLogWriter
+from afmctl.control.runlog import SETPOINT_DTYPE, RunLogWriter
 
 UTF16_JSON = '{"kind": "pi", "thresholds": [0.0], "weights": [1.0]}'.encode("utf-16")
 BINARY = bytes(range(256)) * 2

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from afmctl.cli import main
-from afmctl.runlog import RunLogReader
+from afmctl.control.runlog import RunLogReader
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 pytestmark = pytest.mark.timeout(120)
@@ -77,7 +77,7 @@ def test_run_starts_and_closes_the_zenoh_bridge(tmp_path, monkeypatch, capsys, c
     import logging
     import threading
 
-    from afmctl.zenoh_config import loopback_pair
+    from afmctl.zenoh_api.settings import loopback_pair
     srv, _ = loopback_pair()
     monkeypatch.setenv("AFMCTL_RUNLOG__DIR", str(tmp_path))
     monkeypatch.setenv("AFMCTL_TRAJECTORY__LINES", "2")
@@ -85,7 +85,7 @@ def test_run_starts_and_closes_the_zenoh_bridge(tmp_path, monkeypatch, capsys, c
     monkeypatch.setenv("AFMCTL_AMPLIFIER__PORT", f"virtual:afmctl-exz-{os.getpid()}")
     monkeypatch.setenv("AFMCTL_ZENOH__ENABLED", "true")
     monkeypatch.setenv("AFMCTL_ZENOH__LISTEN", json.dumps(srv.listen))
-    caplog.set_level(logging.INFO, logger="afmctl.zenoh_api")
+    caplog.set_level(logging.INFO, logger="afmctl.zenoh_api.bridge")
     rc, s = _run([str(EXAMPLES / "sim_inprocess.toml")], capsys)
     assert rc == 0 and s["state"] == "stopped" and s["samples"] > 0
     assert any("zenoh API up" in r.getMessage() and srv.listen[0] in r.getMessage() for r in caplog.records)

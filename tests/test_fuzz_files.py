@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from afmctl.cli import main
-from afmctl.runlog import DRIFT_DTYPE, SETPOINT_DTYPE, RunLogWriter
+from afmctl.control.runlog import DRIFT_DTYPE, SETPOINT_DTYPE, RunLogWriter
 
 N = "{N}"          # the number each numeric mutation replaces
 

@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 
 from afmctl.config import load_config
-from afmctl.loop import Controller, State
-from afmctl.runlog import RunLogReader
+from afmctl.control.controller import Controller, State
+from afmctl.control.runlog import RunLogReader
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -31,7 +31,7 @@ DT_ID = 1e-3
 @pytest.fixture(scope="module")
 def pi_models(tmp_path_factory):
     """PI models of x and y identified from the default simulated scanner (sweeps 0–150 V)."""
-    from afmctl.simlink import identify_pi_models
+    from afmctl.simulation.link import identify_pi_models
     return identify_pi_models(tmp_path_factory.mktemp("models"), "xy", DT_ID)
 
 
@@ -131,7 +131,7 @@ def test_two_processes_afmctl_sim_and_afmctl_run_over_a_pty(tmp_path, pi_models)
     np.testing.assert_allclose(_dedup(recv), _dedup(sent), atol=1e-9)
     # the simulated tip (replayed through the same default scanner) follows the target
     # within the PI compensator's accuracy (see test_can_in_process_tip_follows_target)
-    from afmctl.simlink import tracking_error
+    from afmctl.simulation.link import tracking_error
     err = tracking_error(cfg, sp, (ev["ramp-done"], ev["end"]))
     assert max(err["max_abs_nm"][:2]) < 800.0
 
@@ -161,7 +161,7 @@ def test_every_setpoint_reaches_the_pty_amplifier_in_order(tmp_path):
     from afmctl.sim_backend.amplifiers.base import RecordingSink
     from afmctl.sim_backend.testing import serve_pty
 
-    from afmctl.hardware import open_driver
+    from afmctl.control.hardware import open_driver
     sink = RecordingSink()
     with serve_pty("mdt693b", sink=sink) as server:
         cfg = load_config(text=_config_text(tmp_path, driver="mdt693b", rate=250, port=server.port, lines=2))
@@ -189,7 +189,7 @@ def test_amplifier_vanishes_mid_scan_real_pty(tmp_path):
     from afmctl.sim_backend.amplifiers.base import RecordingSink
     from afmctl.sim_backend.testing import serve_pty
 
-    from afmctl.hardware import open_driver
+    from afmctl.control.hardware import open_driver
     sink = RecordingSink()
     with serve_pty("mdt693b", sink=sink) as server:
         text = _config_text(tmp_path, driver="mdt693b", rate=250, port=server.port, lines=4,
@@ -239,8 +239,8 @@ def test_can_in_process_tip_follows_target(tmp_path, pi_models):
     from afmctl.sim_backend.scanner import Scanner, default_scanner_config
     from afmctl.sim_backend.testing import serve_can
 
-    from afmctl.hardware import open_driver
-    from afmctl.simlink import tracking_error
+    from afmctl.control.hardware import open_driver
+    from afmctl.simulation.link import tracking_error
 
     class Tap:
         """Forwards to the scanner and records the tip position at each output change."""

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from afmctl.config import load_config
-from afmctl.runlog import RunLogReader
+from afmctl.control.runlog import RunLogReader
 
 import zenoh
 
@@ -82,9 +82,9 @@ def _first_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_live_tip_follows_the_target_within_the_compensators_accuracy(tmp_path):
-    from afmctl.messages import SimTipMsg, decode_json
-    from afmctl.simlink import identify_pi_models, load_scanner_config, tracking_error
-    from afmctl.zenoh_config import ZenohSettings, free_loopback_endpoint
+    from afmctl.zenoh_api.messages import SimTipMsg, decode_json
+    from afmctl.simulation.link import identify_pi_models, load_scanner_config, tracking_error
+    from afmctl.zenoh_api.settings import ZenohSettings, free_loopback_endpoint
     from afmctl.sim_backend.scanner import Scanner
 
     (tmp_path / "models").mkdir()
@@ -214,7 +214,7 @@ def test_live_tip_follows_the_target_within_the_compensators_accuracy(tmp_path):
     const_max, const_rms = np.abs(const_err).max(axis=0), np.sqrt(np.mean(const_err ** 2, axis=0))
 
     # ---- the compensator's accuracy: the same run replayed offline through a fresh default
-    # scanner, one plant step per setpoint (afmctl.simlink.tracking_error) ...
+    # scanner, one plant step per setpoint (afmctl.simulation.link.tracking_error) ...
     offline = tracking_error(cfg, sp, (lo, hi))
     off_max, off_rms = np.array(offline["max_abs_nm"][:2]), np.array(offline["rms_nm"][:2])
     # ... and at the plant's own time step (each 2-decimal setpoint held for one loop period,

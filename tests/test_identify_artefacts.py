@@ -12,7 +12,7 @@ import pytest
 from afmctl.cli import main
 from afmctl.compensators.models import load_model
 from afmctl.compensators.pi import PIModel
-from afmctl.datafiles import write_csv
+from afmctl.data.datafiles import write_csv
 
 DT = 1e-3
 R_V = [0.0, 15.0, 30.0, 45.0, 60.0, 70.0]          # true thresholds (< half the 150 V span)
@@ -128,8 +128,8 @@ def test_delay_is_estimated_and_stored(tmp_path, capsys):
     _, out0 = identify(tmp_path, capsys, t, u, y, "--delay", "0", name="nodelay")
     assert fit_rms(out0) > 100 * fit_rms(out) + 1.0
     # predict honours delay_s: after the burn-in the model's output is the delayed record
-    from afmctl.datafiles import read_csv
-    from afmctl.identdata import burn_in_index
+    from afmctl.data.datafiles import read_csv
+    from afmctl.data.identdata import burn_in_index
 
     write_csv(tmp_path / "v.csv", {"t": t, "u": u})
     for warm in ([], ["--warm-start", tmp_path / "v.csv"]):

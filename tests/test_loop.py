@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from afmctl.errors import AfmctlError
-from afmctl.loop import Controller, State
-from afmctl.pipeline import build_pipeline
-from afmctl.runlog import RunLogReader
-from afmctl.simlink import RecordingAmplifier
+from afmctl.control.controller import Controller, State
+from afmctl.control.pipeline import build_pipeline
+from afmctl.control.runlog import RunLogReader
+from afmctl.simulation.link import RecordingAmplifier
 from afmctl.testing import assert_no_threads_left, make_config
 from afmctl.testing import wait_until as wait_for
 
@@ -286,7 +286,7 @@ def test_restart_after_stop_and_after_giving_up(tmp_path):
 
 
 def test_lateness_histogram_percentiles():
-    from afmctl.loop import _HBINS, _bin, _percentiles
+    from afmctl.control.controller import _HBINS, _bin, _percentiles
     rng = np.random.default_rng(1)
     late = np.concatenate([rng.uniform(0, 50e-6, 990), rng.uniform(3e-3, 9e-3, 10)])
     h = np.zeros(_HBINS, np.int64)
@@ -358,7 +358,7 @@ def test_segments_with_bad_dt_or_positions_are_refused(tmp_path):
 
 
 def test_segment_that_would_resample_to_too_many_samples_is_refused(tmp_path):
-    from afmctl.loop import MAX_SEGMENT_SAMPLES
+    from afmctl.control.controller import MAX_SEGMENT_SAMPLES
     ctl = Controller(cfg_for(tmp_path), RecordingAmplifier())
     with pytest.raises(AfmctlError, match="at most"):
         ctl.submit_segment(np.zeros((1000, 3)), 10.0)       # 10 000 s at 2 kHz
@@ -386,7 +386,7 @@ def test_last_setpoint_is_reached_after_a_stall_near_the_end(tmp_path):
     """After a late tick the overdue samples go out back to back, each slowed by the slew
     limit (per wall time), so the output lags the trajectory; the run must still reach the
     trajectory's last setpoint (at the slew limit) before it ramps to the safe value."""
-    from afmctl.simlink import SendClock
+    from afmctl.simulation.link import SendClock
     cfg = cfg_for(tmp_path)
     cfg.loop.resync_periods = 1000          # catch up sample by sample (no resync)
     n = 200

@@ -13,11 +13,11 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from afmctl.compensators.chain import ChainModel
-from afmctl.loop import Controller, State
-from afmctl.pipeline import LinearAxis, build_pipeline
-from afmctl.preview import DelayLine, Delayed, equalise_latency
-from afmctl.runlog import RunLogReader
-from afmctl.simlink import RecordingAmplifier
+from afmctl.control.controller import Controller, State
+from afmctl.control.pipeline import LinearAxis, build_pipeline
+from afmctl.control.preview import DelayLine, Delayed, equalise_latency
+from afmctl.control.runlog import RunLogReader
+from afmctl.simulation.link import RecordingAmplifier
 from afmctl.testing import assert_no_threads_left, make_config, wait_until
 
 RATE_HZ = 2000.0

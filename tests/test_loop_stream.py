@@ -10,8 +10,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from afmctl.errors import AfmctlError
-from afmctl.loop import Controller, State
-from afmctl.runlog import RunLogReader
+from afmctl.control.controller import Controller, State
+from afmctl.control.runlog import RunLogReader
 from afmctl.testing import HostStalls, assert_no_threads_left, can_rig, make_config, wait_until
 
 RATE_HZ = 1000.0

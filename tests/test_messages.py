@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from afmctl.messages import (
+from afmctl.zenoh_api.messages import (
     SCHEMA_VERSION,
     SETPOINT_DTYPE,
     SETPOINT_HEADER_BYTES,

@@ -12,7 +12,7 @@ import pytest
 from afmctl.cli import main
 from afmctl.compensators.scan_files import is_image_file, read_scan_image, scans_from_images
 from afmctl.compensators.base import ModelError
-from afmctl.datafiles import read_csv
+from afmctl.data.datafiles import read_csv
 
 REAL = Path(__file__).parent / "data" / "jmarini-nanoscope" / "full_multiple_images.000"
 # the file's header: \Data offset / \Data length of the Height image, \Samps/line, \Number of lines,

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from afmctl.cli import main
-from afmctl.datafiles import read_csv, write_csv
+from afmctl.data.datafiles import read_csv, write_csv
 from afmctl.compensators.bouc_wen import BoucWenModel
 from afmctl.compensators.models import load_model
 from afmctl.compensators.preisach import PreisachModel

@@ -33,7 +33,7 @@ def test_readme_offline_tour(tmp_path, capsys):
     max_pct = md.check(volts, data / "target.csv")
     assert max_pct < 1.0          # README quotes 0.59 %
     # and the uncompensated linear calibration is far worse on the same scanner
-    from afmctl.datafiles import read_csv, write_csv
+    from afmctl.data.datafiles import read_csv, write_csv
     import numpy as np
     ex = read_csv(data / "x_excitation.csv", ["t", "u", "y"])
     tg = read_csv(data / "target.csv", ["t", "y"])

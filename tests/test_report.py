@@ -1,4 +1,4 @@
-"""``afmctl report RUN``: a run log written by afmctl.runlog → plots and a summary."""
+"""``afmctl report RUN``: a run log written by afmctl.control.runlog → plots and a summary."""
 from __future__ import annotations
 
 import json
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from afmctl.cli import main
-from afmctl.runlog import DRIFT_DTYPE, SETPOINT_DTYPE, RunLogWriter
+from afmctl.control.runlog import DRIFT_DTYPE, SETPOINT_DTYPE, RunLogWriter
 
 
 def _write_log(path, n=3000, dt=1e-3):
@@ -80,7 +80,7 @@ def test_error_histograms_tell_the_series_apart():
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from afmctl.report import plot_error_histograms
+    from afmctl.reports.report import plot_error_histograms
     fig, ax = plt.subplots()
     rng = np.random.default_rng(0)
     names = ["correction", "simulated error", "mystery", "another"]

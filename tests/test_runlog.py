@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from afmctl.cli import main
 from afmctl.errors import AfmctlError
-from afmctl.runlog import (DRIFT_DTYPE, KIND_EVENTS, KIND_SETPOINTS, SETPOINT_DTYPE, RunLogReader, RunLogWriter,
+from afmctl.control.runlog import (DRIFT_DTYPE, KIND_EVENTS, KIND_SETPOINTS, SETPOINT_DTYPE, RunLogReader, RunLogWriter,
                            encode_chunk, encode_header)
 
 
@@ -104,8 +104,8 @@ KILL_CHILD = textwrap.dedent("""
     import sys, time
     import numpy as np
     from afmctl.config import load_config
-    from afmctl.loop import Controller
-    from afmctl.simlink import RecordingAmplifier
+    from afmctl.control.controller import Controller
+    from afmctl.simulation.link import RecordingAmplifier
     cfg = load_config(text='''
     [simulation]
     enabled = true
@@ -182,7 +182,7 @@ def test_well_formed_chunks_with_wrong_content_read_as_torn_prefix(tmp_path, cap
     import struct
     import zlib
 
-    from afmctl.runlog import encode_chunk, encode_header
+    from afmctl.control.runlog import encode_chunk, encode_header
     good = encode_header({"scanner": "s"}) + encode_chunk(3, b'[{"event": "start", "state": "running"}]', 1)
     for bad in (b'{"event": "x"}', b"[1, 2, 3]", b'["a"]', b"[]"):
         p = tmp_path / "e.afmlog"

@@ -13,9 +13,9 @@ import pytest
 
 from afmctl.cli import main
 from afmctl.config import load_config
-from afmctl.loop import Controller, State
-from afmctl.runlog import RunLogReader, RunLogWriter
-from afmctl.simlink import RecordingAmplifier
+from afmctl.control.controller import Controller, State
+from afmctl.control.runlog import RunLogReader, RunLogWriter
+from afmctl.simulation.link import RecordingAmplifier
 from afmctl.testing import wait_until
 
 RATE_HZ, SLEW_V_PER_S = 2000.0, 2000.0

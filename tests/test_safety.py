@@ -1,7 +1,7 @@
 """The safety layer: no request, trajectory, configuration or device reply puts a value
 outside the limits or a step larger than the slew limit on the wire.
 
-The amplifier here is :class:`afmctl.simlink.RecordingAmplifier`, a real implementation of
+The amplifier here is :class:`afmctl.simulation.link.RecordingAmplifier`, a real implementation of
 the Amplifier ABC that checks every value it receives (and a real-backend run is in
 tests/test_hil.py)."""
 from __future__ import annotations
@@ -14,9 +14,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from afmctl.errors import AfmctlError
-from afmctl.loop import Controller, State
-from afmctl.safety import ReadbackError, SafetyLayer, Watchdog
-from afmctl.simlink import RecordingAmplifier
+from afmctl.control.controller import Controller, State
+from afmctl.control.safety import ReadbackError, SafetyLayer, Watchdog
+from afmctl.simulation.link import RecordingAmplifier
 from afmctl.drivers.errors import AmplifierConnectionError
 
 floats_any = st.one_of(st.floats(allow_nan=True, allow_infinity=True),
@@ -195,7 +195,7 @@ def test_slew_limit_holds_per_wall_time_between_sends(steps, slew, dt):
     """Sends that come faster than the sample period (a late loop catching up) get smaller
     steps: |Δu| ≤ slew · Δt of wall time, and never more than slew · dt per send."""
     t = [0.0]
-    from afmctl.simlink import SendClock
+    from afmctl.simulation.link import SendClock
     clock = SendClock(lambda: t[0])
     amp = RecordingAmplifier(check_step_V=slew * dt, check_slew_V_per_s=slew, clock=clock.stamp)
     layer = SafetyLayer(amp, ("x", "y", "z"), {}, slew, dt, clock=clock)
@@ -211,7 +211,7 @@ def test_slew_limit_holds_per_wall_time_between_sends(steps, slew, dt):
 
 def test_burst_of_sends_is_slowed_to_the_slew_rate():
     t = [0.0]
-    from afmctl.simlink import SendClock
+    from afmctl.simulation.link import SendClock
     clock = SendClock(lambda: t[0])
     amp = RecordingAmplifier(check_slew_V_per_s=1000.0, clock=clock.stamp)
     layer = SafetyLayer(amp, ("x",), {}, 1000.0, 1e-3, clock=clock)   # 1 V per 1 ms sample
@@ -243,7 +243,7 @@ class StallingAmplifier(RecordingAmplifier):
 def test_loop_catching_up_after_a_stall_keeps_the_slew_rate():
     """After a stall the loop sends the overdue samples back to back; at the amplifier
     that must not be faster than slew_V_per_s (it was: 1 V steps microseconds apart)."""
-    from afmctl.simlink import SendClock
+    from afmctl.simulation.link import SendClock
     cfg = _cfg(rate=1000.0, slew=1000.0)
     cfg.loop.resync_periods = 1000
     clock = SendClock()
@@ -306,7 +306,7 @@ def test_faults_reconnects_stops_and_readbacks_never_make_an_unsafe_step(
     limits (also after a reconnect), stop/estop at any time (also during a ramp or a
     fault): every value the amplifier receives is inside the limits and, against the
     wall time between sends, within the slew limit."""
-    from afmctl.simlink import SendClock
+    from afmctl.simulation.link import SendClock
     hi = min(lo + span, 150.0)
     cfg = _cfg(f"""
 [safety]

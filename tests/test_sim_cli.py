@@ -102,7 +102,7 @@ def test_sim_bad_scanner_override_names_the_field(tmp_path):
 
 
 def test_sim_service_advances_the_plant_on_the_wall_clock_and_calls_on_tick():
-    from afmctl.simservice import SimService, load_settings
+    from afmctl.simulation.service import SimService, load_settings
     ticks = []
     settings = load_settings(None)
     settings.sim.tick_s = 0.02
@@ -127,7 +127,7 @@ def test_sim_service_advances_the_plant_on_the_wall_clock_and_calls_on_tick():
 
 def test_make_scanner_uses_the_real_scanner_and_names_a_bad_field():
     from afmctl.errors import AfmctlError
-    from afmctl.simservice import make_scanner
+    from afmctl.simulation.service import make_scanner
     from afmctl.sim_backend.scanner import Scanner
     sink, description = make_scanner({})
     assert isinstance(sink, Scanner) and description.startswith("scanner ")
@@ -146,7 +146,7 @@ def test_sim_bad_arguments_are_one_line_errors(tmp_path, capsys):
 
 def test_sim_record_file_grows_while_the_simulator_runs(tmp_path):
     """--record is flushed every RECORD_FLUSH_S while running, not only at stop."""
-    from afmctl.simservice import RECORD_FLUSH_S, SimService, load_settings
+    from afmctl.simulation.service import RECORD_FLUSH_S, SimService, load_settings
     from afmctl.testing import wait_until
     record = tmp_path / "rec.csv"
     service = SimService(load_settings(None), record=record)

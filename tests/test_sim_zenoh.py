@@ -2,7 +2,7 @@
 
 End to end: ``afmctl sim`` as a subprocess listening on a free loopback port, a real zenoh
 session in the test connected to it (scouting off), raw MDT693B bytes on the pty; plus the
-decimating, never-blocking :class:`afmctl.simservice.TipPublisher` and the CLI errors.
+decimating, never-blocking :class:`afmctl.simulation.service.TipPublisher` and the CLI errors.
 """
 from __future__ import annotations
 
@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 import serial
 
-from afmctl.messages import SimTipMsg, decode_json
-from afmctl.zenoh_config import ZenohSettings, free_loopback_endpoint
+from afmctl.zenoh_api.messages import SimTipMsg, decode_json
+from afmctl.zenoh_api.settings import ZenohSettings, free_loopback_endpoint
 from afmctl.testing import wait_for as _wait_for
 
 import zenoh
@@ -174,7 +174,7 @@ def test_sim_settings_zenoh_section_is_off_by_default_and_checked(tmp_path):
     import re
 
     from afmctl.errors import AfmctlError
-    from afmctl.simservice import load_settings, scanner_name
+    from afmctl.simulation.service import load_settings, scanner_name
     settings = load_settings(None)
     assert settings.zenoh.enabled is False and settings.sim.publish_rate_Hz == 100.0
     assert scanner_name(settings) == "sim0"
@@ -207,7 +207,7 @@ class _Gate:
 
 
 def test_tip_publisher_never_blocks_drops_the_oldest_and_drains_on_close():
-    from afmctl.simservice import TipPublisher
+    from afmctl.simulation.service import TipPublisher
     gate = _Gate()
     tips = TipPublisher(gate, rate_Hz=64.0, queue_size=5).start()
     dt_s = 2.0 ** -10                              # ~1 kHz ticks; binary fractions keep t exact
@@ -236,7 +236,7 @@ def test_tip_publisher_never_blocks_drops_the_oldest_and_drains_on_close():
 
 
 def test_tip_publisher_decimates_on_simulated_time_and_survives_publish_errors():
-    from afmctl.simservice import TipPublisher
+    from afmctl.simulation.service import TipPublisher
     got: list[float] = []
 
     def flaky(t_s, position_nm):

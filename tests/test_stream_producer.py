@@ -13,9 +13,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from afmctl.drivers.can_amp import CANAmplifier
-from afmctl.safety import SafetyLayer
+from afmctl.control.safety import SafetyLayer
 from afmctl.sim_backend.amplifiers.base import RecordingSink
-from afmctl.stream_producer import StreamProducer
+from afmctl.control.stream_producer import StreamProducer
 from afmctl.sim_backend.testing import serve_can
 
 RATE_HZ = 1000

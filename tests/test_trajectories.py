@@ -8,10 +8,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from afmctl import trajectories as tr
+from afmctl.inputs import trajectories as tr
 from afmctl.config import IndentationSpec, MovesSpec, RasterSpec, SpiralSpec, TextSpec
 from afmctl.errors import AfmctlError
-from afmctl.textpath import GLYPHS, strokes
+from afmctl.inputs.textpath import GLYPHS, strokes
 
 DT = 1e-3
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from afmctl.cli import main
-from afmctl.datafiles import read_csv, write_csv
+from afmctl.data.datafiles import read_csv, write_csv
 from afmctl.sim_backend.config import (AmplifierConfig, CreepConfig, DynamicsConfig, GaussianPreisachConfig,
                                        PreisachComponent)
 from afmctl.sim_backend.scanner import Scanner, default_scanner_config

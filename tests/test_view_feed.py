@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 
 from afmctl.cli import main
-from afmctl.messages import SETPOINT_DTYPE, DriftMsg, SimImageMsg, SimTipMsg, StatusMsg, encode_setpoints
+from afmctl.zenoh_api.messages import SETPOINT_DTYPE, DriftMsg, SimImageMsg, SimTipMsg, StatusMsg, encode_setpoints
 from afmctl.testing import wait_for
 from afmctl.view.align import ClockOffset, TargetHistory
 from afmctl.view.feed import MAX_SCANNERS, ViewFeed
 from afmctl.view.image import HeightImage
 from afmctl.view.ring import Ring
 from afmctl.view.scanner_feed import ScannerFeed
-from afmctl.zenoh_config import loopback_pair
+from afmctl.zenoh_api.settings import loopback_pair
 
 import zenoh
 

@@ -14,7 +14,7 @@ import pytest
 from afmctl.testing import wait_for
 from afmctl.view.feed import ViewFeed
 from afmctl.view.testing import Browser, LiveStack, canvas_pixels
-from afmctl.zenoh_config import ZenohSettings
+from afmctl.zenoh_api.settings import ZenohSettings
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]
 

@@ -16,15 +16,15 @@ from hypothesis import strategies as st
 
 from afmctl.compensators.chain import ChainModel
 from afmctl.errors import AfmctlError
-from afmctl.hardware import open_driver
-from afmctl.loop import Controller, State
-from afmctl.pipeline import build_pipeline
-from afmctl.runlog import RunLogReader
+from afmctl.control.hardware import open_driver
+from afmctl.control.controller import Controller, State
+from afmctl.control.pipeline import build_pipeline
+from afmctl.control.runlog import RunLogReader
 from afmctl.sim_backend.amplifiers.base import RecordingSink
 from afmctl.sim_backend.testing import serve_pty
 from afmctl.testing import HostStalls, assert_no_threads_left, make_config
 from afmctl.testing import can_rig as can_rig_on_a_fresh_channel
-from afmctl.wave_plan import driven_steps_ok, padded, plan_table
+from afmctl.control.wave_plan import driven_steps_ok, padded, plan_table
 
 RATE_HZ = 1000.0
 SLEW_V_PER_S = 2000.0     # 2 V per sample at 1 kHz

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from afmctl.messages import (
+from afmctl.zenoh_api.messages import (
     SETPOINT_DTYPE,
     CmdReply,
     CmdRequest,
@@ -22,8 +22,8 @@ from afmctl.messages import (
     TemperatureMsg,
     decode_setpoints,
 )
-from afmctl.zenoh_api import ZenohBridge
-from afmctl.zenoh_config import loopback_pair
+from afmctl.zenoh_api.bridge import ZenohBridge
+from afmctl.zenoh_api.settings import loopback_pair
 from afmctl.testing import bridge_on_free_port, wait_for
 
 import zenoh
@@ -303,8 +303,8 @@ def test_service_still_answers_after_abuse(service):
 
 
 def test_sim_publisher_tip_positions(service):
-    from afmctl.messages import SimTipMsg, decode_json
-    from afmctl.zenoh_api import SimPublisher
+    from afmctl.zenoh_api.messages import SimTipMsg, decode_json
+    from afmctl.zenoh_api.bridge import SimPublisher
     _, bridge, client = service
     got: list = []
     sub = client.session.declare_subscriber("afm/s1/sim/**", lambda s: got.append((str(s.key_expr),

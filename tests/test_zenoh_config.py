@@ -9,7 +9,7 @@ import pytest
 from pydantic import ValidationError
 
 from afmctl.errors import AfmctlError
-from afmctl.zenoh_config import AclSettings, AclSubject, UserPasswordSettings, ZenohSettings, loopback_pair
+from afmctl.zenoh_api.settings import AclSettings, AclSubject, UserPasswordSettings, ZenohSettings, loopback_pair
 
 import zenoh
 
@@ -130,7 +130,7 @@ def test_access_control_only_operators_may_command(tmp_path):
 
 
 def test_open_session_error_is_one_line():
-    from afmctl.zenoh_api import open_session
+    from afmctl.zenoh_api.bridge import open_session
     srv, _ = loopback_pair()
     first = open_session(srv)
     try:
@@ -160,7 +160,7 @@ def _make_certs(d):
 def test_mtls_access_control_by_certificate_common_name(tmp_path):
     """Mutual TLS on loopback; only the certificate with CN 'operator' may put a trajectory."""
     import shutil
-    from afmctl.zenoh_config import TlsSettings, free_loopback_endpoint
+    from afmctl.zenoh_api.settings import TlsSettings, free_loopback_endpoint
     if shutil.which("openssl") is None:
         pytest.skip("openssl command not available to make test certificates")
     _make_certs(tmp_path)
@@ -258,7 +258,7 @@ def test_huge_payloads_are_dropped_by_zenoh_before_reassembly():
     """zenoh's own receive limit (4 × max_message_bytes; zenoh's default is 1 GiB):
     a payload just above max_message_bytes still arrives (the bridge reports it on
     status), one far above it never reaches the service's callbacks."""
-    from afmctl.zenoh_config import RX_LIMIT_FACTOR
+    from afmctl.zenoh_api.settings import RX_LIMIT_FACTOR
     srv, cli = loopback_pair(ZenohSettings(max_message_bytes=4096))
     assert json.loads(srv.to_zenoh_config().get_json("transport/link/rx/max_message_size")) == RX_LIMIT_FACTOR * 4096
     service = zenoh.open(srv.to_zenoh_config("s1"))

@@ -1,4 +1,4 @@
-"""End to end over zenoh on loopback: the real Controller (afmctl.loop) driving the
+"""End to end over zenoh on loopback: the real Controller (afmctl.control.controller) driving the
 simulated scanner through the real CAN driver on a python-can virtual bus, the
 ZenohBridge, and a client session that publishes trajectories and temperatures and
 watches setpoints, drift and status."""
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from afmctl.messages import CmdRequest, LineMsg, SegmentMsg, TemperatureMsg, decode_setpoints
-from afmctl.zenoh_config import AclSettings, AclSubject, UserPasswordSettings, ZenohSettings
+from afmctl.zenoh_api.messages import CmdRequest, LineMsg, SegmentMsg, TemperatureMsg, decode_setpoints
+from afmctl.zenoh_api.settings import AclSettings, AclSubject, UserPasswordSettings, ZenohSettings
 from afmctl.testing import bridge_on_free_port, wait_for
 
 import zenoh
@@ -70,8 +70,8 @@ class Client:
 @pytest.fixture(scope="module")
 def service(tmp_path_factory):
     from afmctl.config import load_config
-    from afmctl.loop import Controller
-    from afmctl.simlink import simulated_amplifier
+    from afmctl.control.controller import Controller
+    from afmctl.simulation.link import simulated_amplifier
 
     before = {t.ident for t in threading.enumerate()}
     users = tmp_path_factory.mktemp("zenoh") / "users.txt"

@@ -1,4 +1,4 @@
-"""The zenoh API in its own process (afmctl.zenoh_process): same keys, payloads and ACL as
+"""The zenoh API in its own process (afmctl.zenoh_api.process): same keys, payloads and ACL as
 the in-process bridge, over a real zenoh session on loopback, with the real Controller."""
 from __future__ import annotations
 
@@ -13,12 +13,12 @@ import zenoh
 
 from afmctl.config import load_config
 from afmctl.errors import AfmctlError
-from afmctl.loop import Controller
-from afmctl.messages import CmdRequest, SegmentMsg, decode_setpoints
-from afmctl.simlink import RecordingAmplifier
+from afmctl.control.controller import Controller
+from afmctl.zenoh_api.messages import CmdRequest, SegmentMsg, decode_setpoints
+from afmctl.simulation.link import RecordingAmplifier
 from afmctl.testing import assert_no_threads_left, wait_for
-from afmctl.zenoh_config import AclSettings, AclSubject, UserPasswordSettings, ZenohSettings, loopback_pair
-from afmctl.zenoh_process import ZenohBridgeProcess
+from afmctl.zenoh_api.settings import AclSettings, AclSubject, UserPasswordSettings, ZenohSettings, loopback_pair
+from afmctl.zenoh_api.process import ZenohBridgeProcess
 
 CONFIG = """
 [scanner]
@@ -154,7 +154,7 @@ def test_slow_subscriber_does_not_hold_the_run(service):
     assert op.cmd("stop")[0]["ok"]
     assert ctl.wait(10)
     assert ctl.stats()["dropped_records"] == 0
-    from afmctl.runlog import RunLogReader
+    from afmctl.control.runlog import RunLogReader
     ctl.close()
     sp = RunLogReader(ctl.runlog_path).setpoints()
     assert len(sp) == ctl.stats()["samples"]

@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from afmctl.messages import CmdRequest, SegmentMsg, TemperatureMsg, decode_setpoints
-from afmctl.runlog import RunLogReader
+from afmctl.zenoh_api.messages import CmdRequest, SegmentMsg, TemperatureMsg, decode_setpoints
+from afmctl.control.runlog import RunLogReader
 from afmctl.testing import wait_for
-from afmctl.zenoh_config import UserPasswordSettings, ZenohSettings, free_loopback_endpoint
+from afmctl.zenoh_api.settings import UserPasswordSettings, ZenohSettings, free_loopback_endpoint
 
 import zenoh
 pytestmark = pytest.mark.timeout(180)

@@ -169,7 +169,7 @@ def _load_stream(args) -> tuple[list[str], "object", list[str], "object"]:
     """``(axes, volts (n, axes) [V], columns, send times from the start (n,) [s])``."""
     import numpy as np
 
-    from ..datafiles import read_csv
+    from ..data.datafiles import read_csv
     from ..errors import AfmctlError
     data = read_csv(args.file, ["t"], optional=["u", "ux", "uy", "uz"])
     n = data["t"].shape[0]

@@ -68,7 +68,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from ..datafiles import read_csv, uniform_period, write_csv
+    from ..data.datafiles import read_csv, uniform_period, write_csv
     from ..errors import AfmctlError
     from afmctl.compensators.base import ModelError
     from afmctl.compensators.models import load_model

@@ -1,4 +1,4 @@
-"""``afmctl demo``: the simulated scanner with and without compensation (see afmctl.demo)."""
+"""``afmctl demo``: the simulated scanner with and without compensation (see afmctl.reports.demo)."""
 from __future__ import annotations
 
 import argparse
@@ -62,7 +62,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..demo import DEFAULT_COMPENSATORS, DemoOptions, format_table, run_demo
+    from ..reports.demo import DEFAULT_COMPENSATORS, DemoOptions, format_table, run_demo
     options = DemoOptions(out=args.out, size=args.size, line_rate_Hz=args.line_rate, quick=args.quick,
                           drift=not args.no_drift,
                           compensators=tuple(args.only) if args.only else DEFAULT_COMPENSATORS,

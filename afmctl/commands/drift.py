@@ -170,7 +170,7 @@ def run_params(args: argparse.Namespace) -> int:
 def _read_voltages(path: str):
     import numpy as np
 
-    from ..datafiles import read_csv
+    from ..data.datafiles import read_csv
     from ..errors import AfmctlError
     cols = read_csv(path, ["t"], optional=["ux", "uy", "uz", "u"])
     if not any(c in cols for c in ("ux", "uy", "uz", "u")):
@@ -223,7 +223,7 @@ def predict_file(t_s, T_C, params, *, dt_s=None, volts=None, max_gap_s=600.0, wh
 def run_predict(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from ..datafiles import read_csv, write_csv
+    from ..data.datafiles import read_csv, write_csv
 
     params = load_params(args.params)
     if not (args.max_gap > 0):
@@ -246,8 +246,8 @@ def run_predict(args: argparse.Namespace) -> int:
 def run_measure(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from ..datafiles import write_csv
-    from ..drift_images import FrameDriftMeter
+    from ..data.datafiles import write_csv
+    from ..inputs.drift_images import FrameDriftMeter
     from ..errors import AfmctlError
     from afmctl.compensators.scan_files import read_scan_image
 
@@ -279,7 +279,7 @@ def run_measure(args: argparse.Namespace) -> int:
 def run_fit(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from ..datafiles import read_csv
+    from ..data.datafiles import read_csv
     from ..errors import AfmctlError
     from afmctl.compensators.drift import AXES, fit_gains, path_responses
 

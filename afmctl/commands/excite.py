@@ -62,8 +62,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from ..datafiles import write_csv
-    from ..excitation import ExcitationSpec, excitation
+    from ..data.datafiles import write_csv
+    from ..data.excitation import ExcitationSpec, excitation
 
     spec = ExcitationSpec(u_min_V=args.u_min_V, u_max_V=args.u_max_V, rate_Hz=args.rate_Hz,
                           sweep_V_per_s=args.sweep_V_per_s, slew_V_per_s=args.slew_V_per_s, dwell_s=args.dwell_s,

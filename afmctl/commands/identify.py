@@ -188,8 +188,8 @@ def _fit(cls, args: argparse.Namespace, c):
     import numpy as np
 
     from ..errors import AfmctlError
-    from ..identdata import delayed
-    from ..prediction import predict_nm
+    from ..data.identdata import delayed
+    from ..data.prediction import predict_nm
     from afmctl.compensators.base import ModelError
 
     params = parse_params(args.param)
@@ -227,7 +227,7 @@ def _report(args: argparse.Namespace, c, model, first: int, y_fit) -> None:
     """Summary, residual after the burn-in, data notes and the excitation check."""
     import numpy as np
 
-    from ..identdata import excitation_notes
+    from ..data.identdata import excitation_notes
 
     t, u, y = c.t_s[first:], c.u_V[first:], c.y_nm[first:]
     k = c.fit_from - first

@@ -13,7 +13,7 @@ def _read(args: argparse.Namespace):
     estimated sensor delay applied), whole: ``(t, u, y, delay_s, fit_from)``; the samples
     before ``fit_from`` (the burn-in) only set the models' memory."""
     from ..errors import AfmctlError
-    from ..identdata import delayed
+    from ..data.identdata import delayed
     from .identify_io import _read_conditioned
 
     if getattr(args, "from_images", None) is not None:

@@ -28,9 +28,9 @@ def parse_params(items: list[str]) -> dict[str, Any]:
 
 
 def _read_conditioned(args: argparse.Namespace, uniform: bool):
-    from ..datafiles import read_csv
+    from ..data.datafiles import read_csv
     from ..errors import AfmctlError
-    from ..identdata import Y_UNITS, condition
+    from ..data.identdata import Y_UNITS, condition
 
     if args.y_unit not in Y_UNITS:
         raise AfmctlError(f"--y-unit: {args.y_unit!r} is not known; allowed: nm, um")

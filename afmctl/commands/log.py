@@ -47,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from ..runlog import RunLogReader
+    from ..control.runlog import RunLogReader
     reader = RunLogReader(resolve(args.run, args.dir))
     summary = reader.summary()
     meta = reader.meta()
@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
             t_txt = f"{t:10.3f}" if isinstance(t, (int, float)) else f"{'?':>10}"
             print(f"  seq {e.get('seq', '?')!s:>8}  t {t_txt} s  {e.get('state', '?')!s:8s} {e.get('event')}{detail}")
     if args.csv:
-        from ..datafiles import write_csv
+        from ..data.datafiles import write_csv
         sp = reader.setpoints()
         dr = reader.drift()
         n = min(len(sp), len(dr)) if len(dr) else len(sp)

@@ -113,7 +113,7 @@ def run_invert(args: argparse.Namespace) -> int:
 
 
 def _warm(path: str | None):
-    from ..datafiles import read_csv
+    from ..data.datafiles import read_csv
 
     if path is None:
         return None
@@ -122,10 +122,10 @@ def _warm(path: str | None):
 
 
 def run_predict(args: argparse.Namespace) -> int:
-    from ..datafiles import read_csv, write_csv
-    from ..identdata import U_LIMIT_V
+    from ..data.datafiles import read_csv, write_csv
+    from ..data.identdata import U_LIMIT_V
     from ..errors import AfmctlError
-    from ..prediction import predict_nm
+    from ..data.prediction import predict_nm
     from afmctl.compensators.models import load_model
 
     model = load_model(args.model)
@@ -140,10 +140,10 @@ def run_predict(args: argparse.Namespace) -> int:
 
 
 def run_validate(args: argparse.Namespace) -> int:
-    from ..datafiles import read_csv
+    from ..data.datafiles import read_csv
     from ..errors import AfmctlError
-    from ..identdata import Y_UNITS, burn_in_index, check_units
-    from ..prediction import HEADER, predict_nm, score
+    from ..data.identdata import Y_UNITS, burn_in_index, check_units
+    from ..data.prediction import HEADER, predict_nm, score
     from afmctl.compensators.models import load_model
 
     model = load_model(args.model)
@@ -166,7 +166,7 @@ def run_validate(args: argparse.Namespace) -> int:
     for s in stats:
         print(s.row())
     if args.plot:
-        from ..prediction import plot_validation
+        from ..data.prediction import plot_validation
         plot_validation(args.plot, t, u, y, y_pred, start, f"{model.kind} model, {args.data}")
         print(f"plot             : {args.plot}")
     return 0

@@ -1,4 +1,4 @@
-"""``afmctl report RUN``: plots of a run log (see afmctl.report)."""
+"""``afmctl report RUN``: plots of a run log (see afmctl.reports.report)."""
 from __future__ import annotations
 
 import argparse
@@ -41,12 +41,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..report import run_report
+    from ..reports.report import run_report
     out = args.out if args.out is not None else args.run.with_name(args.run.stem + "-report")
     files, summary = run_report(args.run, out, simulate=args.simulate)
     print(f"{summary['samples']} setpoints, {summary.get('duration_s', 0.0):.3f} s, states: "
           f"{' -> '.join(summary['states']) or '-'}")
-    from ..report import QUANTITIES, TRACKING_ERROR
+    from ..reports.report import QUANTITIES, TRACKING_ERROR
     errors = summary.get("errors_pct_of_range", {})
     span = summary.get("range_nm", 0.0)
     for name, e in errors.items():

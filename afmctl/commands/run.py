@@ -103,7 +103,7 @@ def link_warning(config) -> str | None:
 
 
 def _summary(ctl, config, scanner) -> dict:
-    from ..runlog import RunLogReader
+    from ..control.runlog import RunLogReader
     st = ctl.stats()
     out = {"state": st["state"], "samples": st["samples"], "ticks": st["ticks"], "rate_Hz": st["rate_Hz"],
            "lateness_p50_s": st["lateness_p50_s"], "lateness_p99_s": st["lateness_p99_s"],
@@ -116,7 +116,7 @@ def _summary(ctl, config, scanner) -> dict:
            "runlog": str(ctl.runlog_path) if ctl.runlog_path else None,
            "runlog_error": ctl.runlog_error, "trajectory_error": ctl.trajectory_error}
     if scanner is not None and ctl.runlog_path is not None and ctl.runlog_error is None:
-        from ..simlink import tracking_error
+        from ..simulation.link import tracking_error
         reader = RunLogReader(ctl.runlog_path)
         ev = reader.events()
         start = max([e["seq"] for e in ev if e.get("event") == "ramp-done"] or [0])
@@ -208,7 +208,7 @@ def _exit_status(ctl, summary: dict) -> int:
     """The exit status of a finished run (see HELP); the reason goes to stderr as one line."""
     import sys
 
-    from ..loop import State
+    from ..control.controller import State
     if ctl.runlog_error is not None:
         print(f"afmctl: error: {ctl.runlog_error}; the run was stopped (ramped to the safe value)",
               file=sys.stderr)
@@ -224,9 +224,9 @@ def run(args: argparse.Namespace) -> int:
     import json
     import sys
 
-    from .. import cpu_pinning
+    from ..control import cpu_pinning
     from ..config import load_config
-    from ..loop import Controller
+    from ..control.controller import Controller
 
     _check_seconds(args.seconds)
     config = load_config(args.config, overrides={"amplifier": {"port": args.port}} if args.port else None)
@@ -238,20 +238,20 @@ def run(args: argparse.Namespace) -> int:
         print(f"afmctl: warning: {warning}", file=sys.stderr)
     with contextlib.ExitStack() as stack:
         if config.simulation.enabled:
-            from ..simlink import simulated_amplifier
+            from ..simulation.link import simulated_amplifier
             amp, scanner = stack.enter_context(simulated_amplifier(config))
         else:
-            from ..hardware import open_driver
+            from ..control.hardware import open_driver
             amp = open_driver(config, config.amplifier.port)
             stack.callback(amp.close)
         ctl = Controller(config, amp)
         stack.callback(ctl.close)
         if config.zenoh.enabled:   # in its own process: the loop's timing does not depend on it
-            from ..zenoh_process import ZenohBridgeProcess
+            from ..zenoh_api.process import ZenohBridgeProcess
             bridge = ZenohBridgeProcess(ctl, config.zenoh, scanner_name=config.scanner.name)
             stack.callback(bridge.close)
         if args.drift_images:
-            from ..drift_watch import DriftImageWatcher
+            from ..inputs.drift_watch import DriftImageWatcher
             watcher = DriftImageWatcher(ctl, args.drift_images, args.drift_image_std_nm, args.drift_frame_period_s)
             stack.callback(watcher.close)
 

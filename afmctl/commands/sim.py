@@ -3,7 +3,7 @@ process. The first line printed is the pty path to give to ``afmctl amp``/``afmc
 
 With ``--zenoh`` (off by default) the true tip position [nm] is published on
 ``<prefix>/<scanner>/sim/tip`` through :class:`TipPublisher` (decimated, own thread,
-drop-oldest queue) and :class:`afmctl.zenoh_api.SimPublisher`."""
+drop-oldest queue) and :class:`afmctl.zenoh_api.bridge.SimPublisher`."""
 from __future__ import annotations
 
 import argparse
@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 from collections.abc import Callable
 
-from ..simservice import SimService, TipPublisher, load_settings, scanner_name
+from ..simulation.service import SimService, TipPublisher, load_settings, scanner_name
 
 log = logging.getLogger(__name__)
 
@@ -109,7 +109,7 @@ SAMPLES = {"grating1d": "Grating1D", "grating2d": "Grating2D", "standard": "Stan
 
 def image_publisher(sim_pub, sample_key: str) -> Callable[[float, Any], None]:
     """``publish(t_s, position_nm)`` that publishes the tip on ``sim/tip`` and the sample's
-    height [nm] under it on ``sim/image`` (:class:`afmctl.messages.SimImageMsg`)."""
+    height [nm] under it on ``sim/image`` (:class:`afmctl.zenoh_api.messages.SimImageMsg`)."""
     from afmctl.sim_backend import samples
     sample = getattr(samples, SAMPLES[sample_key])()
 
@@ -189,7 +189,7 @@ def run(args) -> int:
     try:
         with contextlib.ExitStack() as stack:
             if settings.zenoh.enabled:            # first: a taken port fails before the pty opens
-                from ..zenoh_api import SimPublisher
+                from ..zenoh_api.bridge import SimPublisher
                 sim_pub = SimPublisher(settings.zenoh, name)
                 stack.callback(sim_pub.close)
                 publish = sim_pub.publish_tip if args.sample is None else image_publisher(sim_pub, args.sample)

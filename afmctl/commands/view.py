@@ -90,7 +90,7 @@ def zenoh_settings(config: Path | None, connect: list[str] | None):
     from pydantic import ValidationError
 
     from ..errors import AfmctlError
-    from ..zenoh_config import ZenohSettings
+    from ..zenoh_api.settings import ZenohSettings
     table: dict[str, Any] = {}
     if config is not None:
         try:

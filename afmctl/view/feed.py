@@ -3,7 +3,7 @@ one or more scanners, one :class:`~afmctl.view.scanner_feed.ScannerFeed` per sca
 
 The viewer only ever *subscribes* (what an ``observers`` subject of the service's access
 control may do); it never puts or queries. Its session is built from
-:class:`afmctl.zenoh_config.ZenohSettings`, so TLS, mutual TLS and user/password
+:class:`afmctl.zenoh_api.settings.ZenohSettings`, so TLS, mutual TLS and user/password
 authentication work as for any other peer (docs/ZENOH.md)."""
 from __future__ import annotations
 
@@ -12,15 +12,15 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
-from ..messages import MessageError
-from ..zenoh_config import ZenohSettings
+from ..zenoh_api.messages import MessageError
+from ..zenoh_api.settings import ZenohSettings
 from .scanner_feed import ScannerFeed
 
 log = logging.getLogger(__name__)
 
 #: the keys watched (leaf after ``<prefix>/<scanner>/``) and the feed method each goes to
 LEAVES = {"setpoint": "on_setpoints", "drift": "on_drift", "status": "on_status",
-          "sim/tip": "on_tip", "sim/image": "on_image"}
+          "sim/tip": "on_tip", "sim/image": "on_image", "learn": "on_learn"}
 #: most scanners one viewer tracks (a wildcard subscription cannot grow without bound)
 MAX_SCANNERS = 16
 
@@ -63,7 +63,7 @@ class ViewFeed:
         return [f"{self.settings.prefix}/{n}/{leaf}" for n in names for leaf in LEAVES]
 
     def start(self) -> "ViewFeed":
-        from ..zenoh_api import open_session
+        from ..zenoh_api.bridge import open_session
         keys = self.keys()
         self._session = open_session(self.settings)
         for key in keys:

@@ -11,7 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from ..messages import DriftMsg, SimImageMsg, SimTipMsg, StatusMsg, decode_json, decode_setpoints
+from ..zenoh_api.messages import (DriftMsg, LearnMsg, SimImageMsg, SimTipMsg, StatusMsg, decode_json,
+                                  decode_setpoints)
 from .align import ClockOffset, TargetHistory
 from .image import HeightImage
 from .ring import Ring
@@ -24,6 +25,8 @@ TIP_WAIT_S = 2.0
 IMAGE_MARGIN = 0.1
 #: window of the tracking-error summary [s]
 ERROR_WINDOW_S = 2.0
+#: most learning iterations kept (one learning run; a new run starts at iteration 0)
+MAX_LEARN_ROWS = 1000
 
 
 def _r(values: Any, nd: int = 3) -> list[float | None]:
@@ -54,8 +57,10 @@ class ScannerFeed:
     Streams (each a :class:`Ring` of rows, oldest dropped): ``setpoints`` rows
     ``[t_s, target x/y/z nm, u x/y/z V]``; ``tips`` rows ``[t_s, tip x/y/z nm, error x/y/z nm]``
     on the controller's clock (error None when no target is known at that time);
-    ``drift`` rows ``[t_s, drift x/y/z nm, 1σ x/y/z nm or None]``. ``status``: the last
-    status message. ``image``: :class:`HeightImage`.
+    ``drift`` rows ``[t_s, drift x/y/z nm, 1σ x/y/z nm or None]``; ``learn`` rows
+    ``[iteration, max %, RMS %, central max %, central RMS %, step]`` of the latest learning
+    run (``afmctl learn``; errors in % of the range) and ``learn_state`` its last state and
+    detail. ``status``: the last status message. ``image``: :class:`HeightImage`.
     """
 
     def __init__(self, name: str, display_rate_Hz: float = 200.0, history_s: float = 30.0) -> None:
@@ -63,9 +68,12 @@ class ScannerFeed:
         self.name = name
         self.setpoints, self.tips, self.drift = Ring(n), Ring(n), Ring(n)
         self.status: dict[str, Any] | None = None
+        self.learn = Ring(MAX_LEARN_ROWS)
+        self.learn_state: dict[str, Any] | None = None
+        self._learn_run = 0                                # bumped when a new learning run starts
         self.image = HeightImage()
         self.counts = {k: 0 for k in ("setpoint_batches", "setpoint_samples", "seq_gaps", "tips", "drift",
-                                      "status", "image", "rejected")}
+                                      "status", "image", "learn", "rejected")}
         self.last_rejected: str | None = None
         self._lock = threading.Lock()
         self._sp_dec, self._tip_dec = Decimator(display_rate_Hz), Decimator(display_rate_Hz)
@@ -136,6 +144,22 @@ class ScannerFeed:
             self.counts["status"] += 1
             self.status = msg.model_dump(mode="json", by_alias=True)
 
+    def on_learn(self, payload: bytes) -> None:
+        msg = decode_json(payload, LearnMsg)
+        with self._lock:
+            self.counts["learn"] += 1
+            last = self.learn_state
+            if last is not None and msg.iteration <= last["iteration"]:   # a new learning run
+                self._learn_run += 1
+                self.learn = Ring(MAX_LEARN_ROWS)
+            self.learn_state = {"iteration": msg.iteration, "state": msg.state, "detail": msg.detail,
+                                "run": self._learn_run}
+            nan = math.nan
+            self.learn.extend([_r([msg.iteration, msg.max_pct, msg.rms_pct,
+                                   nan if msg.central_max_pct is None else msg.central_max_pct,
+                                   nan if msg.central_rms_pct is None else msg.central_rms_pct,
+                                   nan if msg.step is None else msg.step], 4)])
+
     def on_image(self, payload: bytes) -> None:
         msg = decode_json(payload, SimImageMsg)
         with self._lock:
@@ -194,6 +218,11 @@ class ScannerFeed:
             rows, cursor[key] = getattr(self, key).since(cursor.get(key, 0))
             out[key] = rows
         with self._lock:
+            run = self.learn_state["run"] if self.learn_state else 0
+            if cursor.get("learn_run", 0) != run:          # a new learning run: from its start
+                cursor["learn"], cursor["learn_run"] = 0, run
+            out["learn"], cursor["learn"] = self.learn.since(cursor.get("learn", 0))
+            out["learn_state"] = self.learn_state
             out["status"] = self.status
             out["counts"] = dict(self.counts)
             out["last_rejected"] = self.last_rejected

@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 from ..testing import wait_for
-from ..zenoh_config import free_loopback_endpoint
+from ..zenoh_api.settings import free_loopback_endpoint
 
 SIM_TOML = """
 [sim]

@@ -8,7 +8,8 @@ const state = { scanners: {}, selected: null, historyS: 30, maxRows: 6000, frame
 window.afmView = state;   // for tests and the curious: frame count, rows held per stream
 
 function newScanner() {
-  return { setpoints: [], tips: [], drift: [], status: null, counts: {}, tracking: {}, image: null };
+  return { setpoints: [], tips: [], drift: [], status: null, counts: {}, tracking: {}, image: null,
+    learn: [], learnState: null };
 }
 
 function trim(rows, historyS) {
@@ -31,11 +32,21 @@ function ingest(frame) {
       for (const r of rows) { s[key].push(r); }
       trim(s[key], state.historyS);
     }
+    ingestLearn(s, f);
     s.status = f.status; s.counts = f.counts; s.tracking = f.tracking; s.lastRejected = f.last_rejected;
     if ("image" in f) { s.image = f.image; }
   }
   state.frames++; state.dirty = true; state.lastFrameMs = performance.now();
   updateSelector();
+}
+
+// learning iterations (afmctl learn): one run at a time; a new run starts over
+function ingestLearn(s, f) {
+  const ls = f.learn_state;
+  if (!ls) { return; }
+  if (!s.learnState || s.learnState.run !== ls.run) { s.learn = []; }
+  for (const r of f.learn || []) { s.learn.push(r); }
+  s.learnState = ls;
 }
 
 function updateSelector() {
@@ -58,6 +69,8 @@ function setupPlots() {
   mk("plot-xy", { title: "Tip path against the target, x–y", xlabel: "x [nm]", ylabel: "y [nm]", equal: true });
   mk("plot-error", { title: "Tracking error: tip − target", xlabel: `controller time t [s] (last ${WINDOW_S} s)`, ylabel: "error [nm]" });
   mk("plot-drift", { title: "Drift estimate (band: ±1σ)", xlabel: "controller time t [s]", ylabel: "drift [nm]" });
+  mk("plot-learn", { title: "Learning: error per iteration (afmctl learn)", xlabel: "iteration",
+    ylabel: "error [% of the range]" });
   mk("plot-image", { title: "Image (sample height under the tip)", xlabel: "x [nm]", ylabel: "y [nm]",
     equal: true, colorbar: true });
 }
@@ -152,6 +165,27 @@ function drawDrift(s, tr) {
   p.legend(items);
 }
 
+const LEARN_SERIES = [[1, "max, whole table", "#3b528b"], [3, "max, central 80 % of each line", "#e6550d"],
+  [4, "RMS, central 80 %", "#21908d"]];
+
+function drawLearn(s) {
+  const p = plots["plot-learn"];
+  p.resize();
+  const rows = s.learn;
+  if (!rows.length) { p.frame([0, 1], [0, 1]); p.message("no learning run (afmctl learn --config …)"); return; }
+  const xs = col(rows, 0), n = xs[xs.length - 1];
+  const series = LEARN_SERIES.filter(([k]) => rows.some((r) => r[k] !== null));
+  p.frame([Math.min(0, xs[0]), Math.max(1, n)], extent([[0], ...series.map(([k]) => col(rows, k))]));
+  p.clip();
+  for (const [k, , color] of series) { p.line(xs, col(rows, k), color, 2); }
+  p.ctx.restore();
+  const last = rows[rows.length - 1], ls = s.learnState || {};
+  const items = series.map(([k, name, color]) => ({ name: `${name}: ${fmtN(last[k])} %`, color }));
+  items.push({ name: `iteration ${ls.iteration}: ${ls.state}${ls.detail ? " — " + ls.detail : ""}`, color: "#888",
+    box: true });
+  p.legend(items);
+}
+
 function drawImage(s) {
   const p = plots["plot-image"];
   p.resize();
@@ -203,7 +237,8 @@ function render() {
   if (!state.dirty || !state.selected) { return; }
   state.dirty = false;
   const s = state.scanners[state.selected], tr = timeRange(s, WINDOW_S), all = timeRange(s, state.historyS);
-  drawVolts(s, tr); drawTargets(s, tr); drawXY(s); drawError(s, tr); drawDrift(s, all); drawImage(s); drawStats(s);
+  drawVolts(s, tr); drawTargets(s, tr); drawXY(s); drawError(s, tr); drawDrift(s, all); drawLearn(s); drawImage(s);
+  drawStats(s);
   document.getElementById("clock").textContent = `t = ${fmtN(tr[1], 6)} s · frames ${state.frames}`;
 }
 

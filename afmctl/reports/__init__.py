@@ -1,0 +1,1 @@
+"""Demo and reports: ``afmctl demo``, the speed ladder, plots of run logs."""

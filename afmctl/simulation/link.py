@@ -1,0 +1,263 @@
+"""In-process simulation wiring for ``afmctl run`` with ``[simulation] enabled = true``.
+
+A simulated amplifier of the configured driver (MDT693B/694B, GCS, NV200 on a pty; the
+CAN amplifier on a python-can ``virtual`` channel) is served in this process with a
+:class:`afmctl.sim_backend.scanner.Scanner` as its load, and the *real* driver is opened on it
+through :func:`afmctl.control.hardware.open_driver` — the same code path as with hardware.
+"""
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import AfmctlError
+from afmctl.drivers.base import AmplifierInterface
+
+
+def load_scanner_config(path: Path | None):
+    """A ScannerConfig from a JSON file, or the default scanner."""
+    from afmctl.sim_backend.scanner import ScannerConfig, default_scanner_config
+    if path is None:
+        return default_scanner_config()
+    from afmctl.compensators.base import ModelError
+    from afmctl.compensators.textfiles import read_json_file
+    try:
+        data = read_json_file(path, "scanner file")
+    except ModelError as err:
+        raise AfmctlError(f"simulation.scanner: {err}") from None
+    from pydantic import ValidationError
+    try:
+        return ScannerConfig.model_validate(data)
+    except ValidationError as err:
+        from ..config import format_validation_error
+        raise AfmctlError(format_validation_error(err, str(path), ScannerConfig)) from None
+
+
+@contextlib.contextmanager
+def simulated_amplifier(config) -> Iterator[tuple[Any, Any]]:
+    """Serve a simulated amplifier + scanner in this process; yields ``(amplifier,
+    scanner)`` with the real driver connected to it. Everything is closed on exit."""
+    from afmctl.sim_backend import testing
+    from afmctl.sim_backend.scanner import Scanner
+    scanner = Scanner(load_scanner_config(config.simulation.scanner))
+    driver = config.amplifier.driver
+    with contextlib.ExitStack() as stack:
+        if driver == "can":
+            channel = config.amplifier.port or "virtual:afmctl-sim"
+            name = channel.split(":", 1)[1] if channel.startswith("virtual:") else channel
+            stack.enter_context(testing.serve_can(name, sink=scanner))
+            port = f"virtual:{name}"
+        else:
+            server = stack.enter_context(testing.serve_pty(driver, sink=scanner, baud=config.simulation.baud))
+            port = server.port
+        from ..control.hardware import open_driver
+        if driver != "can" and "baudrate" not in config.amplifier.options:
+            # the driver paces its writes to the simulated link's rate, as to a real port's
+            config = config.model_copy(update={"amplifier": config.amplifier.model_copy(
+                update={"options": {**config.amplifier.options, "baudrate": config.simulation.baud}})})
+        amp = open_driver(config, port)
+        stack.callback(amp.close)
+        yield amp, scanner
+
+
+def identify_pi_models(folder: str | Path, axes: str = "xy", dt_s: float = 1e-3, n: int = 400,
+                       n_operators: int = 10, scanner_config=None) -> dict[str, Path]:
+    """PI models identified from a simulated scanner (default: the default scanner) on a
+    sweep of nested triangles 0–150 V, ``n`` samples per leg at ``dt_s`` [s]; saved as
+    ``folder/<axis>_pi.json``. Returns ``{axis: path}`` — for examples, benchmarks and
+    tests that need a compensator of the simulated scanner without a calibration run."""
+    from afmctl.compensators.models import save_model
+    from afmctl.compensators.pi import PIModel
+    from afmctl.sim_backend.scanner import Scanner, default_scanner_config
+    legs = [(0, 150), (150, 0), (0, 110), (110, 20), (20, 150), (150, 0)]
+    tri = np.concatenate([np.linspace(a, b, n) for a, b in legs])
+    u = np.column_stack([tri if a in axes else np.zeros_like(tri) for a in "xyz"])
+    y = Scanner(scanner_config or default_scanner_config()).run(u, dt_s)
+    t = np.arange(len(tri)) * dt_s
+    paths = {}
+    for a in axes:
+        k = "xyz".index(a)
+        paths[a] = Path(folder) / f"{a}_pi.json"
+        save_model(PIModel.identify(t, u[:, k], y[:, k], n_operators=n_operators), paths[a])
+    return paths
+
+
+def tracking_error(config, setpoints: np.ndarray, seq_range: tuple[int, int] | None = None) -> dict[str, Any]:
+    """Replay the voltages sent (``setpoints["u_V"]``) through a fresh simulated scanner of
+    the same configuration and compare the true tip position with the target [nm].
+
+    Each voltage is held for one loop period, simulated at the scanner's own time step
+    (so the ringing of its resonance after each step is in the result), and the position
+    is compared at the end of the period — what a sensor sampled at the loop rate reads.
+    Returns max and RMS absolute error per axis over ``seq_range`` (default: all)."""
+    if len(setpoints) == 0:
+        return {}
+    err = replay_positions_nm(config, setpoints) - setpoints["target_nm"]
+    if seq_range is not None:
+        sel = (setpoints["seq"] >= seq_range[0]) & (setpoints["seq"] < seq_range[1])
+        err = err[sel]
+    if len(err) == 0:
+        return {}
+    axes = list(config.scanner.axes)
+    idx = ["xyz".index(a) for a in axes]
+    return {"axes": axes, "max_abs_nm": [float(np.abs(err[:, i]).max()) for i in idx],
+            "rms_nm": [float(np.sqrt(np.mean(err[:, i] ** 2))) for i in idx]}
+
+
+def replay_positions_nm(config, setpoints: np.ndarray) -> np.ndarray:
+    """The true tip position [nm] (N, 3) at the end of each loop period when the voltages
+    sent (``setpoints["u_V"]``) are replayed through a fresh simulated scanner of the
+    configuration, each held for one loop period (see :func:`tracking_error`)."""
+    return replay_voltages_nm(setpoints["u_V"], config.dt_s, config.simulation.scanner)
+
+
+def replay_voltages_nm(u_V: np.ndarray, dt_s: float, scanner_file: Path | None = None) -> np.ndarray:
+    """The true tip position [nm] (N, 3) at the end of each period ``dt_s`` [s] when each
+    row of ``u_V`` [V] (N, 3) is held for one period on a fresh simulated scanner (the
+    ``scanner_file`` JSON, else the default scanner), simulated at the scanner's own time
+    step so that the ringing of its resonance after each step is in the result."""
+    from afmctl.sim_backend.scanner import Scanner
+    scanner = Scanner(load_scanner_config(scanner_file))
+    fine = scanner.config.dt_s
+    sub = max(1, round(dt_s / fine))
+    if not math.isclose(sub * fine, dt_s, rel_tol=1e-9):
+        fine = dt_s / sub                 # the period is not a multiple of the scanner's step
+    u = np.repeat(np.asarray(u_V, dtype=np.float64), sub, axis=0)
+    return scanner.run(u, fine)[sub - 1::sub]
+
+
+class SendClock:
+    """A monotonic clock [s] that remembers the last time it returned (:attr:`stamp`).
+
+    Give it to :class:`afmctl.control.safety.SafetyLayer` (``clock=``) and ``stamp`` to
+    :class:`RecordingAmplifier` (``clock=``): the amplifier then knows exactly when the
+    safety layer sent each value. ``base``: the underlying clock (default
+    ``time.perf_counter``; tests pass a fake one)."""
+
+    def __init__(self, base=time.perf_counter) -> None:
+        self._base = base
+        self.last = math.nan
+
+    def __call__(self) -> float:
+        self.last = self._base()
+        return self.last
+
+    def stamp(self) -> float:
+        return self.last
+
+
+class RecordingAmplifier(AmplifierInterface):
+    """An in-memory :class:`afmctl.drivers.base.AmplifierInterface` that records and checks every value it
+    receives — a dry-run target and the test double of the safety properties.
+
+    ``limits_V``: ``{axis: (min_V, max_V)}`` it reports as its limits. ``check_limits_V`` /
+    ``check_step_V``: the bounds every received value is checked against (violations are
+    counted in :attr:`violations`, never raised, so that a test sees them all).
+    ``check_slew_V_per_s`` with ``clock``: also check every change against the slew limit
+    in volts per second of *time between sends*, ``|Δu| ≤ slew · Δt``, with ``Δt`` from
+    ``clock()`` (pass ``SendClock.stamp`` of the clock the safety layer uses, so that the
+    check sees exactly when each value was sent).
+    ``readback``: optional callable returning what :meth:`get_voltages` reports (to fuzz
+    device replies). ``fail_after``: raise a connection error on the n-th set_voltages call
+    (and every call until :meth:`reconnect`).
+    """
+
+    name = "recording"
+
+    def __init__(self, axes: tuple[str, ...] = ("x", "y", "z"), limits_V: dict[str, tuple[float, float]] | None = None,
+                 *, check_limits_V: dict[str, tuple[float, float]] | None = None, check_step_V: float | None = None,
+                 readback=None, initial_V: dict[str, float] | None = None,
+                 check_slew_V_per_s: float | None = None, clock=None) -> None:
+        import threading
+
+        from afmctl.drivers.base import ConnectionState, VoltageLimits
+        self._axes = tuple(axes)
+        lim = limits_V or {a: (0.0, 150.0) for a in self._axes}
+        self._limits = {a: VoltageLimits(*lim[a]) for a in self._axes}
+        self.check_limits_V = check_limits_V or lim
+        self.check_step_V = check_step_V
+        self.check_slew_V_per_s = check_slew_V_per_s
+        self.clock = clock
+        self._t_prev = -math.inf
+        self.readback = readback
+        self.outputs: dict[str, float] = dict(initial_V or {a: 0.0 for a in self._axes})
+        self.received: list[dict[str, float]] = []
+        self.violations: list[str] = []
+        self.fail = False
+        self.fail_after: int | None = None
+        self.reconnects = 0
+        self._state = ConnectionState.CONNECTED
+        self._lock = threading.Lock()
+
+    @property
+    def axes(self) -> tuple[str, ...]:
+        return self._axes
+
+    @property
+    def limits(self):
+        return self._limits
+
+    @property
+    def state(self):
+        return self._state
+
+    def set_voltages(self, volts) -> None:
+        from afmctl.drivers.base import ConnectionState
+        from afmctl.drivers.errors import AmplifierConnectionError
+        if self.fail_after is not None and len(self.received) >= self.fail_after:
+            self.fail, self.fail_after = True, None
+        if self.fail:
+            self._state = ConnectionState.FAULT
+            raise AmplifierConnectionError("recording amplifier: link lost (simulated)")
+        with self._lock:
+            t = self.clock() if self.clock is not None else math.nan
+            for a, v in volts.items():
+                v = float(v)
+                lo, hi = self.check_limits_V[a]
+                if not (lo <= v <= hi):
+                    self.violations.append(f"axis {a}: {v!r} V outside [{lo}, {hi}]")
+                if self.check_step_V is not None and abs(v - self.outputs[a]) > self.check_step_V * (1 + 1e-9) + 1e-12:
+                    self.violations.append(f"axis {a}: step {self.outputs[a]!r} -> {v!r} V "
+                                           f"exceeds {self.check_step_V} V")
+                if self.check_slew_V_per_s is not None and math.isfinite(t):
+                    allowed = self.check_slew_V_per_s * max(t - self._t_prev, 0.0)
+                    if abs(v - self.outputs[a]) > allowed * (1 + 1e-9) + 1e-12:
+                        self.violations.append(f"axis {a}: {self.outputs[a]!r} -> {v!r} V in "
+                                               f"{t - self._t_prev:.3g} s exceeds {self.check_slew_V_per_s} V/s")
+            self._t_prev = t
+            self.check_limits(volts)
+            self.outputs.update({a: float(v) for a, v in volts.items()})
+            self.received.append(dict(volts))
+
+    def get_voltages(self) -> dict[str, float]:
+        if self.fail:
+            from afmctl.drivers.errors import AmplifierConnectionError
+            raise AmplifierConnectionError("recording amplifier: link lost (simulated)")
+        if self.readback is not None:
+            return self.readback(dict(self.outputs))
+        return dict(self.outputs)
+
+    def info(self) -> dict[str, object]:
+        return {"name": self.name, "axes": list(self._axes)}
+
+    def reconnect(self) -> None:
+        from afmctl.drivers.base import ConnectionState
+        from afmctl.drivers.errors import AmplifierConnectionError
+        if self.fail:
+            raise AmplifierConnectionError("recording amplifier: still unreachable")
+        self.reconnects += 1
+        self._state = ConnectionState.CONNECTED
+
+    def close(self) -> None:
+        from afmctl.drivers.base import ConnectionState
+        self._state = ConnectionState.CLOSED
+
+    def as_array(self) -> np.ndarray:
+        """Received values as (N, n_axes) [V]."""
+        return np.array([[r.get(a, np.nan) for a in self._axes] for r in self.received]).reshape(-1, len(self._axes))

@@ -1,0 +1,153 @@
+"""Learned wave tables (``.afmwave``): written and read back exactly, played by the controller
+as they are (``[trajectory] kind = "learned"``), and refused with one line when the
+trajectory, the amplifier's limits or a model file no longer match what they were learned for."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from afmctl.config import LearnedSpec, RasterSpec
+from afmctl.control.controller import Controller, State
+from afmctl.control.hardware import open_driver
+from afmctl.control.learned_table import (LearnedSource, load_learned, make_learned, save_learned)
+from afmctl.control.pipeline import build_pipeline
+from afmctl.control.runlog import RunLogReader
+from afmctl.control.wave_plan import plan_table
+from afmctl.errors import AfmctlError
+from afmctl.inputs.trajectories import build, collect
+from afmctl.sim_backend.testing import serve_pty
+from afmctl.testing import assert_no_threads_left, make_config
+
+RATE_HZ = 2000.0
+NM_PER_V = 50.0
+SPEC = RasterSpec(x0_nm=1000.0, y0_nm=1500.0, z_nm=1000.0, width_nm=3000.0, height_nm=0.0, lines=2,
+                  line_rate_Hz=20.0)
+
+
+@pytest.fixture(autouse=True)
+def no_leaked_threads():
+    yield
+    assert_no_threads_left("afmctl-")
+
+
+def cfg_for(tmp_path, port: str, max_V: float = 120.0, rate_Hz: float = RATE_HZ, **extra):
+    cal = {a: {"nm_per_V": NM_PER_V} for a in "xyz"}
+    return make_config(tmp_path, loop={"rate_Hz": rate_Hz}, scanner={"calibration": cal},
+                       amplifier={"driver": "gcs", "port": port, "output": "wave", "slew_V_per_s": 4000.0,
+                                  "limits_V": {a: {"min_V": 0.0, "max_V": max_V} for a in "xyz"}},
+                       safety={"slew_V_per_s": 4000.0, "ramp_V_per_s": 1000.0, "watchdog_s": 0.2}, **extra)
+
+
+def learned_file(tmp_path, cfg, name: str = "t.afmwave"):
+    """A planned table with a small smooth change (as a learning step would make), saved."""
+    targets = collect(build(SPEC, cfg.dt_s))
+    table = plan_table(cfg, build_pipeline(cfg), targets, 22.0, {a: cfg.limits(a) for a in "xyz"}, 1.0)
+    n = len(table)
+    table.u_V[:, 0] += 0.4 * np.sin(np.linspace(0.0, 2.0 * np.pi, n))    # ≤ 0.0013 V per row
+    path = save_learned(tmp_path / name, make_learned(cfg, table, SPEC.model_dump(mode="json"),
+                                                      [{"iteration": 1, "max_pct": 1.0}]))
+    return path, table
+
+
+def test_a_learned_table_reads_back_exactly(tmp_path):
+    cfg = cfg_for(tmp_path, "unused")
+    path, table = learned_file(tmp_path, cfg)
+    back = load_learned(path)
+    for name in ("target_nm", "corrected_nm", "drift_nm", "u_V", "T_C"):
+        np.testing.assert_array_equal(getattr(back.table, name), getattr(table, name))
+    assert back.table.pad == table.pad and back.history == [{"iteration": 1, "max_pct": 1.0}]
+    LearnedSource(back, path).table_for(cfg)          # learned for this configuration: accepted
+
+
+@pytest.mark.parametrize("damage", ["garbage", "missing", "shape"])
+def test_a_damaged_file_is_one_line_naming_it(tmp_path, damage):
+    cfg = cfg_for(tmp_path, "unused")
+    path, table = learned_file(tmp_path, cfg)
+    if damage == "garbage":
+        path.write_bytes(b"not a zip at all")
+    elif damage == "missing":
+        path.unlink()
+    else:
+        with np.load(path) as z:
+            arrays = dict(z)
+        arrays["u_V"] = arrays["u_V"][:-1]
+        np.savez(path.open("wb"), **arrays)
+    with pytest.raises(AfmctlError) as err:
+        load_learned(path)
+    assert str(path) in str(err.value) and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"max_V": 100.0}, "the voltage limits [V] was"),
+    ({"rate_Hz": 1000.0}, "loop.rate_Hz was"),
+])
+def test_a_table_learned_under_other_conditions_is_refused(tmp_path, change, message):
+    path, _ = learned_file(tmp_path, cfg_for(tmp_path, "unused"))
+    other = cfg_for(tmp_path, "unused", **change)
+    with pytest.raises(AfmctlError) as err:
+        LearnedSource.from_file(path).table_for(other)
+    assert str(path) in str(err.value) and message in str(err.value) and "relearn" in str(err.value)
+
+
+def test_a_changed_model_file_is_refused(tmp_path, chain_file):
+    cfg = cfg_for(tmp_path, "unused", compensation={"x": {"model": str(chain_file)}})
+    path, _ = learned_file(tmp_path, cfg)
+    LearnedSource.from_file(path).table_for(cfg)
+    chain_file.write_text(chain_file.read_text().replace("}", " }", 1))
+    with pytest.raises(AfmctlError, match="the x model file was changed"):
+        LearnedSource.from_file(path).table_for(cfg)
+
+
+@pytest.mark.slow
+def test_the_controller_plays_the_learned_table_as_it_is(tmp_path):
+    with serve_pty("gcs", baud=921600) as srv:
+        cfg = cfg_for(tmp_path, srv.port)
+        path, table = learned_file(tmp_path, cfg)
+        amp = open_driver(cfg, srv.port)
+        try:
+            with Controller(cfg, amp) as ctl:
+                ctl.start(LearnedSpec(file=path), runlog_path=tmp_path / "l.afmlog")
+                assert ctl.wait(60)
+                stats = ctl.stats()
+        finally:
+            amp.close()
+    assert ctl.state is State.STOPPED and stats["wave"]["played"] == len(table), stats
+    reader = RunLogReader(tmp_path / "l.afmlog")
+    sp, ev = reader.setpoints(), {e["event"]: e["seq"] for e in reader.events()}
+    rows = sp[(sp["seq"] >= ev["ramp-done"]) & (sp["seq"] < ev["end"])]
+    np.testing.assert_allclose(rows["u_V"][:, 0], table.u_V[:len(rows), 0])
+
+
+RUN_TOML = """
+[amplifier]
+driver = "{driver}"
+output = "{output}"
+[loop]
+rate_Hz = 2000
+[simulation]
+enabled = true
+[runlog]
+dir = "{dir}"
+fsync = false
+[trajectory]
+kind = "learned"
+file = "{file}"
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("driver, output, message", [
+    ("gcs", "setpoints", "trajectory.kind = 'learned' plays a learned table on the amplifier's clock"),
+    ("can", "wave", "amplifier.driver was gcs when the table was learned"),
+])
+def test_afmctl_run_refuses_a_learned_table_it_cannot_play(tmp_path, driver, output, message):
+    path, _ = learned_file(tmp_path, cfg_for(tmp_path, "unused"))
+    (tmp_path / "run.toml").write_text(RUN_TOML.format(driver=driver, output=output, dir=tmp_path, file=path))
+    res = subprocess.run([sys.executable, "-m", "afmctl", "run", "--config", str(tmp_path / "run.toml")],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    errors = [ln for ln in res.stderr.strip().splitlines() if ln.startswith("afmctl: error:")]
+    assert len(errors) == 1 and message in errors[0], res.stderr
