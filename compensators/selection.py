@@ -66,7 +66,7 @@ def scored_samples(u_V: np.ndarray, split: int, fit_from_index: int = 0) -> np.n
 def _with_dynamics(model: ChainModel, t: np.ndarray, u: np.ndarray, y: np.ndarray, k0: int,
                    options: dict[str, Any]) -> ChainModel:
     """``model`` (static stages) plus a dynamics stage fitted on the whole record after the
-    burn-in (:func:`~.chain.fit_dynamics_stage`: from the voltage by default)."""
+    burn-in (:func:`~.chain.fit_dynamics_stage`)."""
     from .chain import fit_dynamics_stage
     dyn = fit_dynamics_stage(model.hysteresis, model.creep, t, np.ascontiguousarray(u), y, k0,
                              options.get("dynamics_options"))
