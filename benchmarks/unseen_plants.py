@@ -66,6 +66,13 @@ PLANTS = {
                     [DynamicsConfig(resonance_Hz=700.0, quality_factor=15.0),
                      DynamicsConfig(resonance_Hz=2500.0, quality_factor=40.0)]),
              "wide loop (≈ 18 %), 35 nm/V, creep 3 % (5 ms–200 s), 8 kHz amplifier, modes 0.7 kHz Q 15 + 2.5 kHz Q 40"),
+    "capacitive": (_plant(_gauss(45.0, [(2800, 85, 35, 35, 25, 0.4), (900, 125, 95, 12, 18, 0.7)]),
+                          CreepConfig(fraction=0.04, tau_min_s=0.01, tau_max_s=100.0, n_lags=5),
+                          AmplifierConfig(bandwidth_Hz=None, slew_V_per_s=2.0e4, load_capacitance_F=1.0e-6,
+                                          output_resistance_ohm=120.0),
+                          [DynamicsConfig(resonance_Hz=2200.0, quality_factor=60.0)]),
+                   "smooth asymmetric loop, 45 nm/V, creep 4 % (10 ms–100 s), amplifier bandwidth set by the "
+                   "piezo's capacitance (120 Ω × 1 µF: 1.3 kHz), one lightly damped mode 2.2 kHz Q 60 (#24)"),
     "rate-dependent": (_plant(default_scanner_config().x.hysteresis.model_copy(update={"rate_lag_s": 2e-4}),
                               CreepConfig(), AmplifierConfig(bandwidth_Hz=5000.0, slew_V_per_s=1.0e4),
                               [DynamicsConfig(resonance_Hz=1000.0, quality_factor=20.0)]),
@@ -93,7 +100,8 @@ def raster_for(cfg: ScannerConfig, rate: float) -> tuple[np.ndarray, int, int, i
     return out, start, n, lines
 
 
-def one_plant(name: str, cfg: ScannerConfig, rates: list[float], work: Path) -> tuple[dict, str]:
+def one_plant(name: str, cfg: ScannerConfig, rates: list[float], work: Path, params: tuple[str, ...] = ()
+              ) -> tuple[dict, str]:
     slew = cfg.x.amplifier.effective_slew_V_per_s() or 1e5
     exc = work / f"{name}_exc.csv"
     sl.cli("excite", "--kind", "all", "--u-min-V", "0", "--u-max-V", "150", "--rate-Hz", "50000",
@@ -103,7 +111,9 @@ def one_plant(name: str, cfg: ScannerConfig, rates: list[float], work: Path) -> 
     write_csv(data, {"t": d["t"], "u": d["u"], "y": play_x(cfg, d["u"], 2e-5)})
     model = work / f"{name}_auto.json"
     t0 = time.perf_counter()
-    out = sl.cli("identify", "--model", "auto", "--data", str(data), "--out", str(model))
+    out = sl.cli("identify", "--model", "auto", "--data", str(data), "--out", str(model),
+                 *[a for p in params for a in ("--param", p)])
+    print(out[out.index("held-out prediction error"):out.index("selected ")], flush=True)
     ident_s = time.perf_counter() - t0
     selected = next(ln.split(":", 1)[1].strip() for ln in out.splitlines() if ln.startswith("selected"))
     row = {}
@@ -111,8 +121,9 @@ def one_plant(name: str, cfg: ScannerConfig, rates: list[float], work: Path) -> 
         tgt, start, n, lines = raster_for(cfg, r)
         target, volts = work / "target.csv", work / "volts.csv"
         write_csv(target, {"t": np.arange(tgt.size) * sl.DT_S, "y": tgt})
+        slew_args = ("--slew-V-per-s", f"{slew:g}") if "dynamics" in selected else ()
         sl.cli("compensate", "--model", str(model), "--target", str(target), "--out", str(volts),
-               "--limits", "0", "150", "--slew-V-per-s", f"{slew:g}", "--clip")
+               "--limits", "0", "150", *slew_args, "--clip")
         row[r] = sl.line_error_pct(play_x(cfg, read_csv(volts, ("t", "u"))["u"], sl.DT_S), tgt, start, n, lines)
         print(f"{name} {r:g} lines/s: {row[r]['max_error_pct']:.2f} / {row[r]['rms_error_pct']:.2f} %", flush=True)
     return row, f"{selected} (identify {ident_s:.0f} s)"
@@ -123,12 +134,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--plants", nargs="+", choices=sorted(PLANTS), default=sorted(PLANTS))
     ap.add_argument("--rates", type=float, nargs="+", default=[1, 4, 10, 50], help="line rates [lines/s]")
     ap.add_argument("--no-write", action="store_true", help="do not update docs/BENCHMARKS.md")
+    ap.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
+                    help="passed to identify, e.g. 'dynamics_options={\"from\": \"static\"}'")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     rows = {}
     with tempfile.TemporaryDirectory(prefix="unseen-") as tmp:
         for name in args.plants:
-            rows[name] = one_plant(name, PLANTS[name][0], args.rates, Path(tmp))
+            rows[name] = one_plant(name, PLANTS[name][0], args.rates, Path(tmp), tuple(args.param))
     head = ("| plant | selected by `auto` | " + " | ".join(f"{r:g} lines/s" for r in args.rates) + " |\n|---|---|"
             + "---|" * len(args.rates) + "\n")
     body = "".join(f"| {n} | {sel} | " + " | ".join(f"{v[r]['max_error_pct']:.2f} / {v[r]['rms_error_pct']:.2f}"

@@ -197,13 +197,48 @@ class ChainModel(HysteresisModel):
         hyst, creep = _fit_static(hcls, fit, yd, dtd, "creep" in stages, max(1, int(rounds)), n_operators, options)
         dynamics = None
         if "dynamics" in stages:
-            # the static chain's output drives the linear dynamics; the dynamics kind picks
-            # the small-signal (chirp / multisine) part of the record itself
-            x = hyst.forward(dt).block(u)
-            if creep is not None:
-                x = creep.forward(dt).block(x)
-            dynamics = model_class("dynamics").identify(t[k0:], x[k0:], y[k0:], **dict(dynamics_options or {}))
+            dynamics = fit_dynamics_stage(hyst, creep, t, u, y, k0, dynamics_options)
         return cls(hysteresis=hyst, creep=creep, dynamics=dynamics)
+
+
+#: where the chain's dynamics stage is identified from (``dynamics_options["from"]``)
+DYNAMICS_SOURCES: tuple[str, ...] = ("voltage", "static")
+#: the default source: the static stages' output. From the voltage the lag of a constructed
+#: plant comes out right (tests/test_dynamics_source.py) but on the unseen-plant test
+#: (tests/test_unseen_plant.py) the chain's compensation got worse (3.1 % max at 10 lines/s
+#: against ≤ 1 %): the static stages' small-signal response and the voltage-based dynamics
+#: are not consistent; choosing between them by held-out fast data is still open (#24)
+DEFAULT_DYNAMICS_SOURCE = "static"
+
+
+def fit_dynamics_stage(hyst: Any, creep: Any, t: np.ndarray, u: np.ndarray, y: np.ndarray, k0: int,
+                       options: dict[str, Any] | None = None) -> Any:
+    """The chain's linear dynamics stage (unit DC gain), from the record after ``k0``; the
+    dynamics kind picks the small-signal part (the multisine of ``afmctl excite``) itself.
+
+    ``options["from"]``: ``"voltage"`` — the frequency response ``y/u`` from the voltage, its
+    small-signal gain divided out; ``"static"`` (default, :data:`DEFAULT_DYNAMICS_SOURCE`) —
+    ``y/x`` from the static stages' output ``x``. On a small-signal segment the static stages' own small-signal
+    response (a ±2 % multisine spans about one cell of a 64-level Preisach grid; the creep
+    stage has lags of its own) differs from the scanner's, and ``y/x`` folds that error into
+    the dynamics (#24: an amplifier lag 60 % too fast through preisach+creep, within 3 % from
+    the voltage). The source is recorded in ``fit_info["fitted_from"]``."""
+    opts = dict(options or {})
+    source = opts.pop("from", DEFAULT_DYNAMICS_SOURCE)
+    if source not in DYNAMICS_SOURCES:
+        raise ModelError(f"dynamics_options from: {source!r}; allowed {', '.join(DYNAMICS_SOURCES)}")
+    if source == "voltage":
+        x = u
+    else:
+        dt = float(np.median(np.diff(t)))
+        x = hyst.forward(dt).block(u)
+        if creep is not None:
+            x = creep.forward(dt).block(x)
+    dyn = model_class("dynamics").identify(t[k0:], np.ascontiguousarray(x[k0:]), y[k0:], **opts)
+    dyn.fit_info = {**(dyn.fit_info or {}), "fitted_from": "voltage" if source == "voltage" else "static stages' output"}
+    if source == "voltage":   # the stage runs on nm: its initial state is the output's
+        dyn.initial_nm = float(y[k0])
+    return dyn
 
 
 def averaged_for_static(t: np.ndarray, u: np.ndarray, y: np.ndarray, k0: int, dt: float

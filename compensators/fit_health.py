@@ -6,7 +6,7 @@ A fitted model is *failed* — reported with the reason in one line, never selec
 * its training error exceeds that of the straight line ``y = a·u + b`` fitted by least
   squares on the same samples (every hysteresis model contains the line: a fit worse than it
   has diverged or stopped in a wrong minimum);
-* its optimiser did not converge (iteration budget spent, residual grew between rounds);
+* its optimiser did not converge (iteration budget spent);
 * a parameter sits on a bound that only limits the search (the optimum lies outside the
   region the model is trusted in).
 

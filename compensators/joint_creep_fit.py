@@ -70,7 +70,10 @@ def fit_preisach_creep(hcls: Any, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.nda
     dt = float(np.median(np.diff(t_s)))
     tau = log_spaced_time_constants(float(creep_options["tau_min_s"]), float(creep_options["tau_max_s"]),
                                     int(creep_options["n_operators"]))
-    opts = {"max_rows": JOINT_MAX_ROWS, "smoothing": JOINT_SMOOTHING,
+    # no PI-like prior in the joint fit (prior="none" unless asked): with its light smoothing
+    # the prior's ridge dominated and the unseen-plant test went from <= 1 % to 3.1 % max at
+    # 10 lines/s (#24; measured on this branch)
+    opts = {"max_rows": JOINT_MAX_ROWS, "smoothing": JOINT_SMOOTHING, "prior": "none",
             **{k: v for k, v in options.items() if k != "method"}}
     if fit_from_index:
         opts["fit_from_index"] = fit_from_index
@@ -78,7 +81,6 @@ def fit_preisach_creep(hcls: Any, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.nda
 
     h = np.asarray(y_nm, dtype=float)     # first round: the output itself stands in for ĥ
     n_rounds = max(1, int(rounds))
-    residuals = []
     hyst: Any = None                      # the Preisach model of the previous round
     for r in range(n_rounds):
         if r:
@@ -89,10 +91,9 @@ def fit_preisach_creep(hcls: Any, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.nda
                                                     n_operators=levels, **opts)
         log.info("joint preisach+creep round %d: creep fractions %s, residual %.4g nm RMS", r + 1,
                  np.array2string(c, precision=4), hyst.fit_residual_nm)
-        residuals.append(float(hyst.fit_residual_nm))
-    if len(residuals) > 1 and residuals[-1] > 1.5 * residuals[0]:
-        note_problem(hyst, f"preisach+creep: the joint fit did not converge (residual grew from {residuals[0]:.4g} "
-                           f"to {residuals[-1]:.4g} nm RMS over {n_rounds} rounds)")
+    # (the rounds' residuals are not comparable: the first one's creep regressors are built
+    # from the measured output itself, which flatters it; a diverged result shows in the
+    # chain's training error against the straight line's, fit_health)
     if float(np.sum(c)) >= 1.0:
         note_problem(hyst, f"preisach+creep: the creep fractions sum to {float(np.sum(c)):.3g}, on their bound 1 "
                            "(the creep would take the whole step back); rescaled to 0.999")

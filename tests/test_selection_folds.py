@@ -118,3 +118,18 @@ def test_auto_on_a_second_recording_is_within_10_percent_of_the_best_single_kind
     from afmctl.compensators.chain import ChainModel
     singles = {kind: second(ChainModel.identify(t1, u[:k], y[:k], structure=kind)) for kind in kinds}
     assert second(best) <= 1.1 * min(singles.values()), (best.structure, singles)
+
+
+def test_candidates_screened_out_on_the_main_split_do_not_win_on_their_single_score():
+    screened = {"structure": "pi+creep", "heldout_rms_nm": 32.7, "heldout_max_nm": 112.0}
+    pre = _row("preisach", [17.9, 46.2, 42.3])
+    assert choose([screened, pre]) is pre
+
+
+def test_dynamics_win_on_the_fast_part_though_the_slow_parts_dominate_the_mean():
+    static = {**_row("preisach+creep", [11.26, 9.1, 11.0]), "fast_rms_nm": 6.0}
+    dyn = {**_row("preisach+creep+dynamics", [10.61, 9.1, 11.0]), "fast_rms_nm": 1.5}
+    assert choose([static, dyn]) is dyn and "fast (small-signal) part 75 % better" in dyn["why"]
+    dyn["fast_rms_nm"] = 5.9           # not clearly better where the dynamics show: not chosen
+    dyn.pop("why")
+    assert choose([static, dyn]) is static
