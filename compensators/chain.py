@@ -234,7 +234,7 @@ def fit_dynamics_stage(hyst: Any, creep: Any, t: np.ndarray, u: np.ndarray, y: n
         x = hyst.forward(dt).block(u)
         if creep is not None:
             x = creep.forward(dt).block(x)
-    dyn = model_class("dynamics").identify(t[k0:], np.ascontiguousarray(x[k0:]), y[k0:], **opts)
+    dyn: Any = model_class("dynamics").identify(t[k0:], np.ascontiguousarray(x[k0:]), y[k0:], **opts)
     dyn.fit_info = {**(dyn.fit_info or {}), "fitted_from": "voltage" if source == "voltage" else "static stages' output"}
     if source == "voltage":   # the stage runs on nm: its initial state is the output's
         dyn.initial_nm = float(y[k0])

@@ -26,6 +26,10 @@ import numpy as np
 LINEAR_SLACK = 1.01
 
 
+#: errors below this [nm] are numerical noise, not a worse fit (a straight line fits data that
+#: is one to 1e-12 nm; a model may then reach only 1e-11)
+FLOOR_NM = 1e-3
+
 def note_problem(model: Any, text: str) -> None:
     """Record one fit problem (a short clause, e.g. "bouc-wen: h_sat on its lower bound")."""
     problems = getattr(model, "_fit_problems", None)
@@ -61,7 +65,7 @@ def failure_reason(model: Any, train_rms_nm: float, linear_rms_nm: float) -> str
     reasons = []
     if not math.isfinite(train_rms_nm):
         reasons.append("the prediction on the training data is not finite")
-    elif train_rms_nm > LINEAR_SLACK * linear_rms_nm:
+    elif train_rms_nm > LINEAR_SLACK * linear_rms_nm + FLOOR_NM:
         reasons.append(f"training error {train_rms_nm:.4g} nm RMS exceeds the straight line's "
                        f"{linear_rms_nm:.4g} nm (diverged)")
     reasons += fit_problems(model)
