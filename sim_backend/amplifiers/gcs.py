@@ -97,15 +97,15 @@ class SimGCS(SimDevice):
             data = data[i + 1:]
         return bytes(out + super().feed(data))
 
-    def poll(self) -> None:
-        """Play the wave points that fell due by now (the pty server calls this when idle),
+    def poll(self, now_s: float | None = None) -> None:
+        """Play the wave points that fell due by now (or ``now_s``; the pty server calls this when idle),
         handed to the sink in one block (``sink.play(t_s, rows_V)`` where the sink has it —
         the simulated scanner simulates a block in one call, which 20 kHz on three axes
         needs — else one ``apply`` per change)."""
         play: Callable[..., None] | None = getattr(self.sink, "play", None)
         self._played = [] if play is not None else None
         try:
-            self.wave.run_until(self.now())
+            self.wave.run_until(self.now() if now_s is None else now_s)
         finally:
             played, self._played = self._played, None
         if played and play is not None:
@@ -151,8 +151,12 @@ class SimGCS(SimDevice):
         return self.travel_um[0] + frac * (self.travel_um[1] - self.travel_um[0])
 
     def _sense_now(self) -> float:
-        """Bring the sink's simulation (and so its sensor) up to now; returns now [s]."""
+        """Play the wave and bring the sink's simulation (and so its sensor) up to now;
+        returns now [s]. The wave first: the recorder fills the points due by now with the
+        output in force, which must include every wave point due by then (a loaded host
+        reaches this later than the command's poll)."""
         now = self.now()
+        self.poll(now)
         advance = getattr(self.sink, "advance", None)
         if advance is not None and getattr(self.sink, "capture_sensor", None) is not None:
             advance(now)

@@ -91,8 +91,10 @@ class SimNV200(SimDevice):
         return capture(t0_s, period_s, n) if capture is not None else None
 
     def _sense_now(self) -> float:
-        """Bring the sink's simulation (its sensor) and the recorder up to now."""
+        """Play the waveform, then bring the sink's simulation (its sensor) and the recorder up
+        to now (the recorder must not fill samples due by now before the wave has played them)."""
         now = self.now()
+        self.wave.run_until(now)
         advance = getattr(self.sink, "advance", None)
         if advance is not None and getattr(self.sink, "capture_sensor", None) is not None:
             advance(now)
