@@ -110,6 +110,7 @@ def run_device(args: argparse.Namespace) -> int:
     from ..config import load_config
     from ..control.learn_run import LearnOptions, LearnRun
     from ..control.learned_table import save_learned
+    from .run import _install_signals
     _check_args(args)
     config = load_config(args.config)
     settings = LearnSettings(rho_max=args.rho, central_pct=args.device_central_pct)
@@ -125,7 +126,8 @@ def run_device(args: argparse.Namespace) -> int:
                 publish(report)
 
         run = LearnRun(config, amp, options, on_iteration=on_iteration)
-        _install_signals(stack, run)
+        # Ctrl-C / SIGTERM: a stop (the best table so far is kept), again: an emergency stop
+        _install_signals(stack, run, {"n": 0})
         learned = run.run()
     save_learned(args.learned_out, learned)
     if args.learned_plot:
@@ -157,24 +159,3 @@ def _publisher(stack: contextlib.ExitStack, config: Any) -> Any:
     def publish(report: Any) -> None:
         pub.publish(report.iteration, report.summary(), step=report.rho, state=report.state, detail=report.detail)
     return publish
-
-
-def _install_signals(stack: contextlib.ExitStack, run: Any) -> None:
-    """Ctrl-C / SIGTERM: first a stop (the best table so far is kept), then an emergency stop."""
-    import signal
-    import threading
-    count = {"n": 0}
-
-    def on_signal(signum: int, frame: Any) -> None:  # noqa: ARG001
-        count["n"] += 1
-        if count["n"] == 1:
-            print("afmctl: stopping learning (the best table so far is kept); again for an emergency stop",
-                  file=sys.stderr)
-            run.stop()
-        else:
-            run.estop()
-
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            old = signal.signal(sig, on_signal)
-            stack.callback(signal.signal, sig, old)
