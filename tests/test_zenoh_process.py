@@ -40,10 +40,11 @@ class Client:
         self.session = zenoh.open(settings.to_zenoh_config())
         self.batches: list = []
         self.status: list[dict] = []
+        self.closed = False
 
         def on_setpoint(s) -> None:
             self.batches.append(decode_setpoints(s.payload.to_bytes()))
-            if slow_s:
+            if slow_s and not self.closed:     # once closed, drain what zenoh still queued at once
                 time.sleep(slow_s)
         self.subs = [self.session.declare_subscriber("afm/s1/setpoint", on_setpoint),
                      self.session.declare_subscriber("afm/s1/status",
@@ -54,6 +55,7 @@ class Client:
         return [json.loads(r.ok.payload.to_bytes()) for r in replies if r.ok is not None]
 
     def close(self) -> None:
+        self.closed = True   # zenoh's callback thread is not a daemon: the interpreter waits for it
         for s in self.subs:
             s.undeclare()
         self.session.close()
