@@ -10,8 +10,10 @@ line ``afmctl: error: ...`` with exit status 2, never a traceback.
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import importlib
 import logging
+import signal
 import sys
 from collections.abc import Sequence
 
@@ -33,6 +35,7 @@ Start here:
   afmctl compensate --model MODEL.json --target TARGET.csv --out VOLTS.csv
 
 Units everywhere: V, nm, s, °C. Each command has its own --help.
+A running afmctl that seems stuck prints every thread's stack on `kill -USR1 PID`.
 """
 
 
@@ -66,6 +69,16 @@ def _one_line(err: BaseException) -> str:
     return " ".join(str(err).split("\n"))
 
 
+def _stacks_on_sigusr1() -> None:
+    """``kill -USR1 PID`` prints every thread's stack to stderr (a stuck process explains
+    itself; the tests send it before they give up on a child)."""
+    if hasattr(signal, "SIGUSR1") and sys.stderr is not None and hasattr(sys.stderr, "fileno"):
+        try:
+            faulthandler.register(signal.SIGUSR1, all_threads=True)
+        except (ValueError, OSError, RuntimeError, AttributeError):   # no usable stderr fd (embedded)
+            pass
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -74,6 +87,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     level = logging.WARNING if args.verbose == 0 else (logging.INFO if args.verbose == 1 else logging.DEBUG)
     logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
+    if argv is None:                    # a process of its own, not a call from Python
+        _stacks_on_sigusr1()
     try:
         return int(args.func(args) or 0)
     except _user_errors() as err:

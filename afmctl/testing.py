@@ -72,6 +72,25 @@ def stop_leaked_threads(prefix: str = "afmctl-", timeout_s: float = 2.0,
 MAX_UNDERRUN_FRACTION = 0.5
 
 
+def stop_process(proc: Any, timeout_s: float = 20.0) -> int:
+    """End a child ``afmctl`` process as a user would: SIGTERM, then wait ``timeout_s`` [s].
+    One that does not end is asked for its threads' stacks (SIGUSR1, printed to its stderr:
+    the failure explains itself) and killed. Returns the exit status (negative: a signal)."""
+    import signal
+    import subprocess
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(OSError):
+                proc.send_signal(signal.SIGUSR1)
+            time.sleep(1.0)
+            proc.kill()
+            proc.wait(10.0)
+    return int(proc.returncode)
+
+
 def assert_few_underruns(underruns: int, samples: int) -> None:
     """Fail when ``underruns`` exceeds :data:`MAX_UNDERRUN_FRACTION` of ``samples``."""
     allowed = int(MAX_UNDERRUN_FRACTION * samples)

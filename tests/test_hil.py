@@ -22,6 +22,7 @@ import pytest
 from afmctl.config import load_config
 from afmctl.control.controller import Controller, State
 from afmctl.control.runlog import RunLogReader
+from afmctl.testing import stop_process
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -111,12 +112,7 @@ def test_two_processes_afmctl_sim_and_afmctl_run_over_a_pty(tmp_path, pi_models)
         summary = json.loads(run.stdout)
         assert summary["state"] == "stopped" and summary["errors"] == 0
     finally:
-        sim.send_signal(signal.SIGTERM)
-        try:
-            sim.wait(10)
-        except subprocess.TimeoutExpired:  # pragma: no cover
-            sim.kill()
-            sim.wait()
+        stop_process(sim)
         sim.stdout.close()
     cfg = load_config(cfg_path)
     sp = _check_log(log_path, cfg)

@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import os
 import queue
-import signal
 import subprocess
 import sys
 import threading
@@ -23,6 +22,7 @@ import pytest
 
 from afmctl.config import load_config
 from afmctl.control.runlog import RunLogReader
+from afmctl.testing import stop_process
 
 import zenoh
 
@@ -92,10 +92,12 @@ def test_live_tip_follows_the_target_within_the_compensators_accuracy(tmp_path):
     endpoint = free_loopback_endpoint()
     record = tmp_path / "received.csv"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
+    err_path = tmp_path / "sim.stderr"        # a file, not a pipe nobody reads during the run
+    err_file = err_path.open("w")
     sim = subprocess.Popen([sys.executable, "-m", "afmctl", "sim", "--protocol", "mdt693b", "--zenoh",
                             "--zenoh-listen", endpoint, "--scanner", SCANNER, "--publish-rate", "200",
                             "--duration", "90", "--record", str(record)],
-                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+                           stdout=subprocess.PIPE, stderr=err_file, text=True, env=env)
     lines: queue.Queue[str] = queue.Queue()
     reader = threading.Thread(target=lambda: [lines.put(ln.rstrip("\n")) for ln in sim.stdout],
                               name="sim-stdout", daemon=True)
@@ -120,7 +122,7 @@ def test_live_tip_follows_the_target_within_the_compensators_accuracy(tmp_path):
             try:
                 got.append(lines.get(timeout=0.5))
             except queue.Empty:
-                assert sim.poll() is None, f"afmctl sim exited: {sim.stderr.read()}"
+                assert sim.poll() is None, f"afmctl sim exited: {err_path.read_text()}"
         assert got and got[-1].startswith(f"zenoh: publishing afm/{SCANNER}/sim/tip"), got
         port = got[0]
         assert port.startswith("/"), f"afmctl sim printed {port!r}"
@@ -148,17 +150,11 @@ def test_live_tip_follows_the_target_within_the_compensators_accuracy(tmp_path):
     finally:
         if session is not None:
             session.close()
-        if sim.poll() is None:
-            sim.send_signal(signal.SIGTERM)
-        try:
-            sim.wait(10)
-        except subprocess.TimeoutExpired:  # pragma: no cover
-            sim.kill()
-            sim.wait()
+        stop_process(sim)
         reader.join(timeout=5)
         sim.stdout.close()
-        err = sim.stderr.read()
-        sim.stderr.close()
+        err_file.close()
+        err = err_path.read_text()
     assert sim.returncode == 0 and "Traceback" not in err, err
 
     cfg = load_config(cfg_path)

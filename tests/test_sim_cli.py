@@ -160,3 +160,17 @@ def test_sim_record_file_grows_while_the_simulator_runs(tmp_path):
         wait_until(lambda: len(rows()) >= 2, 10 * RECORD_FLUSH_S + 5.0, 0.05)
         assert rows()[0] == "t_s,x_V,y_V,z_V" and rows()[-1].split(",")[1] == "12.5"
         assert service._thread is not None and service._thread.is_alive()   # still running
+
+
+def test_sigusr1_prints_every_threads_stack_and_the_sim_keeps_running():
+    """A process that seems stuck explains itself: ``kill -USR1`` prints the stacks to stderr
+    (what ``afmctl.testing.stop_process`` asks for before it kills a child)."""
+    with _running() as proc:
+        assert _first_line(proc).startswith("/")
+        proc.send_signal(signal.SIGUSR1)
+        time.sleep(0.5)
+        assert proc.poll() is None
+        proc.send_signal(signal.SIGTERM)
+        _out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    assert "Current thread" in err and "Thread 0x" in err, err

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import os
 import queue
-import signal
 import subprocess
 import sys
 import threading
@@ -122,14 +121,8 @@ class _Proc:
         return self.err_path.read_text(errors="replace")
 
     def stop(self, timeout_s: float = 20.0) -> int:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout_s)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(10.0)
-        return self.proc.returncode
+        from afmctl.testing import stop_process
+        return stop_process(self.proc, timeout_s)
 
 
 class LiveStack:
