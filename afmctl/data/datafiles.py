@@ -29,6 +29,11 @@ def read_csv(path: str | Path, columns: Sequence[str], *, min_rows: int = 1,
     ``columns`` must all be present; ``optional`` columns are returned when present.
     Values must be finite numbers. If ``time_column`` is given, it must be strictly
     increasing (or non-decreasing when ``strictly_increasing`` is false).
+
+    A plain rectangle of numbers (the files afmctl and most instruments write) is parsed in
+    one vectorised pass; anything else — quotes, blank cells or lines, ragged rows, words,
+    non-finite values — goes through the row-by-row reader, which names the row and column
+    of the first problem. Both give the same numbers (``tests/test_datafiles.py``).
     """
     p = Path(path)
     try:
@@ -36,53 +41,105 @@ def read_csv(path: str | Path, columns: Sequence[str], *, min_rows: int = 1,
     except OSError as err:
         raise AfmctlError(f"{p}: cannot open ({err.strerror})") from None
     with f:
-        reader = csv.reader(f)
         try:
-            header = next(reader)
-        except StopIteration:
-            raise AfmctlError(f"{p}: empty file; expected a header row with columns {','.join(columns)}") from None
-        except (csv.Error, UnicodeDecodeError) as err:
+            header_line = f.readline()
+            body = f.read()
+        except UnicodeDecodeError as err:
             raise AfmctlError(f"{p}: not a readable CSV file ({err})") from None
-        names = [h.strip() for h in header]
-        missing = [c for c in columns if c not in names]
-        if missing:
-            raise AfmctlError(f"{p}: missing column(s) {','.join(missing)}; header has {','.join(names) or '(nothing)'}; "
-                              f"required: {','.join(columns)}")
-        wanted = list(columns) + [c for c in optional if c in names]
-        idx = {c: names.index(c) for c in wanted}
-        rows: list[list[float]] = []
-        try:
-            for lineno, row in enumerate(reader, start=2):
-                if not row or all(not cell.strip() for cell in row):
-                    continue
-                vals = []
-                for c in wanted:
-                    j = idx[c]
-                    if j >= len(row):
-                        raise AfmctlError(f"{p}: row {lineno}: column {c} is missing")
-                    cell = row[j].strip()
-                    try:
-                        v = float(cell)
-                    except ValueError:
-                        raise AfmctlError(f"{p}: row {lineno}: column {c}: {cell!r} is not a number") from None
-                    if not math.isfinite(v):
-                        raise AfmctlError(f"{p}: row {lineno}: column {c}: {cell!r} is not finite; values must be finite numbers")
-                    vals.append(v)
-                rows.append(vals)
-        except (csv.Error, UnicodeDecodeError) as err:
-            raise AfmctlError(f"{p}: not a readable CSV file ({err})") from None
-    if len(rows) < min_rows:
-        raise AfmctlError(f"{p}: {len(rows)} data row(s); at least {min_rows} required")
-    arr = np.array(rows, dtype=np.float64).reshape(len(rows), len(wanted))
-    out = {c: arr[:, k].copy() for k, c in enumerate(wanted)}
-    if time_column is not None and time_column in out and len(rows) > 1:
-        d = np.diff(out[time_column])
-        bad = np.flatnonzero(d <= 0) if strictly_increasing else np.flatnonzero(d < 0)
-        if bad.size:
-            i = int(bad[0])
-            raise AfmctlError(f"{p}: column {time_column}: time must be strictly increasing; "
-                              f"row {i + 3} ({float(out[time_column][i + 1])!r}) follows {float(out[time_column][i])!r}")
+    names, wanted = _header(p, header_line, columns, optional)
+    table = _plain_table(body, len(names))
+    if table is None:
+        arr = _careful_rows(p, header_line + body, names, wanted)
+        out = {c: arr[:, k].copy() for k, c in enumerate(wanted)}
+    else:
+        out = {c: table[:, names.index(c)].copy() for c in wanted}
+    n_rows = next(iter(out.values())).shape[0]
+    if n_rows < min_rows:
+        raise AfmctlError(f"{p}: {n_rows} data row(s); at least {min_rows} required")
+    if time_column is not None and time_column in out and n_rows > 1:
+        _check_time(p, out[time_column], time_column, strictly_increasing)
     return out
+
+
+def _header(p: Path, header_line: str, columns: Sequence[str],
+            optional: Sequence[str]) -> tuple[list[str], list[str]]:
+    """The header's column names and the wanted ones (``columns`` + present ``optional``)."""
+    try:
+        header = next(csv.reader([header_line]), []) if header_line else None
+    except csv.Error as err:
+        raise AfmctlError(f"{p}: not a readable CSV file ({err})") from None
+    if header is None:
+        raise AfmctlError(f"{p}: empty file; expected a header row with columns {','.join(columns)}")
+    names = [h.strip() for h in header]
+    missing = [c for c in columns if c not in names]
+    if missing:
+        raise AfmctlError(f"{p}: missing column(s) {','.join(missing)}; header has {','.join(names) or '(nothing)'}; "
+                          f"required: {','.join(columns)}")
+    return names, list(columns) + [c for c in optional if c in names]
+
+
+def _plain_table(body: str, n_cols: int) -> np.ndarray | None:
+    """``body`` as an (rows, n_cols) array when it is a plain rectangle of finite numbers:
+    every line ``n_cols − 1`` commas, no quotes, every cell one number. None otherwise."""
+    import warnings
+    if not body or '"' in body or "x" in body or "X" in body:
+        return None                                         # quotes; C's strtod would read hex
+    raw = np.frombuffer(body.encode("utf-8"), dtype=np.uint8)
+    ends = np.flatnonzero(raw == ord("\n"))
+    if ends.size == 0 or ends[-1] != raw.size - 1:
+        ends = np.append(ends, raw.size)                    # a last line without its newline
+    commas = np.concatenate([[0], np.cumsum(raw == ord(","))])
+    per_line = np.diff(commas[np.concatenate([[0], ends])])
+    if per_line.size == 0 or np.any(per_line != n_cols - 1):
+        return None                                         # ragged rows or blank lines
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        try:
+            values = np.fromstring(body.replace(",", " "), dtype=np.float64, sep=" ")
+        except (DeprecationWarning, ValueError):
+            return None                                     # a cell that is not a number
+    if values.size != per_line.size * n_cols or not np.all(np.isfinite(values)):
+        return None
+    return values.reshape(per_line.size, n_cols)
+
+
+def _careful_rows(p: Path, text: str, names: list[str], wanted: list[str]) -> np.ndarray:
+    """Row by row, the wanted columns; the first problem raised with its row and column."""
+    import io
+    reader = csv.reader(io.StringIO(text, newline=""))
+    next(reader)
+    idx = {c: names.index(c) for c in wanted}
+    rows: list[list[float]] = []
+    try:
+        for lineno, row in enumerate(reader, start=2):
+            if not row or all(not cell.strip() for cell in row):
+                continue
+            rows.append([_cell(p, lineno, c, row, idx[c]) for c in wanted])
+    except csv.Error as err:
+        raise AfmctlError(f"{p}: not a readable CSV file ({err})") from None
+    return np.array(rows, dtype=np.float64).reshape(len(rows), len(wanted))
+
+
+def _cell(p: Path, lineno: int, c: str, row: list[str], j: int) -> float:
+    if j >= len(row):
+        raise AfmctlError(f"{p}: row {lineno}: column {c} is missing")
+    cell = row[j].strip()
+    try:
+        v = float(cell)
+    except ValueError:
+        raise AfmctlError(f"{p}: row {lineno}: column {c}: {cell!r} is not a number") from None
+    if not math.isfinite(v):
+        raise AfmctlError(f"{p}: row {lineno}: column {c}: {cell!r} is not finite; values must be finite numbers")
+    return v
+
+
+def _check_time(p: Path, t: np.ndarray, name: str, strictly_increasing: bool) -> None:
+    d = np.diff(t)
+    bad = np.flatnonzero(d <= 0) if strictly_increasing else np.flatnonzero(d < 0)
+    if bad.size:
+        i = int(bad[0])
+        raise AfmctlError(f"{p}: column {name}: time must be strictly increasing; "
+                          f"row {i + 3} ({float(t[i + 1])!r}) follows {float(t[i])!r}")
 
 
 def write_csv(path: str | Path, columns: Mapping[str, np.ndarray]) -> None:
