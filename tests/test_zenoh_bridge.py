@@ -398,6 +398,20 @@ def test_non_finite_drift_is_reported_not_published(service):
     assert len(client.drift) == n
 
 
+def test_a_bare_drift_vector_is_published_with_its_three_components(service):
+    """The documented array (3,) [nm] form of ``on_drift`` (a controller without a predictor's
+    extras): published, not a KeyError in the dispatcher."""
+    from afmctl.testing import wait_for
+    ctl, bridge, client = service
+    n = len(client.drift)
+    errors = len(bridge.status().errors)
+    bridge.on_drift(np.array([1.0, -2.0, 3.5]))
+    bridge.on_drift([0.5, 0.0, 0.0])
+    assert wait_for(lambda: len(client.drift) >= n + 2, 5.0)
+    assert [m["drift_nm"] for m in client.drift[n:n + 2]] == [[1.0, -2.0, 3.5], [0.5, 0.0, 0.0]]
+    assert len(bridge.status().errors) == errors
+
+
 def test_the_child_process_forwards_every_bridge_part_logger():
     """ZenohBridgeProcess sets the child's log level from bridge.LOGGERS: every module the
     bridge is built from that logs must be listed there."""

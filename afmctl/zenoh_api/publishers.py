@@ -114,8 +114,9 @@ def drift_fields(estimate: Any) -> dict[str, Any]:
             return estimate.get(name)
         return getattr(estimate, name, None)
 
-    if isinstance(estimate, np.ndarray):
-        return {"t_s": time.time(), "drift_nm": jsonable(np.asarray(estimate, float).reshape(3))}
+    if isinstance(estimate, (np.ndarray, list, tuple)):        # a bare vector: only the drift [nm]
+        return {"t_s": time.time(), "drift_nm": [float(v) for v in np.asarray(estimate, float).reshape(3)],
+                "std_nm": None, "T_C": None, "inputs": {}}
     drift = get("drift_nm")
     if drift is None:
         drift = get("estimate_nm")
