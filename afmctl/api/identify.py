@@ -40,11 +40,32 @@ class Identified:
     notes: list[str] = field(default_factory=list)
     excitation: list[str] = field(default_factory=list)
     table: list[Any] | None = None
+    fit_from: int = 0
+    holdout_fraction: float | None = None
+    criterion: str | None = None
 
     def residual(self) -> str:
         """The fit residual as ``afmctl identify`` prints it."""
         return (f"rms {self.rms_nm:.4g} nm, max {self.max_nm:.4g} nm ({100 * self.max_nm / self.span_nm:.3g} % of "
-                f"the {self.span_nm:.4g} nm span)" + (f", from t = {self.fit_from_s:.4g} s" if self.fit_from_s else ""))
+                f"the {self.span_nm:.4g} nm span)"
+                + (f", from t = {self.fit_from_s:.4g} s" if self.fit_from_s is not None else ""))
+
+
+@dataclass(frozen=True)
+class Names:
+    """What errors call the inputs: the Python arguments (these defaults) or the options of
+    ``afmctl identify`` (:data:`OPTIONS`); ``option`` prefixes a ``params`` key, ``chain``
+    names a chain's kind (``{kind}`` is replaced)."""
+
+    params: str = "params"
+    option: str = ""
+    y_unit: str = "y_unit"
+    n_operators: str = "n_operators"
+    burn_in_none: str = "burn_in='none'"
+    chain: str = "kind {kind!r}"
+
+
+OPTIONS = Names("--param", "--param ", "--y-unit", "--operators", "--burn-in none", "--model {kind}")
 
 
 def read_recording(path: str | Path, columns: tuple[str, ...] = ("t", "u", "y")) -> dict[str, np.ndarray]:
@@ -63,20 +84,45 @@ def identify(kind: str, data: str | Path | None = None, *, t_s: np.ndarray | Non
     both extremes), ``none`` or seconds; ``delay``: ``auto`` or seconds; ``params``: the
     kind's options (``afmctl identify --help``, ``--param``), for auto also ``candidates``,
     ``holdout_fraction``, ``criterion``, ``with_dynamics``."""
-    t, u, y, where = _inputs(data, t_s, u_V, y_nm)
-    if y_unit not in Y_UNITS:
-        raise AfmctlError(f"y_unit: {y_unit!r} is not known; allowed: nm, um")
+    c, where = prepare(kind, data, t_s=t_s, u_V=u_V, y_nm=y_nm, n_operators=n_operators, y_unit=y_unit,
+                       burn_in=burn_in, delay=delay, despike=despike)
+    return fit(kind, c, where, n_operators, params)
+
+
+def is_chain(kind: str) -> bool:
+    """``auto`` and ``KIND+creep[+dynamics]`` are fitted as chains (uniform samples, whole record)."""
+    return kind == "auto" or "+" in kind
+
+
+def prepare(kind: str, data: str | Path | None = None, *, t_s: np.ndarray | None = None,
+            u_V: np.ndarray | None = None, y_nm: np.ndarray | None = None, n_operators: int | None = None,
+            y_unit: str = "nm", burn_in: str = "auto", delay: str = "auto", despike: bool = True,
+            names: Names = Names()) -> tuple[Conditioned, str]:
+    """The first step of :func:`identify`: the options checked, the recording read (a CSV
+    path, or arrays t [s], u [V], y [``y_unit``]) and conditioned as ``kind`` needs it
+    (:func:`afmctl.data.identdata.condition`); returns it and the name errors give it."""
     if n_operators is not None and n_operators < 1:
-        raise AfmctlError(f"n_operators: {n_operators} must be ≥ 1")
-    if kind == "auto" or "+" in kind:
-        c = condition(t, u, y * Y_UNITS[y_unit], where, burn_in=burn_in, delay=delay, despike=despike, uniform=True)
-        return _chain(kind, c, n_operators, params, where)
-    cls = model_class(kind)
-    if cls.has_own_delay and delay == "auto":  # the kind fits its delay itself
-        delay = "0"
-    c = condition(t, u, y * Y_UNITS[y_unit], where, burn_in=burn_in, delay=delay, despike=despike,
-                  uniform=getattr(cls, "time_dependent", False))
-    return _single(cls, kind, c, n_operators, params, where)
+        raise AfmctlError(f"{names.n_operators}: {n_operators} must be ≥ 1")
+    if y_unit not in Y_UNITS:
+        raise AfmctlError(f"{names.y_unit}: {y_unit!r} is not known; allowed: nm, um")
+    uniform = True
+    if not is_chain(kind):
+        cls = model_class(kind)
+        if cls.has_own_delay and delay == "auto":  # the kind fits its delay itself
+            delay = "0"
+        uniform = getattr(cls, "time_dependent", False)
+    t, u, y, where = _inputs(data, t_s, u_V, y_nm)
+    return condition(t, u, y * Y_UNITS[y_unit], where, burn_in=burn_in, delay=delay, despike=despike,
+                     uniform=uniform), where
+
+
+def fit(kind: str, c: Conditioned, where: str, n_operators: int | None = None, params: dict[str, Any] | None = None,
+        names: Names = Names()) -> Identified:
+    """The second step of :func:`identify`: fit ``kind`` to the conditioned recording ``c``
+    (from :func:`prepare`; ``where`` names it in errors) and count the residual."""
+    if is_chain(kind):
+        return _chain(kind, c, n_operators, dict(params or {}), where, names)
+    return _single(model_class(kind), kind, c, n_operators, dict(params or {}), where, names)
 
 
 def _inputs(data: str | Path | None, t_s: np.ndarray | None, u_V: np.ndarray | None, y_nm: np.ndarray | None,
@@ -97,19 +143,20 @@ def _inputs(data: str | Path | None, t_s: np.ndarray | None, u_V: np.ndarray | N
     return t, u, y, "data"
 
 
-def _fit_errors(kind: str, where: str, err: Exception) -> Exception:
+def _fit_errors(kind: str, where: str, err: Exception, names: Names) -> Exception:
     """A fit's exception as the one clear error the command line shows too."""
     if isinstance(err, TypeError):
-        return AfmctlError(f"params: not accepted by kind {kind!r} ({err})")
+        label = names.chain.format(kind=kind) if is_chain(kind) else f"kind {kind!r}"
+        return AfmctlError(f"{names.params}: not accepted by {label} ({err})")
     if isinstance(err, np.linalg.LinAlgError):
         return ModelError(f"{where}: the fit failed ({err}); is the input excited over its range?")
     if isinstance(err, ValueError) and not isinstance(err, ModelError):
-        return AfmctlError(f"params: a value is not accepted by kind {kind!r} ({err})")
+        return AfmctlError(f"{names.params}: a value is not accepted by kind {kind!r} ({err})")
     return ModelError(f"{where}: {err}")
 
 
 def _single(cls: type[HysteresisModel], kind: str, c: Conditioned, n_operators: int | None,
-            params: dict[str, Any], where: str) -> Identified:
+            params: dict[str, Any], where: str, names: Names) -> Identified:
     """One kind, as ``afmctl identify`` fits it: kinds that take ``fit_from_index`` run
     through the burn-in, others are fitted after it."""
     opts = dict(params)
@@ -121,7 +168,11 @@ def _single(cls: type[HysteresisModel], kind: str, c: Conditioned, n_operators: 
     try:
         model = cls.identify(t, u, y, n_operators=n_operators, **opts)
     except (TypeError, ValueError, ModelError, np.linalg.LinAlgError) as err:
-        raise _fit_errors(kind, where, err) from None
+        if isinstance(err, ModelError) and "fit_from_index" in str(err) and "fit_from_index" not in params:
+            raise ModelError(f"{where}: after the burn-in ({float(c.t_s[k0] - c.t_s[0]):.4g} s, until the input "
+                             f"passed both extremes) too few samples remain ({err}); record more cycles or pass "
+                             f"{names.burn_in_none}") from None
+        raise _fit_errors(kind, where, err, names) from None
     if not cls.has_own_delay:
         model.delay_s = c.delay_s
     if model.u_range_V is None:        # compensate's default limits
@@ -142,10 +193,11 @@ def _result(model: HysteresisModel, c: Conditioned, first: int, y_fit: np.ndarra
     span = float(np.ptp(y[k:][seen])) or 1.0
     return Identified(model, t, u, y, y_fit, float(c.t_s[c.fit_from]) if c.fit_from else None,
                       float(np.sqrt(np.mean(res ** 2))), float(np.max(np.abs(res))), span, list(c.notes),
-                      excitation_notes(c.t_s, c.u_V), table)
+                      excitation_notes(c.t_s, c.u_V), table, k)
 
 
-def _chain(kind: str, c: Conditioned, n_operators: int | None, params: dict[str, Any], where: str) -> Identified:
+def _chain(kind: str, c: Conditioned, n_operators: int | None, params: dict[str, Any], where: str,
+           names: Names) -> Identified:
     """A chain or ``auto``, as ``afmctl identify`` fits them (the whole record, the burn-in
     only setting the memory)."""
     from afmctl.compensators.chain import ChainModel, parse_structure
@@ -155,7 +207,9 @@ def _chain(kind: str, c: Conditioned, n_operators: int | None, params: dict[str,
     if n_operators is not None:
         opts["n_operators"] = n_operators
     t, u, y, k = c.t_s, delayed(c.t_s, c.u_V, c.delay_s), c.y_nm, c.fit_from
-    table = None
+    table: list[Any] | None = None
+    holdout: float | None = None
+    criterion: str | None = None
     try:
         if kind == "auto":
             holdout = float(opts.pop("holdout_fraction", 0.3))
@@ -163,9 +217,10 @@ def _chain(kind: str, c: Conditioned, n_operators: int | None, params: dict[str,
             criterion = opts.pop("criterion", "rms")
             with_dynamics = opts.pop("with_dynamics", True)
             if not isinstance(with_dynamics, bool):
-                raise AfmctlError(f"with_dynamics: {with_dynamics!r}; allowed true or false")
+                raise AfmctlError(f"{names.option}with_dynamics: {with_dynamics!r}; allowed true or false")
             if criterion not in CRITERIA:
-                raise AfmctlError(f"criterion: {criterion!r}; allowed {', '.join(CRITERIA)} (held-out error)")
+                raise AfmctlError(f"{names.option}criterion: {criterion!r}; allowed {', '.join(CRITERIA)} "
+                                  "(held-out error)")
             extra = {"candidates": tuple(candidates)} if candidates else {}
             model, table = select_model(t, u, y, holdout_fraction=holdout, options=opts, fit_from_index=k,
                                         criterion=criterion, with_dynamics=with_dynamics, **extra)
@@ -173,11 +228,11 @@ def _chain(kind: str, c: Conditioned, n_operators: int | None, params: dict[str,
             parse_structure(kind)
             model = ChainModel.identify(t, u, y, structure=kind, fit_from_index=k, **opts)
     except (TypeError, ModelError, np.linalg.LinAlgError) as err:
-        raise _fit_errors(kind, where, err) from None
+        raise _fit_errors(kind, where, err, names) from None
     y_fit = np.asarray(model.forward(float(np.median(np.diff(t)))).block(np.ascontiguousarray(u)))
     model.delay_s = c.delay_s
     if model.u_range_V is None:        # compensate's default limits
         model.u_range_V = (float(np.min(u)), float(np.max(u)))
     out = _result(model, c, 0, y_fit, table)
-    out.u_V = u
+    out.u_V, out.holdout_fraction, out.criterion = u, holdout, criterion
     return out

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from .identify_io import _plot, _read_conditioned, _refuse_failed, _save, parse_params  # noqa: F401 - parse_params: public
+from .identify_io import _fitted, _plot, _refuse_failed, _save, parse_params  # noqa: F401 - parse_params: public
 
 log = logging.getLogger(__name__)
 
@@ -150,22 +150,15 @@ def run(args: argparse.Namespace) -> int:
     if args.model == "auto" or "+" in args.model:
         from .identify_chain import run_chain
         return run_chain(args)
-    cls = model_class(args.model)
+    model_class(args.model)
     if getattr(args, "from_images", None) is not None:
         if args.data is not None:
             raise AfmctlError("--data: give either --data DATA.csv or --from-images SCANS, not both")
         return _run_from_images(args)
-    if args.data is None:
-        raise AfmctlError("--data: required; give a CSV with columns t,u,y (s, V, nm)")
-    if args.operators is not None and args.operators < 1:
-        raise AfmctlError(f"--operators: {args.operators} must be ≥ 1")
-    if cls.has_own_delay and args.delay == "auto":  # the kind fits its delay itself
-        args.delay = "0"
-    c = _read_conditioned(args, uniform=getattr(cls, "time_dependent", False))
-    model, first, y_fit = _fit(cls, args, c)
-    _refuse_failed(args, model, c.y_nm[first:], c.u_V[first:], y_fit, c.fit_from - first)
-    _save(model, args.out)
-    _report(args, c, model, first, y_fit)
+    fitted = _fitted(args)
+    _refuse_failed(args, fitted)
+    _save(fitted.model, args.out)
+    _report(args, fitted)
     return 0
 
 
@@ -181,73 +174,19 @@ def _run_from_images(args: argparse.Namespace) -> int:
     return 0
 
 
-def _fit(cls, args: argparse.Namespace, c):
-    """Fit the kind to conditioned data; returns ``(model, first, y_fit)``: the model's output
-    from sample ``first`` on. Kinds that take ``fit_from_index`` simulate the burn-in
-    (``first = 0``); others are fitted after it (``first`` = the burn-in)."""
-    import numpy as np
-
-    from ..errors import AfmctlError
-    from ..data.identdata import delayed
-    from ..data.prediction import predict_nm
-    from afmctl.compensators.base import ModelError
-
-    params = parse_params(args.param)
-    t, u, y, k0 = c.t_s, delayed(c.t_s, c.u_V, c.delay_s), c.y_nm, c.fit_from
-    if k0 and getattr(cls, "fits_with_burn_in", False):
-        params.setdefault("fit_from_index", k0)
-    elif k0:
-        t, u, y, k0 = t[k0:], u[k0:], y[k0:], 0
-    try:
-        model = cls.identify(t, u, y, n_operators=args.operators, **params)
-    except TypeError as err:  # an option the kind does not know
-        raise AfmctlError(f"--param: not accepted by kind {args.model!r} ({err})") from None
-    except ModelError as err:
-        if "fit_from_index" in str(err) and "fit_from_index" not in parse_params(args.param):
-            raise ModelError(f"{args.data}: after the burn-in ({float(c.t_s[k0] - c.t_s[0]):.4g} s, until the input "
-                             f"passed both extremes) too few samples remain ({err}); record more cycles or pass "
-                             "--burn-in none") from None
-        raise ModelError(f"{args.data}: {err}") from None
-    except np.linalg.LinAlgError as err:
-        raise ModelError(f"{args.data}: the fit failed ({err}); is the input excited over its range?") from None
-    except ValueError as err:  # a --param value of the wrong type that a kind did not check itself
-        raise AfmctlError(f"--param: a value is not accepted by kind {args.model!r} ({err})") from None
-    if not cls.has_own_delay:
-        model.delay_s = c.delay_s
-    if model.u_range_V is None:        # compensate's default --limits
-        model.u_range_V = (float(c.u_V.min()), float(c.u_V.max()))
-    first = c.u_V.size - t.size
-    predict = getattr(model, "predict_linear", None)  # dynamics: nm → nm, needs the fitted gain
-    if predict is not None:
-        return model, first, predict(t, u, y, float(np.median(np.diff(t))))
-    return model, first, predict_nm(model, t, c.u_V[first:], str(args.data))
-
-
-def _report(args: argparse.Namespace, c, model, first: int, y_fit) -> None:
+def _report(args: argparse.Namespace, fitted) -> None:
     """Summary, residual after the burn-in, data notes and the excitation check."""
-    import numpy as np
-
-    from ..data.identdata import excitation_notes
-
-    t, u, y = c.t_s[first:], c.u_V[first:], c.y_nm[first:]
-    k = c.fit_from - first
-    seen = np.isfinite(y_fit[k:])          # dynamics: only its fitted segment is predicted
-    res = (y_fit - y)[k:][seen]
-    rms, peak = float(np.sqrt(np.mean(res ** 2))), float(np.max(np.abs(res)))
-    span = float(np.ptp(y[k:][seen])) or 1.0
+    model, k = fitted.model, fitted.fit_from
     print(model.summary())
     if model.delay_s:
         print(f"delay            : {model.delay_s:.6g} s (delay_s; used by model predict/validate — "
               "compensate and run do not yet send the voltages that much earlier)")
-    print(f"fit residual     : rms {rms:.4g} nm, max {peak:.4g} nm ({100 * peak / span:.3g} % of the {span:.4g} nm span)"
-          + (f", from t = {float(c.t_s[c.fit_from]):.4g} s" if c.fit_from else ""))
-    for note in c.notes:
+    print(f"fit residual     : {fitted.residual()}")
+    for note in fitted.notes:
         print(f"data             : {note}")
-    for note in excitation_notes(c.t_s, c.u_V):
+    for note in fitted.excitation:
         print(f"excitation       : {note}")
     print(f"written          : {args.out}")
     if args.plot:
-        _plot(args.plot, t[k:], u[k:], y[k:], y_fit[k:], args.model)
+        _plot(args.plot, fitted.t_s[k:], fitted.u_V[k:], fitted.y_nm[k:], fitted.y_fit_nm[k:], args.model)
         print(f"plot             : {args.plot}")
-
-

@@ -1,5 +1,6 @@
 """What ``afmctl identify`` shares between single kinds (identify.py) and chains
-(identify_chain.py): ``--param`` parsing, reading conditioned data, saving, the fit plot."""
+(identify_chain.py): ``--param`` parsing, the fit through the Python API, saving, the fit
+plot and the refusal of a failed fit."""
 from __future__ import annotations
 
 import argparse
@@ -7,13 +8,13 @@ import json
 import logging
 from typing import Any
 
+from ..errors import AfmctlError
+
 log = logging.getLogger(__name__)
 
 
 def parse_params(items: list[str]) -> dict[str, Any]:
     """``["a=1", "b=[1,2]", "c=text"]`` → ``{"a": 1, "b": [1, 2], "c": "text"}``."""
-    from ..errors import AfmctlError
-
     out: dict[str, Any] = {}
     for item in items:
         key, sep, value = item.partition("=")
@@ -27,20 +28,22 @@ def parse_params(items: list[str]) -> dict[str, Any]:
     return out
 
 
-def _read_conditioned(args: argparse.Namespace, uniform: bool):
-    from ..data.datafiles import read_csv
-    from ..errors import AfmctlError
-    from ..data.identdata import Y_UNITS, condition
+def _fitted(args: argparse.Namespace, show_notes: bool = False):
+    """``--data`` through the Python API (:func:`afmctl.api.identify.prepare` then ``fit``),
+    its errors naming the command's options; ``show_notes``: print what conditioning did
+    before the fit (chains)."""
+    from ..api.identify import OPTIONS, fit, prepare
 
-    if args.y_unit not in Y_UNITS:
-        raise AfmctlError(f"--y-unit: {args.y_unit!r} is not known; allowed: nm, um")
-    data = read_csv(args.data, ("t", "u", "y"), min_rows=2)
-    return condition(data["t"], data["u"], data["y"] * Y_UNITS[args.y_unit], str(args.data),
-                     burn_in=args.burn_in, delay=args.delay, despike=not args.keep_spikes, uniform=uniform)
+    if args.data is None:
+        raise AfmctlError("--data: required; give a CSV with columns t,u,y (s, V, nm)")
+    c, where = prepare(args.model, args.data, n_operators=args.operators, y_unit=args.y_unit,
+                       burn_in=args.burn_in, delay=args.delay, despike=not args.keep_spikes, names=OPTIONS)
+    for note in c.notes if show_notes else ():
+        print(f"data             : {note}")
+    return fit(args.model, c, where, args.operators, parse_params(args.param), OPTIONS)
 
 
 def _save(model, path: str) -> None:
-    from ..errors import AfmctlError
     from afmctl.compensators.models import save_model
 
     try:
@@ -66,15 +69,16 @@ def _plot(path: str, t, u, y, y_fit, kind: str) -> None:
     save_figure(fig, path)
 
 
-def _refuse_failed(args: argparse.Namespace, model, y, u, y_fit, k: int) -> None:
+def _refuse_failed(args: argparse.Namespace, fitted) -> None:
     """A failed fit (:mod:`afmctl.compensators.fit_health`) is not written without
-    ``--force``: one line with the reason, exit status 2. ``y_fit`` is the model's output on
-    ``u``; samples from ``k`` on were fitted (NaN: not predicted, the dynamics kind)."""
+    ``--force``: one line with the reason, exit status 2. ``fitted.y_fit_nm`` is the model's
+    output on ``fitted.u_V``; samples from ``fitted.fit_from`` on were fitted (NaN: not
+    predicted, the dynamics kind)."""
     import numpy as np
 
-    from ..errors import AfmctlError
     from afmctl.compensators.fit_health import failure_reason, linear_fit_rms
 
+    model, y, u, y_fit, k = fitted.model, fitted.y_nm, fitted.u_V, fitted.y_fit_nm, fitted.fit_from
     seen = np.isfinite(y_fit[k:])
     if not np.any(seen):
         return
