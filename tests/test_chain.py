@@ -132,8 +132,10 @@ def _staircase_error_pct(model_path, d, capsys) -> tuple[float, float]:
 
 def test_identify_auto_picks_a_creep_chain_and_beats_static_preisach(ident, capsys):
     d = ident[0]
+    # a 32-level grid for the joint preisach+creep fit (the default 64 costs 46 s here, 32 costs 8 s;
+    # the same selection, 0.49 vs 0.41 % max on the staircase): this test is about the selection
     rc = main(["identify", "--model", "auto", "--data", str(d / "ident.csv"), "--out", str(d / "auto.json"),
-               "--param", 'candidates=["pi", "preisach", "preisach+creep", "pi+creep"]'])
+               "--operators", "32", "--param", 'candidates=["pi", "preisach", "preisach+creep", "pi+creep"]'])
     out = capsys.readouterr().out
     assert rc == 0
     assert "held-out prediction error" in out and "selected         : preisach+creep" in out
@@ -148,7 +150,7 @@ def test_identify_auto_picks_a_creep_chain_and_beats_static_preisach(ident, caps
     print(f"staircase, 2 s dwells: auto {auto_max:.3f} % max / {auto_rms:.3f} % rms; "
           f"static preisach {pre_max:.3f} % / {pre_rms:.3f} %")
     assert auto_max < 0.6 * pre_max and auto_rms < 0.75 * pre_rms
-    assert auto_max < 1.0          # measured 0.41 % (static preisach 2.13 %)
+    assert auto_max < 1.0          # measured 0.49 % (static preisach 2.13 %)
 
 
 def test_identify_chain_bad_input_is_one_line(ident, capsys, tmp_path):
