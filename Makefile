@@ -39,11 +39,13 @@ demo: $(RUNTIME_STAMP)
 # mypy first (tools/typecheck.py: the whole package as it installs, zero errors), then pytest on
 # two worker processes (pytest-xdist): the suite is half numerics, half waiting on wall-clock
 # devices, so two workers share 2 cores well (7 min vs 11.5 min in one process, measured on a
-# quiet 2-core machine; docs/ARCHITECTURE.md "Working on afmctl"). PYTEST_WORKERS=0: one process.
+# quiet 2-core machine; docs/ARCHITECTURE.md "Working on afmctl"). A file's tests stay on one worker
+# (--dist loadfile: module fixtures built once; the longest files start first, tests/conftest.py).
+# PYTEST_WORKERS=0: one process.
 PYTEST_WORKERS ?= 2
 test: $(TEST_STAMP)
 	$(BIN)/python tools/typecheck.py
-	$(BIN)/python -m pytest -q -n $(PYTEST_WORKERS)
+	$(BIN)/python -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile
 
 typecheck: $(TEST_STAMP)
 	$(BIN)/python tools/typecheck.py

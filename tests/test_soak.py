@@ -56,10 +56,10 @@ def test_amp_steps_start_from_the_power_on_output():
 @pytest.mark.slow
 @pytest.mark.timeout(240)
 def test_a_short_soak_with_one_fault_of_each_kind_holds_every_check(tmp_path):
-    args = ["--duration-s", "40", "--fault-every-s", "6.5", "--settle-s", "6", "--legs", "setpoints",
+    args = ["--duration-s", "32", "--fault-every-s", "5", "--settle-s", "5", "--legs", "setpoints",
             "--amp-down-s", "1", "--disk-full-s", "2", "--viewer-stop-s", "2", "--seed", "3", "--out", str(tmp_path)]
-    plan = soak.schedule(40, 6.5, list(soak.KINDS), 3, 6)
-    assert sorted(k for _, k in plan) == sorted(soak.KINDS)          # one of each kind, in 40 s
+    plan = soak.schedule(32, 5, list(soak.KINDS), 3, 5)
+    assert sorted(k for _, k in plan) == sorted(soak.KINDS)          # one of each kind, in 32 s
     res = subprocess.run([sys.executable, str(BENCH / "soak.py"), *args], capture_output=True, text=True,
                          timeout=220)
     out = json.loads((tmp_path / "soak.json").read_text())
