@@ -41,11 +41,13 @@ demo: $(RUNTIME_STAMP)
 # devices, so two workers share 2 cores well (7 min vs 11.5 min in one process, measured on a
 # quiet 2-core machine; docs/ARCHITECTURE.md "Working on afmctl"). A file's tests stay on one worker
 # (--dist loadfile: module fixtures built once; the longest files start first, tests/conftest.py).
+# One BLAS thread per worker: two workers with two OpenBLAS threads each oversubscribed the 2 cores
+# (the unseen-plant and image-dynamics fixtures side by side: 71 s with, 47 s without).
 # PYTEST_WORKERS=0: one process.
 PYTEST_WORKERS ?= 2
 test: $(TEST_STAMP)
 	$(BIN)/python tools/typecheck.py
-	$(BIN)/python -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile
 
 typecheck: $(TEST_STAMP)
 	$(BIN)/python tools/typecheck.py

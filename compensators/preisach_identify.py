@@ -14,7 +14,8 @@ Two methods (``method=``):
     ``y ≈ y0 + Φ(u)·w``. The normal equations are accumulated over chunks of samples (the
     memory of every sample is traced by the compiled kernel), a smoothness penalty on the
     cell densities (weight ``smoothing``) regularises cells the data barely excite, and the
-    nonnegative solution is found by ``scipy.optimize.nnls``.
+    nonnegative solution is found by block principal pivoting on the normal equations
+    (:mod:`.nnls_gram`; ``scipy.optimize.nnls`` is its tested reference).
 
 ``"auto"`` (default) uses ``"for"`` when every ascending run of the data starts at the
 bottom of the range and the curves cover the grid, otherwise ``"nnls"``.
@@ -35,6 +36,7 @@ import numpy as np
 
 from .base import ModelError, check_finite
 from .input_checks import number_option
+from .nnls_gram import nnls_gram
 from .preisach_grid import cell_masses_from_nodes
 
 log = logging.getLogger(__name__)
@@ -346,8 +348,7 @@ def _nnls_fit(u: np.ndarray, y: np.ndarray, lo: float, hi: float, L: int, cap: i
     ``prior_weight > 0`` a ridge of that relative weight pulls ``w`` towards the prior
     (:func:`_prior_masses`, fitted on the same normal equations): what the data do not
     determine takes the prior's masses."""
-    from scipy.linalg import cholesky, solve_triangular
-    from scipy.optimize import nnls
+    from scipy.linalg import cholesky
     n = u.shape[0] - fit_from_index
     if n > max_rows:
         rows = np.unique(np.linspace(0, n - 1, max_rows).round().astype(np.int64)) + fit_from_index
@@ -392,13 +393,11 @@ def _nnls_fit(u: np.ndarray, y: np.ndarray, lo: float, hi: float, L: int, cap: i
         # min ‖A x − b‖² + s‖D x‖² + λ‖x − p‖²: the right side gains λ p
         Atb = Atb + ridge * np.r_[p, np.zeros(ne)]
     try:
-        R = cholesky(H, lower=False)
+        cholesky(H, lower=False)                # positive definite, or a little more ridge
     except np.linalg.LinAlgError:
         H += 1e-6 * scale * np.eye(nc)
-        R = cholesky(H, lower=False)
-    # min ||R w − z||², R^T z = Atb
-    z = solve_triangular(R, Atb, trans="T", lower=False)
-    x, _ = nnls(R, z, maxiter=50 * nc)
+    # min ½ xᵀHx − Atbᵀx, x ≥ 0 (= min ‖R x − z‖², RᵀR = H, Rᵀz = Atb)
+    x = nnls_gram(H, Atb)
     x = x / col
     y0 = ymean - float(mean_f @ x)
     w = np.zeros((L, L))
