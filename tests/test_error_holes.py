@@ -180,3 +180,22 @@ def test_report_names_its_quantities_and_shows_the_tracking_error_when_known(tmp
     _log(hw_run, {"config": {"simulation": {"enabled": False}}})
     assert main(["report", str(hw_run)]) == 0
     assert "tracking error: not known" in capsys.readouterr().out
+
+
+def _identify_record(tmp_path, u):
+    t = np.arange(u.size) * 1e-3
+    path = tmp_path / "rec.csv"
+    np.savetxt(path, np.column_stack([t, u, 50.0 * u]), delimiter=",", header="t,u,y", comments="")
+    return path
+
+
+def test_identify_unknown_param_is_not_reported_as_a_short_burn_in(tmp_path, capsys):
+    """An unknown ``--param`` whose error text lists ``fit_from_index`` among the allowed
+    options is that error, not the burn-in hint."""
+    t = np.arange(4000) * 1e-3
+    data = _identify_record(tmp_path, 75.0 + 60.0 * np.sin(2 * np.pi * t))
+    assert main(["identify", "--model", "pi", "--data", str(data), "--param", "bogus=1",
+                 "--out", str(tmp_path / "m.json")]) == 2
+    err = one_error_line(capsys)
+    assert "bogus" in err and "burn-in" not in err, err
+

@@ -155,6 +155,13 @@ def _fit_errors(kind: str, where: str, err: Exception, names: Names) -> Exceptio
     return ModelError(f"{where}: {err}")
 
 
+def _burn_in_too_long(err: BaseException, opts: dict[str, Any], params: dict[str, Any]) -> bool:
+    """The fit refused the ``fit_from_index`` the burn-in set (not one the user passed, and
+    not another error whose text merely lists the option, e.g. an unknown ``--param``)."""
+    return (isinstance(err, ModelError) and str(err).startswith("fit_from_index:")
+            and "fit_from_index" in opts and "fit_from_index" not in params)
+
+
 def _single(cls: type[HysteresisModel], kind: str, c: Conditioned, n_operators: int | None,
             params: dict[str, Any], where: str, names: Names) -> Identified:
     """One kind, as ``afmctl identify`` fits it: kinds that take ``fit_from_index`` run
@@ -168,7 +175,7 @@ def _single(cls: type[HysteresisModel], kind: str, c: Conditioned, n_operators: 
     try:
         model = cls.identify(t, u, y, n_operators=n_operators, **opts)
     except (TypeError, ValueError, ModelError, np.linalg.LinAlgError) as err:
-        if isinstance(err, ModelError) and "fit_from_index" in str(err) and "fit_from_index" not in params:
+        if _burn_in_too_long(err, opts, params):
             raise ModelError(f"{where}: after the burn-in ({float(c.t_s[k0] - c.t_s[0]):.4g} s, until the input "
                              f"passed both extremes) too few samples remain ({err}); record more cycles or pass "
                              f"{names.burn_in_none}") from None
