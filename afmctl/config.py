@@ -99,6 +99,10 @@ class AmplifierSection(_Strict):
                                  "before the run, as `afmctl compensate` does, and played on the "
                                  "amplifier's clock: wave generator of drivers 'gcs'/'nv200', stream "
                                  "FIFO of 'can')")
+    settle_s: float = Field(0.2, ge=0.0, le=60.0, description="output = 'wave': hold at the table's first row this "
+                                                           "long after the approach ramp, before the table starts [s] "
+                                                           "(the ramp's ringing and fast creep die out, the same way "
+                                                           "in every play)")
     low_water_s: float = Field(0.1, gt=0.0, le=10.0, description="output = 'stream'/'wave' on CAN: top the device FIFO up "
                                                                  "when it holds less than this [s of samples]")
     high_water_s: float = Field(0.2, gt=0.0, le=10.0, description="output = 'stream'/'wave' on CAN: fill the device FIFO to "

@@ -20,7 +20,11 @@ scanner's measured motion back through the recorder, computes the next table, an
 a progress line per iteration (error max / RMS in % of the range, over the central 80 %
 of each line, step size), until the error is at --noise-floor-pct, stops improving, a
 guard stops it (error rising twice; a model whose phase is over 90 deg off) or N tables
-have played. Every table is checked (limits, slew, device capacity) before it is sent;
+have played. The scanner creeps: each play carries the creep of the plays before it, and
+afmctl run later plays the learned table once, from rest. With a model whose chain has a
+creep stage, each recording is first freed of what that creep history adds (the "history
+term", in nm on the progress line), so the learned table is right for that play from rest.
+Every table is checked (limits, slew, device capacity) before it is sent;
 Ctrl-C stops (the best table so far is written), a second Ctrl-C is an emergency stop.
 The best measured table is written to --out; play it with
 
@@ -50,6 +54,10 @@ def add_device_arguments(p: argparse.ArgumentParser) -> None:
                         "longer improves)")
     g.add_argument("--model-free", action="store_true",
                    help="learn without the configured model (frequency response from the iterations)")
+    g.add_argument("--no-history-term", action="store_true",
+                   help="learn from the recordings as they are (default: with a model that has a creep stage, "
+                        "take out the creep the earlier plays left, so the table is right for afmctl run's "
+                        "play from rest)")
     g.add_argument("--rho", type=float, default=1.0, metavar="RHO",
                    help="largest step size, 0 < RHO <= 2 (default 1: a full inverse step)")
     g.add_argument("--central-pct", dest="device_central_pct", type=float, default=90.0, metavar="P",
@@ -79,8 +87,9 @@ def progress_line(report: Any) -> str:
                if s["central_max_pct"] is not None else "")
     step = f"; step {report.rho:.2f}" if report.rho is not None and report.state == "learning" else ""
     tail = f"; {report.state}: {report.detail}" if report.state != "learning" else ""
+    history = f"; history term {report.history_nm:.1f} nm" if report.history_nm else ""
     return (f"afmctl: learn {report.iteration:3d}: max {s['max_pct']:.3f} / RMS {s['rms_pct']:.3f} % of the range"
-            f"{central}{step}{tail}")
+            f"{central}{step}{history}{tail}")
 
 
 def plot_convergence(reports: list[Any], path: str) -> None:
@@ -115,7 +124,7 @@ def run_device(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     settings = LearnSettings(rho_max=args.rho, central_pct=args.device_central_pct)
     options = LearnOptions(iterations=args.iterations, noise_floor_pct=args.noise_floor_pct, settings=settings,
-                           use_model=not args.model_free)
+                           use_model=not args.model_free, history_term=not args.no_history_term)
     with contextlib.ExitStack() as stack:
         amp = _open_amplifier(stack, config)
         publish = _publisher(stack, config)

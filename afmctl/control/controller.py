@@ -184,6 +184,11 @@ class Controller:
         self._feed_stop = False
         self._feed_error: str | None = None
         self._events: collections.deque = collections.deque()
+        #: output = "wave": host clock (time.monotonic) of the last play at the approach's
+        #: start ("approach"), its end ("settle": the settle hold begins), just before the
+        #: device was told to start ("start"), when the host saw the table end ("end") and
+        #: when the finish ended ("finished")
+        self.wave_times: dict[str, float] = {}
         self._drift_meas: collections.deque = collections.deque()
         self._ring = np.zeros((_RING, N_COLS))
         self._hist = loop_stats.new_histogram()

@@ -8,10 +8,10 @@ One iteration (:meth:`LearnRun.iterate`), in named steps:
    inside the configured limits and within the slew limit per sample, and short enough for
    the recorder (the wave player checks it again against the device's capacity);
 2. ``play`` — a :class:`afmctl.control.controller.Controller` plays the table exactly as
-   ``afmctl run`` plays a learned table (``output = "wave"``: approach ramp, the table on the
-   amplifier's clock, the finish ramp), with every safety check of a run; ``arm``: once the
-   table is on the device (uploaded, or the stream started) and before its first point
-   plays, the device's recorder is armed to record the measured position and the output of
+   ``afmctl run`` plays a learned table (``output = "wave"``: the upload, approach ramp and
+   settle hold, the table on the amplifier's clock, the finish ramp), with every safety
+   check of a run; ``arm``: once the table is on the device and before the approach ramp,
+   the device's recorder is armed (it starts with the wave generator or the stream) to record the measured position and the output of
    the learned axes, one point per table row
    (:meth:`afmctl.drivers.base.Amplifier.configure_recorder`); a stop or an
    estop during the play stops the device (wave generator stopped, FIFO flushed) and ramps
@@ -22,6 +22,11 @@ One iteration (:meth:`LearnRun.iterate`), in named steps:
    :data:`MAX_LAG_SHARE` of the table;
 4. ``learn`` — per learned axis the :class:`afmctl.compensators.learning.Learner` (the
    configured model as the learning filter, or the model-free law) gives the next column.
+   With a model, the recording is first freed of its *history term*: what the model says
+   the axis's voltages before this play (the earlier plays, ramps and uploads) add to it,
+   relative to a play from rest as ``afmctl run`` plays the learned table
+   (:mod:`afmctl.compensators.learning_history`; the creep of the earlier plays). The
+   table is so learned for the play ``afmctl run`` makes, not for the n-th play in a row.
 
 Learning ends when the error over the central part of each line is at the noise floor
 (``noise_floor_pct``), after ``iterations``, when a learner's guard stops it (error rising
@@ -34,6 +39,7 @@ from __future__ import annotations
 import enum
 import logging
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -41,10 +47,12 @@ from typing import Any
 import numpy as np
 
 from afmctl.compensators.learning import Learner, LearnSettings
+from afmctl.compensators.learning_history import creep_stages
 
 from ..errors import AfmctlError
 from ..inputs.trajectories import build, collect
 from .controller import Controller, State
+from .learn_history import PlayTimeline
 from .learned_table import LearnedSource, LearnedTable, make_learned
 from .pipeline import axis_models, build_pipeline
 from .wave_plan import WaveTable, driven_steps_ok, plan_table
@@ -85,7 +93,9 @@ class LearnOptions:
     law's (step size, weighting; limits are set from the configuration);
     ``use_model``: learn through the configured model (False: model-free);
     ``record_timeout_s``: longest wait for a recording after the play [s];
-    ``link_retries``: plays of the same table after a link fault (reconnected first)."""
+    ``link_retries``: plays of the same table after a link fault (reconnected first);
+    ``history_term``: with a model, learn from the recording minus the history term
+    (module docstring, step ``learn``)."""
 
     iterations: int = 10
     noise_floor_pct: float = 0.0
@@ -93,6 +103,7 @@ class LearnOptions:
     use_model: bool = True
     record_timeout_s: float = 30.0
     link_retries: int = 2
+    history_term: bool = True
 
 
 @dataclass
@@ -101,7 +112,8 @@ class IterationReport:
     figures of :func:`afmctl.compensators.learning_weights.error_figures` (% of the range),
     ``metric_pct`` (the worst axis's central max, else max), the next step's ``rho``, the
     recording's ``lag_samples``, ``state`` (learning / converged / stopped / diverged /
-    fault) and ``detail``."""
+    fault), ``detail`` and ``history_nm``: the largest history term taken out of the
+    recording [nm] (0 without a model)."""
 
     iteration: int
     errors: dict[str, dict[str, float]]
@@ -110,6 +122,7 @@ class IterationReport:
     lag_samples: float = 0.0
     state: str = "learning"
     detail: str = ""
+    history_nm: float = 0.0
 
     def summary(self) -> dict[str, float | None]:
         """The worst axis's figures, as :class:`afmctl.zenoh_api.messages.LearnMsg` takes them."""
@@ -184,6 +197,9 @@ class LearnRun:
         self.step = Step.CHECK
         self._ctl: Controller | None = None
         self._stop = threading.Event()
+        self.timeline: PlayTimeline | None = None
+        self._terms: dict[str, np.ndarray] = {}
+        self._wave_times: dict[str, float] = {}
         self._check_config()
         self.spec = config.trajectory.model_dump(mode="json")
         self.axes = [a for a in config.scanner.axes if a in amplifier.axes]
@@ -228,7 +244,20 @@ class LearnRun:
             out[axis] = Learner(table.target_nm[:, k], self.config.dt_s, models[k][0], settings)
         if not out:
             raise AfmctlError("trajectory: no driven axis moves; nothing to learn")
+        with_model = {a: models["xyz".index(a)][0] for a in out if creep_stages(models["xyz".index(a)][0])}
+        if self.options.history_term and with_model:
+            peak = {a: float(np.max(table.u_V[:, "xyz".index(a)])) for a in with_model}
+            self.timeline = PlayTimeline(self.config, with_model, self._present_output(list(with_model)), peak)
         return out
+
+    def _present_output(self, axes: list[str]) -> dict[str, float]:
+        """The output [V] per axis now (read back), where the history begins."""
+        try:
+            volts = self.amp.get_voltages()
+        except Exception as err:  # noqa: BLE001 - a link fault shows on the first play
+            log.warning("learn: reading the output back failed (%s); the history starts at the safe values", err)
+            volts = {}
+        return {a: float(volts.get(a, self.config.safety.safe_value(a))) for a in axes}
 
     # ------------------------------------------------------------------ iterations
     def run(self) -> LearnedTable:
@@ -297,8 +326,8 @@ class LearnRun:
         return arm_recorder(self.amp, self.config, len(table), axes)
 
     def _play(self, table: WaveTable, arm: Callable[[], None]) -> tuple[str, str] | None:
-        """Play ``table`` as a run plays a learned table, ``arm`` called just before its first
-        point plays (step ``arm``); None when it played to the end, else ``(state, why)``."""
+        """Play ``table`` as a run plays a learned table, ``arm`` called once it is on the
+        device, before the approach (step ``arm``); None when it played to the end, else ``(state, why)``."""
         if self._stop.is_set():
             return "stopped", "stopped before the play"
         source = LearnedSource(make_learned(self.config, table, self.spec), "the table being learned")
@@ -316,6 +345,8 @@ class LearnRun:
             ctl.close()
             self._ctl = None
         wave = stats.get("wave") or {}
+        self._wave_times = dict(ctl.wave_times)
+        self._advance_timeline(table, int(wave.get("played", 0)))
         if ctl.trajectory_error is not None:
             raise AfmctlError(f"learn: the table cannot be played: {ctl.trajectory_error}")
         if ctl.state is not State.STOPPED:
@@ -328,6 +359,17 @@ class LearnRun:
         self.step = step
         then()
         self.step = Step.PLAY
+
+    def _advance_timeline(self, table: WaveTable, played: int) -> None:
+        """The play into the learn run's voltage history; its history term per axis."""
+        self._terms = {}
+        if self.timeline is None:
+            return
+        if not {"approach", "settle", "start"} <= set(self._wave_times):   # nothing played: the outputs held (or ramped back)
+            self.timeline.rested(time.monotonic())
+            return
+        cols = {a: table.u_V[:, "xyz".index(a)] for a in self.timeline.now}
+        self._terms = self.timeline.played(cols, self._wave_times, played)
 
     def _reconnect(self) -> None:
         """After a link fault: reconnect (the driver reads the output back; the next play's
@@ -347,7 +389,7 @@ class LearnRun:
         errors, rhos, lags, stops = {}, [], [], []
         for axis, learner in learners.items():
             c = "xyz".index(axis)
-            res = learner.step(table.u_V[:, c], measured[axis])
+            res = learner.step(table.u_V[:, c], measured[axis] - self._terms.get(axis, 0.0))
             if abs(res.lag_samples) > MAX_LAG_SHARE * len(table):
                 raise RecordingRefused(f"learn: the recording of axis {axis} lags the table by "
                                        f"{res.lag_samples:.0f} samples (trigger?); not learned from")
@@ -360,7 +402,8 @@ class LearnRun:
         metric = max(e.get("central_max_pct", e["max_pct"]) for e in errors.values())
         if self.best is None or metric < self.best[0]:
             self.best = (metric, table)
-        report = IterationReport(k, errors, metric, float(np.median(rhos)), float(max(lags, key=abs)))
+        report = IterationReport(k, errors, metric, float(np.median(rhos)), float(max(lags, key=abs)),
+                                 history_nm=max((float(np.max(np.abs(d))) for d in self._terms.values()), default=0.0))
         if metric <= self.options.noise_floor_pct:
             report.state, report.detail = "converged", f"at the noise floor ({metric:.3g} % <= " \
                                                       f"{self.options.noise_floor_pct:g} %)"

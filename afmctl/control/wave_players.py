@@ -1,12 +1,16 @@
 """How a planned table reaches the device's clock (``[amplifier] output = "wave"``).
 
 Two players share one interface — :meth:`~WavePlayer.check` (before anything is sent),
-:meth:`~WavePlayer.play` (blocks until the table has played, a request stopped it, or an
-error), :meth:`~WavePlayer.abort` (stop the device now; best effort, for errors):
+:meth:`~WavePlayer.prepare` (what goes to the device before the approach ramp; False when a
+request came first), :meth:`~WavePlayer.play` (blocks until the table has played, a request
+stopped it, or an error), :meth:`~WavePlayer.abort` (stop the device now; best effort, for
+errors):
 
 * :class:`TablePlayer` — a wave generator (PI GCS ``WAV``/``WGO``, the NV200's waveform
-  buffer): every driven column uploaded whole, then all started together, polled until it
-  ends. Which rows have played is counted from the host clock conservatively (from just
+  buffer): every driven column uploaded whole while the output still rests where it was
+  (``prepare``: the scanner does not creep at the table's first row for the seconds an
+  upload takes, so the play starts from the same state however long the link needed),
+  then, right after the approach ramp, all started together, polled until it ends. Which rows have played is counted from the host clock conservatively (from just
   after the start was acknowledged to just before the stop was sent), so a row recorded
   has played; the last few rows before a stop may be missing from the run log.
 * :class:`FifoPlayer` — the CAN amplifier's stream FIFO: rows queued ahead between
@@ -67,6 +71,12 @@ class WavePlayer:
     def _check_device(self, table: WaveTable) -> None:
         """The device-specific part of :meth:`check`."""
 
+    def prepare(self, table: WaveTable) -> bool:
+        """What goes to the device before the approach ramp, then the controller's
+        ``before_wave_start`` hook; False when a request came first (nothing is started)."""
+        self._before_start()
+        return True
+
     def play(self, table: WaveTable) -> None:
         raise NotImplementedError
 
@@ -84,11 +94,17 @@ class WavePlayer:
 
     def _before_start(self) -> None:
         """Call the controller's ``before_wave_start`` hook (e.g. arm the device's data
-        recorder, :mod:`afmctl.control.learn_run`): after the upload (or the stream's
-        start), before the first point plays."""
+        recorder, which starts with the wave generator: :mod:`afmctl.control.learn_run`):
+        after the upload, before the approach ramp — the time the hook takes is not spent at
+        the table's first row; for the CAN stream once the stream has started (its
+        recorder counts the stream's ticks)."""
         hook = getattr(self.ctl, "before_wave_start", None)
         if hook is not None:
             hook()
+
+    def _started(self) -> None:
+        """Note the host clock just before the device is told to start (``wave_times``)."""
+        self.ctl.wave_times["start"] = time.monotonic()
 
 
 class TablePlayer(WavePlayer):
@@ -112,11 +128,18 @@ class TablePlayer(WavePlayer):
                                   f"{cfg.loop.rate_Hz:g} Hz, the {cfg.amplifier.driver} wave table of axis {a} "
                                   f"holds {capacity} (shorten the trajectory or lower loop.rate_Hz)")
 
-    def play(self, table: WaveTable) -> None:
-        """Upload, start every driven axis together, record the rows as they play."""
+    def prepare(self, table: WaveTable) -> bool:
+        """Upload every driven column (the output rests where it is meanwhile), then the
+        ``before_wave_start`` hook."""
         if not self._upload(table):
-            return
+            return False
         self._before_start()
+        return True
+
+    def play(self, table: WaveTable) -> None:
+        """Start every driven axis together (uploaded by :meth:`prepare`), record the rows
+        as they play."""
+        self._started()
         st = self.amp.start_wave(divider=wcodec.divider_for(self.ctl.config.loop.rate_Hz, self.amp.servo_cycle_s()),
                                  cycles=1, axes=list(self.m.safety.axes))
         self.started = True
@@ -135,6 +158,7 @@ class TablePlayer(WavePlayer):
                 raise AfmctlError(f"the wave generator still runs {n / rate + 5.0:.1f} s after its start")
             time.sleep(self.poll_s)
             st = self.amp.wave_status()
+        self.ctl.wave_times["end"] = time.monotonic()
         self.m.played_to(n, "end")
 
     def _played_by(self, t: float, rate: float, most: int) -> int:
@@ -173,6 +197,10 @@ class FifoPlayer(WavePlayer):
         self.poll_s = max(min(self.prod.high - self.prod.low, self.prod.low) / cfg.loop.rate_Hz / 4, 0.0005)
         self.stall = getattr(self.ctl, "stream_stall_hook", None)
 
+    def prepare(self, table: WaveTable) -> bool:
+        """Nothing goes ahead of the stream (its hook runs once the stream has started)."""
+        return True
+
     def _check_device(self, table: WaveTable) -> None:
         capacity = self.amp.buffer_status().capacity
         if self.prod.high > capacity:
@@ -184,9 +212,10 @@ class FifoPlayer(WavePlayer):
         amp, prod, ctl = self.amp, self.prod, self.ctl
         rows = self._rows(table)
         n = len(rows)
+        self._started()
         amp.start_stream(prod.rate_Hz, prefill=int(min(prod.high, n)))
         self.started = True
-        self._before_start()
+        self._before_start()             # a recorder counts the stream's ticks: armed once it runs
         self.m.fsm.fire(Event.DONE)        # the FIFO plays: UPLOAD -> PLAY
         prod._queued = 0
         self.m.tick0 = ctl._tick + 1
@@ -228,6 +257,7 @@ class FifoPlayer(WavePlayer):
         self._stats()
         if bs.state == "fault":
             raise AfmctlError("the amplifier stopped the stream (fault)")
+        self.ctl.wave_times["end"] = time.monotonic()
         self.m.played_to(n, "end")
 
     def _flush(self, why: str) -> None:

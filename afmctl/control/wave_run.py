@@ -11,12 +11,18 @@ named phases:
    target with the chain's offline inverse within the limits (what ``afmctl compensate``
    does); the player checks the table (finite, limits, slew per sample, fits the device)
    before anything is sent; a ``wave`` event reports it;
-3. ``approach`` — host setpoints ramp from the read-back voltage to the table's first row
-   at ``safety.ramp_V_per_s`` (the setpoint loop's start ramp);
-4. ``play`` — the table plays on the amplifier's clock at ``loop.rate_Hz``
+3. ``upload`` — a wave generator's table goes to the device while the output still rests
+   where it was (the player's ``prepare``; the CAN FIFO has nothing to send ahead): the
+   scanner does not sit at the table's first row, creeping, for as long as the link takes;
+4. ``approach`` — host setpoints ramp from the read-back voltage to the table's first row
+   at ``safety.ramp_V_per_s`` (the setpoint loop's start ramp), then hold there for
+   ``amplifier.settle_s`` (the ramp's ringing and fast creep die out the same way before
+   every play); events ``ramp``, ``settle`` (the first row reached) and ``ramp-done`` (the
+   table starts: the run log's rows after it are the table's);
+5. ``play`` — the table plays on the amplifier's clock at ``loop.rate_Hz``
    (:mod:`afmctl.control.wave_players`: a GCS or NV200 wave generator, or the CAN stream FIFO);
    host stalls shorter than what the device holds never reach the tip;
-5. ``finish`` — the setpoint loop's finish mode (ramp to the safe value, or hold, as
+6. ``finish`` — the setpoint loop's finish mode (ramp to the safe value, or hold, as
    ``safety.on_finish`` says; an estop ramps at the slew limit) from the output read back.
 
 Every played row goes into the run log with ``t_s`` = its play time on the amplifier's
@@ -52,6 +58,7 @@ class Phase(enum.Enum):
     """Where a wave run is (see the module docstring)."""
     COLLECT = "collect"
     PLAN = "plan"
+    UPLOAD = "upload"
     APPROACH = "approach"
     PLAY = "play"
     FINISH = "finish"
@@ -115,15 +122,19 @@ class WaveMachine(LoopMachine):
             return
         self.phase = Phase.FINISH
         self._finish()
+        ctl.wave_times["finished"] = time.monotonic()
 
     def _collect_plan_play(self) -> None:
-        """Phases collect, plan, approach and play (each returns early on a request)."""
+        """Phases collect, plan, upload, approach and play (each returns early on a request)."""
         targets = self._collect()
         if targets is None or self.ctl._request is not None:
             return
         self.phase = Phase.PLAN
         self.table = self._plan(targets)
         self.player.check(self.table)
+        self.phase = Phase.UPLOAD
+        if not self.player.prepare(self.table):
+            return
         self.phase = Phase.APPROACH
         if self._approach():
             self.phase = Phase.PLAY
@@ -185,13 +196,14 @@ class WaveMachine(LoopMachine):
 
     def _approach(self) -> bool:
         """Phase ``approach``: host setpoints ramp to the table's first row (one per loop
-        period); False when a request came first."""
+        period), then hold it for ``amplifier.settle_s``; False when a request came first."""
         ctl, s = self.ctl, self.safety
         table = self.table
         assert table is not None
         self._set_aim(0)
         goal = s.driven_target(table.u_V[0])
         self.next_t_s = self.now_s = time.perf_counter()
+        ctl.wave_times["approach"] = time.monotonic()
         ctl._event("ramp", "ramping from the present output to the wave's first sample")
         reached = False
         while not reached:
@@ -200,6 +212,16 @@ class WaveMachine(LoopMachine):
             if ctl._request is not None:
                 return False
             reached = s.ramp_step(goal, self.ramp_rate_V_per_s)
+            self._record()
+        settle_s = ctl.config.amplifier.settle_s
+        ctl.wave_times["settle"] = t_settle = time.monotonic()
+        ctl._event("settle", f"at the wave's first sample; holding it {settle_s:g} s before the table starts")
+        while time.monotonic() - t_settle < settle_s:     # the settle hold (wall clock)
+            self._wait_for_deadline()
+            ctl._tick += 1
+            if ctl._request is not None:
+                return False
+            s.ramp_step(goal, self.ramp_rate_V_per_s)
             self._record()
         ctl._event("ramp-done")
         return True

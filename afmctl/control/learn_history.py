@@ -1,0 +1,93 @@
+"""The voltage history of a learn run, play by play, for the history term of each
+recording (:mod:`afmctl.compensators.learning_history`).
+
+A play as :class:`afmctl.control.controller.Controller` makes it with ``output = "wave"``:
+the output holds where the last play left it, ramps to the table's first row at the ramp
+rate (``safety.ramp_V_per_s``, capped by the slew limit) once the table is uploaded (the
+output rests meanwhile), holds there for ``amplifier.settle_s``, plays the table on the
+device's clock, holds until the host sees the end, then
+ramps to the safe value (``safety.on_finish = "safe"``) or holds. :class:`PlayTimeline`
+rebuilds that per learned axis from host clock readings per play
+(:attr:`afmctl.control.controller.Controller.wave_times`: the approach's start and end — on
+a serial link host setpoints at the loop rate run late, so the ramp takes longer than its
+rate says —, and the device's start) and gives, per play, the history
+term relative to the *reference*: a play from rest at the voltage the axis had when
+learning began — how ``afmctl run`` plays the learned table from a fresh start. Units: V, s,
+nm.
+"""
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from afmctl.compensators.learning_history import VoltageHistory, history_term_nm
+
+
+class PlayTimeline:
+    """Per axis of ``models`` (axis → model with ``forward``) the history since learning
+    began, the axis at rest at ``start_V`` (axis → V) before, with the hysteresis memory of
+    a descent from ``peak_V`` (axis → V: the first table's highest voltage); ``config``:
+    the run's."""
+
+    def __init__(self, config: Any, models: dict[str, Any], start_V: dict[str, float],
+                 peak_V: dict[str, float] | None = None) -> None:
+        self.dt_s = float(config.dt_s)
+        self.rate_V_per_s = min(float(config.safety.ramp_V_per_s), float(config.slew_V_per_s()))
+        self.finish_safe = config.safety.on_finish == "safe"
+        self.settle_s = float(config.amplifier.settle_s)
+        self.safe_V = {a: config.safety.safe_value(a) for a in models}
+        peak = peak_V or {}
+        self.rest = {a: VoltageHistory(m, self.dt_s, start_V[a], peak_V=peak.get(a)) for a, m in models.items()}
+        self.now = {a: h.copy() for a, h in self.rest.items()}
+        self.t_last_s = time.monotonic()
+
+    def played(self, u_V: dict[str, np.ndarray], times: dict[str, float], rows: int) -> dict[str, np.ndarray]:
+        """Advance every axis through one play of its column ``u_V[axis]`` (``rows`` of it
+        played); ``times``: host clock readings [s] of :func:`time.monotonic` — the approach
+        began (``approach``), the settle hold began (``settle``), the device was told to
+        start (``start``), saw the table end (``end``) and the finish ended (``finished``;
+        without these two the finish ramp follows the last row at the ramp rate). The
+        history term [nm] of this play per axis, over the whole column, against a play from
+        rest with the nominal approach ramp and settle hold."""
+        ramp_s = max(0.0, times["settle"] - times["approach"])
+        hold_s = max(0.0, times["start"] - times["settle"])
+        terms: dict[str, np.ndarray] = {}
+        for axis, u in u_V.items():
+            h = self.now[axis]
+            h.hold(times["approach"] - self.t_last_s)      # rested, the table uploaded
+            h.ramp_over(float(u[0]), ramp_s)
+            h.hold(hold_s)
+            reference = self.rest[axis].copy()           # as afmctl run plays: nominal ramp and settle
+            reference.ramp(float(u[0]), self.rate_V_per_s)
+            reference.hold(self.settle_s)
+            terms[axis] = history_term_nm(h, reference, u)
+            h.play(u[:rows])
+            self._finish(h, axis, times, rows * self.dt_s)
+        if "end" in times and "finished" in times:
+            self.t_last_s = times["finished"]
+        else:
+            last = max((abs(float(u[max(rows, 1) - 1]) - self.safe_V[a]) for a, u in u_V.items()), default=0.0)
+            finish_s = last / self.rate_V_per_s if self.finish_safe else 0.0
+            self.t_last_s = times.get("end", times["start"] + rows * self.dt_s) + finish_s
+        return terms
+
+    def _finish(self, h: VoltageHistory, axis: str, times: dict[str, float], played_s: float) -> None:
+        """After the last row (``played_s`` [s] after the start): held until the host saw
+        the end (``end``), then the finish ramp to the safe value until ``finished`` (at the
+        ramp rate when those were not read)."""
+        if "end" in times:
+            h.hold(times["end"] - times["start"] - played_s)
+        if not self.finish_safe:
+            return
+        if "end" in times and "finished" in times:
+            h.ramp_over(self.safe_V[axis], times["finished"] - times["end"])
+        else:
+            h.ramp(self.safe_V[axis], self.rate_V_per_s)
+
+    def rested(self, t_s: float) -> None:
+        """Nothing played until ``t_s`` (host clock): the outputs held."""
+        for h in self.now.values():
+            h.hold(t_s - self.t_last_s)
+        self.t_last_s = t_s

@@ -1,0 +1,97 @@
+"""The history term of a play (compensators/learning_history.py, control/learn_history.py):
+what the creep of earlier voltages adds to a recording, relative to a play from rest."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from afmctl.compensators.chain import ChainModel
+from afmctl.compensators.creep import LinearCreepModel
+from afmctl.compensators.learning_history import VoltageHistory, creep_stages, history_term_nm
+from afmctl.compensators.pi import PIModel
+from afmctl.config import Config
+from afmctl.control.learn_history import PlayTimeline
+
+DT_S = 1e-3
+TAU_S = [0.05, 0.5, 5.0, 50.0]
+WEIGHTS = [0.01, 0.01, 0.01, 0.01]
+
+
+def creep_model(gain: float = 50.0) -> LinearCreepModel:
+    return LinearCreepModel(time_constants_s=TAU_S, creep_weights=WEIGHTS, gain_nm_per_V=gain, offset_nm=0.0,
+                            initial_V=0.0)
+
+
+def test_the_term_is_the_lag_states_difference_decaying_through_the_table():
+    """For the linear creep stage the term is exact and closed-form: Δy[n] = g·Σ_k c_k·Δz_k·a_k^(n+1)
+    (nonlinearities paper, eq. 21), whatever the table."""
+    model = creep_model()
+    rest = VoltageHistory(model, DT_S, 0.0, settle_s=1000.0)
+    played = rest.copy()
+    played.hold(0.0)
+    played.ramp_over(80.0, 0.01)
+    played.hold(2.0)
+    played.ramp(0.0, 1e4)
+    played.hold(0.7)
+    table = 40.0 + 30.0 * np.sin(np.linspace(0.0, 6.0 * np.pi, 400))
+    term = history_term_nm(played, rest, table)
+    # the same from the lag states by hand (z: the lags' states, in the input's unit [V])
+    a = np.exp(-DT_S / np.array(TAU_S))
+    dz = played.creep.z - rest.creep.z
+    n = np.arange(table.size)[:, None]
+    expected = 50.0 * np.sum(np.array(WEIGHTS) * dz * a ** (n + 1), axis=1)
+    assert np.max(np.abs(term)) > 1.0                     # the history left something to see
+    np.testing.assert_allclose(term, expected, rtol=1e-9, atol=1e-9)
+
+
+def test_a_history_like_the_reference_adds_nothing_and_a_rest_lets_it_decay():
+    model = ChainModel(hysteresis=PIModel(thresholds=[0.0, 20.0, 40.0], weights=[40.0, 8.0, 4.0]),
+                       creep=creep_model(gain=1.0))
+    table = np.linspace(30.0, 70.0, 300)
+    rest = VoltageHistory(model, DT_S, 0.0, settle_s=500.0, peak_V=70.0)
+    same = rest.copy()
+    assert np.max(np.abs(history_term_nm(same, rest, table))) == 0.0
+    after_play = rest.copy()
+    after_play.ramp_over(70.0, 0.02)
+    after_play.hold(3.0)
+    after_play.ramp(0.0, 5000.0)
+    terms = []
+    for rest_s in (0.2, 2.0, 20.0):
+        h = after_play.copy()
+        h.hold(rest_s)
+        terms.append(float(np.mean(history_term_nm(h, rest, table))))
+    assert terms[0] > terms[1] > terms[2] > 0.0, terms     # creep charged, then relaxing at rest
+    assert terms[2] < 0.5 * terms[0], terms
+
+
+def test_models_without_a_creep_stage_predict_no_term():
+    pi = PIModel(thresholds=[0.0, 20.0], weights=[40.0, 8.0])
+    assert creep_stages(pi) is None
+    assert creep_stages(ChainModel(hysteresis=pi)) is None
+    assert creep_stages(creep_model())[0] is None
+    with pytest.raises(ValueError, match="no creep stage"):
+        VoltageHistory(pi, DT_S, 0.0)
+
+
+def test_the_timeline_of_a_learn_run_against_a_play_from_rest():
+    """Two plays of one table from the host clock readings a learn run keeps; the first, from
+    rest with the nominal approach and settle, has no term; the second carries the first's
+    creep; a long rest before a third lets most of it decay."""
+    config = Config.model_validate({"amplifier": {"driver": "gcs", "output": "wave", "settle_s": 0.2, "slew_V_per_s": 1e5,
+                                                  "port": "/dev/null"},
+                                    "loop": {"rate_Hz": 1000.0},
+                                    "safety": {"ramp_V_per_s": 5000.0, "slew_V_per_s": 1e5}})
+    timeline = PlayTimeline(config, {"x": creep_model(gain=1.0)}, {"x": 0.0}, {"x": 70.0})
+    table = {"x": np.linspace(60.0, 70.0, 500)}
+    t0 = timeline.t_last_s + 1.0
+    ramp_s = 60.0 / 5000.0
+
+    def play(t: float) -> float:
+        times = {"approach": t, "settle": t + ramp_s, "start": t + ramp_s + 0.2}
+        return float(np.mean(timeline.played(table, times, 500)["x"]))
+
+    first = play(t0)
+    second = play(timeline.t_last_s + 0.5)
+    third = play(timeline.t_last_s + 60.0)
+    assert abs(first) < 1e-3 * abs(second), (first, second)
+    assert second > 0.0 and 0.0 < third < 0.5 * second, (first, second, third)
