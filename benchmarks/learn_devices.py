@@ -42,8 +42,9 @@ from sections import write_section  # noqa: E402
 NAME = "learn_devices"
 #: (line width [nm], lines) per line rate [lines/s]
 RASTERS = {50: (4000.0, 4), 100: (1000.0, 4), 200: (1000.0, 4)}
-#: loop rate per device [Hz] (the NV200's 1024-sample buffer needs a lower one)
-RATES_HZ = {"gcs": 10000, "can": 10000, "nv200": 5000}
+#: loop rate per device [Hz] (the NV200's 1024-sample buffer holds the 4-line tables with a
+#: shortened preview padding: afmctl.control.wave_plan.plan_table's max_rows)
+RATES_HZ = {"gcs": 10000, "can": 10000, "nv200": 10000}
 LINE = re.compile(r"afmctl: learn +(\d+): max ([\d.]+) .*central 80 %: max ([\d.]+)")
 
 CONFIG = """

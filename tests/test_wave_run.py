@@ -80,6 +80,27 @@ def test_the_table_is_the_chains_offline_inverse_of_the_padded_target(tmp_path, 
     assert driven_steps_ok(table.u_V, "xyz", limits, SLEW_V_PER_S * cfg.dt_s, table.u_V[0])
 
 
+def test_a_preview_padding_the_device_cannot_hold_is_shortened_to_fit(tmp_path, chain_file):
+    """A device table of ``max_rows`` (the NV200's 1024): the padding shrinks so that the
+    table fits, the report says so, and the lines' central parts keep what the full
+    padding gives (the offline inverse's anticipation is a short, decaying tail)."""
+    cfg = cfg_for(tmp_path, "can", "virtual:unused", f'[compensation.x]\nmodel = "{chain_file}"\n', rate_Hz=10000.0)
+    pipe = build_pipeline(cfg)
+    r = raster_nm(800)
+    limits = {a: (0.0, 120.0) for a in "xyz"}
+    full = plan_table(cfg, pipe, r, 20.0, limits, SLEW_V_PER_S * cfg.dt_s)
+    assert len(full) > 1024, "the chain's preview must not fit for this test"
+    short = plan_table(cfg, pipe, r, 20.0, limits, SLEW_V_PER_S * cfg.dt_s, max_rows=1024)
+    assert len(short) <= 1024 and short.pad == (1024 - len(r)) // 2 < full.pad
+    assert short.report[0].startswith("padding:") and "1024" in short.report[0]
+    mid = slice(len(r) // 10, len(r) - len(r) // 10)
+    x_full = full.u_V[full.pad:full.pad + len(r), 0][mid]
+    x_short = short.u_V[short.pad:short.pad + len(r), 0][mid]
+    assert np.max(np.abs(x_short - x_full)) < 0.01 * np.ptp(x_full)
+    assert driven_steps_ok(short.u_V, "xyz", limits, SLEW_V_PER_S * cfg.dt_s, short.u_V[0])
+    assert plan_table(cfg, pipe, r, 20.0, limits, SLEW_V_PER_S * cfg.dt_s, max_rows=10**6).pad == full.pad
+
+
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(x=st.lists(st.floats(-1e5, 1e5), min_size=1, max_size=60), step=st.floats(0.01, 20.0),
        lo=st.floats(-50.0, 50.0), span=st.floats(1.0, 200.0))

@@ -228,7 +228,9 @@ class LearnRun:
         if len(targets) == 0:
             raise AfmctlError("trajectory: it has no samples at the loop period")
         T_C = cfg.compensation.temperature.T_C
-        return plan_table(cfg, build_pipeline(cfg), targets, T_C, self.limits_V, self.max_step_V)
+        rows = ([int(self.amp.wave_capacity(a)) for a in self.axes] if hasattr(self.amp, "wave_capacity") else [])
+        return plan_table(cfg, build_pipeline(cfg), targets, T_C, self.limits_V, self.max_step_V,
+                          min(rows) if rows else None)
 
     def learners(self, table: WaveTable) -> dict[str, Learner]:
         """One learner per axis whose target moves, its limits from the configuration."""

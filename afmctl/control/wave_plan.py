@@ -111,19 +111,28 @@ def _offline_inverses(config, models: Sequence[Any], limits_V: dict[str, tuple[f
 
 
 def plan_table(config, pipeline, targets_nm: np.ndarray, T_C: float | np.ndarray,
-               limits_V: dict[str, tuple[float, float]], max_step_V: float) -> WaveTable:
+               limits_V: dict[str, tuple[float, float]], max_step_V: float,
+               max_rows: int | None = None) -> WaveTable:
     """The table for ``targets_nm`` (N, 3) [nm] at the loop period (module docstring).
 
     ``pipeline``: the controller's; it is not changed (a copy gets the offline inverses;
     its operators are reset before and after). ``T_C``: ambient temperature [°C], scalar
     or per target sample. ``limits_V``: ``{axis: (lo, hi)}`` of the driven axes [V];
-    ``max_step_V``: largest change between rows [V] (the slew limit per sample)."""
+    ``max_step_V``: largest change between rows [V] (the slew limit per sample);
+    ``max_rows``: the most rows the device's table holds — a preview padding that would
+    not fit is shortened to fit (the offline inverse then anticipates the first move over
+    fewer held rows; the report says so)."""
     if getattr(pipeline, "kalman", None) is not None:
         raise AfmctlError(KALMAN_REFUSAL)
     r = np.asarray(targets_nm, dtype=np.float64)
     if r.ndim != 2 or r.shape[1] != 3 or len(r) == 0:
         raise AfmctlError(f"amplifier.output = 'wave': the trajectory must be positions (N, 3) [nm], got {r.shape}")
     pad = int(getattr(pipeline, "latency_samples", 0))
+    report: list[str] = []
+    if max_rows is not None and len(r) + 2 * pad > max_rows and len(r) < max_rows:
+        report.append(f"padding: {(max_rows - len(r)) // 2} held rows before and after instead of the preview "
+                      f"horizon's {pad}, so that the table fits the device's {max_rows}")
+        pad = (max_rows - len(r)) // 2
     if len(r) + 2 * pad > MAX_TABLE_SAMPLES:
         raise AfmctlError(f"amplifier.output = 'wave': the trajectory has {len(r)} samples at the loop period; "
                           f"at most {MAX_TABLE_SAMPLES - 2 * pad} fit one table (shorten it or lower loop.rate_Hz)")
@@ -131,7 +140,7 @@ def plan_table(config, pipeline, targets_nm: np.ndarray, T_C: float | np.ndarray
     T = np.asarray(T_C, dtype=np.float64)
     T = (np.concatenate([np.repeat(T[:1], pad), T, np.repeat(T[-1:], pad)]) if T.ndim
          else np.full(len(tgt), float(T)))
-    report: list[str] = []
+    padding = list(report)
     slew = max_step_V / config.dt_s
     models: Any = getattr(pipeline, "models", None)
     if not any(m is not None for m in models or ()):   # a pipeline not built from the config
@@ -142,7 +151,7 @@ def plan_table(config, pipeline, targets_nm: np.ndarray, T_C: float | np.ndarray
     passes = 2 if getattr(pipe, "drift", None) is not None else 1
     for _ in range(passes):
         pipeline.reset()
-        report.clear()
+        report[:] = padding
         d, c, u = pipe.block(tgt, T, u_sent, preview=True)
         u_sent = np.concatenate([np.zeros((1, 3)), u[:-1]])
     pipeline.reset()

@@ -71,6 +71,10 @@ class WavePlayer:
     def _check_device(self, table: WaveTable) -> None:
         """The device-specific part of :meth:`check`."""
 
+    def max_rows(self) -> int | None:
+        """The most rows one table may have on this device (None: no such bound)."""
+        return None
+
     def prepare(self, table: WaveTable) -> bool:
         """What goes to the device before the approach ramp, then the controller's
         ``before_wave_start`` hook; False when a request came first (nothing is started)."""
@@ -118,6 +122,10 @@ class TablePlayer(WavePlayer):
         self.what = f"wave table ({self.ctl.config.amplifier.driver} wave generator)"
         self.max_step_V = machine.safety.max_step_V
         self.t0 = 0.0
+
+    def max_rows(self) -> int | None:
+        """The smallest wave table of the driven axes."""
+        return min(int(self.amp.wave_capacity(a)) for a in self.m.safety.axes)
 
     def _check_device(self, table: WaveTable) -> None:
         cfg = self.ctl.config

@@ -183,7 +183,8 @@ class WaveMachine(LoopMachine):
             if learned is not None:
                 table = learned.table_for(ctl.config)
             else:
-                table = plan_table(ctl.config, self.pipe, targets, T, self.player.limits_V(), self.player.max_step_V)
+                table = plan_table(ctl.config, self.pipe, targets, T, self.player.limits_V(), self.player.max_step_V,
+                                   self.player.max_rows())
         except AfmctlError as err:
             raise WaveRefused(str(err)) from None
         s.clamped += table.clamped
