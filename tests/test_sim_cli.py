@@ -14,6 +14,7 @@ import pytest
 import serial
 
 from afmctl.sim_backend.testing import no_leaks
+from afmctl.testing import stop_process
 
 
 def _start(*extra):
@@ -29,9 +30,7 @@ def _running(*extra):
     try:
         yield proc
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+        stop_process(proc, timeout_s=5.0)     # still running: the test failed; its stacks, then kill
 
 
 def _first_line(proc, timeout_s=60.0) -> str:

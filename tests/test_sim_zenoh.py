@@ -22,7 +22,7 @@ import serial
 
 from afmctl.zenoh_api.messages import SimTipMsg, decode_json
 from afmctl.zenoh_api.settings import ZenohSettings, free_loopback_endpoint
-from afmctl.testing import wait_for as _wait_for
+from afmctl.testing import wait_for as _wait_for, stop_process
 
 import zenoh
 
@@ -71,9 +71,7 @@ def _sim(*args):
     try:
         yield proc, lines
     finally:
-        if proc.poll() is None:
-            proc.kill()
-        proc.wait()
+        stop_process(proc, timeout_s=5.0)     # still running: the test failed; its stacks, then kill
         reader.join(timeout=5)
         proc.stdout.close()
         proc.stderr.close()

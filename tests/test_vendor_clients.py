@@ -30,6 +30,7 @@ import serial
 
 from afmctl.drivers.registry import open_amplifier
 from afmctl.sim_backend.testing import serve_pty
+from afmctl.testing import stop_process
 
 ROOT = Path(__file__).resolve().parents[1]
 NV200_VENV = ROOT / ".venv-nv200"
@@ -194,12 +195,7 @@ def _afmctl_sim(*args: str):
         assert ready, "afmctl sim printed nothing"
         yield proc.stdout.readline().strip()
     finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        stop_process(proc)
 
 
 def _approx(v: float):

@@ -20,7 +20,7 @@ import pytest
 
 from afmctl.zenoh_api.messages import CmdRequest, SegmentMsg, TemperatureMsg, decode_setpoints
 from afmctl.control.runlog import RunLogReader
-from afmctl.testing import wait_for
+from afmctl.testing import wait_for, stop_process
 from afmctl.zenoh_api.settings import UserPasswordSettings, ZenohSettings, free_loopback_endpoint
 
 import zenoh
@@ -254,8 +254,6 @@ def test_run_process_serves_trajectory_and_temperature_over_zenoh(tmp_path):
     finally:
         if client is not None:
             client.close()
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10.0)
+        stop_process(proc, timeout_s=5.0)     # still running: the test failed; its stacks, then kill
     assert wait_for(lambda: set(threading.enumerate()) <= threads_before, 5.0), \
         f"leaked threads: {set(threading.enumerate()) - threads_before}"
