@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import platform
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -21,18 +20,9 @@ if str(ROOT) not in sys.path:
 from afmctl.compensators.drift import DriftParams  # noqa: E402
 from afmctl.compensators.drift_kalman import DriftKalman  # noqa: E402
 from afmctl.compensators.phase_correlation import phase_correlation  # noqa: E402
-from sections import write_section as _write_section  # noqa: E402  (benchmarks/sections.py)
+from sections import median_s, write_section as _write_section  # noqa: E402  (benchmarks/sections.py)
 
 COMMAND = ".venv/bin/python benchmarks/bench_drift.py"
-
-
-def _median_time(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
 
 
 def measure(repeats: int = 7, n_block: int = 200_000, n_step: int = 5_000) -> list[tuple[str, str, float, str]]:
@@ -44,7 +34,7 @@ def measure(repeats: int = 7, n_block: int = 200_000, n_step: int = 5_000) -> li
         for dt in (1e-3, 1e-4):
             pred = DriftParams.named(name).predictor(dt)
             pred.block(T[:100], U[:100])  # compile / warm up
-            s = _median_time(lambda: pred.block(T, U), repeats) / n_block
+            s = median_s(lambda: pred.block(T, U), repeats) / n_block
             states = pred.system.n_states + pred.system.n_slow * pred.system.kmax
             rows.append((f"predictor.block, {name}", f"{1 / dt:g} Hz, {states} states", s * 1e6,
                          "µs / 3-axis sample"))
@@ -54,7 +44,7 @@ def measure(repeats: int = 7, n_block: int = 200_000, n_step: int = 5_000) -> li
         def steps():
             for i in range(n_step):
                 pred.step(T[i], U[i])
-        rows.append((f"predictor.step, {name}", "1000 Hz", _median_time(steps, max(3, repeats // 2)) / n_step * 1e6,
+        rows.append((f"predictor.step, {name}", "1000 Hz", median_s(steps, max(3, repeats // 2)) / n_step * 1e6,
                      "µs / call"))
     kf = DriftKalman(1e-3)
     m = np.zeros(3)
@@ -62,11 +52,11 @@ def measure(repeats: int = 7, n_block: int = 200_000, n_step: int = 5_000) -> li
     def kpred():
         for _ in range(n_step):
             kf.predict(m)
-    rows.append(("DriftKalman.predict", "3 axes, bias + rate", _median_time(kpred, 3) / n_step * 1e6, "µs / call"))
+    rows.append(("DriftKalman.predict", "3 axes, bias + rate", median_s(kpred, 3) / n_step * 1e6, "µs / call"))
     a = rng.normal(size=(64, 64))
     b = np.roll(a, 2, axis=1)
     rows.append(("phase_correlation", "64×64, upsample 100, refine",
-                 _median_time(lambda: phase_correlation(a, b), repeats) * 1e3, "ms / frame pair"))
+                 median_s(lambda: phase_correlation(a, b), repeats) * 1e3, "ms / frame pair"))
     return rows
 
 

@@ -26,7 +26,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from sections import write_section  # noqa: E402  (benchmarks/sections.py)
+from sections import median_s, write_section  # noqa: E402  (benchmarks/sections.py)
 COMMAND = ".venv/bin/python benchmarks/bench_nnls.py"
 
 
@@ -62,15 +62,6 @@ def _normal_equations(data: Path, levels: int) -> tuple[np.ndarray, np.ndarray]:
     return seen["H"], seen["b"]
 
 
-def _median_s(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
-
-
 def _identify_s(data: Path, out: Path, reference: bool) -> float:
     from afmctl.cli import main
     from afmctl.compensators import nnls_gram as ng
@@ -98,8 +89,8 @@ def main(argv: list[str] | None = None) -> int:
             H, b = _normal_equations(data, levels)
             x, ref = nnls_gram(H, b), reference_nnls(H, b)
             diff = float(np.abs(x - ref).max() / np.abs(ref).max())
-            t_bpp = _median_s(lambda: nnls_gram(H, b), args.repeats)
-            t_lh = _median_s(lambda: reference_nnls(H, b), args.repeats)
+            t_bpp = median_s(lambda: nnls_gram(H, b), args.repeats)
+            t_lh = median_s(lambda: reference_nnls(H, b), args.repeats)
             rows.append((f"{levels} levels ({b.size} unknowns, {np.count_nonzero(x)} > 0)", t_lh, t_bpp, diff))
         whole = {ref: [] for ref in (True, False)}
         for _ in range(args.repeats):

@@ -27,7 +27,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from sections import write_section as _write_section  # noqa: E402  (benchmarks/sections.py)
+from sections import median_s, write_section as _write_section  # noqa: E402  (benchmarks/sections.py)
 
 from afmctl.sim_backend.config import DriftConfig, ExternalModelConfig, default_preisach, default_scanner_config  # noqa: E402
 from afmctl.sim_backend.plant import AxisPlant, GaussianPreisachOperator  # noqa: E402
@@ -35,16 +35,6 @@ from afmctl.sim_backend.samples import Grating2D  # noqa: E402
 from afmctl.sim_backend.scanner import Scanner  # noqa: E402
 
 NAME = "sim"
-
-
-def median_time(fn, reps: int) -> float:
-    fn()  # warm up (numba compile / cache load)
-    times = []
-    for _ in range(reps):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times)
 
 
 def signal(n: int) -> np.ndarray:
@@ -186,22 +176,22 @@ def main(argv: list[str]) -> int:
         return f"{n * axes / seconds / 1e6:.3g}"
 
     op = GaussianPreisachOperator(default_preisach("x"))
-    t = median_time(lambda: (op.reset(), op.block(u1)), reps)
+    t = median_s(lambda: (op.reset(), op.block(u1)), reps, warm_up=True)
     rows.append(("Gaussian-mixture Preisach (151-node Everett table) forward", f"block of {n}", per_axis(t), "M samples/s"))
 
     cfg = default_scanner_config()
     ax = AxisPlant(cfg.x)
-    t = median_time(lambda: (ax.reset(), ax.run(u1, 1e-5)), reps)
+    t = median_s(lambda: (ax.reset(), ax.run(u1, 1e-5)), reps, warm_up=True)
     rows.append(("one axis: amplifier + Preisach + creep (5 lags) + mode", f"block of {n}", per_axis(t), "M samples/s per axis"))
 
     nodrift = default_scanner_config()
     nodrift.drift = DriftConfig(kind="none")
     s = Scanner(nodrift)
-    t = median_time(lambda: (s.reset(), s.run(u3, 1e-5)), reps)
+    t = median_s(lambda: (s.reset(), s.run(u3, 1e-5)), reps, warm_up=True)
     rows.append(("Scanner.run, 3 axes, no drift", f"block of {n} × 3", per_axis(t, 3), "M samples/s per axis"))
 
     s = Scanner(default_scanner_config())
-    t = median_time(lambda: (s.reset(), s.run(u3, 1e-5)), reps)
+    t = median_s(lambda: (s.reset(), s.run(u3, 1e-5)), reps, warm_up=True)
     rows.append(("Scanner.run, 3 axes, default (drift: physical_tube predictor)", f"block of {n} × 3", per_axis(t, 3),
                  "M samples/s per axis"))
 
@@ -215,14 +205,15 @@ def main(argv: list[str]) -> int:
         for axn in ("x", "y", "z"):
             ext.axis(axn).hysteresis = ExternalModelConfig(model=m.model_dump(mode="json"))
         s = Scanner(ext)
-        t = median_time(lambda: (s.reset(), s.run(u3, 1e-5)), reps)
+        t = median_s(lambda: (s.reset(), s.run(u3, 1e-5)), reps, warm_up=True)
         rows.append(("Scanner.run, 3 axes, compensators PreisachModel (32 levels) as plant", f"block of {n} × 3",
                      per_axis(t, 3), "M samples/s per axis"))
     except ImportError:  # pragma: no cover
         pass
 
     s = Scanner()
-    t = median_time(lambda: (s.reset(), s.image(Grating2D(), scan_size_nm=10_000.0, pixels=256)), max(1, reps // 2))
+    t = median_s(lambda: (s.reset(), s.image(Grating2D(), scan_size_nm=10_000.0, pixels=256)), max(1, reps // 2),
+                 warm_up=True)
     rows.append(("Scanner.image, 1.667 µm grating, uncompensated", "256×256 px, 2 samples/px, trace+retrace", f"{t:.3g}", "s"))
     try:
         from afmctl.sim_backend.image_scans import identify_axes_from_images
@@ -233,9 +224,9 @@ def main(argv: list[str]) -> int:
             s.reset()
             s.image(Grating2D(), scan_size_nm=10_000.0, pixels=256, compensator={k: v.inverse() for k, v in models.items()})
 
-        t = median_time(comp_image, max(1, reps // 2))
+        t = median_s(comp_image, max(1, reps // 2), warm_up=True)
         rows.append(("Scanner.image, same, Preisach-compensated (x, y)", "256×256 px", f"{t:.3g}", "s"))
-        t = median_time(lambda: identify_axes_from_images(s, ("x",)), 1)
+        t = median_s(lambda: identify_axes_from_images(s, ("x",)), 1, warm_up=True)
         rows.append(("image-based identification of one axis (scans + fit)", "15 ranges × 3 lines × 1024 px", f"{t:.3g}", "s"))
     except ImportError:  # pragma: no cover
         pass
@@ -249,7 +240,7 @@ def main(argv: list[str]) -> int:
             s.apply({"x": float(state["k"] % 150)})
             s.advance(state["k"] * 1e-3)
 
-    t = median_time(stream, reps)
+    t = median_s(stream, reps, warm_up=True)
     rows.append(("streaming apply() + advance() (1 ms of held input = 100 samples)", "per call", f"{t / 2000 * 1e6:.3g}", "µs"))
 
     gil = gil_rows(a.gil_seconds, a.gil_rounds) if a.gil_seconds > 0 else []

@@ -1,4 +1,5 @@
-"""Write one benchmark's section of docs/BENCHMARKS.md.
+"""What the benchmark scripts share: writing one benchmark's section of docs/BENCHMARKS.md,
+and the median wall time of a call.
 
 Each benchmark script owns the text between ``<!-- bench:NAME -->`` and
 ``<!-- /bench:NAME -->``: the section is replaced if present, appended if missing, and
@@ -7,6 +8,9 @@ nothing else in the file is touched.
 from __future__ import annotations
 
 import re
+import statistics
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 DOC = Path(__file__).resolve().parent.parent / "docs" / "BENCHMARKS.md"
@@ -24,3 +28,16 @@ def write_section(name: str, body: str, path: Path = DOC) -> Path:
         text = text.rstrip("\n") + "\n\n" + block + "\n"
     path.write_text(text, encoding="utf-8")
     return path
+
+
+def median_s(fn: Callable[[], object], repeats: int, warm_up: bool = False) -> float:
+    """The median wall time [s] of ``repeats`` calls of ``fn`` (``warm_up``: one call first,
+    not timed: numba compilation or its cache load)."""
+    if warm_up:
+        fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
