@@ -55,7 +55,7 @@ from .controller import Controller, State
 from .learn_history import PlayTimeline
 from .learned_table import LearnedSource, LearnedTable, make_learned
 from .pipeline import axis_models, build_pipeline
-from .wave_plan import WaveTable, driven_steps_ok, plan_table
+from .wave_plan import WaveTable, driven_steps_ok, plan_table, table_capacity
 
 log = logging.getLogger(__name__)
 
@@ -199,7 +199,6 @@ class LearnRun:
         self._stop = threading.Event()
         self.timeline: PlayTimeline | None = None
         self._terms: dict[str, np.ndarray] = {}
-        self._wave_times: dict[str, float] = {}
         self._check_config()
         self.spec = config.trajectory.model_dump(mode="json")
         self.axes = [a for a in config.scanner.axes if a in amplifier.axes]
@@ -228,9 +227,8 @@ class LearnRun:
         if len(targets) == 0:
             raise AfmctlError("trajectory: it has no samples at the loop period")
         T_C = cfg.compensation.temperature.T_C
-        rows = ([int(self.amp.wave_capacity(a)) for a in self.axes] if hasattr(self.amp, "wave_capacity") else [])
         return plan_table(cfg, build_pipeline(cfg), targets, T_C, self.limits_V, self.max_step_V,
-                          min(rows) if rows else None)
+                          table_capacity(self.amp, self.axes))
 
     def learners(self, table: WaveTable) -> dict[str, Learner]:
         """One learner per axis whose target moves, its limits from the configuration."""
@@ -347,8 +345,7 @@ class LearnRun:
             ctl.close()
             self._ctl = None
         wave = stats.get("wave") or {}
-        self._wave_times = dict(ctl.wave_times)
-        self._advance_timeline(table, int(wave.get("played", 0)))
+        self._advance_timeline(table, int(wave.get("played", 0)), dict(ctl.wave_times))
         if ctl.trajectory_error is not None:
             raise AfmctlError(f"learn: the table cannot be played: {ctl.trajectory_error}")
         if ctl.state is not State.STOPPED:
@@ -362,16 +359,17 @@ class LearnRun:
         then()
         self.step = Step.PLAY
 
-    def _advance_timeline(self, table: WaveTable, played: int) -> None:
-        """The play into the learn run's voltage history; its history term per axis."""
+    def _advance_timeline(self, table: WaveTable, played: int, times: dict[str, float]) -> None:
+        """The play (``played`` rows; ``times``: the controller's ``wave_times``) into the
+        learn run's voltage history; its history term per axis."""
         self._terms = {}
         if self.timeline is None:
             return
-        if not {"approach", "settle", "start"} <= set(self._wave_times):   # nothing played: the outputs held (or ramped back)
+        if not {"approach", "settle", "start"} <= set(times):   # nothing played: the outputs held (or ramped back)
             self.timeline.rested(time.monotonic())
             return
         cols = {a: table.u_V[:, "xyz".index(a)] for a in self.timeline.now}
-        self._terms = self.timeline.played(cols, self._wave_times, played)
+        self._terms = self.timeline.played(cols, times, played)
 
     def _reconnect(self) -> None:
         """After a link fault: reconnect (the driver reads the output back; the next play's

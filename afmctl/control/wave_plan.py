@@ -110,6 +110,14 @@ def _offline_inverses(config, models: Sequence[Any], limits_V: dict[str, tuple[f
     return out
 
 
+def table_capacity(amplifier: Any, axes: Sequence[str]) -> int | None:
+    """The most rows one table may have on ``amplifier`` for ``axes``: the smallest wave
+    table of those axes (a wave generator), None without one (the CAN stream FIFO)."""
+    if not hasattr(amplifier, "wave_capacity"):
+        return None
+    return min(int(amplifier.wave_capacity(a)) for a in axes)
+
+
 def plan_table(config, pipeline, targets_nm: np.ndarray, T_C: float | np.ndarray,
                limits_V: dict[str, tuple[float, float]], max_step_V: float,
                max_rows: int | None = None) -> WaveTable:

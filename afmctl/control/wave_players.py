@@ -34,7 +34,7 @@ from ..errors import AfmctlError
 from .stream import sleep_to_next_wake
 from .transitions import Event
 from .stream_producer import StreamProducer
-from .wave_plan import WaveTable, driven_steps_ok
+from .wave_plan import WaveTable, driven_steps_ok, table_capacity
 
 
 class WaveRefused(AfmctlError):
@@ -125,7 +125,7 @@ class TablePlayer(WavePlayer):
 
     def max_rows(self) -> int | None:
         """The smallest wave table of the driven axes."""
-        return min(int(self.amp.wave_capacity(a)) for a in self.m.safety.axes)
+        return table_capacity(self.amp, self.m.safety.axes)
 
     def _check_device(self, table: WaveTable) -> None:
         cfg = self.ctl.config

@@ -206,26 +206,31 @@ class WaveMachine(LoopMachine):
         self.next_t_s = self.now_s = time.perf_counter()
         ctl.wave_times["approach"] = time.monotonic()
         ctl._event("ramp", "ramping from the present output to the wave's first sample")
-        reached = False
+        reached: bool | None = False
         while not reached:
-            self._wait_for_deadline()
-            ctl._tick += 1
-            if ctl._request is not None:
+            reached = self._towards(goal)
+            if reached is None:
                 return False
-            reached = s.ramp_step(goal, self.ramp_rate_V_per_s)
-            self._record()
         settle_s = ctl.config.amplifier.settle_s
         ctl.wave_times["settle"] = t_settle = time.monotonic()
         ctl._event("settle", f"at the wave's first sample; holding it {settle_s:g} s before the table starts")
         while time.monotonic() - t_settle < settle_s:     # the settle hold (wall clock)
-            self._wait_for_deadline()
-            ctl._tick += 1
-            if ctl._request is not None:
+            if self._towards(goal) is None:
                 return False
-            s.ramp_step(goal, self.ramp_rate_V_per_s)
-            self._record()
         ctl._event("ramp-done")
         return True
+
+    def _towards(self, goal: list[float]) -> bool | None:
+        """One loop period of the approach: a host setpoint towards ``goal`` at the ramp
+        rate, recorded; None when a request came first (nothing sent), else whether the
+        output is at ``goal``."""
+        self._wait_for_deadline()
+        self.ctl._tick += 1
+        if self.ctl._request is not None:
+            return None
+        reached = self.safety.ramp_step(goal, self.ramp_rate_V_per_s)
+        self._record()
+        return reached
 
     def _finish(self) -> None:
         """Phase ``finish``: the setpoint loop's finish mode from the read-back output (ramp
