@@ -23,7 +23,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from afmctl.compensators.dynamics import LinearDynamicsModel  # noqa: E402
-from afmctl.compensators.dynamics_identify import measure_frf, small_signal_segment  # noqa: E402
+from afmctl.compensators.dynamics_identify import measure_frf, record_parts  # noqa: E402
 from afmctl.data.excitation import ExcitationSpec, excitation  # noqa: E402
 from afmctl.sim_backend.scanner import Scanner, default_scanner_config  # noqa: E402
 
@@ -44,10 +44,10 @@ def main(argv: list[str] | None = None) -> int:
     U[:, 0] = u
     y = scanner.run(U, dt)[:, 0]
     t = np.arange(u.size) * dt
-    us, ys, ts = small_signal_segment(u, y, t, "auto")
-    model = LinearDynamicsModel.identify(ts, us, ys)
+    model = LinearDynamicsModel.identify(t, u, y)
+    parts = record_parts(u, t, "auto")
     gain = float(model.fit_info["static_gain_y_per_u"])
-    frf = measure_frf(us, ys, dt, 1 << 14, 0.0, 0.4 * RATE_HZ, 0.9)
+    frf = measure_frf(u, y, dt, 1 << 14, 0.0, 0.4 * RATE_HZ, 0.9, parts)
     fig, (am, ap_) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
     for axis, ls in (("x", "-"), ("z", "--")):
         g = Scanner(cfg).axes[axis].linear_response(f, dt)

@@ -1,19 +1,24 @@
 """The speed-ladder workflow on simulated scanners afmctl was never tuned on.
 
 Per plant (x axis of a variant of the default scanner: other hysteresis, creep, amplifier
-and structural modes, see :data:`PLANTS`), through the command line as a user runs it:
+and structural modes, see :data:`PLANTS`) and recording, through the command line as a user
+runs it:
 
-1. ``afmctl excite --kind all --rate-Hz 50000 --slew-V-per-s S`` → played through the plant
-   (the recording a position sensor would give);
+1. the recording a position sensor would give of the plant: ``afmctl excite --kind all
+   --rate-Hz 50000 --slew-V-per-s S`` (recording ``excite``), or what a lab records without
+   afmctl's excitation (``user``, :func:`user_style`: nested triangles at 1 Hz, triangles at
+   10 and 40 Hz, a 1 Hz → 2 kHz chirp around mid-range);
 2. ``afmctl identify --model auto`` on that recording (the table it prints is kept);
 3. 4 µm raster lines at 1, 4, 10 and 50 lines/s compensated by ``afmctl compensate --model
    auto.json --limits 0 150 --slew-V-per-s S --clip``, played through a fresh plant: max /
    RMS error over the central 80 % of every trace and retrace, % of the line.
 
-    .venv/bin/python benchmarks/unseen_plants.py [--plants NAME ...] [--rates 1 4 10 50] [--no-write]
+    .venv/bin/python benchmarks/unseen_plants.py [--plants NAME ...] [--recordings excite user]
+        [--rates 1 4 10 50] [--no-write]
 
 Writes its section of docs/BENCHMARKS.md between ``<!-- bench:unseen_plants -->`` markers.
-About 3 minutes per plant.
+About 2 minutes per plant and recording. A figure marked † is slew-bound: the compensated
+line needs the amplifier's whole slew rate, so no feedforward can follow it.
 """
 from __future__ import annotations
 
@@ -100,16 +105,49 @@ def raster_for(cfg: ScannerConfig, rate: float) -> tuple[np.ndarray, int, int, i
     return out, start, n, lines
 
 
-def one_plant(name: str, cfg: ScannerConfig, rates: list[float], work: Path, params: tuple[str, ...] = ()
-              ) -> tuple[dict, str]:
+def user_style(slew_V_per_s: float, fs: float = 50_000.0, u_max: float = 150.0) -> np.ndarray:
+    """What a lab records without afmctl's excitation [V] at ``fs``: a rest, nested triangles
+    at 1 Hz (from 0 V to 100, 80, … 20 % of the range, then centred ones of 100, 60 and 30 %),
+    20 triangles at 10 Hz over 80 % of the range, 40 at 40 Hz over 50 %, and a logarithmic
+    1 Hz → 2 kHz chirp of ±10 V around mid-range whose amplitude falls where it would exceed
+    80 % of the amplifier's slew limit."""
+    def tri(f: float, lo: float, amp: float, cycles: int) -> np.ndarray:
+        t = np.arange(int(round(cycles / f * fs))) / fs
+        return lo + amp * (1.0 - np.abs(2.0 * ((t * f) % 1.0) - 1.0))
+
+    parts = [np.zeros(int(0.2 * fs))] + [tri(1.0, 0.0, a * u_max, 1) for a in (1.0, 0.8, 0.6, 0.4, 0.2)]
+    for a in (1.0, 0.6, 0.3):
+        lo = 0.5 * (1.0 - a) * u_max
+        parts += [np.linspace(0.0, lo, int(0.05 * fs)), tri(1.0, lo, a * u_max, 1), np.linspace(lo, 0.0, int(0.05 * fs))]
+    parts += [tri(10.0, 0.1 * u_max, 0.8 * u_max, 20), tri(40.0, 0.25 * u_max, 0.5 * u_max, 40)]
+    T, mid = 8.0, 0.5 * u_max
+    t = np.arange(int(T * fs)) / fs
+    k = np.log(2000.0) / T
+    amp = np.minimum(10.0, 0.8 * slew_V_per_s / (2 * np.pi * np.exp(k * t)))
+    parts += [np.linspace(0.0, mid, int(0.5 * fs)), mid + amp * np.sin(2 * np.pi * (np.exp(k * t) - 1.0) / k),
+              np.linspace(mid, 0.0, int(0.5 * fs))]
+    return np.concatenate(parts)
+
+
+def recording(name: str, kind: str, cfg: ScannerConfig, slew: float, work: Path) -> Path:
+    """The plant's recording of ``kind`` (``excite`` or ``user``) as a t,u,y CSV in ``work``."""
+    if kind == "excite":
+        exc = work / f"{name}_exc.csv"
+        sl.cli("excite", "--kind", "all", "--u-min-V", "0", "--u-max-V", "150", "--rate-Hz", "50000",
+               "--slew-V-per-s", f"{slew:g}", "--out", str(exc))
+        u = read_csv(exc, ("t", "u"))["u"]
+    else:
+        u = user_style(slew)
+    data = work / f"{name}_{kind}.csv"
+    write_csv(data, {"t": np.arange(u.size) * 2e-5, "u": u, "y": play_x(cfg, u, 2e-5)})
+    return data
+
+
+def one_plant(name: str, cfg: ScannerConfig, rates: list[float], work: Path, params: tuple[str, ...] = (),
+              kind: str = "excite") -> tuple[dict, str]:
     slew = cfg.x.amplifier.effective_slew_V_per_s() or 1e5
-    exc = work / f"{name}_exc.csv"
-    sl.cli("excite", "--kind", "all", "--u-min-V", "0", "--u-max-V", "150", "--rate-Hz", "50000",
-           "--slew-V-per-s", f"{slew:g}", "--out", str(exc))
-    d = read_csv(exc, ("t", "u"))
-    data = work / f"{name}_data.csv"
-    write_csv(data, {"t": d["t"], "u": d["u"], "y": play_x(cfg, d["u"], 2e-5)})
-    model = work / f"{name}_auto.json"
+    data = recording(name, kind, cfg, slew, work)
+    model = work / f"{name}_{kind}_auto.json"
     t0 = time.perf_counter()
     out = sl.cli("identify", "--model", "auto", "--data", str(data), "--out", str(model),
                  *[a for p in params for a in ("--param", p)])
@@ -124,14 +162,22 @@ def one_plant(name: str, cfg: ScannerConfig, rates: list[float], work: Path, par
         slew_args = ("--slew-V-per-s", f"{slew:g}") if "dynamics" in selected else ()
         sl.cli("compensate", "--model", str(model), "--target", str(target), "--out", str(volts),
                "--limits", "0", "150", *slew_args, "--clip")
-        row[r] = sl.line_error_pct(play_x(cfg, read_csv(volts, ("t", "u"))["u"], sl.DT_S), tgt, start, n, lines)
-        print(f"{name} {r:g} lines/s: {row[r]['max_error_pct']:.2f} / {row[r]['rms_error_pct']:.2f} %", flush=True)
+        u = read_csv(volts, ("t", "u"))["u"]
+        row[r] = sl.line_error_pct(play_x(cfg, u, sl.DT_S), tgt, start, n, lines)
+        row[r]["slew_bound"] = float(np.max(np.abs(np.diff(u[start:start + 2 * lines * n])))) / sl.DT_S >= 0.99 * slew
+        print(f"{name} {kind} {r:g} lines/s: {row[r]['max_error_pct']:.2f} / {row[r]['rms_error_pct']:.2f} %"
+              + (" (slew-bound)" if row[r]["slew_bound"] else ""), flush=True)
     return row, f"{selected} (identify {ident_s:.0f} s)"
+
+
+def _cell(v: dict) -> str:
+    return f"{v['max_error_pct']:.2f} / {v['rms_error_pct']:.2f}" + (" †" if v.get("slew_bound") else "")
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--plants", nargs="+", choices=sorted(PLANTS), default=sorted(PLANTS))
+    ap.add_argument("--recordings", nargs="+", choices=["excite", "user"], default=["excite", "user"])
     ap.add_argument("--rates", type=float, nargs="+", default=[1, 4, 10, 50], help="line rates [lines/s]")
     ap.add_argument("--no-write", action="store_true", help="do not update docs/BENCHMARKS.md")
     ap.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
@@ -141,22 +187,25 @@ def main(argv: list[str] | None = None) -> int:
     rows = {}
     with tempfile.TemporaryDirectory(prefix="unseen-") as tmp:
         for name in args.plants:
-            rows[name] = one_plant(name, PLANTS[name][0], args.rates, Path(tmp), tuple(args.param))
-    head = ("| plant | selected by `auto` | " + " | ".join(f"{r:g} lines/s" for r in args.rates) + " |\n|---|---|"
-            + "---|" * len(args.rates) + "\n")
-    body = "".join(f"| {n} | {sel} | " + " | ".join(f"{v[r]['max_error_pct']:.2f} / {v[r]['rms_error_pct']:.2f}"
-                                                    for r in args.rates) + " |\n" for n, (v, sel) in rows.items())
+            for kind in args.recordings:
+                rows[name, kind] = one_plant(name, PLANTS[name][0], args.rates, Path(tmp), tuple(args.param), kind)
+    head = ("| plant | recording | selected by `auto` | " + " | ".join(f"{r:g} lines/s" for r in args.rates)
+            + " |\n|---|---|---|" + "---|" * len(args.rates) + "\n")
+    body = "".join(f"| {n} | {k} | {sel} | " + " | ".join(_cell(v[r]) for r in args.rates) + " |\n"
+                   for (n, k), (v, sel) in rows.items())
     tab = head + body
     print(tab)
     if not args.no_write:
         plants = "".join(f"- `{n}`: {PLANTS[n][1]}\n" for n in args.plants)
         write_section(NAME, "## The speed-ladder workflow on plants afmctl was not tuned on\n\n"
                       f"`.venv/bin/python benchmarks/unseen_plants.py` ({time.perf_counter() - t0:.0f} s). "
-                      "Variants of the default scanner's x axis; per plant, through the CLI: `excite --kind all` "
-                      "at 50 kHz → the plant → `identify --model auto` → `compensate --limits 0 150 "
-                      "--slew-V-per-s S --clip` → the plant. 4 µm lines from a third of the plant's range; max / "
-                      "RMS error over the central 80 % of every trace and retrace, % of the line.\n\n"
-                      + plants + "\n" + tab)
+                      "Variants of the default scanner's x axis; per plant and recording, through the CLI: the "
+                      "recording (`excite`: `excite --kind all` at 50 kHz; `user`: nested 1 Hz triangles, "
+                      "triangles at 10 and 40 Hz, a 1 Hz → 2 kHz chirp, no afmctl excitation) → the plant → "
+                      "`identify --model auto` → `compensate --limits 0 150 --slew-V-per-s S --clip` → the "
+                      "plant. 4 µm lines from a third of the plant's range; max / RMS error over the central "
+                      "80 % of every trace and retrace, % of the line; † slew-bound (the compensated line uses "
+                      "the amplifier's whole slew rate).\n\n" + plants + "\n" + tab)
     return 0
 
 

@@ -214,7 +214,7 @@ DEFAULT_DYNAMICS_SOURCE = "static"
 def fit_dynamics_stage(hyst: Any, creep: Any, t: np.ndarray, u: np.ndarray, y: np.ndarray, k0: int,
                        options: dict[str, Any] | None = None) -> Any:
     """The chain's linear dynamics stage (unit DC gain), from the record after ``k0``; the
-    dynamics kind picks the small-signal part (the multisine of ``afmctl excite``) itself.
+    dynamics kind picks the parts with fast content (afmctl's multisine, a chirp, fast triangles) itself.
 
     ``options["from"]``: ``"voltage"`` — the frequency response ``y/u`` from the voltage, its
     small-signal gain divided out; ``"static"`` (default, :data:`DEFAULT_DYNAMICS_SOURCE`) —

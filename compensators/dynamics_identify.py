@@ -1,7 +1,10 @@
-"""Identification of linear scanner dynamics from a small-signal excitation.
+"""Identification of linear scanner dynamics from the fast parts of a recording.
 
 1. Frequency response ``Ĝ(f) = P_uy(f) / P_uu(f)`` and coherence by Welch's method
-   (:func:`scipy.signal.csd`, :func:`scipy.signal.welch`, :func:`scipy.signal.coherence`).
+   (:func:`scipy.signal.csd`, :func:`scipy.signal.welch`), the spectra averaged over every
+   part of the record with fast content (:func:`fast_parts`: afmctl's multisine, a chirp of
+   any amplitude, fast triangles, a PRBS; Pintelon & Schoukens' best linear approximation,
+   with the nonlinear distortion showing as lost coherence).
 2. Keep the bins the input excites (power above 1e-6 of its peak) whose coherence is at
    least ``min_coherence``, between ``f_min_Hz`` and ``f_max_Hz``.
 3. Fit, with :func:`scipy.optimize.least_squares` on the complex log error
@@ -59,6 +62,8 @@ class FRF:
 
 #: function evaluations per start of the least-squares fit (a good start converges in < 100)
 MAX_NFEV = 400
+#: longest default Welch segment (65536 samples: 0.76 Hz bins at 50 kHz)
+MAX_NPERSEG = 1 << 16
 #: most frequency bins a fit uses (log-spaced beyond: a 50 kHz recording has > 10 000)
 MAX_FIT_BINS = 1000
 
@@ -83,20 +88,81 @@ def uniform_dt(t_s: np.ndarray) -> float:
     return dt
 
 
-def small_signal_segment(u: np.ndarray, y: np.ndarray, t: np.ndarray, segment: Any
-                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The part of the record to fit: ``segment="all"`` everything; ``"auto"`` the
-    small-signal part (:func:`small_signal_bounds`), or everything when there is none."""
+#: ``segment`` values of :func:`fit_dynamics`
+SEGMENTS: tuple[str, ...] = ("auto", "small-signal", "all")
+
+
+def record_parts(u: np.ndarray, t: np.ndarray, segment: Any) -> list[tuple[int, int]]:
+    """The parts of the record the frequency response is measured on, as ``(start, stop)``
+    sample indices: ``segment="all"`` the whole record; ``"small-signal"`` the small-signal
+    run (:func:`small_signal_bounds`, afmctl's multisine); ``"auto"`` every part that shows
+    the dynamics (:func:`dynamics_parts`: the multisine, a chirp of any amplitude, fast
+    triangles, a PRBS). Either falls back to the whole record when it finds nothing."""
+    if segment not in SEGMENTS:
+        raise ModelError(f"segment: {segment!r}; allowed: {', '.join(SEGMENTS)}")
+    whole = [(0, int(u.size))]
     if segment == "all":
-        return u, y, t
-    if segment != "auto":
-        raise ModelError(f"segment: {segment!r}; allowed: auto, all")
-    bounds = small_signal_bounds(u, t)
-    if bounds is None:
-        return u, y, t
-    a, b = bounds
-    log.info("dynamics: fitting the small-signal part %.6g … %.6g s", t[a], t[b - 1])
-    return u[a:b], y[a:b], t[a:b]
+        return whole
+    if segment == "small-signal":
+        bounds = small_signal_bounds(u, t)
+        return whole if bounds is None else [bounds]
+    return dynamics_parts(u, t) or whole
+
+
+def dynamics_parts(u: np.ndarray, t: np.ndarray) -> list[tuple[int, int]]:
+    """Every part of the record that shows the dynamics, in time order: the fast parts
+    (:func:`fast_parts`) and the small-signal run (:func:`small_signal_bounds`: afmctl's
+    multisine, whose few % of the span at a low sample rate need not count as fast; at least
+    :data:`FAST_MIN_S` long), overlapping ones merged; empty when there is none."""
+    small = small_signal_bounds(u, t)
+    if small is not None and (small[1] - small[0]) * float(t[1] - t[0]) < FAST_MIN_S:
+        small = None                           # a turnaround's top, not a multisine
+    parts = sorted(fast_parts(u, t) + ([small] if small is not None else []))
+    merged: list[tuple[int, int]] = []
+    for a, b in parts:
+        if merged and a <= merged[-1][1]:
+            merged[-1] = (merged[-1][0], max(b, merged[-1][1]))
+        else:
+            merged.append((a, b))
+    return merged
+
+
+#: ``fast_parts``: the input's content above ~10 Hz (its departure from a running mean over
+#: :data:`FAST_MEAN_S`), RMS over :data:`FAST_WINDOW_S`, above this fraction of its span …
+FAST_FRACTION = 0.01
+FAST_MEAN_S, FAST_WINDOW_S = 0.05, 0.02
+#: … for at least this long [s]
+FAST_MIN_S = 0.25
+
+
+def fast_parts(u: np.ndarray, t: np.ndarray) -> list[tuple[int, int]]:
+    """``(start, stop)`` sample indices of the runs where the input has fast content: its
+    departure from its own running mean over :data:`FAST_MEAN_S` (what is left above ~10 Hz)
+    has an RMS over :data:`FAST_WINDOW_S` above :data:`FAST_FRACTION` of the input's span, for
+    at least :data:`FAST_MIN_S` and 256 samples. That is where a scanner's amplifier lag and
+    structural modes show in the output: a chirp past ~10 Hz of a few % of the span,
+    triangles at ~10 Hz and up, a PRBS. A ramp at any constant speed has none (a lag only
+    delays it), nor have slow sweeps with a turnaround now and then."""
+    from scipy.ndimage import uniform_filter1d
+
+    if u.size < 256:
+        return []
+    dt = float(t[1] - t[0])
+    span = float(np.ptp(u))
+    if not span > 0:
+        return []
+    high = u - uniform_filter1d(u, max(3, int(round(FAST_MEAN_S / dt))), mode="nearest")
+    power = uniform_filter1d(high * high, max(3, int(round(FAST_WINDOW_S / dt))), mode="nearest")
+    rms = np.sqrt(np.maximum(power, 0.0))       # the running mean of squares may round below 0
+    fast = rms > FAST_FRACTION * span
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], fast.astype(np.int8), [0]])))
+    min_len = max(256, int(round(FAST_MIN_S / dt)))
+    return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2]) if b - a >= min_len]
+
+
+def parts_text(t: np.ndarray, parts: list[tuple[int, int]]) -> str:
+    """``"8.5–10.5 s, 12–20 s"``: the parts of a record, for reports."""
+    return ", ".join(f"{t[a]:.4g}–{t[b - 1]:.4g} s" for a, b in parts)
 
 
 def small_signal_bounds(u: np.ndarray, t: np.ndarray) -> tuple[int, int] | None:
@@ -122,17 +188,33 @@ def small_signal_bounds(u: np.ndarray, t: np.ndarray) -> tuple[int, int] | None:
 
 
 def measure_frf(u: np.ndarray, y: np.ndarray, dt_s: float, nperseg: int, f_min_Hz: float, f_max_Hz: float,
-                min_coherence: float) -> FRF:
-    """Welch estimate of ``y/u`` at the excited, coherent bins in [f_min_Hz, f_max_Hz]."""
-    from scipy.signal import coherence, csd, welch
+                min_coherence: float, parts: list[tuple[int, int]] | None = None) -> FRF:
+    """Welch estimate of ``y/u`` at the excited, coherent bins in [f_min_Hz, f_max_Hz].
+
+    With ``parts`` (``(start, stop)`` sample indices), the spectra are averaged over the
+    Welch segments of every part at least ``nperseg`` long, each part's weighted by its
+    number of segments (the parts are not joined: a join would be a step); the coherence
+    ``|P_uy|²/(P_uu·P_yy)`` of the summed spectra weighs each bin by how linearly the
+    output follows the input there, across all the parts."""
+    from scipy.signal import csd, welch
 
     fs = 1.0 / dt_s
     kw = dict(fs=fs, nperseg=nperseg, detrend="linear", window="hann")
-    f, puu = welch(u, **kw)
-    _, puy = csd(u, y, **kw)
+    spans = [(a, b) for a, b in (parts or [(0, u.size)]) if b - a >= nperseg]
+    if not spans:
+        raise ModelError(f"data: no part of the record is {nperseg} samples long (nperseg)")
+    f = puu = pyy = puy = None
+    for a, b in spans:
+        n_seg = 1 + (b - a - nperseg) // (nperseg // 2)
+        f, p_uu = welch(u[a:b], **kw)
+        _, p_yy = welch(y[a:b], **kw)
+        _, p_uy = csd(u[a:b], y[a:b], **kw)
+        puu = n_seg * p_uu if puu is None else puu + n_seg * p_uu
+        pyy = n_seg * p_yy if pyy is None else pyy + n_seg * p_yy
+        puy = n_seg * p_uy if puy is None else puy + n_seg * p_uy
+    assert f is not None and puu is not None and pyy is not None and puy is not None
     with np.errstate(invalid="ignore", divide="ignore"):  # a constant output has no coherence
-        _, coh = coherence(u, y, **kw)
-    coh = np.nan_to_num(coh, nan=0.0)
+        coh = np.nan_to_num(np.abs(puy) ** 2 / (puu * pyy), nan=0.0)
     keep = (f >= f_min_Hz) & (f <= f_max_Hz) & (puu > 1e-6 * np.max(puu[1:])) & (coh >= min_coherence)
     keep[0] = False
     if np.count_nonzero(keep) < 8:
@@ -181,7 +263,7 @@ def _initial(frf: FRF, n_modes: int, n_lags: int, lag_Hz: float, dt_s: float) ->
         fm.append(f_hi * (len(fm) + 1) / (n_modes + 1))
         zeta0.append(0.05)
     x0 = [math.log(K0)] + [math.log(f) for f in fm] + zeta0 + [math.log(lag_Hz)] * n_lags + [0.0]
-    lb = [-np.inf] + [math.log(f_lo)] * n_modes + [1e-3] * n_modes + [math.log(f_lo)] * n_lags + [-2 * dt_s]
+    lb = [-np.inf] + [math.log(f_lo)] * n_modes + [ZETA_MIN] * n_modes + [math.log(f_lo)] * n_lags + [-2 * dt_s]
     ub = [np.inf] + [math.log(10 * f_hi)] * n_modes + [0.99] * n_modes + [math.log(100 * f_hi)] * n_lags + [10 / f_hi]
     return np.array(x0), np.array(lb), np.array(ub)
 
@@ -226,30 +308,51 @@ def fit_frf(frf: FRF, n_modes: int, n_lags: int, dt_s: float) -> tuple[np.ndarra
     return best.x, rms
 
 
+#: lowest damping ratio the fit searches
+ZETA_MIN = 1e-3
 #: ``n_modes="auto"``: most modes tried, and the factor by which one more mode must lower
 #: the fit's RMS log error to be kept
 MAX_AUTO_MODES, MODE_GAIN = 3, 0.75
 
 
+def unresolved_modes(x: np.ndarray, frf: FRF, n_modes: int, n_lags: int) -> list[str]:
+    """The fitted modes the measured response does not resolve: damping on the search's
+    lower bound :data:`ZETA_MIN` (the record does not show the peak's width), or a frequency
+    outside the measured band; one clause each."""
+    _, fm, zeta, _, _ = _unpack(x, n_modes, n_lags)
+    lo, hi = float(frf.f_Hz[0]), float(frf.f_Hz[-1])
+    out = []
+    for f0, z in zip(fm, zeta):
+        if z <= 1.01 * ZETA_MIN:
+            out.append(f"dynamics: the mode at {f0:.4g} Hz has ζ on its lower bound {ZETA_MIN:g}")
+        elif not lo <= f0 <= hi:
+            out.append(f"dynamics: the mode at {f0:.4g} Hz lies outside the measured {lo:.4g}–{hi:.4g} Hz")
+    return out
+
+
 def fit_mode_count(frf: FRF, n_lags: int, dt_s: float) -> tuple[int, np.ndarray, float]:
-    """Fit 1, 2, … :data:`MAX_AUTO_MODES` structural modes; keep adding one while it lowers
-    the RMS log error below :data:`MODE_GAIN` times the previous (a further mode that does
-    not explain the response is not kept). Returns the count, its parameters, its RMS."""
-    n, (x, rms) = 1, fit_frf(frf, 1, n_lags, dt_s)
+    """Fit 0, 1, … :data:`MAX_AUTO_MODES` structural modes; keep adding one while it lowers
+    the RMS log error below :data:`MODE_GAIN` times the previous and the record resolves it
+    (:func:`unresolved_modes`: a mode beyond the measured band, or one whose peak the record
+    does not show, is a guess that rings in the inverse). Returns the count, its
+    parameters, its RMS."""
+    n, (x, rms) = 0, fit_frf(frf, 0, n_lags, dt_s)
     while n < MAX_AUTO_MODES:
         x2, rms2 = fit_frf(frf, n + 1, n_lags, dt_s)
-        if not rms2 < MODE_GAIN * rms:
+        if not rms2 < MODE_GAIN * rms or unresolved_modes(x2, frf, n + 1, n_lags):
             break
         n, x, rms = n + 1, x2, rms2
     return n, x, rms
 
 
 def fit_dynamics(t_s: np.ndarray, u: np.ndarray, y_nm: np.ndarray, **options: Any) -> DynamicsFit:
-    """Identify the dynamics; options (all optional): ``segment`` ("auto": the small-signal
-    part, see :func:`small_signal_segment`; "all"), ``n_modes`` ("auto": as many as the
-    response shows, :func:`fit_mode_count`; or 0…6), ``n_lags`` (1),
-    ``nperseg`` (samples per Welch segment, default the largest power of two ≤ N/4),
-    ``f_min_Hz``, ``f_max_Hz`` (default 40 % of the sample rate), ``min_coherence`` (0.9)."""
+    """Identify the dynamics; options (all optional): ``segment`` (the parts of the record
+    measured, :func:`record_parts`: "auto" every part with fast content, "small-signal",
+    "all"), ``n_modes`` ("auto": as many as the response shows, :func:`fit_mode_count`; or
+    0…6), ``n_lags`` (1), ``nperseg`` (samples per Welch segment, default the largest power
+    of two ≤ a quarter of the longest part, at most 65536; shorter parts are not used),
+    ``f_min_Hz``, ``f_max_Hz`` (default 40 % of the sample rate), ``min_coherence`` (0.9).
+    ``info["fit_parts"]`` says which parts were used."""
     t = check_finite("t_s", t_s).ravel()
     u = check_finite("u", u).ravel()
     y = check_finite("y_nm", y_nm).ravel()
@@ -259,19 +362,22 @@ def fit_dynamics(t_s: np.ndarray, u: np.ndarray, y_nm: np.ndarray, **options: An
     fs = 1.0 / dt
     if options.pop("n_operators", None) is not None:
         raise ModelError("--operators: not used by the dynamics model; use --param n_modes=N / n_lags=N")
-    u, y, t = small_signal_segment(u, y, t, options.pop("segment", "auto"))
+    parts = record_parts(u, t, options.pop("segment", "auto"))
     modes_opt = options.pop("n_modes", "auto")
     n_modes = None if modes_opt == "auto" else int(number_option("n_modes", modes_opt, lo=0, hi=6, integer=True))
     n_lags = int(number_option("n_lags", options.pop("n_lags", 1), lo=0, hi=4, integer=True))
-    nps = 1 << int(math.floor(math.log2(max(16, t.size // 4))))
-    nperseg = int(number_option("nperseg", options.pop("nperseg", nps), lo=16, hi=t.size, integer=True))
+    longest = max(b - a for a, b in parts)
+    nps = min(MAX_NPERSEG, 1 << int(math.floor(math.log2(max(16, longest // 4)))))
+    nperseg = int(number_option("nperseg", options.pop("nperseg", nps), lo=16, hi=longest, integer=True))
     f_max = number_option("f_max_Hz", options.pop("f_max_Hz", 0.4 * fs), lo=0, hi=fs / 2)
     f_min = number_option("f_min_Hz", options.pop("f_min_Hz", 0.0), lo=0, hi=f_max)
     min_coh = number_option("min_coherence", options.pop("min_coherence", 0.9), lo=0, hi=1)
     if options:
         raise ModelError(f"options: unknown option(s) {', '.join(sorted(options))}; allowed: segment, n_modes, n_lags, "
                          "nperseg, f_min_Hz, f_max_Hz, min_coherence")
-    frf = thinned(measure_frf(u, y, dt, nperseg, f_min, f_max, min_coh))
+    used = [(a, b) for a, b in parts if b - a >= nperseg]
+    log.info("dynamics: measuring the frequency response on %s", parts_text(t, used))
+    frf = thinned(measure_frf(u, y, dt, nperseg, f_min, f_max, min_coh, used))
     if n_modes is None:
         n_modes, x, rms = fit_mode_count(frf, n_lags, dt)
     else:
@@ -280,10 +386,14 @@ def fit_dynamics(t_s: np.ndarray, u: np.ndarray, y_nm: np.ndarray, **options: An
     info: dict[str, float | str] = {
         "static_gain_y_per_u": K, "fit_rms_log": rms, "f_min_Hz": float(frf.f_Hz[0]),
         "f_max_Hz": float(frf.f_Hz[-1]), "bins": float(frf.f_Hz.size), "sample_rate_Hz": fs,
-        "fitted_delay_s": tau, "fit_t0_s": float(t[0]), "fit_t1_s": float(t[-1]),
+        "fitted_delay_s": tau, "fit_t0_s": float(t[used[0][0]]), "fit_t1_s": float(t[used[-1][1] - 1]),
+        "fit_parts": parts_text(t, used),
     }
+    problems = unresolved_modes(x, frf, n_modes, n_lags)
     if n_modes in frf.unconverged_modes:
-        info["problem"] = f"dynamics: the frequency-response fit did not converge ({MAX_NFEV} evaluations per start)"
+        problems.insert(0, f"dynamics: the frequency-response fit did not converge ({MAX_NFEV} evaluations per start)")
+    if problems:
+        info["problem"] = "; ".join(problems)
     log.info("dynamics fit: %d modes, %d lags, delay %.3g µs, RMS log error %.3g over %d bins",
              n_modes, n_lags, tau * 1e6, rms, frf.f_Hz.size)
     return DynamicsFit(poles, np.zeros(0, complex), max(0.0, tau - 0.5 * dt), info)

@@ -19,12 +19,12 @@ record fails, the next candidate is refitted instead.
 
 Linear dynamics: after the candidates, the best one is tried once more with a ``+dynamics``
 stage (unless a candidate already has one, or ``with_dynamics`` is off). Its static stages
-are fitted on the training part as above; the dynamics stage on the small-signal segment
-of the *whole* record (``afmctl excite --kind all`` puts that segment last, in the held-out
-part, and the dynamics kind finds it itself). A record without such a segment
-(:func:`~afmctl.compensators.dynamics_identify.small_signal_bounds`) is not tried. The dynamics matter wherever the held-out part moves
-fast (the multisine): a scanner whose amplifier bandwidth or structural mode shows there
-selects the ``+dynamics`` chain.
+are fitted on the training part as above; the dynamics stage on the fast parts of the
+*whole* record (afmctl's multisine, which ``afmctl excite --kind all`` puts last, in the
+held-out part; a chirp; fast triangles: the dynamics kind finds them itself). A record
+without fast content (:func:`~afmctl.compensators.dynamics_identify.dynamics_parts`) is not
+tried. The dynamics matter wherever the held-out part moves fast: a scanner whose amplifier
+bandwidth or structural mode shows there selects the ``+dynamics`` chain.
 """
 from __future__ import annotations
 
@@ -37,7 +37,7 @@ import numpy as np
 
 from .base import ModelError, check_finite
 from .chain import ChainModel, parse_structure
-from .dynamics_identify import small_signal_bounds
+from .dynamics_identify import dynamics_parts
 from .fit_health import failure_reason, linear_fit_rms
 from .selection_folds import SCREEN_FACTOR, choose, fold_bounds
 from .input_checks import number_option
@@ -71,6 +71,23 @@ def _with_dynamics(model: ChainModel, t: np.ndarray, u: np.ndarray, y: np.ndarra
     dyn = fit_dynamics_stage(model.hysteresis, model.creep, t, np.ascontiguousarray(u), y, k0,
                              options.get("dynamics_options"))
     return ChainModel(hysteresis=model.hysteresis, creep=model.creep, dynamics=dyn)
+
+
+def _fast_rms(pred: np.ndarray, y: np.ndarray, parts: list[tuple[int, int]], start: int, stop: int
+              ) -> float | None:
+    """RMS [nm] of the prediction error over the fast parts of ``[start:stop]``, each part's
+    mean error removed (the dynamics' share: an offset is the static stages'); None when no
+    fast part lies there."""
+    errs = []
+    for a, b in parts:
+        a, b = max(a, start), min(b, stop)
+        if a < b:
+            e = pred[a:b] - y[a:b]
+            errs.append(e - np.mean(e))
+    if not errs:
+        return None
+    e = np.concatenate(errs)
+    return float(np.sqrt(np.mean(e * e)))
 
 
 def score_candidate(structure: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, split: int,
@@ -107,17 +124,11 @@ def score_candidate(structure: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.n
     rms = float(np.sqrt(np.mean(e_test ** 2)))
     peak = float(np.max(np.abs(e_test)))
     train_rms = float(np.sqrt(np.mean(e_train ** 2)))
-    fast = small_signal_bounds(u_V, t_s)
-    if fast is not None and max(fast[0], split) < min(fast[1], stop):
-        a, b = max(fast[0], split), min(fast[1], stop)
-        e_fast = pred[a:b] - y_nm[a:b]
-        fast_rms: float | None = float(np.sqrt(np.mean((e_fast - np.mean(e_fast)) ** 2)))
-    else:
-        fast_rms = None
+    fast_rms = _fast_rms(pred, y_nm, dynamics_parts(u_V, t_s), split, stop)
     row = {"structure": structure, "heldout_rms_nm": round(rms, 4), "heldout_max_nm": round(peak, 4),
            "heldout_rms_pct": round(100.0 * rms / span, 4), "heldout_max_pct": round(100.0 * peak / span, 4),
            "train_rms_nm": round(train_rms, 4)}
-    if fast_rms is not None:    # the held-out small-signal (fast) part, mean removed
+    if fast_rms is not None:    # the held-out fast parts, each its mean removed
         row["fast_rms_nm"] = round(fast_rms, 4)
     reason = failure_reason(model, train_rms, linear_fit_rms(u_V[fit_from_index:split], y_nm[fit_from_index:split]))
     if reason:
@@ -176,7 +187,7 @@ def select_model(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates:
         raise ModelError("data: no candidate could be identified; " + "; ".join(
             f"{r['structure']}: {r['error']}" for r in table))
     if with_dynamics and not any("dynamics" in parse_structure(c)[1] for c in candidates) \
-            and small_signal_bounds(u, t) is not None:
+            and dynamics_parts(u, t):
         row = score_candidate(table[0]["structure"] + "+dynamics", t, u, y, split, options, k0,
                               dynamics_from_whole=True)
         log.info("auto: %s → %s", row["structure"], row)
@@ -219,7 +230,7 @@ def _extra_folds(table: list[dict[str, Any]], t: np.ndarray, u: np.ndarray, y: n
         hyst, stages = parse_structure(row["structure"])
         base = by_name.get(row["structure"].replace("+dynamics", ""))
         if "dynamics" in stages and base is not None and "fold_rms_nm" in base:
-            # the dynamics stage comes from the whole record's small-signal part in every
+            # the dynamics stage comes from the whole record's fast parts in every
             # fold, and the earlier folds' blocks are slow: there it is its static
             # candidate, whose fold scores it takes (its own fit would cost as much again)
             rms += base["fold_rms_nm"][1:]

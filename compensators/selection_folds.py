@@ -114,7 +114,7 @@ def choose(table: list[dict[str, Any]], margin: float = MARGIN) -> dict[str, Any
     if dyn is not None:
         gain = 1.0 - dyn["fast_rms_nm"] / winner["fast_rms_nm"]
         dyn["why"] = (f"{winner['structure']} is the simplest adequate static model; its +dynamics predicts the "
-                      f"held-out fast (small-signal) part {100 * gain:.3g} % better "
+                      f"held-out fast parts {100 * gain:.3g} % better "
                       f"({dyn['fast_rms_nm']:.4g} vs {winner['fast_rms_nm']:.4g} nm RMS) and is no worse elsewhere")
         return dyn
     simpler = [r for r in ok if complexity(r["structure"]) < complexity(winner["structure"])]
@@ -134,7 +134,7 @@ def choose(table: list[dict[str, Any]], margin: float = MARGIN) -> dict[str, Any
 
 def _dynamics_over(static: dict[str, Any], rows: list[dict[str, Any]], margin: float) -> dict[str, Any] | None:
     """``static``'s +dynamics row when it predicts the held-out fast part of the record
-    (``fast_rms_nm``, the small-signal segment: where the dynamics show) at least ``margin``
+    (``fast_rms_nm``, its fast parts: where the dynamics show) at least ``margin``
     better and its mean held-out RMS is within ``margin`` of ``static``'s; else None. On the
     whole held-out part the fast segment's few nm weigh little against the slow parts' errors,
     so the mean alone would never pick the dynamics (#24: a 2.2 kHz Q 60 mode left out, 1.6 %

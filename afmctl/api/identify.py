@@ -113,7 +113,7 @@ def prepare(kind: str, data: str | Path | None = None, *, t_s: np.ndarray | None
         uniform = getattr(cls, "time_dependent", False)
     t, u, y, where = _inputs(data, t_s, u_V, y_nm)
     return condition(t, u, y * Y_UNITS[y_unit], where, burn_in=burn_in, delay=delay, despike=despike,
-                     uniform=uniform), where
+                     uniform=uniform, dynamics_delay=kind == "auto" or "dynamics" in kind), where
 
 
 def fit(kind: str, c: Conditioned, where: str, n_operators: int | None = None, params: dict[str, Any] | None = None,

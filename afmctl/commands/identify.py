@@ -43,13 +43,14 @@ Model kinds (--model):
   preisach  classical Preisach on an (alpha, beta) grid: asymmetric loops, exact inverse
   bouc-wen  Bouc-Wen differential model, nonlinear least squares
   dynamics  linear dynamics (amplifier bandwidth, structural modes, delay), unit DC gain,
-            from a small-signal recording ('afmctl excite --kind dynamics'): frequency
-            response (Welch) fitted by modes + lags + delay; the gain is printed
+            from the record's fast parts (afmctl's multisine, a chirp within the
+            amplifier's slew limit, triangles at 10 Hz and up; the parts used are
+            printed): frequency response (Welch) fitted by modes + lags + delay
   KIND+creep[+dynamics]
             a chain (kind chain): hysteresis KIND (pi, epi, preisach, bouc-wen), then
             linear creep, then linear dynamics, identified jointly (Hammerstein):
             hysteresis and creep on block means at <= 2 kHz, the dynamics at the
-            record's rate from its small-signal part; needs uniformly spaced samples
+            record's rate from its fast parts; needs uniformly spaced samples
   auto      fit every candidate chain on the first 70 % of the data after the burn-in,
             score each by its prediction error on the last 30 % (held out; the models
             run over the whole record, so the burn-in sets their memory), print the
@@ -63,8 +64,9 @@ Model kinds (--model):
             error above a straight line's, optimiser not converged, a parameter on
             its bound) is listed as failed and never selected. Excite the full voltage range in the
             first 70 % ('afmctl excite --kind all' does). The best is then tried
-            +dynamics (its dynamics from the record's small-signal part: record at a
-            rate that resolves the scanner's resonance, e.g. 50 kHz).
+            +dynamics when the record has fast parts (record at a rate that resolves
+            the scanner's resonance, e.g. 50 kHz; the delay is then fitted by the
+            dynamics stage, not shifted ahead of the hysteresis fit).
             --param 'candidates=["pi","preisach+creep"]', holdout_fraction=0.3,
             criterion=rms|max, with_dynamics=false
 Real recordings (--data):

@@ -120,10 +120,11 @@ def delayed(t_s: np.ndarray, u_V: np.ndarray, delay_s: float) -> np.ndarray:
 
 
 def estimate_delay(u_V: np.ndarray, y_nm: np.ndarray, fit_from: int, max_samples: int = 200,
-                   n_plays: int = 8, max_rows: int = 20000) -> tuple[int, float]:
+                   n_plays: int = 8, max_rows: int = 20000, skip: np.ndarray | None = None) -> tuple[int, float]:
     """Delay in whole samples (0…``max_samples``) minimising the RMS residual of an
-    unconstrained PI fit of ``y[k]`` on the plays of ``u[k − d]``. Returns ``(d, gain)`` with
-    ``gain`` the relative RMS improvement over d = 0."""
+    unconstrained PI fit of ``y[k]`` on the plays of ``u[k − d]``, over the samples ``skip``
+    (a boolean mask) does not mark. Returns ``(d, gain)`` with ``gain`` the relative RMS
+    improvement over d = 0."""
     from afmctl.compensators.pi import default_thresholds, play_matrix
 
     r = default_thresholds(u_V, n_plays)
@@ -131,7 +132,12 @@ def estimate_delay(u_V: np.ndarray, y_nm: np.ndarray, fit_from: int, max_samples
     start = fit_from + max_samples
     if u_V.size - start < 4 * n_plays:
         return 0, 0.0
-    rows = np.unique(np.linspace(start, u_V.size - 1, min(max_rows, u_V.size - start)).round().astype(np.int64))
+    rows = np.arange(start, u_V.size)
+    if skip is not None:
+        rows = rows[~skip[start:]]
+    if rows.size < 4 * n_plays:
+        return 0, 0.0
+    rows = rows[np.unique(np.linspace(0, rows.size - 1, min(max_rows, rows.size)).round().astype(np.int64))]
     rms = []
     for d in range(max_samples + 1):
         A, b = X[rows - d], y_nm[rows]
@@ -200,11 +206,15 @@ def excitation_notes(t_s: np.ndarray, u_V: np.ndarray) -> list[str]:
 
 def condition(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, where: str, *,
               burn_in: str = "auto", delay: str = "auto", despike: bool = True,
-              uniform: bool = False) -> Conditioned:
+              uniform: bool = False, dynamics_delay: bool = False) -> Conditioned:
     """Units, spikes, uniform sampling, burn-in and delay of measured ``t,u,y`` (see the module
     docstring). ``burn_in``: ``auto``, ``none`` or seconds; ``delay``: ``auto`` or seconds;
     ``uniform``: resample non-uniform records (for time-dependent model kinds; interpolation
-    cuts the corners of the input, so rate-independent kinds keep the samples as they are)."""
+    cuts the corners of the input, so rate-independent kinds keep the samples as they are);
+    ``dynamics_delay``: a dynamics stage may be fitted, which fits the delay itself
+    (fractional, jointly with its poles): ``delay="auto"`` then leaves a record with fast
+    parts undelayed (a whole-sample shift ahead of it would take an amplifier's lag for a
+    delay, #24)."""
     check_units(u_V, y_nm, where)
     c = Conditioned(t_s, u_V, y_nm)
     if despike:
@@ -218,7 +228,7 @@ def condition(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, where: str, *,
         c.notes.append(f"sampling: non-uniform; resampled to {c.t_s.size} samples every "
                        f"{float(c.t_s[1] - c.t_s[0]):.4g} s")
     c.fit_from = _burn_in(c, burn_in, where)
-    c.delay_s = _delay(c, delay, where)
+    c.delay_s = _delay(c, delay, where, dynamics_delay)
     return c
 
 
@@ -249,16 +259,42 @@ def _reaches_both(part: np.ndarray, whole: np.ndarray, tol_fraction: float = 0.0
     return bool(np.any(part <= lo + tol) and np.any(part >= hi - tol))
 
 
-def _delay(c: Conditioned, delay: str, where: str) -> float:
+def _delay(c: Conditioned, delay: str, where: str, dynamics_delay: bool = False) -> float:
     dt = float(np.median(np.diff(c.t_s)))
     if delay != "auto":
         return _seconds("--delay", delay, 1.0)
-    d, gain = estimate_delay(c.u_V, c.y_nm, c.fit_from, max_samples=min(200, (c.u_V.size - c.fit_from) // 20))
+    max_samples = min(200, (c.u_V.size - c.fit_from) // 20)
+    skip = _near_fast_parts(c.t_s, c.u_V, max_samples)
+    if skip is not None and dynamics_delay:
+        c.notes.append("delay: the record has fast parts; a dynamics stage fits the delay there with its poles "
+                       "(a chain without one has none; --delay S sets one)")
+        return 0.0
+    d, gain = estimate_delay(c.u_V, c.y_nm, c.fit_from, max_samples=max_samples, skip=skip)
     if d == 0 or gain < 0.05:  # creep also looks like a small lag; a sensor delay stands out
         return 0.0
     c.notes.append(f"delay: the output lags the input by {d} sample(s) = {d * dt:.4g} s "
                    f"(PI residual {100 * gain:.3g} % lower); stored as delay_s")
     return d * dt
+
+
+def _near_fast_parts(t_s: np.ndarray, u_V: np.ndarray, margin: int) -> np.ndarray | None:
+    """Samples in or up to ``margin`` samples after a part with fast content
+    (:func:`~afmctl.compensators.dynamics_identify.dynamics_parts`), or None when there is none:
+    there an amplifier's lag or a structural mode looks like a delay of many samples, which
+    the dynamics stage fits itself (fractional, jointly with its poles; #24). A sensor's delay
+    shows in the slow parts too."""
+    from afmctl.compensators.dynamics_identify import dynamics_parts
+
+    d = np.diff(t_s)
+    if t_s.size < 256 or not np.all(d > 0) or np.ptp(d) > 1e-3 * float(np.median(d)):
+        return None
+    parts = dynamics_parts(u_V, t_s)
+    if not parts:
+        return None
+    skip = np.zeros(u_V.size, dtype=bool)
+    for a, b in parts:
+        skip[a:min(u_V.size, b + margin)] = True
+    return skip
 
 
 def _seconds(flag: str, text: str, hi: float) -> float:
