@@ -423,3 +423,34 @@ def test_a_fifo_too_small_for_the_water_marks_is_refused_before_anything_moves(t
         assert ctl.wait(30)
     assert "do not fit the amplifier's FIFO" in (ctl.trajectory_error or "")
     assert len(sink.history) == n_before      # no approach, no stream
+
+
+@pytest.mark.parametrize("request_", ["stop", "estop"])
+def test_a_stop_during_the_settle_hold_starts_no_table_and_finishes_from_there(tmp_path, can_rig, request_):
+    """Ctrl-C (or an estop) while the output holds the table's first row for
+    ``amplifier.settle_s``: the hold ends at once (not after its 10 s), no table row plays,
+    and the output ramps back to the safe value within the slew limit."""
+    channel, amp, sim, sink = can_rig
+    cfg = cfg_for(tmp_path, "can", f"virtual:{channel}")
+    cfg.amplifier.settle_s = 10.0
+    with Controller(cfg, amp) as ctl:
+        ctl.start(raster_nm(3000), runlog_path=tmp_path / "h.afmlog")
+        t0 = time.monotonic()
+        while "settle" not in ctl.wave_times and time.monotonic() - t0 < 20:
+            time.sleep(0.01)
+        assert "settle" in ctl.wave_times, list(ctl._fsm.trail)
+        time.sleep(0.1)
+        t_stop = time.monotonic()
+        getattr(ctl, request_)()
+        assert ctl.wait(30)
+        took_s = time.monotonic() - t_stop
+        stats = ctl.stats()
+    assert took_s < 5.0                                   # the 10 s hold did not run out
+    assert ctl.state is State.STOPPED and stats["wave"]["played"] == 0, stats
+    assert ctl._fsm.phase is Phase.STOPPED
+    events = [e["event"] for e in RunLogReader(tmp_path / "h.afmlog").events()]
+    assert "settle" in events and "ramp-done" not in events, events
+    xs = np.array([v["x"] for _, v in sink.history])
+    ts = np.array([t for t, _ in sink.history])
+    assert np.all(np.abs(np.diff(xs)) <= SLEW_V_PER_S * np.maximum(np.diff(ts), 1.0 / RATE_HZ) + 0.003)
+    assert abs(sink.last["x"] - 0.0) < 1e-6               # ramped to the safe value
