@@ -83,10 +83,14 @@ def test_a_damaged_file_is_one_line_naming_it(tmp_path, damage):
 @pytest.mark.parametrize("change, message", [
     ({"max_V": 100.0}, "the voltage limits [V] was"),
     ({"rate_Hz": 1000.0}, "loop.rate_Hz was"),
+    ({"settle_s": 1.0}, "amplifier.settle_s [s] was 0.2"),
 ])
 def test_a_table_learned_under_other_conditions_is_refused(tmp_path, change, message):
     path, _ = learned_file(tmp_path, cfg_for(tmp_path, "unused"))
+    settle_s = change.pop("settle_s", None)
     other = cfg_for(tmp_path, "unused", **change)
+    if settle_s is not None:
+        other.amplifier.settle_s = settle_s
     with pytest.raises(AfmctlError) as err:
         LearnedSource.from_file(path).table_for(other)
     assert str(path) in str(err.value) and message in str(err.value) and "relearn" in str(err.value)

@@ -71,6 +71,7 @@ def fingerprint(config: Any, trajectory: dict[str, Any]) -> dict[str, Any]:
         "driver": config.amplifier.driver,
         "limits_V": {a: [float(v) for v in config.limits(a)] for a in sorted(config.scanner.axes)},
         "slew_V_per_s": float(config.slew_V_per_s()),
+        "settle_s": float(config.amplifier.settle_s),
         "models": {name: _sha256_file(p) for name, p in sorted(model_files(config).items())},
         "drift": comp.drift.model_dump(mode="json") if comp.drift.enabled else None,
         "trajectory": trajectory,
@@ -157,6 +158,11 @@ def check_matches(path: str | Path, learned: LearnedTable, now: dict[str, Any], 
                        ("drift", "compensation.drift")):
         if was.get(key) != now.get(key):
             raise AfmctlError(f"{path}: {_differs(label, was.get(key), now.get(key))}; relearn (afmctl learn)")
+    # the hold before each play sets the creep the table meets (files from before it was
+    # recorded played with the 0.2 s default)
+    if was.get("settle_s", now.get("settle_s")) != now.get("settle_s"):
+        raise AfmctlError(f"{path}: {_differs('amplifier.settle_s [s]', was.get('settle_s'), now.get('settle_s'))}; "
+                          "relearn (afmctl learn)")
     for name in sorted(set(was.get("models", {})) | set(now.get("models", {}))):
         a, b = was.get("models", {}).get(name), now.get("models", {}).get(name)
         if a != b:
