@@ -167,7 +167,39 @@ def one_plant(name: str, cfg: ScannerConfig, rates: list[float], work: Path, par
         row[r]["slew_bound"] = float(np.max(np.abs(np.diff(u[start:start + 2 * lines * n])))) / sl.DT_S >= 0.99 * slew
         print(f"{name} {kind} {r:g} lines/s: {row[r]['max_error_pct']:.2f} / {row[r]['rms_error_pct']:.2f} %"
               + (" (slew-bound)" if row[r]["slew_bound"] else ""), flush=True)
+    row["found"] = found_parameters(model)
     return row, f"{selected} (identify {ident_s:.0f} s)"
+
+
+def true_parameters(cfg: ScannerConfig) -> dict[str, str]:
+    """The plant's x axis as the identified chain would state it: modes (Hz, ζ), the
+    amplifier's lag [Hz], the creep's fraction."""
+    ax = cfg.x
+    modes = [ax.dynamics, *ax.extra_modes]
+    lag = ax.amplifier.effective_bandwidth_Hz()
+    return {"modes": ", ".join(f"{m.resonance_Hz:.4g} Hz ζ {0.5 / m.quality_factor:.2g}" for m in modes),
+            "lag": f"{lag:.4g} Hz" if lag else "none", "creep": f"{ax.creep.fraction:.3g}"}
+
+
+def found_parameters(model_path: Path) -> dict[str, str]:
+    """The same figures read from an identified model file (a chain; "–" for a stage it
+    has not)."""
+    import json
+
+    d = json.loads(model_path.read_text())
+    out = {"modes": "–", "lag": "–", "creep": "–"}
+    dyn = d.get("dynamics")
+    if dyn:
+        poles = [complex(re, im) for re, im in dyn["poles_rad_per_s"]]
+        modes = sorted((abs(q) / (2 * np.pi), -q.real / abs(q)) for q in poles if q.imag > 0)
+        lags = sorted(-q.real / (2 * np.pi) for q in poles if q.imag == 0)
+        out["modes"] = ", ".join(f"{f:.4g} Hz ζ {z:.2g}" for f, z in modes) or "none"
+        out["lag"] = ", ".join(f"{f:.4g} Hz" for f in lags) or "none"
+        if dyn.get("delay_s"):
+            out["lag"] += f" + {1e6 * float(dyn['delay_s']):.3g} µs"
+    if d.get("creep"):
+        out["creep"] = f"{sum(d['creep']['creep_weights']):.3g}"
+    return out
 
 
 def _cell(v: dict) -> str:
@@ -194,6 +226,12 @@ def main(argv: list[str] | None = None) -> int:
     body = "".join(f"| {n} | {k} | {sel} | " + " | ".join(_cell(v[r]) for r in args.rates) + " |\n"
                    for (n, k), (v, sel) in rows.items())
     tab = head + body
+    ptab = ("\n| plant | recording | modes: true → found | amplifier lag: true → found | creep fraction: true → found |"
+            "\n|---|---|---|---|---|\n")
+    for (n, k), (v, _) in rows.items():
+        tp, fp = true_parameters(PLANTS[n][0]), v["found"]
+        ptab += f"| {n} | {k} | " + " | ".join(f"{tp[q]} → {fp[q]}" for q in ("modes", "lag", "creep")) + " |\n"
+    tab += ptab
     print(tab)
     if not args.no_write:
         plants = "".join(f"- `{n}`: {PLANTS[n][1]}\n" for n in args.plants)
@@ -205,7 +243,8 @@ def main(argv: list[str] | None = None) -> int:
                       "`identify --model auto` → `compensate --limits 0 150 --slew-V-per-s S --clip` → the "
                       "plant. 4 µm lines from a third of the plant's range; max / RMS error over the central "
                       "80 % of every trace and retrace, % of the line; † slew-bound (the compensated line uses "
-                      "the amplifier's whole slew rate).\n\n" + plants + "\n" + tab)
+                      "the amplifier's whole slew rate). The second table: what the selected model states "
+                      "against the plant's true figures (– : the model has no such stage).\n\n" + plants + "\n" + tab)
     return 0
 
 
