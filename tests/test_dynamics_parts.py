@@ -81,12 +81,25 @@ def test_one_part_gives_scipys_welch_estimate_and_parts_average_their_segments()
 PLANTS = [(150.0, 300.0, 0.1), (3000.0, 3000.0, 0.01), (1300.0, 2200.0, 0.0083), (600.0, 1000.0, 0.05)]
 
 
+def prbs_record(clock_Hz: float, seed: int = 4) -> tuple[np.ndarray, dict[str, tuple[float, float]]]:
+    """Slow triangles, then a ±5 V pseudo-random binary sequence around mid-range switching
+    at ``clock_Hz`` for 4 s, each switch a 0.2 ms ramp (an amplifier's slew limit)."""
+    rng = np.random.default_rng(seed)
+    levels = 75.0 + 5.0 * np.sign(rng.standard_normal(int(4.0 * clock_Hz)))
+    steps = np.repeat(levels, int(round(FS / clock_Hz)))
+    ramp = int(2e-4 * FS)
+    prbs = np.convolve(np.r_[np.full(ramp, steps[0]), steps], np.ones(ramp) / ramp, mode="valid")
+    slow = np.concatenate([triangles(1.0, 0.0, 150.0, 1), np.linspace(0.0, 75.0, 25_000)])
+    return np.concatenate([slow, prbs]), {"tri10": (slow.size / FS, (slow.size + prbs.size) / FS)}
+
+
+@pytest.mark.parametrize("recording", ["user", "prbs"])
 @pytest.mark.parametrize("lag_Hz, mode_Hz, zeta", PLANTS)
-def test_user_style_recording_identifies_the_plant_family(lag_Hz, mode_Hz, zeta):
+def test_user_style_recording_identifies_the_plant_family(lag_Hz, mode_Hz, zeta, recording):
     """A linear plant (45 nm/V, one lag, one mode) recorded with triangles and a chirp past
-    its mode: the fit finds both within a few % and says which parts it used."""
+    its mode, or with a PRBS: the fit finds both within a few % and says which parts it used."""
     true = LinearDynamicsModel.from_modes([(mode_Hz, zeta)], [lag_Hz])
-    u, where = user_record(chirp_to_Hz=2.5 * mode_Hz)
+    u, where = user_record(chirp_to_Hz=2.5 * mode_Hz) if recording == "user" else prbs_record(2.0 * mode_Hz)
     t = np.arange(u.size) * DT
     y = 45.0 * true.forward(DT, initial_nm=float(u[0])).block(u)
     m = LinearDynamicsModel.identify(t, u, y)
@@ -100,7 +113,8 @@ def test_user_style_recording_identifies_the_plant_family(lag_Hz, mode_Hz, zeta)
     near = np.abs(f / mode_Hz - 1) > 3 * zeta          # away from the peak, whose height ζ sets
     assert np.max(np.abs(g_fit[near] / g_true[near] - 1)) < 0.05
     used = m.fit_info["fit_parts"]
-    assert f"{where['tri10'][0]:.4g}" in used and "s, " in used     # the triangles and the chirp
+    assert abs(float(used.split("–")[0]) - where["tri10"][0]) < 0.05     # from the triangles / the PRBS on
+    assert ("s, " in used) == (recording == "user")                      # and the chirp
 
 
 def test_a_mode_past_the_recorded_band_is_not_guessed():
