@@ -176,21 +176,36 @@ class LinearDynamicsModel(HysteresisModel):
         return model
 
     def predict_linear(self, t_s: np.ndarray, u: np.ndarray, y_nm: np.ndarray, dt_s: float) -> np.ndarray:
-        """What the fitted linear model says ``y`` [nm] was for input ``u``, over the part
-        of the record it was fitted on (``fit_info`` fit_t0_s … fit_t1_s; NaN elsewhere):
-        the static gain of ``fit_info`` times the dynamics' response to the input's change,
-        plus the mean offset (for the residual ``afmctl identify`` prints)."""
+        """What the fitted linear model says ``y`` [nm] was for input ``u``, over each part
+        of the record it was fitted on (:meth:`fitted_spans`; NaN elsewhere): the static
+        gain of ``fit_info`` times the dynamics' response to the input's change within the
+        part, plus the part's mean offset (for the residual ``afmctl identify`` prints)."""
         u = block_samples("u", u)
         info = self.fit_info or {}
         gain = float(info.get("static_gain_y_per_u", 1.0))
         t = np.asarray(t_s, dtype=float)
-        sel = (t >= float(info.get("fit_t0_s", -np.inf))) & (t <= float(info.get("fit_t1_s", np.inf)))
+        y = np.asarray(y_nm, dtype=float)
         out = np.full(u.size, np.nan)
-        if np.count_nonzero(sel):
-            us = u[sel]
-            g = gain * (self.forward(dt_s, initial_nm=float(us[0])).block(us) - float(us[0]))
-            out[sel] = g + float(np.mean(np.asarray(y_nm, dtype=float)[sel] - g))
+        for t0, t1 in self.fitted_spans():
+            sel = (t >= t0) & (t <= t1)
+            if np.count_nonzero(sel):
+                us = u[sel]
+                g = gain * (self.forward(dt_s, initial_nm=float(us[0])).block(us) - float(us[0]))
+                out[sel] = g + float(np.mean(y[sel] - g))
         return out
+
+    def fitted_spans(self) -> list[tuple[float, float]]:
+        """``(t0, t1)`` [s] of each part of the record the response was measured on
+        (``fit_info["fit_spans_s"]``; a file from before it was recorded: ``fit_t0_s`` …
+        ``fit_t1_s``; none: the whole record)."""
+        info = self.fit_info or {}
+        try:
+            v = [float(x) for x in str(info.get("fit_spans_s", "")).split()]
+        except ValueError:                     # an edited file: the outer bounds below
+            v = []
+        if v and len(v) % 2 == 0:
+            return list(zip(v[::2], v[1::2]))
+        return [(float(info.get("fit_t0_s", -np.inf)), float(info.get("fit_t1_s", np.inf)))]
 
     def summary(self) -> str:
         lines = ["model            : linear dynamics, unit DC gain, with delay (kind dynamics)",

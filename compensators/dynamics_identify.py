@@ -388,6 +388,7 @@ def fit_dynamics(t_s: np.ndarray, u: np.ndarray, y_nm: np.ndarray, **options: An
         "f_max_Hz": float(frf.f_Hz[-1]), "bins": float(frf.f_Hz.size), "sample_rate_Hz": fs,
         "fitted_delay_s": tau, "fit_t0_s": float(t[used[0][0]]), "fit_t1_s": float(t[used[-1][1] - 1]),
         "fit_parts": parts_text(t, used),
+        "fit_spans_s": " ".join(f"{float(t[a])!r} {float(t[b - 1])!r}" for a, b in used),
     }
     problems = unresolved_modes(x, frf, n_modes, n_lags)
     if n_modes in frf.unconverged_modes:

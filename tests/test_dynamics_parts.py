@@ -151,3 +151,22 @@ def test_an_amplifier_lag_is_left_to_the_dynamics_stage_not_taken_for_a_delay():
     k = int(where["tri10"][0] * FS)                      # the slow part alone, no fast parts
     c, _ = prepare("auto", t_s=t[:k], u_V=u[:k], y_nm=y_late[:k], burn_in="none")
     assert d * DT <= c.delay_s <= (d + 16) * DT
+
+
+def test_the_printed_residual_covers_the_parts_fitted_not_the_slow_sweeps_between():
+    """``identify --model dynamics`` prints the linear model's residual over the parts it was
+    fitted on: NaN between them (the slow sweeps, where a hysteretic scanner is not linear),
+    each part from its own start."""
+    true = LinearDynamicsModel.from_modes([(1000.0, 0.05)], [600.0])
+    u, where = user_record(chirp_to_Hz=2500.0)
+    t = np.arange(u.size) * DT
+    y = 45.0 * true.forward(DT, initial_nm=float(u[0])).block(u)
+    m = LinearDynamicsModel.identify(t, u, y)
+    spans = m.fitted_spans()
+    assert len(spans) == 2 and spans[0][1] < where["chirp"][0] < spans[1][0]
+    pred = m.predict_linear(t, u, y, DT)
+    inside = np.zeros(t.size, bool)
+    for a, b in spans:
+        inside |= (t >= a) & (t <= b)
+    assert np.all(np.isnan(pred[~inside])) and np.all(np.isfinite(pred[inside]))
+    assert np.sqrt(np.nanmean((pred - y) ** 2)) < 0.01 * np.ptp(y)
