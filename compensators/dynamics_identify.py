@@ -154,10 +154,14 @@ def fast_parts(u: np.ndarray, t: np.ndarray) -> list[tuple[int, int]]:
     high = u - uniform_filter1d(u, max(3, int(round(FAST_MEAN_S / dt))), mode="nearest")
     power = uniform_filter1d(high * high, max(3, int(round(FAST_WINDOW_S / dt))), mode="nearest")
     rms = np.sqrt(np.maximum(power, 0.0))       # the running mean of squares may round below 0
-    fast = rms > FAST_FRACTION * span
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], fast.astype(np.int8), [0]])))
     min_len = max(256, int(round(FAST_MIN_S / dt)))
-    return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2]) if b - a >= min_len]
+    return [(a, b) for a, b in true_runs(rms > FAST_FRACTION * span) if b - a >= min_len]
+
+
+def true_runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """``(start, stop)`` sample indices of each run of True in ``mask`` (stop exclusive)."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], np.asarray(mask).astype(np.int8), [0]])))
+    return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2])]
 
 
 def parts_text(t: np.ndarray, parts: list[tuple[int, int]]) -> str:
@@ -180,10 +184,7 @@ def small_signal_bounds(u: np.ndarray, t: np.ndarray) -> tuple[int, int] | None:
     ok = (local > 0) & (local <= 0.05 * span) if span > 0 else np.zeros(u.size, bool)
     if not np.any(ok) or np.all(ok):
         return None
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(np.int8), [0]])))
-    starts, stops = edges[::2], edges[1::2]
-    k = int(np.argmax(stops - starts))
-    a, b = int(starts[k]), int(stops[k])
+    a, b = max(true_runs(ok), key=lambda run: run[1] - run[0])
     return (a, b) if b - a >= 256 else None
 
 

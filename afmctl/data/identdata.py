@@ -283,10 +283,12 @@ def _near_fast_parts(t_s: np.ndarray, u_V: np.ndarray, margin: int) -> np.ndarra
     there an amplifier's lag or a structural mode looks like a delay of many samples, which
     the dynamics stage fits itself (fractional, jointly with its poles; #24). A sensor's delay
     shows in the slow parts too."""
-    from afmctl.compensators.dynamics_identify import dynamics_parts
+    from afmctl.compensators.base import ModelError
+    from afmctl.compensators.dynamics_identify import dynamics_parts, uniform_dt
 
-    d = np.diff(t_s)
-    if t_s.size < 256 or not np.all(d > 0) or np.ptp(d) > 1e-3 * float(np.median(d)):
+    try:
+        uniform_dt(t_s)                  # the dynamics stage needs uniform samples too
+    except ModelError:
         return None
     parts = dynamics_parts(u_V, t_s)
     if not parts:
