@@ -92,11 +92,14 @@ def _fast_rms(pred: np.ndarray, y: np.ndarray, parts: list[tuple[int, int]], sta
 
 def score_candidate(structure: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, split: int,
                     options: dict[str, Any] | None = None, fit_from_index: int = 0,
-                    dynamics_from_whole: bool = False, end: int | None = None) -> dict[str, Any]:
+                    dynamics_from_whole: bool = False, end: int | None = None,
+                    parts: list[tuple[int, int]] | None = None) -> dict[str, Any]:
     """Identify ``structure`` on samples ``[fit_from_index:split]`` (the samples before
     ``fit_from_index`` only set the memory), predict all, score ``[split:]``.
     ``dynamics_from_whole``: the structure's ``+dynamics`` stage is fitted on the whole
     record instead (module docstring). ``end``: score ``[split:end]`` only (a fold).
+    ``parts``: the record's :func:`~.dynamics_identify.dynamics_parts` (found here when
+    not given; :func:`select_model` finds them once for every candidate and fold).
 
     Returns a table row: ``structure``, ``heldout_rms_nm``, ``heldout_max_nm``,
     ``heldout_rms_pct``, ``heldout_max_pct`` (% of the held-out span), ``train_rms_nm``;
@@ -124,7 +127,7 @@ def score_candidate(structure: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.n
     rms = float(np.sqrt(np.mean(e_test ** 2)))
     peak = float(np.max(np.abs(e_test)))
     train_rms = float(np.sqrt(np.mean(e_train ** 2)))
-    fast_rms = _fast_rms(pred, y_nm, dynamics_parts(u_V, t_s), split, stop)
+    fast_rms = _fast_rms(pred, y_nm, dynamics_parts(u_V, t_s) if parts is None else parts, split, stop)
     row = {"structure": structure, "heldout_rms_nm": round(rms, 4), "heldout_max_nm": round(peak, 4),
            "heldout_rms_pct": round(100.0 * rms / span, 4), "heldout_max_pct": round(100.0 * peak / span, 4),
            "train_rms_nm": round(train_rms, 4)}
@@ -178,8 +181,9 @@ def select_model(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates:
         raise ModelError(f"data: only {inside:.0%} of the held-out last {holdout_fraction:.0%} lies inside the input "
                          "range of the rest; excite the full voltage range early in the record")
     table = []
+    parts = dynamics_parts(u, t)
     for structure in candidates:
-        row = score_candidate(structure, t, u, y, split, options, k0)
+        row = score_candidate(structure, t, u, y, split, options, k0, parts=parts)
         log.info("auto: %s → %s", structure, row)
         table.append(row)
     table.sort(key=lambda row: _key(row, criterion))
@@ -187,14 +191,14 @@ def select_model(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates:
         raise ModelError("data: no candidate could be identified; " + "; ".join(
             f"{r['structure']}: {r['error']}" for r in table))
     if with_dynamics and not any("dynamics" in parse_structure(c)[1] for c in candidates) \
-            and dynamics_parts(u, t):
+            and parts:
         row = score_candidate(table[0]["structure"] + "+dynamics", t, u, y, split, options, k0,
-                              dynamics_from_whole=True)
+                              dynamics_from_whole=True, parts=parts)
         log.info("auto: %s → %s", row["structure"], row)
         table.append(row)
         table.sort(key=lambda row: _key(row, criterion))
     if criterion == "rms":
-        _extra_folds(table, t, u, y, options, k0)
+        _extra_folds(table, t, u, y, options, k0, parts)
         winner = choose(table)
         table.sort(key=lambda row: (row is not winner, _mean_key(row)))
     best = _refit_best(table, t, u, y, options or {}, k0)
@@ -209,12 +213,13 @@ def _mean_key(row: dict[str, Any]) -> tuple[float, float]:
 
 
 def _extra_folds(table: list[dict[str, Any]], t: np.ndarray, u: np.ndarray, y: np.ndarray,
-                 options: dict[str, Any] | None, k0: int) -> None:
+                 options: dict[str, Any] | None, k0: int, parts: list[tuple[int, int]]) -> None:
     """Score the leading candidates (main-split RMS within :data:`SCREEN_FACTOR` of the best)
     on the extra folds (:func:`~.selection_folds.fold_bounds`: fit on the prefix, score the
     block after it); each such row gets ``fold_rms_nm`` (the main split's first), their mean
     ``mean_rms_nm`` and ``folds`` (how many). A fold whose block lies mostly outside the
-    prefix's input range is skipped for all; a candidate failing a fold is failed."""
+    prefix's input range is skipped for all; a candidate failing a fold is failed.
+    ``parts``: the record's dynamics parts (:func:`score_candidate`)."""
     ok = [r for r in table if "error" not in r]
     if not ok:
         return
@@ -238,7 +243,7 @@ def _extra_folds(table: list[dict[str, Any]], t: np.ndarray, u: np.ndarray, y: n
             continue
         for s, e in folds:
             fold = score_candidate(row["structure"], t, u, y, s, options, k0,
-                                   dynamics_from_whole="dynamics" in stages, end=e)
+                                   dynamics_from_whole="dynamics" in stages, end=e, parts=parts)
             if "error" in fold:
                 row["error"] = f"fold {t[s]:.4g}–{t[e - 1]:.4g} s: {fold['error']}"
                 break
