@@ -90,7 +90,7 @@ def prbs_record(clock_Hz: float, seed: int = 4) -> tuple[np.ndarray, dict[str, t
     ramp = int(2e-4 * FS)
     prbs = np.convolve(np.r_[np.full(ramp, steps[0]), steps], np.ones(ramp) / ramp, mode="valid")
     slow = np.concatenate([triangles(1.0, 0.0, 150.0, 1), np.linspace(0.0, 75.0, 25_000)])
-    return np.concatenate([slow, prbs]), {"tri10": (slow.size / FS, (slow.size + prbs.size) / FS)}
+    return np.concatenate([slow, prbs]), {"prbs": (slow.size / FS, (slow.size + prbs.size) / FS)}
 
 
 @pytest.mark.parametrize("recording", ["user", "prbs"])
@@ -113,7 +113,8 @@ def test_user_style_recording_identifies_the_plant_family(lag_Hz, mode_Hz, zeta,
     near = np.abs(f / mode_Hz - 1) > 3 * zeta          # away from the peak, whose height ζ sets
     assert np.max(np.abs(g_fit[near] / g_true[near] - 1)) < 0.05
     used = m.fit_info["fit_parts"]
-    assert abs(float(used.split("–")[0]) - where["tri10"][0]) < 0.05     # from the triangles / the PRBS on
+    first = where["tri10" if recording == "user" else "prbs"][0]       # the fast triangles / the PRBS
+    assert abs(float(used.split("–")[0]) - first) < 0.05
     assert ("s, " in used) == (recording == "user")                      # and the chirp
 
 
