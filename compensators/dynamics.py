@@ -59,6 +59,9 @@ class LinearDynamicsModel(HysteresisModel):
     zeros_rad_per_s: list[Pair] = Field(default_factory=list, max_length=40,
                                         description="zeros [re, im] in rad/s, not at 0")
     delay_s: FiniteFloat = Field(0.0, ge=0.0, le=1.0, description="pure delay [s]")
+    lead_samples: FiniteFloat = Field(0.0, ge=0.0, le=1.0, description=(
+        "the record's output is read this fraction of a sample period after each command "
+        "(1: at the end of each hold interval); a sampling convention, so in samples; only with delay_s = 0"))
     initial_nm: FiniteFloat = Field(0.0, description="input and output at rest before the first sample [nm]")
     bandwidth_Hz: FiniteFloat | None = Field(None, gt=0, description="band limit of the inverse [Hz]; "
                                              "null = 1.5 × the slowest pole")
@@ -76,6 +79,8 @@ class LinearDynamicsModel(HysteresisModel):
             raise ValueError(f"zeros_rad_per_s: {z.size} zeros but {p.size} poles; need no more zeros than poles")
         _check_conjugates("poles_rad_per_s", p)
         _check_conjugates("zeros_rad_per_s", z)
+        if self.lead_samples > 0 and self.delay_s > 0:
+            raise ValueError("lead_samples: a lead only goes with delay_s = 0 (the output is read either late or early)")
         return self
 
     # ------------------------------------------------------------------ construction
@@ -107,7 +112,7 @@ class LinearDynamicsModel(HysteresisModel):
         """Zero-order-hold discretisation at ``dt_s`` [s]."""
         if dt_s is None:
             raise ModelError("dt_s: None; the dynamics model needs a sample period > 0 s")
-        return discretise(self.zeros(), self.poles(), self.delay_s, float(dt_s))
+        return discretise(self.zeros(), self.poles(), self.delay_s, float(dt_s), float(self.lead_samples))
 
     def inverse_bandwidth_Hz(self, dt_s: float) -> float:
         """Band limit of the inverse [Hz]: ``bandwidth_Hz`` or 1.5 × the slowest pole (just
@@ -170,7 +175,8 @@ class LinearDynamicsModel(HysteresisModel):
         fit = fit_dynamics(t_s, u_V, y_nm, **options)
         model = cls(poles_rad_per_s=[(float(p.real), float(p.imag)) for p in fit.poles],
                    zeros_rad_per_s=[(float(z.real), float(z.imag)) for z in fit.zeros],
-                   delay_s=fit.delay_s, initial_nm=float(np.asarray(y_nm, dtype=float)[0]), fit_info=fit.info)
+                   delay_s=fit.delay_s, lead_samples=fit.lead_samples,
+                   initial_nm=float(np.asarray(y_nm, dtype=float)[0]), fit_info=fit.info)
         if "problem" in fit.info:
             note_problem(model, str(fit.info["problem"]))
         return model
@@ -209,7 +215,8 @@ class LinearDynamicsModel(HysteresisModel):
 
     def summary(self) -> str:
         lines = ["model            : linear dynamics, unit DC gain, with delay (kind dynamics)",
-                 f"delay            : {self.delay_s * 1e6:.4g} µs"]
+                 f"delay            : {self.delay_s * 1e6:.4g} µs"
+                 + (f" (output read {self.lead_samples:.3g} sample after each command)" if self.lead_samples else "")]
         for p in self.poles():
             if p.imag < 0:
                 continue

@@ -21,8 +21,11 @@
 The measured response of sampled, zero-order-held data carries the hold's half-sample
 delay; the model's own discretisation adds it again, so it is taken off the fitted delay
 (``delay_s = max(0, τ − dt/2)``). The fit lets ``τ`` go down to ``−2·dt`` so that data
-whose output is sampled at the end of each hold interval (a simulator that answers in the
-same sample) still fits; such a lead is reported in ``fit_info`` and not kept.
+whose output is read after the command within the same sample (at the end of each hold
+interval, as the simulated scanner reports positions) still fits. Such a record leads the
+model's convention by ``dt/2 − τ``; that lead is kept in samples, up to one
+(``lead_samples``, :func:`afmctl.compensators.lti.discretise`: the state read inside the
+interval), since it is a convention of the sampling and scales with the sample period.
 """
 from __future__ import annotations
 
@@ -47,6 +50,8 @@ class DynamicsFit:
     zeros: np.ndarray
     delay_s: float
     info: dict[str, float | str] = field(default_factory=dict)
+    #: the output read this fraction of a period after each command (module docstring)
+    lead_samples: float = 0.0
 
 
 @dataclass
@@ -398,4 +403,15 @@ def fit_dynamics(t_s: np.ndarray, u: np.ndarray, y_nm: np.ndarray, **options: An
         info["problem"] = "; ".join(problems)
     log.info("dynamics fit: %d modes, %d lags, delay %.3g µs, RMS log error %.3g over %d bins",
              n_modes, n_lags, tau * 1e6, rms, frf.f_Hz.size)
-    return DynamicsFit(poles, np.zeros(0, complex), max(0.0, tau - 0.5 * dt), info)
+    delay, lead = split_delay(tau, dt)
+    return DynamicsFit(poles, np.zeros(0, complex), delay, info, lead)
+
+
+def split_delay(tau_s: float, dt_s: float) -> tuple[float, float]:
+    """The fitted delay ``τ`` [s] of sampled, held data at period ``dt_s`` [s] as the
+    model's ``(delay_s, lead_samples)``: the hold's half sample taken off; what is left below
+    zero is a lead of at most one sample (module docstring)."""
+    d = tau_s - 0.5 * dt_s
+    if d >= 0:
+        return d, 0.0
+    return 0.0, float(min(1.0, -d / dt_s))

@@ -13,6 +13,14 @@ samples, as a DAC does) and the delay split as ``τ = (d + f)·T`` (d whole samp
     x_{k+1} = Φ·x_k + Γ1·u_{k−d} + Γ0·u_{k−d−1},   y_k = C·x_k + D·u(t_k − τ)
     Φ = e^{AT},  Γ1 = ∫_0^{T−fT} e^{Aσ}dσ·B,  Γ0 = e^{A(T−fT)}·∫_0^{fT} e^{Aσ}dσ·B
 
+A record whose output sample ``k`` is read a fraction ``λ`` (0 < λ ≤ 1) of the period
+*after* the command ``u_k`` is applied — at the end of each hold interval for ``λ = 1``, as
+the simulated scanner reports its positions — leads that convention by ``λ·T``. Such a
+``lead`` (in samples: it is a convention of the sampling, so it scales with ``T``) reads the
+state inside the interval, which keeps the operator causal (no delay with it)::
+
+    y_k = C·x(t_k + λT) + D·u_k = C·e^{AλT}·x_k + (C·∫_0^{λT} e^{Aσ}dσ·B + D)·u_k
+
 The state space is built in time scaled by the poles' mean magnitude so that a kHz mode
 does not give polynomial coefficients spanning 12 decades.
 """
@@ -80,10 +88,15 @@ class DiscreteLTI:
         return g * zinv ** self.delay_samples
 
 
-def discretise(zeros: np.ndarray, poles: np.ndarray, delay_s: float, dt_s: float) -> DiscreteLTI:
-    """Exact zero-order-hold discretisation at ``dt_s`` [s] with the fractional delay."""
+def discretise(zeros: np.ndarray, poles: np.ndarray, delay_s: float, dt_s: float,
+               lead_samples: float = 0.0) -> DiscreteLTI:
+    """Exact zero-order-hold discretisation at ``dt_s`` [s] with the fractional delay, or
+    with the output read ``lead_samples`` (0…1) of a period after each command (module
+    docstring; a lead and a delay exclude each other)."""
     if not (math.isfinite(dt_s) and dt_s > 0):
         raise ModelError(f"dt_s: {dt_s!r}; the dynamics model needs a sample period > 0 s")
+    if not (0.0 <= lead_samples <= 1.0) or (lead_samples > 0 and delay_s > 0):
+        raise ModelError(f"lead_samples: {lead_samples!r}; allowed 0…1 sample, and only without a delay")
     zeros = np.asarray(zeros, dtype=complex)
     poles = np.asarray(poles, dtype=complex)
     n = poles.size
@@ -108,6 +121,10 @@ def discretise(zeros: np.ndarray, poles: np.ndarray, delay_s: float, dt_s: float
     Phi = expm(A * dt_s)
     B1, B2 = G_a, Ad @ G_b
     D0, D1 = (D, 0.0) if frac == 0 else (0.0, D)
+    if lead_samples > 0:                 # read the state λT into the interval (docstring)
+        E_l, G_l = _zoh(A, B, lead_samples * dt_s)
+        D0 = D + float(C @ G_l)
+        C = C @ E_l
     return DiscreteLTI(dt_s, np.ascontiguousarray(Phi), np.ascontiguousarray(B1), np.ascontiguousarray(B2),
                        np.ascontiguousarray(C), D0, D1, d)
 

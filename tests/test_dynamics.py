@@ -57,6 +57,8 @@ def test_file_round_trip_and_registry(tmp_path):
     ({"poles_rad_per_s": [[-1.0, 0.0]], "zeros_rad_per_s": [[-2.0, 0.0], [-3.0, 0.0]]}, "no more zeros"),
     ({"poles_rad_per_s": [[-1.0, 0.0]], "delay_s": -1.0}, "delay_s"),
     ({"poles_rad_per_s": [[-1.0, float("nan")]]}, "poles_rad_per_s"),
+    ({"poles_rad_per_s": [[-1.0, 0.0]], "lead_samples": 1.5}, "lead_samples"),
+    ({"poles_rad_per_s": [[-1.0, 0.0]], "lead_samples": 0.5, "delay_s": 1e-5}, "lead_samples"),
 ])
 def test_bad_model_files_name_the_field(data, field):
     with pytest.raises(ModelError, match=field):
@@ -80,6 +82,52 @@ def test_zoh_discretisation_matches_continuous_simulation(delay_s):
     num, den = zpk2tf(z, p, unit_dc_gain(z, p))
     _, y_f, _ = lsim((np.real(num), np.real(den)), u_f, t_f, interp=False)
     assert np.max(np.abs(y - y_f[::over])) < 1e-6 * np.ptp(u)
+
+
+@pytest.mark.parametrize("lead", [0.25, 1.0])
+def test_lead_reads_the_continuous_output_inside_each_hold_interval(lead):
+    """With ``lead_samples`` λ the output k is the continuous system's at t_k + λ·T for the
+    input held from t_k (a record read at the end of each hold for λ = 1); λ = 1 is the
+    lead-free output one sample later."""
+    m = scanner_like(0.0).model_copy(update={"lead_samples": lead})
+    u = band_limited(3000, 3000.0, 6)
+    y = m.forward(DT).block(u)
+    over = 40
+    t_f = np.arange((u.size + 1) * over) * (DT / over)
+    p, z = m.poles(), m.zeros()
+    from afmctl.compensators.lti import unit_dc_gain
+    from scipy.signal import zpk2tf
+    num, den = zpk2tf(z, p, unit_dc_gain(z, p))
+    _, y_f, _ = lsim((np.real(num), np.real(den)), np.repeat(np.r_[u, 0.0], over), t_f, interp=False)
+    read = np.arange(u.size) * over + int(round(lead * over))
+    assert np.max(np.abs(y - y_f[read])) < 1e-6 * np.ptp(u)
+    if lead == 1.0:
+        plain = scanner_like(0.0).forward(DT).block(u)
+        assert np.max(np.abs(y[:-1] - plain[1:])) < 1e-9 * np.ptp(u)
+        target = band_limited(20_000, 400.0, 3)      # and the inverse still inverts it
+        assert np.max(np.abs(m.forward(DT).block(m.inverse_offline(target, DT)) - target)) < 1e-3 * np.ptp(target)
+
+
+def test_identify_keeps_the_lead_of_a_record_read_at_the_end_of_each_hold():
+    """A record whose output is read at the end of each hold interval (the simulated
+    scanner's positions) leads the hold-start convention by one sample: the fit keeps it as
+    ``lead_samples`` = 1 (it used to drop it, leaving the model a sample late), and the
+    fitted model then predicts the record sample for sample."""
+    true = scanner_like(0.0)
+    dt = 2e-5
+    n = 100_000
+    rng = np.random.default_rng(8)
+    u = rng.standard_normal(n)
+    ahead = true.model_copy(update={"lead_samples": 1.0})
+    y = 80.0 * ahead.forward(dt).block(u)
+    m = LinearDynamicsModel.identify(np.arange(n) * dt, u, y)
+    assert m.delay_s == 0.0 and m.lead_samples == pytest.approx(1.0, abs=0.05)
+    pred = 80.0 * m.forward(dt).block(u)
+    late = 80.0 * m.model_copy(update={"lead_samples": 0.0}).forward(dt).block(u)
+    assert np.std(pred - y) < 0.2 * np.std(late - y)
+    # the same plant read at the start of each hold: no lead, no delay beyond the hold
+    m0 = LinearDynamicsModel.identify(np.arange(n) * dt, u, 80.0 * true.forward(dt).block(u))
+    assert m0.lead_samples < 0.05 and m0.delay_s < 0.05 * dt
 
 
 def test_block_equals_step_and_compiled_equals_reference():
