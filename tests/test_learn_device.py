@@ -158,3 +158,19 @@ lines = 2
     assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
     errors = [ln for ln in res.stderr.splitlines() if ln.startswith("afmctl: error:")]
     assert len(errors) == 1, res.stderr
+
+
+def test_learning_on_a_device_reads_the_model_at_sample_start():
+    """A device's recorder reads each position as the next sample starts; a chain identified
+    on positions read at the end of each hold (lead_samples = 1) is used without its lead
+    for the first table and the learning filter, and nothing else changes."""
+    from afmctl.control.learn_run import read_at_sample_start
+    dyn = LinearDynamicsModel.from_modes([(1000.0, 0.03)], [5000.0])
+    u = np.linspace(0.0, 150.0, 200)
+    chain = ChainModel(hysteresis=PIModel.identify(u, u, 80.0 * u, n_operators=4),
+                       dynamics=dyn.model_copy(update={"lead_samples": 1.0}))
+    seen = read_at_sample_start(chain)
+    assert seen.dynamics.lead_samples == 0.0 and chain.dynamics.lead_samples == 1.0
+    assert seen.dynamics.poles_rad_per_s == chain.dynamics.poles_rad_per_s and seen.hysteresis == chain.hysteresis
+    static = ChainModel(hysteresis=chain.hysteresis)
+    assert read_at_sample_start(static) is static and read_at_sample_start(None) is None

@@ -141,6 +141,18 @@ def arm_recorder(amp: Any, config: Any, points: int, axes: list[str]) -> Any:
     return amp.configure_recorder(axes, points=points, divider=divider, signals=("y_nm", "u_V"))
 
 
+def read_at_sample_start(model: Any) -> Any:
+    """``model`` as a device's data recorder sees the scanner: it reads each position as the
+    next sample starts (the response to the samples before it; PI's and the NV200's
+    recorders, the simulated devices'), where a model identified on positions read at the
+    end of each hold (``afmctl sim`` records, the simulated scanner's) leads by up to a
+    sample (its dynamics' ``lead_samples``), which the learning filter must not assume."""
+    dyn = getattr(model, "dynamics", None)
+    if dyn is None or not dyn.lead_samples:
+        return model
+    return model.model_copy(update={"dynamics": dyn.model_copy(update={"lead_samples": 0.0})})
+
+
 def read_aligned(amp: Any, table: WaveTable, setup: Any, timeout_s: float) -> dict[str, np.ndarray]:
     """The measured position [nm] per recorded axis, one point per table row; a recording
     whose length or recorded output voltages do not match the table (a trigger offset) is
@@ -227,7 +239,9 @@ class LearnRun:
         if len(targets) == 0:
             raise AfmctlError("trajectory: it has no samples at the loop period")
         T_C = cfg.compensation.temperature.T_C
-        return plan_table(cfg, build_pipeline(cfg), targets, T_C, self.limits_V, self.max_step_V,
+        models, inv_c, scanner_file = axis_models(cfg)
+        found = ([(read_at_sample_start(m), src) for m, src in models], inv_c, scanner_file)
+        return plan_table(cfg, build_pipeline(cfg, found), targets, T_C, self.limits_V, self.max_step_V,
                           table_capacity(self.amp, self.axes))
 
     def learners(self, table: WaveTable) -> dict[str, Learner]:
@@ -241,7 +255,8 @@ class LearnRun:
             lo, hi = self.limits_V[axis]
             settings = LearnSettings(**{**self.options.settings.__dict__, "u_min_V": lo, "u_max_V": hi,
                                         "slew_V_per_s": self.max_step_V / self.config.dt_s})
-            out[axis] = Learner(table.target_nm[:, k], self.config.dt_s, models[k][0], settings)
+            out[axis] = Learner(table.target_nm[:, k], self.config.dt_s, read_at_sample_start(models[k][0]),
+                                settings)
         if not out:
             raise AfmctlError("trajectory: no driven axis moves; nothing to learn")
         with_model = {a: models["xyz".index(a)][0] for a in out if creep_stages(models["xyz".index(a)][0])}

@@ -308,10 +308,11 @@ def axis_inverses(config, found: tuple | None = None
     return inverses, prov, inv_c
 
 
-def build_pipeline(config) -> CompensationPipeline:
-    """The pipeline described by an :class:`afmctl.config.Config`."""
+def build_pipeline(config, found: Any = None) -> CompensationPipeline:
+    """The pipeline described by an :class:`afmctl.config.Config`; ``found``: its
+    :func:`axis_models` when the caller has them (e.g. adjusted) already."""
     dt = config.dt_s
-    found = axis_models(config)
+    found = axis_models(config) if found is None else found
     inverses, prov, inv_c = axis_inverses(config, found)
     for axis, text in prov.items():
         log.info("compensation %s: %s", axis, text)
