@@ -120,7 +120,8 @@ def variant(model_path: Path, kind: str, rate: float, work: Path) -> Path:
         dyn = dyn.model_copy(update={"poles_rad_per_s": poles,
                                      "zeros_rad_per_s": [(re * 1.3, im * 1.3) for re, im in dyn.zeros_rad_per_s]})
     else:
-        dyn = dyn.model_copy(update={"delay_s": dyn.delay_s + 0.375 / rate})
+        # a lead (the record's end-of-hold reading) goes with no delay: the delay replaces it
+        dyn = dyn.model_copy(update={"delay_s": dyn.delay_s + 0.375 / rate, "lead_samples": 0.0})
     out = work / f"{model_path.stem}_{kind.replace('%', 'pct')}_{rate:g}.json"
     save_model(chain.model_copy(update={"dynamics": dyn}), out)
     return out

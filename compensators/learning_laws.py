@@ -121,11 +121,29 @@ def model_based_increment(grid: Grid, chain, dt_s: float, base: tuple[np.ndarray
                                 grid.f_Hz, threshold=SECANT_RELIABLE)
         ratio[rel], reliable = r[rel], reliable | rel
     rho = step_size(ratio, rho_max)
-    filt = zero_phase_q(grid.f_Hz, cutoff) * rho * _regularised_inverse(d_hat)
+    step = corrected_step(rho, ratio, reliable, rho_max)
+    filt = zero_phase_q(grid.f_Hz, cutoff) * step * _regularised_inverse(d_hat)
     x = periodic_run(static_fwd, base[0], periodic)
     dx = grid.apply(filt, werr_nm)
     du = periodic_run(static_inv, x + dx, periodic) - periodic_run(static_inv, x, periodic)
-    return Increment(du, rho, ratio, reliable, float(cutoff), _predict(dyn, x, dt_s, periodic))
+    return Increment(du, np.abs(step), ratio, reliable, float(cutoff), _predict(dyn, x, dt_s, periodic))
+
+
+#: share of ``ρ_max`` the corrected step takes where the model's phase error is 90° or more
+CORRECTED_STEP = 0.5
+
+
+def corrected_step(rho: np.ndarray, ratio: np.ndarray, reliable: np.ndarray, rho_max: float) -> np.ndarray:
+    """The step per bin: the real ``ρ`` of :func:`step_size`, except where the measured
+    model error ``R`` turns the phase by 90° or more — no real step converges there — and
+    ``R`` was measured: there the model corrected by it, ``Ĝ·R``, is the filter (the secant
+    method per bin, Li & Bechhoefer), with the complex step ``CORRECTED_STEP·ρ_max / R``.
+    A model whose phase is that wrong where most of the error lies is still stopped by the
+    convergence check (:mod:`afmctl.compensators.learning`)."""
+    step = rho.astype(complex)
+    fix = reliable & (np.abs(np.angle(ratio)) >= 0.5 * math.pi) & (np.abs(ratio) > 1e-12)
+    step[fix] = CORRECTED_STEP * rho_max / ratio[fix]
+    return step
 
 
 def _predict(dyn, x: np.ndarray, dt_s: float, periodic: bool) -> np.ndarray:
