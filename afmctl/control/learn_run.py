@@ -211,6 +211,7 @@ class LearnRun:
         self._stop = threading.Event()
         self.timeline: PlayTimeline | None = None
         self._terms: dict[str, np.ndarray] = {}
+        self._models: tuple | None = None
         self._check_config()
         self.spec = config.trajectory.model_dump(mode="json")
         self.axes = [a for a in config.scanner.axes if a in amplifier.axes]
@@ -231,6 +232,15 @@ class LearnRun:
                               "'afmctl learn step'")
 
     # ------------------------------------------------------------------ the first table
+    def recorder_models(self) -> tuple:
+        """The configuration's :func:`~afmctl.control.pipeline.axis_models`, each as the
+        device's recorder sees the scanner (:func:`read_at_sample_start`), loaded once: the
+        first table and the learning filters both use them."""
+        if self._models is None:
+            models, inv_c, scanner_file = axis_models(self.config)
+            self._models = ([(read_at_sample_start(m), src) for m, src in models], inv_c, scanner_file)
+        return self._models
+
     def first_table(self) -> WaveTable:
         """The configured compensation's table for the trajectory (what ``output = "wave"``
         plays without learning)."""
@@ -239,14 +249,12 @@ class LearnRun:
         if len(targets) == 0:
             raise AfmctlError("trajectory: it has no samples at the loop period")
         T_C = cfg.compensation.temperature.T_C
-        models, inv_c, scanner_file = axis_models(cfg)
-        found = ([(read_at_sample_start(m), src) for m, src in models], inv_c, scanner_file)
-        return plan_table(cfg, build_pipeline(cfg, found), targets, T_C, self.limits_V, self.max_step_V,
-                          table_capacity(self.amp, self.axes))
+        return plan_table(cfg, build_pipeline(cfg, self.recorder_models()), targets, T_C, self.limits_V,
+                          self.max_step_V, table_capacity(self.amp, self.axes))
 
     def learners(self, table: WaveTable) -> dict[str, Learner]:
         """One learner per axis whose target moves, its limits from the configuration."""
-        models = axis_models(self.config)[0] if self.options.use_model else [(None, None)] * 3
+        models = self.recorder_models()[0] if self.options.use_model else [(None, None)] * 3
         out: dict[str, Learner] = {}
         for axis in self.axes:
             k = "xyz".index(axis)
@@ -255,8 +263,7 @@ class LearnRun:
             lo, hi = self.limits_V[axis]
             settings = LearnSettings(**{**self.options.settings.__dict__, "u_min_V": lo, "u_max_V": hi,
                                         "slew_V_per_s": self.max_step_V / self.config.dt_s})
-            out[axis] = Learner(table.target_nm[:, k], self.config.dt_s, read_at_sample_start(models[k][0]),
-                                settings)
+            out[axis] = Learner(table.target_nm[:, k], self.config.dt_s, models[k][0], settings)
         if not out:
             raise AfmctlError("trajectory: no driven axis moves; nothing to learn")
         with_model = {a: models["xyz".index(a)][0] for a in out if creep_stages(models["xyz".index(a)][0])}

@@ -308,7 +308,7 @@ def axis_inverses(config, found: tuple | None = None
     return inverses, prov, inv_c
 
 
-def build_pipeline(config, found: Any = None) -> CompensationPipeline:
+def build_pipeline(config, found: tuple | None = None) -> CompensationPipeline:
     """The pipeline described by an :class:`afmctl.config.Config`; ``found``: its
     :func:`axis_models` when the caller has them (e.g. adjusted) already."""
     dt = config.dt_s
