@@ -57,6 +57,16 @@ from .sensor import PositionSensor, SensorCapture
 
 log = logging.getLogger(__name__)
 
+#: a time within this fraction of a sample of a sample's end is that sample's end (the
+#: rounding of times computed as t0 + k·period by a device, as the sensor's captures take it)
+SAMPLE_TOL = 1e-6
+
+
+def whole_samples(span_s: float, dt_s: float) -> int:
+    """The whole samples of ``dt_s`` [s] in ``span_s`` [s], a span short of a whole
+    number by less than :data:`SAMPLE_TOL` of a sample counting as that number."""
+    return int(math.floor(span_s / dt_s + SAMPLE_TOL))
+
 __all__ = [
     "AXES",
     "AmplifierConfig",
@@ -160,7 +170,7 @@ class Scanner:
         with self._lock:
             for ax in self.axes.values():
                 ax.reset()
-            self.time_s = 0.0
+            self._clock = (0.0, float(self.config.dt_s), 0)
             self._held_V = np.array([self.axes[a].u_min_V for a in AXES])
             self._T_C = float(self.config.ambient_T_C)
             self._drift = _Drift(self.config.drift, self._T_C)
@@ -202,6 +212,26 @@ class Scanner:
         position [x, y, z] nm at that time (no other thread can advance in between)."""
         with self._lock:
             return self.time_s, self._pos.copy()
+
+    @property
+    def time_s(self) -> float:
+        """The simulated time [s]: an exact count of samples since the last change of the
+        sample period (``start + count·dt``), so that it lands on the times a device's clock
+        computes (``t0 + k·period``) however many blocks it was simulated in; a running sum
+        of ``n·dt`` drifts by rounding and would apply a change a sample early."""
+        start, dt, count = self._clock
+        return start + count * dt
+
+    @time_s.setter
+    def time_s(self, t_s: float) -> None:
+        self._clock = (float(t_s), self._clock[1], 0)
+
+    def _tick(self, n: int, dt: float) -> None:
+        """The clock advanced by ``n`` samples of ``dt`` [s]."""
+        start, clock_dt, count = self._clock
+        if dt != clock_dt:
+            start, clock_dt, count = start + count * clock_dt, dt, 0
+        self._clock = (start, clock_dt, count + n)
 
     def read_sensor_nm(self) -> np.ndarray:
         """A position-sensor reading: true position plus Gaussian noise
@@ -296,7 +326,7 @@ class Scanner:
                 self._held_V = u[-1].copy()
                 if T_C is not None:
                     self._T_C = float(T[-1])
-            self.time_s += n * dt
+            self._tick(n, dt)
         return (pos, volts) if return_voltage else pos
 
     # ------------------------------------------------------------------ streaming
@@ -342,7 +372,7 @@ class Scanner:
             counts = []
             t_cur = self.time_s
             for t_k in t.tolist():                      # whole samples before each change, as advance()
-                n = int(math.floor((t_k - t_cur) / dt + 1e-9))
+                n = whole_samples(t_k - t_cur, dt)
                 counts.append(max(n, 0))
                 if n > 0:
                     t_cur += n * dt
@@ -367,7 +397,7 @@ class Scanner:
             raise ModelError(f"t_s: {t_s!r} is not a finite time in seconds")
         with self._lock:
             dt = self.config.dt_s
-            n = int(math.floor((t - self.time_s) / dt + 1e-9))
+            n = whole_samples(t - self.time_s, dt)
             while n > 0:
                 k = min(n, self.ADVANCE_CHUNK)
                 self.run(np.broadcast_to(self._held_V, (k, 3)), dt)

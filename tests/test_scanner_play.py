@@ -34,3 +34,29 @@ def test_a_stream_on_the_simulated_can_amplifier_reaches_the_scanner_in_blocks()
     t = np.arange(50) * 1e-4
     s.play(t, np.tile([10.0, 20.0, 30.0], (50, 1)))
     assert np.array_equal(s.held_voltage_V(), [10.0, 20.0, 30.0])
+
+
+
+def test_a_timed_play_lands_on_the_same_samples_however_long_the_clock_ran():
+    """A device's clock computes each point's time as t0 + k·period; the scanner must apply
+    it on the same simulation sample whether its own clock got there in one call or in
+    twenty thousand (a running sum of n·dt drifts by rounding and used to apply some points a
+    sample early: the same table played twice moved differently)."""
+    period, n = 1e-4, 2000
+    rows = np.column_stack([60.0 + 8.0 * np.abs(((np.arange(n) / 50.0) % 2.0) - 1.0),
+                            np.zeros(n), np.zeros(n)])
+    # the pty server polls the device about every millisecond; this sequence of polls put the
+    # old running sum 1.4e-8 samples ahead of the exact time
+    polls = np.cumsum(np.random.default_rng(3).uniform(0.2e-3, 1.8e-3, 20_000))
+    traces = []
+    for times in (polls[-1:], polls):
+        s = Scanner()
+        for t in times:
+            s.advance(float(t))
+        t0 = np.ceil(polls[-1] / 5e-5) * 5e-5                  # the next servo tick
+        cap = s.capture_sensor(t0, period, n)                  # a recorder armed with the wave start
+        for k in range(0, n, 40):                              # played in blocks, as the wave generator does
+            s.play(t0 + period * np.arange(k, k + 40), rows[k:k + 40])
+        s.advance(t0 + period * n)
+        traces.append(cap.y_nm[:, 0])
+    assert np.array_equal(traces[0], traces[1])
