@@ -78,7 +78,7 @@ class LearnSettings:
 
     rho_max: float | None = None
     q_cutoff_Hz: float | None = None
-    central_pct: float = 90.0
+    central_pct: float = REPORT_CENTRAL_PCT
     lines_only: bool = False
     periodic: bool = False
     u_min_V: float = -math.inf

@@ -10,6 +10,8 @@ import argparse
 import logging
 from collections.abc import Callable
 
+from .learn_defaults import CENTRAL_PCT
+
 log = logging.getLogger(__name__)
 
 HELP = "iterative learning: the next voltages from the target, the voltages sent and the motion measured"
@@ -106,8 +108,9 @@ def register_step(sub: argparse._SubParsersAction) -> None:
                         "per harmonic from the model's measured error; 0.7 without)")
     p.add_argument("--q-cutoff-Hz", type=float, metavar="HZ",
                    help="Q-filter cut-off [Hz] (default: the model's band limit; model-free: what the data excite)")
-    p.add_argument("--central-pct", type=float, default=90.0, metavar="P",
-                   help="weighted central share of each raster line [%%] (default 90: a margin around the central 80 %% the error is judged on; 100: no weighting)")
+    p.add_argument("--central-pct", type=float, default=CENTRAL_PCT, metavar="P",
+                   help="weighted central share of each raster line [%%] (default 80: the part the error is judged "
+                        "on and an AFM images; the rest of each line is the turnaround, rounded; 100: no weighting)")
     p.add_argument("--lines-only", action="store_true", help="weight only the lines' central parts (rests count 0)")
     p.add_argument("--periodic", action="store_true",
                    help="the table plays cyclically and was recorded in steady state (learning per harmonic)")

@@ -9,6 +9,8 @@ import math
 import sys
 from typing import Any
 
+from .learn_defaults import CENTRAL_PCT
+
 DEVICE_HELP = """\
 On a device that records its own motion (a PI GCS controller's data recorder, the NV200's,
 the CAN amplifier's; simulated ones with [simulation] enabled = true):
@@ -60,8 +62,8 @@ def add_device_arguments(p: argparse.ArgumentParser) -> None:
                         "play from rest)")
     g.add_argument("--rho", type=float, default=1.0, metavar="RHO",
                    help="largest step size, 0 < RHO <= 2 (default 1: a full inverse step)")
-    g.add_argument("--central-pct", dest="device_central_pct", type=float, default=90.0, metavar="P",
-                   help="weighted central share of each raster line [%%] (default 90)")
+    g.add_argument("--central-pct", dest="device_central_pct", type=float, default=CENTRAL_PCT, metavar="P",
+                   help="weighted central share of each raster line [%%] (default 80: the part the error is judged on)")
 
 
 def _check_args(args: argparse.Namespace) -> None:
