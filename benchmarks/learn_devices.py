@@ -54,6 +54,7 @@ axes = {axes}
 [amplifier]
 driver = "{driver}"
 output = "wave"
+settle_s = 2.0
 slew_V_per_s = 100000.0
 [loop]
 rate_Hz = {rate}

@@ -95,3 +95,21 @@ def test_the_timeline_of_a_learn_run_against_a_play_from_rest():
     third = play(timeline.t_last_s + 60.0)
     assert abs(first) < 1e-3 * abs(second), (first, second)
     assert second > 0.0 and 0.0 < third < 0.5 * second, (first, second, third)
+
+
+def test_the_history_offset_is_what_moved_beyond_the_models_term():
+    """Two plays of one table differ only by their history; what the scanner moved beyond
+    what the model's history term says is the term's offset (afmctl.control.learn_run)."""
+    from afmctl.control.learn_run import history_offset_nm
+    term = np.linspace(9.0, 7.0, 500)                  # the model: 9 nm decaying to 7 over the record
+    moved = term + 5.7 + np.random.default_rng(0).normal(0.0, 0.2, 500)
+    assert history_offset_nm(moved, term) == pytest.approx(5.7, abs=0.05)
+    assert history_offset_nm(moved - term, 0.0) == pytest.approx(5.7, abs=0.05)   # no creep stage: all of it
+
+
+def test_a_short_settle_hold_is_said_and_a_long_one_not():
+    from afmctl.control.learn_run import ADVISED_SETTLE_S, settle_advice
+    config = Config.model_validate({"amplifier": {"driver": "gcs", "output": "wave", "settle_s": 0.2, "port": "/dev/null"}})
+    assert "amplifier.settle_s = 0.2 s" in settle_advice(config)
+    config.amplifier.settle_s = ADVISED_SETTLE_S
+    assert settle_advice(config) is None

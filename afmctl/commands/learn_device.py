@@ -90,6 +90,8 @@ def progress_line(report: Any) -> str:
     step = f"; step {report.rho:.2f}" if report.rho is not None and report.state == "learning" else ""
     tail = f"; {report.state}: {report.detail}" if report.state != "learning" else ""
     history = f"; history term {report.history_nm:.1f} nm" if report.history_nm else ""
+    if report.history_nm and report.history_offset_nm:
+        history += f" (with {report.history_offset_nm:+.1f} nm measured beyond the model's)"
     return (f"afmctl: learn {report.iteration:3d}: max {s['max_pct']:.3f} / RMS {s['rms_pct']:.3f} % of the range"
             f"{central}{step}{history}{tail}")
 
@@ -119,11 +121,14 @@ def run_device(args: argparse.Namespace) -> int:
     from afmctl.compensators.learning import LearnSettings
 
     from ..config import load_config
-    from ..control.learn_run import LearnOptions, LearnRun
+    from ..control.learn_run import LearnOptions, LearnRun, settle_advice
     from ..control.learned_table import save_learned
     from .run import _install_signals
     _check_args(args)
     config = load_config(args.config)
+    advice = settle_advice(config)
+    if advice:
+        print(f"afmctl: learn: {advice}", file=sys.stderr)
     settings = LearnSettings(rho_max=args.rho, central_pct=args.device_central_pct)
     options = LearnOptions(iterations=args.iterations, noise_floor_pct=args.noise_floor_pct, settings=settings,
                            use_model=not args.model_free, history_term=not args.no_history_term)

@@ -27,6 +27,14 @@ One iteration (:meth:`LearnRun.iterate`), in named steps:
    relative to a play from rest as ``afmctl run`` plays the learned table
    (:mod:`afmctl.compensators.learning_history`; the creep of the earlier plays). The
    table is so learned for the play ``afmctl run`` makes, not for the n-th play in a row.
+   The first play is not like the later ones (the scanner's state before learning began
+   is unknown to the model: on a fresh simulated scanner its first ascent): after the
+   first iteration the first table is played once more (``calibrate``), and what the
+   scanner moved between the two plays of one table — only the history differs — less
+   what the model's history term says is the term's *offset* per axis, added from the
+   second play on (:func:`history_offset_nm`). On the default simulated scanner with the
+   demo's model it is 6 nm on the CAN amplifier (which left the learned table 0.4 % of a
+   1 µm line off when ``afmctl run`` played it from rest) and under 1 nm on the E-727.
 
 Learning ends when the error over the central part of each line is at the noise floor
 (``noise_floor_pct``), after ``iterations``, when a learner's guard stops it (error rising
@@ -68,6 +76,11 @@ OUTPUT_TOL_V = 0.01
 SLEW_RESERVE = 0.02
 #: a target axis moving less than this [nm] peak to peak is not learned (it holds)
 MIN_SPAN_NM = 1.0
+#: a settle hold shorter than this [s] leaves the approach's creep moving the scanner
+#: during the table, differently from play to play (host-timed hold): on the default
+#: simulated scanner two plays from rest differ by 1–3 nm with the 0.2 s default, < 0.7 nm
+#: with 2 s
+ADVISED_SETTLE_S = 2.0
 #: without a noise floor: relative improvement below which two iterations in a row mean
 #: the error is at the noise floor
 STALL_IMPROVEMENT = 0.03
@@ -80,6 +93,7 @@ class Step(enum.Enum):
     PLAY = "play"
     READ = "read"
     LEARN = "learn"
+    CALIBRATE = "calibrate"
 
 
 class RecordingRefused(AfmctlError):
@@ -112,8 +126,9 @@ class IterationReport:
     figures of :func:`afmctl.compensators.learning_weights.error_figures` (% of the range),
     ``metric_pct`` (the worst axis's central max, else max), the next step's ``rho``, the
     recording's ``lag_samples``, ``state`` (learning / converged / stopped / diverged /
-    fault), ``detail`` and ``history_nm``: the largest history term taken out of the
-    recording [nm] (0 without a model)."""
+    fault), ``detail``, ``history_nm``: the largest history term taken out of the
+    recording [nm] (0 without a model), and ``history_offset_nm``: its offset as measured
+    (:func:`history_offset_nm`; the largest of the axes')."""
 
     iteration: int
     errors: dict[str, dict[str, float]]
@@ -123,6 +138,7 @@ class IterationReport:
     state: str = "learning"
     detail: str = ""
     history_nm: float = 0.0
+    history_offset_nm: float = 0.0
 
     def summary(self) -> dict[str, float | None]:
         """The worst axis's figures, as :class:`afmctl.zenoh_api.messages.LearnMsg` takes them."""
@@ -139,6 +155,24 @@ def arm_recorder(amp: Any, config: Any, points: int, axes: list[str]) -> Any:
         raise AfmctlError(f"loop.rate_Hz: {config.loop.rate_Hz:g} Hz is not a whole number of the "
                           f"recorder's {clock:g} s ticks")
     return amp.configure_recorder(axes, points=points, divider=divider, signals=("y_nm", "u_V"))
+
+
+def history_offset_nm(moved_nm: np.ndarray, term_nm: np.ndarray) -> float:
+    """The offset of a history term [nm]: the mean of what the scanner moved between two
+    plays of one table (``moved_nm``: the second recording less the first [nm]) less what
+    the model's history term says moved (``term_nm``: its change between the plays [nm])."""
+    moved = np.asarray(moved_nm, dtype=float)
+    return float(np.mean(moved - np.broadcast_to(np.asarray(term_nm, dtype=float), moved.shape)))
+
+
+def settle_advice(config: Any) -> str | None:
+    """One line when ``amplifier.settle_s`` is shorter than :data:`ADVISED_SETTLE_S`."""
+    settle = float(config.amplifier.settle_s)
+    if settle >= ADVISED_SETTLE_S:
+        return None
+    return (f"amplifier.settle_s = {settle:g} s: the creep after each approach ramp still moves the scanner while the "
+            f"table plays, a little differently every play; for plays that repeat to the sensor's noise (and "
+            f"'afmctl run' repeating the learned error) hold {ADVISED_SETTLE_S:g} s or more")
 
 
 def read_at_sample_start(model: Any) -> Any:
@@ -212,6 +246,9 @@ class LearnRun:
         self.timeline: PlayTimeline | None = None
         self._terms: dict[str, np.ndarray] = {}
         self._models: tuple | None = None
+        self._first_play: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        #: per axis the history term's measured offset [nm] (step ``calibrate``)
+        self.history_offsets: dict[str, float] = {}
         self._check_config()
         self.spec = config.trajectory.model_dump(mode="json")
         self.axes = [a for a in config.scanner.axes if a in amplifier.axes]
@@ -293,6 +330,8 @@ class LearnRun:
                 self.on_iteration(report)
             if report.state != "learning" or table_next is None or k == self.options.iterations:
                 break
+            if k == 0:
+                self.calibrate(table, list(learners))
             table = table_next
         if self.best is None:
             raise AfmctlError("learn: no table was played to the end; nothing learned")
@@ -319,6 +358,26 @@ class LearnRun:
             log.warning("learn: iteration %d: %s; reconnecting and playing the table again", k, got[1])
             self._reconnect()
         return IterationReport(k, {}, float("nan"), state=ended[0], detail=ended[1]), None
+
+    def calibrate(self, table: WaveTable, axes: list[str]) -> None:
+        """Step ``calibrate`` (module docstring): play the first table once more and
+        measure each axis's history term's offset (without a model's creep stage, the
+        whole term: what the history moved). A play that does not complete (a fault, a
+        stop) leaves the terms as the model gives them."""
+        if not self._first_play:
+            return
+        self.step = Step.CALIBRATE
+        got = self._play_and_read(table, axes)
+        if not isinstance(got, dict):
+            log.warning("learn: the first table's second play did not complete (%s); the model's history term is "
+                        "used as it is", got[1])
+            return
+        for axis, (y0, h0) in self._first_play.items():
+            moved, term = got[axis] - y0, self._terms.get(axis, np.zeros_like(y0)) - h0
+            self.history_offsets[axis] = history_offset_nm(moved, term)
+            log.info("learn: axis %s: the first table moved %.1f nm between its two plays where the model's history "
+                     "term says %.1f nm: the term is offset by %+.1f nm", axis, float(np.mean(moved)),
+                     float(np.mean(term)), self.history_offsets[axis])
 
     def _play_and_read(self, table: WaveTable, axes: list[str]) -> dict[str, np.ndarray] | tuple[str, str]:
         """The measured motion per axis, or ``(state, why)`` when the play or the read-back
@@ -409,9 +468,12 @@ class LearnRun:
         nxt = WaveTable(table.target_nm, table.corrected_nm, table.drift_nm, table.u_V.copy(), table.T_C, table.pad,
                         list(table.report))
         errors, rhos, lags, stops = {}, [], [], []
+        terms = {a: self._history_term(a, k, measured[a].shape) for a in learners}
+        if k == 0 and self.options.history_term:
+            self._first_play = {a: (measured[a].copy(), terms.get(a, np.zeros_like(measured[a]))) for a in learners}
         for axis, learner in learners.items():
             c = "xyz".index(axis)
-            res = learner.step(table.u_V[:, c], measured[axis] - self._terms.get(axis, 0.0))
+            res = learner.step(table.u_V[:, c], measured[axis] - terms.get(axis, 0.0))
             if abs(res.lag_samples) > MAX_LAG_SHARE * len(table):
                 raise RecordingRefused(f"learn: the recording of axis {axis} lags the table by "
                                        f"{res.lag_samples:.0f} samples (trigger?); not learned from")
@@ -425,7 +487,8 @@ class LearnRun:
         if self.best is None or metric < self.best[0]:
             self.best = (metric, table)
         report = IterationReport(k, errors, metric, float(np.median(rhos)), float(max(lags, key=abs)),
-                                 history_nm=max((float(np.max(np.abs(d))) for d in self._terms.values()), default=0.0))
+                                 history_nm=max((float(np.max(np.abs(d))) for d in terms.values()), default=0.0),
+                                 history_offset_nm=max(self.history_offsets.values(), key=abs, default=0.0))
         if metric <= self.options.noise_floor_pct:
             report.state, report.detail = "converged", f"at the noise floor ({metric:.3g} % <= " \
                                                       f"{self.options.noise_floor_pct:g} %)"
@@ -437,6 +500,13 @@ class LearnRun:
             report.state, report.detail = "diverged", "; ".join(stops) + "; the best table is kept"
             return report, None
         return report, nxt
+
+    def _history_term(self, axis: str, k: int, shape: tuple[int, ...]) -> np.ndarray:
+        """The history term [nm] of axis ``axis`` in iteration ``k``: the model's, offset as
+        measured from the second play on (the first play is the one ``afmctl run``
+        repeats from rest)."""
+        offset = self.history_offsets.get(axis, 0.0) if k >= 1 else 0.0
+        return np.broadcast_to(self._terms.get(axis, 0.0), shape) + offset
 
     def _stalled(self, metric: float) -> bool:
         m = [r.metric_pct for r in self.reports[-2:]] + [metric]
