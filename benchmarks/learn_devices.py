@@ -126,7 +126,8 @@ def one(driver: str, line_rate: int, model: str | None, iterations: int, work: P
 
 
 def table_md(rows: list[dict], model: str | None, command: str) -> str:
-    out = [f"`{command}`, model: {Path(model).name if model else 'none (linear calibration)'}; error = max over the "
+    out = ["## Learning on the simulated devices (`afmctl learn --config`, #25)", "",
+           f"`{command}`, model: {Path(model).name if model else 'none (linear calibration)'}; error = max over the "
            "central 80 % of each line, % of the line; 'recorded' = the device's recorder (sensor noise 0.2 nm "
            "RMS), 'run' = the learned table played again as `afmctl run` plays it, recorded the same way.", "",
            "| device | lines/s | first [%] | best [%] (iteration) | at goal by iteration | run [%] | s / iteration |",
