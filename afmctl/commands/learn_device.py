@@ -91,7 +91,7 @@ def progress_line(report: Any) -> str:
     tail = f"; {report.state}: {report.detail}" if report.state != "learning" else ""
     history = f"; history term {report.history_nm:.1f} nm" if report.history_nm else ""
     if report.history_nm and report.history_offset_nm:
-        history += f" (with {report.history_offset_nm:+.1f} nm measured beyond the model's)"
+        history += f" ({report.history_offset_nm:+.1f} nm of it measured by replaying the first table)"
     return (f"afmctl: learn {report.iteration:3d}: max {s['max_pct']:.3f} / RMS {s['rms_pct']:.3f} % of the range"
             f"{central}{step}{history}{tail}")
 
