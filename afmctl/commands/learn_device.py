@@ -25,7 +25,12 @@ guard stops it (error rising twice; a model whose phase is over 90 deg off) or N
 have played. The scanner creeps: each play carries the creep of the plays before it, and
 afmctl run later plays the learned table once, from rest. With a model whose chain has a
 creep stage, each recording is first freed of what that creep history adds (the "history
-term", in nm on the progress line), so the learned table is right for that play from rest.
+term", in nm on the progress line), so the learned table is right for that play from rest;
+after the first iteration the first table plays once more, and what the scanner moved
+between its two plays beyond the model's term is measured and added to the term (without
+a model it is the whole term). The creep of each approach ramp still runs during the
+table when amplifier.settle_s is short: hold 2 s or more when the played-again error
+matters at the nm level (afmctl learn says so when it is shorter).
 Every table is checked (limits, slew, device capacity) before it is sent;
 Ctrl-C stops (the best table so far is written), a second Ctrl-C is an emergency stop.
 The best measured table is written to --out; play it with
