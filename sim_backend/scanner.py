@@ -53,19 +53,16 @@ from .config import (
     linear_scanner_config,
 )
 from .plant import AxisPlant
-from .sensor import PositionSensor, SensorCapture
+from .sensor import SAMPLE_TOL, PositionSensor, SensorCapture
 
 log = logging.getLogger(__name__)
-
-#: a time within this fraction of a sample of a sample's end is that sample's end (the
-#: rounding of times computed as t0 + k·period by a device, as the sensor's captures take it)
-SAMPLE_TOL = 1e-6
 
 
 def whole_samples(span_s: float, dt_s: float) -> int:
     """The whole samples of ``dt_s`` [s] in ``span_s`` [s], a span short of a whole
     number by less than :data:`SAMPLE_TOL` of a sample counting as that number."""
     return int(math.floor(span_s / dt_s + SAMPLE_TOL))
+
 
 __all__ = [
     "AXES",
@@ -222,10 +219,6 @@ class Scanner:
         start, dt, count = self._clock
         return start + count * dt
 
-    @time_s.setter
-    def time_s(self, t_s: float) -> None:
-        self._clock = (float(t_s), self._clock[1], 0)
-
     def _tick(self, n: int, dt: float) -> None:
         """The clock advanced by ``n`` samples of ``dt`` [s]."""
         start, clock_dt, count = self._clock
@@ -370,12 +363,11 @@ class Scanner:
         with self._lock:
             dt = self.config.dt_s
             counts = []
-            t_cur = self.time_s
+            t0, done = self.time_s, 0                   # the clock counts samples, not sums of n·dt
             for t_k in t.tolist():                      # whole samples before each change, as advance()
-                n = whole_samples(t_k - t_cur, dt)
-                counts.append(max(n, 0))
-                if n > 0:
-                    t_cur += n * dt
+                n = max(whole_samples(t_k - (t0 + done * dt), dt), 0)
+                counts.append(n)
+                done += n
             before = np.vstack([self._held_V[None, :], rows[:-1]])    # held until each change
             u = np.repeat(before, counts, axis=0)
             for k in range(0, len(u), self.ADVANCE_CHUNK):

@@ -24,8 +24,10 @@ from scipy.signal import lfilter
 
 from .config import SensorConfig
 
-#: a capture time within this fraction of a sample of a sample's end is that sample
-_TIME_TOL = 1e-6
+#: a time within this fraction of a sample of a sample's end is that sample's end: the
+#: rounding of times a device computes as t0 + k·period (the captures' times here, the
+#: scanner's whole samples in :func:`afmctl.sim_backend.scanner.whole_samples`)
+SAMPLE_TOL = 1e-6
 
 
 class SensorCapture:
@@ -52,7 +54,7 @@ class SensorCapture:
 
     def hold(self, until_s: float, reading: np.ndarray, dt_s: float) -> None:
         """Readings due at or before ``until_s`` [s] (already past when asked) get ``reading``."""
-        k1 = int(np.searchsorted(self.t_s, until_s + _TIME_TOL * dt_s, side="right"))
+        k1 = int(np.searchsorted(self.t_s, until_s + SAMPLE_TOL * dt_s, side="right"))
         if k1 > self.count and not self.cancelled:
             self.y_nm[self.count:k1] = reading
             self.count = k1
@@ -65,10 +67,10 @@ class SensorCapture:
             return
         t_end = t_start_s + n * dt_s
         k0 = self.count
-        k1 = int(np.searchsorted(self.t_s, t_end + _TIME_TOL * dt_s, side="right"))
+        k1 = int(np.searchsorted(self.t_s, t_end + SAMPLE_TOL * dt_s, side="right"))
         if k1 <= k0:
             return
-        idx = np.floor((self.t_s[k0:k1] - t_start_s) / dt_s + _TIME_TOL).astype(np.int64) - 1
+        idx = np.floor((self.t_s[k0:k1] - t_start_s) / dt_s + SAMPLE_TOL).astype(np.int64) - 1
         rows = np.where(idx[:, None] >= 0, readings[np.clip(idx, 0, n - 1)], before[None, :])
         self.y_nm[k0:k1] = rows
         self.count = k1

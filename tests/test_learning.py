@@ -128,12 +128,12 @@ def test_turnarounds_the_scanner_cannot_follow_do_not_pull_the_learning(chain):
     u = chain.inverse_within_limits(tgt, DT, 0.0, 150.0, SLEW).u_V
     learner = Learner(tgt, DT, chain, LearnSettings(u_min_V=0.0, u_max_V=150.0))
     rounded = learner.reference_nm
+    weighted = error_weights(tgt, learner.settings.central_pct) > 0
     assert np.max(np.abs(rounded - tgt)) > 10.0                       # the corners are rounded …
-    assert np.array_equal(rounded[error_weights(tgt, LearnSettings().central_pct) > 0],
-                          tgt[error_weights(tgt, LearnSettings().central_pct) > 0])          # … the weighted parts are not
+    assert np.array_equal(rounded[weighted], tgt[weighted])          # … the weighted parts are not
     res = learner.step(u, rounded)
     assert res.du_max_V < 1e-6 and res.errors["max_pct"] > 0.3
-    zones = error_weights(tgt, LearnSettings().central_pct) == 0
+    zones = ~weighted
     bump = np.where(zones, 50.0, 0.0)
     s0 = LearnSettings(u_min_V=0.0, u_max_V=150.0, turnaround_weight=0.0)
     quiet = Learner(tgt, DT, chain, s0).step(u, rounded + bump)

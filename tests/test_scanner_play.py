@@ -36,7 +36,6 @@ def test_a_stream_on_the_simulated_can_amplifier_reaches_the_scanner_in_blocks()
     assert np.array_equal(s.held_voltage_V(), [10.0, 20.0, 30.0])
 
 
-
 def test_a_timed_play_lands_on_the_same_samples_however_long_the_clock_ran():
     """A device's clock computes each point's time as t0 + k·period; the scanner must apply
     it on the same simulation sample whether its own clock got there in one call or in

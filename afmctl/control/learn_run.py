@@ -161,8 +161,7 @@ def history_offset_nm(moved_nm: np.ndarray, term_nm: np.ndarray) -> float:
     """The offset of a history term [nm]: the mean of what the scanner moved between two
     plays of one table (``moved_nm``: the second recording less the first [nm]) less what
     the model's history term says moved (``term_nm``: its change between the plays [nm])."""
-    moved = np.asarray(moved_nm, dtype=float)
-    return float(np.mean(moved - np.broadcast_to(np.asarray(term_nm, dtype=float), moved.shape)))
+    return float(np.mean(np.asarray(moved_nm, dtype=float) - np.asarray(term_nm, dtype=float)))
 
 
 def settle_advice(config: Any) -> str | None:
@@ -373,7 +372,7 @@ class LearnRun:
                         "used as it is", got[1])
             return
         for axis, (y0, h0) in self._first_play.items():
-            moved, term = got[axis] - y0, self._terms.get(axis, np.zeros_like(y0)) - h0
+            moved, term = got[axis] - y0, self._history_term(axis, 0, y0.shape) - h0
             self.history_offsets[axis] = history_offset_nm(moved, term)
             log.info("learn: axis %s: the first table moved %.1f nm between its two plays where the model's history "
                      "term says %.1f nm: the term is offset by %+.1f nm", axis, float(np.mean(moved)),
@@ -470,10 +469,10 @@ class LearnRun:
         errors, rhos, lags, stops = {}, [], [], []
         terms = {a: self._history_term(a, k, measured[a].shape) for a in learners}
         if k == 0 and self.options.history_term:
-            self._first_play = {a: (measured[a].copy(), terms.get(a, np.zeros_like(measured[a]))) for a in learners}
+            self._first_play = {a: (measured[a].copy(), terms[a]) for a in learners}
         for axis, learner in learners.items():
             c = "xyz".index(axis)
-            res = learner.step(table.u_V[:, c], measured[axis] - terms.get(axis, 0.0))
+            res = learner.step(table.u_V[:, c], measured[axis] - terms[axis])
             if abs(res.lag_samples) > MAX_LAG_SHARE * len(table):
                 raise RecordingRefused(f"learn: the recording of axis {axis} lags the table by "
                                        f"{res.lag_samples:.0f} samples (trigger?); not learned from")
