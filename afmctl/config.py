@@ -81,6 +81,15 @@ class Limits(_Strict):
         return self
 
 
+#: ``amplifier.settle_s`` unset: the hold before a planned wave table [s]
+DEFAULT_SETTLE_S = 0.2
+#: ``amplifier.settle_s`` unset: the hold before each play of ``afmctl learn`` [s] — after
+#: the approach ramp the creep still moves the scanner for seconds; with 0.2 s two plays
+#: from rest differ by 1-3 nm on the simulated scanner, with 2 s by under 0.7 nm
+#: (docs/LEARNING.md), and a learned table is only as repeatable as its plays
+LEARN_SETTLE_S = 2.0
+
+
 class AmplifierSection(_Strict):
     """The amplifier link (drivers.registry.open_amplifier)."""
 
@@ -99,14 +108,19 @@ class AmplifierSection(_Strict):
                                  "before the run, as `afmctl compensate` does, and played on the "
                                  "amplifier's clock: wave generator of drivers 'gcs'/'nv200', stream "
                                  "FIFO of 'can')")
-    settle_s: float = Field(0.2, ge=0.0, le=60.0, description="output = 'wave': hold at the table's first row this "
-                                                           "long after the approach ramp, before the table starts [s] "
-                                                           "(the ramp's ringing and fast creep die out, the same way "
-                                                           "in every play)")
+    settle_s: float | None = Field(None, ge=0.0, le=60.0, description=(
+        "output = 'wave': hold at the table's first row this long after the approach ramp, before the table starts "
+        "[s] (the ramp's ringing and creep die out, the same way in every play); unset: "
+        f"{DEFAULT_SETTLE_S:g} s for a planned table, {LEARN_SETTLE_S:g} s while afmctl learn plays, and for "
+        "trajectory.kind = 'learned' the hold the table was learned with"))
     low_water_s: float = Field(0.1, gt=0.0, le=10.0, description="output = 'stream'/'wave' on CAN: top the device FIFO up "
                                                                  "when it holds less than this [s of samples]")
     high_water_s: float = Field(0.2, gt=0.0, le=10.0, description="output = 'stream'/'wave' on CAN: fill the device FIFO to "
                                                                   "this [s of samples]; > low_water_s")
+
+    def hold_s(self, unset: float = DEFAULT_SETTLE_S) -> float:
+        """The settle hold [s]: ``settle_s``, or ``unset`` when the configuration leaves it out."""
+        return float(self.settle_s) if self.settle_s is not None else float(unset)
 
     @model_validator(mode="after")
     def _stream_marks(self) -> "AmplifierSection":

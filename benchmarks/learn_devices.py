@@ -9,6 +9,8 @@ measured by the device's recorder, max over the central 80 % of each line, % of 
 the best iteration, the wall time per iteration (upload + play + read-back + learning), and
 the error of the learned table when ``afmctl run`` has played it (exit 0) and the controller
 plays it again with the device's recorder armed (the same sensor that learning used).
+The configurations leave ``amplifier.settle_s`` unset, as a user would: learning holds 2 s
+before each play, and ``afmctl run`` plays the learned table after the same hold.
 
     .venv/bin/python benchmarks/learn_devices.py --model MODEL.json [--devices gcs can nv200]
         [--rates 50 100 200] [--iterations 10] [--work DIR] [--no-write]
@@ -54,7 +56,6 @@ axes = {axes}
 [amplifier]
 driver = "{driver}"
 output = "wave"
-settle_s = 2.0
 slew_V_per_s = 100000.0
 [loop]
 rate_Hz = {rate}

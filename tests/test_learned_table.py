@@ -96,6 +96,23 @@ def test_a_table_learned_under_other_conditions_is_refused(tmp_path, change, mes
     assert str(path) in str(err.value) and message in str(err.value) and "relearn" in str(err.value)
 
 
+def test_an_unset_settle_hold_plays_the_one_the_table_was_learned_with(tmp_path):
+    learning = cfg_for(tmp_path, "unused")
+    learning.amplifier.settle_s = 2.0                    # as afmctl learn holds by default
+    path, _ = learned_file(tmp_path, learning)
+    source = LearnedSource.from_file(path)
+    unset = cfg_for(tmp_path, "unused")
+    assert unset.amplifier.settle_s is None
+    source.table_for(unset)                              # accepted ...
+    assert source.settle_s(unset) == 2.0                 # ... and played after the learning's hold
+    source.table_for(learning)
+    assert source.settle_s(learning) == 2.0
+    shorter = cfg_for(tmp_path, "unused")
+    shorter.amplifier.settle_s = 0.2
+    with pytest.raises(AfmctlError, match=r"amplifier.settle_s \[s\] was 2.0 .* now has 0.2"):
+        source.table_for(shorter)
+
+
 def test_a_changed_model_file_is_refused(tmp_path, chain_file):
     cfg = cfg_for(tmp_path, "unused", compensation={"x": {"model": str(chain_file)}})
     path, _ = learned_file(tmp_path, cfg)
@@ -107,9 +124,12 @@ def test_a_changed_model_file_is_refused(tmp_path, chain_file):
 
 @pytest.mark.slow
 def test_the_controller_plays_the_learned_table_as_it_is(tmp_path):
+    """... after the settle hold it was learned with (the configuration leaves it unset)."""
     with serve_pty("gcs", baud=921600) as srv:
         cfg = cfg_for(tmp_path, srv.port)
-        path, table = learned_file(tmp_path, cfg)
+        learning = cfg.model_copy(deep=True)
+        learning.amplifier.settle_s = 0.5
+        path, table = learned_file(tmp_path, learning)
         amp = open_driver(cfg, srv.port)
         try:
             with Controller(cfg, amp) as ctl:
@@ -120,9 +140,13 @@ def test_the_controller_plays_the_learned_table_as_it_is(tmp_path):
             amp.close()
     assert ctl.state is State.STOPPED and stats["wave"]["played"] == len(table), stats
     reader = RunLogReader(tmp_path / "l.afmlog")
-    sp, ev = reader.setpoints(), {e["event"]: e["seq"] for e in reader.events()}
+    events = reader.events()
+    sp, ev = reader.setpoints(), {e["event"]: e["seq"] for e in events}
     rows = sp[(sp["seq"] >= ev["ramp-done"]) & (sp["seq"] < ev["end"])]
     np.testing.assert_allclose(rows["u_V"][:, 0], table.u_V[:len(rows), 0])
+    held = {e["event"]: e["wall_time"] for e in events}
+    assert "holding it 0.5 s" in next(e["detail"] for e in events if e["event"] == "settle")
+    assert held["ramp-done"] - held["settle"] >= 0.5
 
 
 RUN_TOML = """

@@ -108,8 +108,23 @@ def test_the_history_offset_is_what_moved_beyond_the_models_term():
 
 
 def test_a_short_settle_hold_is_said_and_a_long_one_not():
-    from afmctl.control.learn_run import ADVISED_SETTLE_S, settle_advice
+    from afmctl.config import LEARN_SETTLE_S
+    from afmctl.control.learn_run import settle_advice
     config = Config.model_validate({"amplifier": {"driver": "gcs", "output": "wave", "settle_s": 0.2, "port": "/dev/null"}})
     assert "amplifier.settle_s = 0.2 s" in settle_advice(config)
-    config.amplifier.settle_s = ADVISED_SETTLE_S
+    config.amplifier.settle_s = LEARN_SETTLE_S
     assert settle_advice(config) is None
+    config.amplifier.settle_s = None                   # unset: learning holds LEARN_SETTLE_S
+    assert settle_advice(config) is None
+
+
+def test_learning_holds_two_seconds_unless_the_configuration_says_otherwise():
+    from afmctl.config import DEFAULT_SETTLE_S, LEARN_SETTLE_S
+    from afmctl.control.learn_run import with_learning_hold
+    unset = Config.model_validate({"amplifier": {"driver": "gcs", "output": "wave", "port": "/dev/null"}})
+    learning = with_learning_hold(unset)
+    assert learning.amplifier.settle_s == LEARN_SETTLE_S == 2.0
+    assert unset.amplifier.settle_s is None and unset.amplifier.hold_s() == DEFAULT_SETTLE_S == 0.2
+    short = Config.model_validate({"amplifier": {"driver": "gcs", "output": "wave", "settle_s": 0.5,
+                                                 "port": "/dev/null"}})
+    assert with_learning_hold(short).amplifier.settle_s == 0.5

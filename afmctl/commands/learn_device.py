@@ -29,8 +29,9 @@ term", in nm on the progress line), so the learned table is right for that play 
 after the first iteration the first table plays once more, and what the scanner moved
 between its two plays beyond the model's term is measured and added to the term (without
 a model it is the whole term). The creep of each approach ramp still runs during the
-table when amplifier.settle_s is short: hold 2 s or more when the played-again error
-matters at the nm level (afmctl learn says so when it is shorter).
+table while the output holds the first row: with amplifier.settle_s unset every play
+holds 2 s first (a shorter hold makes plays repeat less well; afmctl learn says so), and
+the learned table records its hold, which afmctl run then keeps.
 Every table is checked (limits, slew, device capacity) before it is sent;
 Ctrl-C stops (the best table so far is written), a second Ctrl-C is an emergency stop.
 The best measured table is written to --out; play it with

@@ -24,6 +24,8 @@ import numpy as np
 
 from afmctl.compensators.learning_history import VoltageHistory, history_term_nm
 
+from ..config import LEARN_SETTLE_S
+
 
 class PlayTimeline:
     """Per axis of ``models`` (axis → model with ``forward``) the history since learning
@@ -36,7 +38,7 @@ class PlayTimeline:
         self.dt_s = float(config.dt_s)
         self.rate_V_per_s = min(float(config.safety.ramp_V_per_s), float(config.slew_V_per_s()))
         self.finish_safe = config.safety.on_finish == "safe"
-        self.settle_s = float(config.amplifier.settle_s)
+        self.settle_s = config.amplifier.hold_s(unset=LEARN_SETTLE_S)
         self.safe_V = {a: config.safety.safe_value(a) for a in models}
         peak = peak_V or {}
         self.rest = {a: VoltageHistory(m, self.dt_s, start_V[a], peak_V=peak.get(a)) for a, m in models.items()}

@@ -57,6 +57,7 @@ import numpy as np
 from afmctl.compensators.learning import Learner, LearnSettings
 from afmctl.compensators.learning_history import creep_stages
 
+from ..config import LEARN_SETTLE_S
 from ..errors import AfmctlError
 from ..inputs.trajectories import build, collect
 from .controller import Controller, State
@@ -76,11 +77,6 @@ OUTPUT_TOL_V = 0.01
 SLEW_RESERVE = 0.02
 #: a target axis moving less than this [nm] peak to peak is not learned (it holds)
 MIN_SPAN_NM = 1.0
-#: a settle hold shorter than this [s] leaves the approach's creep moving the scanner
-#: during the table, differently from play to play (host-timed hold): on the default
-#: simulated scanner two plays from rest differ by 1–3 nm with the 0.2 s default, < 0.7 nm
-#: with 2 s
-ADVISED_SETTLE_S = 2.0
 #: without a noise floor: relative improvement below which two iterations in a row mean
 #: the error is at the noise floor
 STALL_IMPROVEMENT = 0.03
@@ -165,13 +161,26 @@ def history_offset_nm(moved_nm: np.ndarray, term_nm: np.ndarray) -> float:
 
 
 def settle_advice(config: Any) -> str | None:
-    """One line when ``amplifier.settle_s`` is shorter than :data:`ADVISED_SETTLE_S`."""
-    settle = float(config.amplifier.settle_s)
-    if settle >= ADVISED_SETTLE_S:
+    """One line when ``amplifier.settle_s`` is set shorter than
+    :data:`~afmctl.config.LEARN_SETTLE_S` (a short hold leaves the approach's creep moving
+    the scanner during the table, differently from play to play: the hold is host-timed)."""
+    settle = config.amplifier.settle_s
+    if settle is None or settle >= LEARN_SETTLE_S:
         return None
     return (f"amplifier.settle_s = {settle:g} s: the creep after each approach ramp still moves the scanner while the "
             f"table plays, a little differently every play; for plays that repeat to the sensor's noise (and "
-            f"'afmctl run' repeating the learned error) hold {ADVISED_SETTLE_S:g} s or more")
+            f"'afmctl run' repeating the learned error) hold {LEARN_SETTLE_S:g} s or more (the default when unset)")
+
+
+def with_learning_hold(config: Any) -> Any:
+    """``config``, or a copy of it holding :data:`~afmctl.config.LEARN_SETTLE_S` before each
+    play when ``amplifier.settle_s`` is unset (the learned table records the hold, and
+    ``afmctl run`` plays it with the same one)."""
+    if config.amplifier.settle_s is not None:
+        return config
+    config = config.model_copy(deep=True)
+    config.amplifier.settle_s = LEARN_SETTLE_S
+    return config
 
 
 def read_at_sample_start(model: Any) -> Any:
@@ -233,7 +242,7 @@ class LearnRun:
 
     def __init__(self, config: Any, amplifier: Any, options: LearnOptions | None = None,
                  on_iteration: Callable[[IterationReport], None] | None = None) -> None:
-        self.config = config
+        self.config = with_learning_hold(config)
         self.amp = amplifier
         self.options = options or LearnOptions()
         self.on_iteration = on_iteration

@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from ..config import DEFAULT_SETTLE_S
 from ..errors import AfmctlError
 from .wave_plan import WaveTable
 
@@ -71,7 +72,7 @@ def fingerprint(config: Any, trajectory: dict[str, Any]) -> dict[str, Any]:
         "driver": config.amplifier.driver,
         "limits_V": {a: [float(v) for v in config.limits(a)] for a in sorted(config.scanner.axes)},
         "slew_V_per_s": float(config.slew_V_per_s()),
-        "settle_s": float(config.amplifier.settle_s),
+        "settle_s": None if config.amplifier.settle_s is None else float(config.amplifier.settle_s),
         "models": {name: _sha256_file(p) for name, p in sorted(model_files(config).items())},
         "drift": comp.drift.model_dump(mode="json") if comp.drift.enabled else None,
         "trajectory": trajectory,
@@ -144,6 +145,13 @@ def load_learned(path: str | Path) -> LearnedTable:
     return LearnedTable(table, dict(meta["learned_for"]), str(meta["target_sha256"]), list(meta.get("history", [])))
 
 
+def learned_settle_s(learned: LearnedTable) -> float:
+    """The settle hold [s] a table was learned with (files from before it was recorded
+    were learned with the 0.2 s default)."""
+    settle = learned.learned_for.get("settle_s")
+    return DEFAULT_SETTLE_S if settle is None else float(settle)
+
+
 def _differs(name: str, was: Any, now: Any) -> str:
     return f"{name} was {was} when the table was learned, the configuration now has {now}"
 
@@ -158,10 +166,10 @@ def check_matches(path: str | Path, learned: LearnedTable, now: dict[str, Any], 
                        ("drift", "compensation.drift")):
         if was.get(key) != now.get(key):
             raise AfmctlError(f"{path}: {_differs(label, was.get(key), now.get(key))}; relearn (afmctl learn)")
-    # the hold before each play sets the creep the table meets (files from before it was
-    # recorded played with the 0.2 s default)
-    if was.get("settle_s", now.get("settle_s")) != now.get("settle_s"):
-        raise AfmctlError(f"{path}: {_differs('amplifier.settle_s [s]', was.get('settle_s'), now.get('settle_s'))}; "
+    # the hold before each play sets the creep the table meets (an unset one plays the
+    # table's own: LearnedSource.settle_s)
+    if now.get("settle_s") is not None and learned_settle_s(learned) != now["settle_s"]:
+        raise AfmctlError(f"{path}: {_differs('amplifier.settle_s [s]', learned_settle_s(learned), now['settle_s'])}; "
                           "relearn (afmctl learn)")
     for name in sorted(set(was.get("models", {})) | set(now.get("models", {}))):
         a, b = was.get("models", {}).get(name), now.get("models", {}).get(name)
@@ -188,6 +196,12 @@ class LearnedSource:
     @classmethod
     def from_file(cls, path: str | Path) -> "LearnedSource":
         return cls(load_learned(path), path)
+
+    def settle_s(self, config: Any) -> float:
+        """The hold before the table [s]: ``amplifier.settle_s`` when the configuration sets
+        it (:meth:`table_for` refuses one that differs from the learning's), else the hold
+        the table was learned with."""
+        return config.amplifier.hold_s(unset=learned_settle_s(self.learned))
 
     def targets_nm(self) -> np.ndarray:
         """The trajectory's rows (N, 3) [nm], without the padding."""

@@ -211,7 +211,8 @@ class WaveMachine(LoopMachine):
             reached = self._towards(goal)
             if reached is None:
                 return False
-        settle_s = ctl.config.amplifier.settle_s
+        src = ctl._learned_source
+        settle_s = src.settle_s(ctl.config) if src is not None else ctl.config.amplifier.hold_s()
         ctl.wave_times["settle"] = t_settle = time.monotonic()
         ctl._event("settle", f"at the wave's first sample; holding it {settle_s:g} s before the table starts")
         while time.monotonic() - t_settle < settle_s:     # the settle hold (wall clock)
