@@ -219,7 +219,7 @@ class PreisachModel(HysteresisModel):
         ``u_max_V`` (grid range; default the data range), ``method`` (``"for"`` first-order
         reversal curves, ``"nnls"`` regularised nonnegative least squares, ``"auto"``
         default: FOR when the data are reversal curves from ``u_min``), ``smoothing``
-        (NNLS regularisation weight, default 1e-4), ``max_rows`` (NNLS rows, default 200000).
+        (NNLS smoothness weight, default 1e-2), ``max_rows`` (NNLS rows, default 200000).
         See :mod:`afmctl.compensators.preisach_identify`.
         """
         from .preisach_identify import identify_preisach

@@ -85,8 +85,9 @@ def _sines_then_minor_loops(fs_Hz: float = 200.0) -> tuple[np.ndarray, np.ndarra
 
 def test_preisach_from_full_range_sines_predicts_minor_loops_at_least_as_well_as_pi():
     """Full-range cycles leave the inside of the Preisach plane unvisited: without the prior
-    the fitted density there is what the smoothing left (303 nm RMS on the minor loops), PI
-    gets 252 nm, the Preisach fit with its PI-like prior 146 nm (relay plant, 14.5 µm span)."""
+    the fitted density there is what the smoothing spread from the edges (184 nm RMS on the
+    minor loops), PI gets 252 nm, the Preisach fit with its PI-like prior 128 nm (relay
+    plant, 14.5 µm span)."""
     t1, u, k = _sines_then_minor_loops()
     plant = RelayPreisachPlant(noise_nm=2.0, seed=1)
     y = plant.run(u)

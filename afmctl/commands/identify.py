@@ -88,7 +88,7 @@ Options:
                     epi: min_dwell_samples (10), dwell_tol_V (0)
                     creep: tau_min_s, tau_max_s (time-constant range, s)
                     preisach: u_min_V, u_max_V (grid range, default the data range),
-                      method=auto|for|nnls, smoothing (1e-4), max_rows, memory_depth,
+                      method=auto|for|nnls, smoothing (1e-2), max_rows, memory_depth,
                       prior=pi|none (nnls: what the data do not determine — e.g. the inside
                       of the plane after full-range cycles — takes a PI-like density fitted
                       on the same data), prior_weight (1e-4)
