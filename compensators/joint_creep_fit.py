@@ -35,10 +35,12 @@ log = logging.getLogger(__name__)
 #: rows of the joint least-squares problem (evenly spread over the record) unless
 #: ``max_rows`` is given: the 64-level fit costs ≈ 5 s per round at 20 000 rows
 JOINT_MAX_ROWS = 20_000
-#: density smoothing of the joint fit unless ``smoothing`` is given: lighter than the plain
-#: Preisach fit's 1e-4 — with the creep lags in the model the cell densities near the
-#: diagonal no longer absorb rate effects and need less damping (speed ladder, static
-#: floor at 16 lines/s: 0.65 % at 1e-4, 0.42 % at 1e-5; staircase 0.52 → 0.42 %)
+#: density smoothing of the joint fit unless ``smoothing`` is given. Chosen while the
+#: penalty still tied the diagonal cells to their neighbours (speed ladder, static floor at
+#: 16 lines/s: 0.65 % at 1e-4, 0.42 % at 1e-5; staircase 0.52 → 0.42 %). With the diagonal
+#: out of the penalty (2026-11-26) the plain fit takes 1e-2; here 1e-2 measured 1.18 % vs
+#: 1.31 % max on a user-style record's 1 line/s raster (stiff plant), not yet on afmctl's
+#: excitation, so the value stays
 JOINT_SMOOTHING = 1e-5
 #: grid levels of the rounds before the last
 COARSE_LEVELS = 24
