@@ -50,8 +50,9 @@ SMOOTHING = 1e-2
 #: relative weight of the ridge that pulls the cell masses towards the prior (a fraction of
 #: the mean diagonal of the normal equations: negligible in the directions the data determine,
 #: decisive in those they do not). Measured: minor loops predicted from full-range sines
-#: 146 nm RMS (PI 252, no prior 303; relay plant, 14.5 µm span); a rich noise-free record
-#: keeps its 0.11 % max error (0.30 % at 1e-3)
+#: 128 nm RMS (PI 252, no prior 184; relay plant, 14.5 µm span; 146 / 252 / 303 before the
+#: smoothing left the diagonal cells alone); a rich noise-free record kept its 0.11 % max
+#: error (0.30 % at 1e-3)
 PRIOR_WEIGHT = 1e-4
 #: priors of the nnls fit: "pi" (the PI model identified on the same data, as a Preisach
 #: density) or "none" (the smoothness penalty alone)
