@@ -39,8 +39,9 @@ JOINT_MAX_ROWS = 20_000
 #: penalty still tied the diagonal cells to their neighbours (speed ladder, static floor at
 #: 16 lines/s: 0.65 % at 1e-4, 0.42 % at 1e-5; staircase 0.52 → 0.42 %). With the diagonal
 #: out of the penalty (2026-11-26) the plain fit takes 1e-2; here 1e-2 measured 1.18 % vs
-#: 1.31 % max on a user-style record's 1 line/s raster (stiff plant), not yet on afmctl's
-#: excitation, so the value stays
+#: 1.31 % max on a user-style record's 1 line/s raster (stiff plant) and the same on afmctl's
+#: excitation (speed ladder 0.05 / 0.07 / 0.13 / 0.23 % vs 0.05 / 0.08 / 0.15 / 0.22 % at
+#: 1 / 4 / 16 / 50 lines/s): not worth changing every figure for, yet
 JOINT_SMOOTHING = 1e-5
 #: grid levels of the rounds before the last
 COARSE_LEVELS = 24
