@@ -343,17 +343,18 @@ def _smoothness(L: int) -> np.ndarray:
     record; without the diagonal it fills the plane between the record's reversal curves
     smoothly, 0.16 %)."""
     ci = np.tril_indices(L)
+    n_cells = ci[0].size
     index = {(int(i), int(j)): n for n, (i, j) in enumerate(zip(*ci)) if i != j}
     rows = []
     for (i, j), n in index.items():
         for nb in ((i + 1, j), (i, j + 1)):
             m = index.get(nb)
             if m is not None:
-                r = np.zeros(L * (L + 1) // 2)
+                r = np.zeros(n_cells)
                 r[n] = 1.0
                 r[m] = -1.0
                 rows.append(r)
-    return np.array(rows) if rows else np.zeros((0, L * (L + 1) // 2))
+    return np.array(rows) if rows else np.zeros((0, n_cells))
 
 
 def _nnls_fit(u: np.ndarray, y: np.ndarray, lo: float, hi: float, L: int, cap: int, smoothing: float,

@@ -164,6 +164,26 @@ class CreepingPlant:
         return self.creep.block(self.plant.run(u_V))
 
 
+# ------------------------------------------------------------ simulated scanners -------
+
+def stiff_hysteresis():
+    """The "stiff" unseen plant's loop (benchmarks/unseen_plants.py) as the simulator's
+    Gaussian Preisach density: 70 nm/V reversible, two asymmetric components."""
+    from afmctl.sim_backend.config import GaussianPreisachConfig, PreisachComponent
+    return GaussianPreisachConfig(linear_nm_per_V=70.0, components=[
+        PreisachComponent(mass_nm=2500, alpha_V=70, beta_V=40, sigma_alpha_V=20, sigma_beta_V=20, rho=0.5),
+        PreisachComponent(mass_nm=1200, alpha_V=120, beta_V=100, sigma_alpha_V=15, sigma_beta_V=15, rho=0.6)])
+
+
+def play_x(cfg, u_V: np.ndarray, dt_s: float) -> np.ndarray:
+    """x position [nm] of a fresh simulated scanner ``cfg`` driven by ``u_V`` [V] on x
+    (y and z at 0 V), one row per sample of ``dt_s`` [s]."""
+    from afmctl.sim_backend.scanner import Scanner
+    U = np.zeros((np.asarray(u_V).size, 3))
+    U[:, 0] = u_V
+    return Scanner(cfg).run(U, dt_s)[:, 0]
+
+
 # ------------------------------------------------------------------- signals ----------
 
 def triangle(t_s: np.ndarray, freq_Hz: float, lo: float, hi: float) -> np.ndarray:

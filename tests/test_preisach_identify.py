@@ -8,7 +8,7 @@ import pytest
 from afmctl.compensators.base import ModelError
 from afmctl.compensators.models import model_class
 from afmctl.compensators.preisach import PreisachModel
-from plants import RelayPreisachPlant, decaying_triangle, triangle
+from plants import RelayPreisachPlant, decaying_triangle, play_x, stiff_hysteresis, triangle
 
 
 def _minor_loops(start: float, lo: float, hi: float) -> np.ndarray:
@@ -138,23 +138,16 @@ _FS_HZ = 1000.0
 
 
 def _static_gaussian_scanner():
-    """The simulator's x axis as a static plant: a Gaussian Preisach density with a large
-    reversible part (70 nm/V), no creep, no amplifier lag, no mode."""
-    from afmctl.sim_backend.config import AmplifierConfig, CreepConfig, GaussianPreisachConfig, PreisachComponent
-    from afmctl.sim_backend.scanner import Scanner, default_scanner_config
+    """The simulator's x axis as a static plant: the stiff unseen plant's Gaussian Preisach
+    density with its large reversible part (70 nm/V), no creep, no amplifier lag, no mode."""
+    from afmctl.sim_backend.config import AmplifierConfig, CreepConfig
+    from afmctl.sim_backend.scanner import default_scanner_config
     cfg = default_scanner_config()
-    cfg.x.hysteresis = GaussianPreisachConfig(linear_nm_per_V=70.0, components=[
-        PreisachComponent(mass_nm=2500, alpha_V=70, beta_V=40, sigma_alpha_V=20, sigma_beta_V=20, rho=0.5),
-        PreisachComponent(mass_nm=1200, alpha_V=120, beta_V=100, sigma_alpha_V=15, sigma_beta_V=15, rho=0.6)])
+    cfg.x.hysteresis = stiff_hysteresis()
     cfg.x.creep = CreepConfig(fraction=0.0)
     cfg.x.amplifier = AmplifierConfig(bandwidth_Hz=None, slew_V_per_s=None)
     cfg.x.dynamics, cfg.x.extra_modes = None, []
-
-    def play(u: np.ndarray) -> np.ndarray:
-        U = np.zeros((u.size, 3))
-        U[:, 0] = u
-        return Scanner(cfg).run(U, 1.0 / _FS_HZ)[:, 0]
-    return play
+    return lambda u: play_x(cfg, u, 1.0 / _FS_HZ)
 
 
 def _lab_record() -> np.ndarray:
@@ -162,8 +155,7 @@ def _lab_record() -> np.ndarray:
     ones, 20 triangles over 10–90 % of the range, 40 over 25–75 %, a sweep of ±10 V at
     mid-range (no reversal curves inside the plane on a grid, no holds)."""
     def tri(lo: float, amp: float, cycles: int, n: int = 200) -> np.ndarray:
-        t = np.arange(cycles * n) / n
-        return lo + amp * (1.0 - np.abs(2.0 * (t % 1.0) - 1.0))
+        return triangle(np.arange(cycles * n) / n, 1.0, lo, lo + amp)
     parts = [np.zeros(100)] + [tri(0.0, a * 150.0, 1) for a in (1.0, 0.8, 0.6, 0.4, 0.2)]
     for a in (1.0, 0.6, 0.3):
         lo = 0.5 * (1.0 - a) * 150.0

@@ -13,9 +13,10 @@ import pytest
 
 from afmctl.cli import main
 from afmctl.data.datafiles import read_csv, write_csv
-from afmctl.sim_backend.config import (AmplifierConfig, CreepConfig, DynamicsConfig, GaussianPreisachConfig,
-                                       PreisachComponent)
-from afmctl.sim_backend.scanner import Scanner, default_scanner_config
+from afmctl.sim_backend.config import AmplifierConfig, CreepConfig, DynamicsConfig
+from afmctl.sim_backend.scanner import default_scanner_config
+from plants import play_x as play_plant_x
+from plants import stiff_hysteresis
 
 RATE_HZ = 20_000.0          # recording rate: resolves the 1.6 kHz mode
 DT_S = 1e-5                 # raster sample period
@@ -24,9 +25,7 @@ SLEW = 2.0e4                # the plant amplifier's slew limit [V/s]
 
 def plant():
     cfg = default_scanner_config()
-    cfg.x.hysteresis = GaussianPreisachConfig(linear_nm_per_V=70.0, components=[
-        PreisachComponent(mass_nm=2500, alpha_V=70, beta_V=40, sigma_alpha_V=20, sigma_beta_V=20, rho=0.5),
-        PreisachComponent(mass_nm=1200, alpha_V=120, beta_V=100, sigma_alpha_V=15, sigma_beta_V=15, rho=0.6)])
+    cfg.x.hysteresis = stiff_hysteresis()
     cfg.x.creep = CreepConfig(fraction=0.06, tau_min_s=0.02, tau_max_s=50.0, n_lags=4)
     cfg.x.amplifier = AmplifierConfig(bandwidth_Hz=3000.0, slew_V_per_s=SLEW)
     cfg.x.dynamics = DynamicsConfig(resonance_Hz=1600.0, quality_factor=30.0)
@@ -34,9 +33,7 @@ def plant():
 
 
 def play_x(u_V: np.ndarray, dt_s: float) -> np.ndarray:
-    U = np.zeros((u_V.size, 3))
-    U[:, 0] = u_V
-    return Scanner(plant()).run(U, dt_s)[:, 0]
+    return play_plant_x(plant(), u_V, dt_s)
 
 
 def raster(rate: float, lines: int, x0: float = 5000.0, width: float = 4000.0):

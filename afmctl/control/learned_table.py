@@ -168,8 +168,9 @@ def check_matches(path: str | Path, learned: LearnedTable, now: dict[str, Any], 
             raise AfmctlError(f"{path}: {_differs(label, was.get(key), now.get(key))}; relearn (afmctl learn)")
     # the hold before each play sets the creep the table meets (an unset one plays the
     # table's own: LearnedSource.settle_s)
-    if now.get("settle_s") is not None and learned_settle_s(learned) != now["settle_s"]:
-        raise AfmctlError(f"{path}: {_differs('amplifier.settle_s [s]', learned_settle_s(learned), now['settle_s'])}; "
+    settle_was = learned_settle_s(learned)
+    if now.get("settle_s") is not None and settle_was != now["settle_s"]:
+        raise AfmctlError(f"{path}: {_differs('amplifier.settle_s [s]', settle_was, now['settle_s'])}; "
                           "relearn (afmctl learn)")
     for name in sorted(set(was.get("models", {})) | set(now.get("models", {}))):
         a, b = was.get("models", {}).get(name), now.get("models", {}).get(name)
