@@ -6,7 +6,7 @@ runs it:
 
 1. the recording a position sensor would give of the plant: ``afmctl excite --kind all
    --rate-Hz 50000 --slew-V-per-s S`` (recording ``excite``), or what a lab records without
-   afmctl's excitation (``user``, :func:`user_style`: nested triangles at 1 Hz, triangles at
+   afmctl's excitation (``user``, ``tests/plants.py: user_style_record``: nested triangles at 1 Hz, triangles at
    10 and 40 Hz, a 1 Hz → 2 kHz chirp around mid-range);
 2. ``afmctl identify --model auto`` on that recording (the table it prints is kept);
 3. 4 µm raster lines at 1, 4, 10 and 50 lines/s compensated by ``afmctl compensate --model
@@ -14,7 +14,7 @@ runs it:
    RMS error over the central 80 % of every trace and retrace, % of the line.
 
     .venv/bin/python benchmarks/unseen_plants.py [--plants NAME ...] [--recordings excite user]
-        [--rates 1 4 10 50] [--no-write]
+        [--rates 1 4 10 50] [--jobs 2] [--no-write]
 
 Writes its section of docs/BENCHMARKS.md between ``<!-- bench:unseen_plants -->`` markers.
 About 2 minutes per plant and recording. A figure marked † is slew-bound: the compensated
@@ -26,6 +26,7 @@ import argparse
 import sys
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +40,9 @@ from afmctl.sim_backend.config import (AmplifierConfig, CreepConfig, DynamicsCon
                                        GaussianPreisachConfig, PreisachComponent, ScannerConfig)
 from afmctl.sim_backend.scanner import Scanner, default_scanner_config  # noqa: E402
 from sections import write_section  # noqa: E402  (benchmarks/sections.py)
+
+sys.path.insert(0, str(ROOT / "tests"))
+from plants import user_style_record  # noqa: E402  (tests/plants.py: what a lab records)
 
 NAME = "unseen_plants"
 
@@ -105,30 +109,6 @@ def raster_for(cfg: ScannerConfig, rate: float) -> tuple[np.ndarray, int, int, i
     return out, start, n, lines
 
 
-def user_style(slew_V_per_s: float, fs: float = 50_000.0, u_max: float = 150.0) -> np.ndarray:
-    """What a lab records without afmctl's excitation [V] at ``fs``: a rest, nested triangles
-    at 1 Hz (from 0 V to 100, 80, … 20 % of the range, then centred ones of 100, 60 and 30 %),
-    20 triangles at 10 Hz over 80 % of the range, 40 at 40 Hz over 50 %, and a logarithmic
-    1 Hz → 2 kHz chirp of ±10 V around mid-range whose amplitude falls where it would exceed
-    80 % of the amplifier's slew limit."""
-    def tri(f: float, lo: float, amp: float, cycles: int) -> np.ndarray:
-        t = np.arange(int(round(cycles / f * fs))) / fs
-        return lo + amp * (1.0 - np.abs(2.0 * ((t * f) % 1.0) - 1.0))
-
-    parts = [np.zeros(int(0.2 * fs))] + [tri(1.0, 0.0, a * u_max, 1) for a in (1.0, 0.8, 0.6, 0.4, 0.2)]
-    for a in (1.0, 0.6, 0.3):
-        lo = 0.5 * (1.0 - a) * u_max
-        parts += [np.linspace(0.0, lo, int(0.05 * fs)), tri(1.0, lo, a * u_max, 1), np.linspace(lo, 0.0, int(0.05 * fs))]
-    parts += [tri(10.0, 0.1 * u_max, 0.8 * u_max, 20), tri(40.0, 0.25 * u_max, 0.5 * u_max, 40)]
-    T, mid = 8.0, 0.5 * u_max
-    t = np.arange(int(T * fs)) / fs
-    k = np.log(2000.0) / T
-    amp = np.minimum(10.0, 0.8 * slew_V_per_s / (2 * np.pi * np.exp(k * t)))
-    parts += [np.linspace(0.0, mid, int(0.5 * fs)), mid + amp * np.sin(2 * np.pi * (np.exp(k * t) - 1.0) / k),
-              np.linspace(mid, 0.0, int(0.5 * fs))]
-    return np.concatenate(parts)
-
-
 def recording(name: str, kind: str, cfg: ScannerConfig, slew: float, work: Path) -> Path:
     """The plant's recording of ``kind`` (``excite`` or ``user``) as a t,u,y CSV in ``work``."""
     if kind == "excite":
@@ -137,7 +117,7 @@ def recording(name: str, kind: str, cfg: ScannerConfig, slew: float, work: Path)
                "--slew-V-per-s", f"{slew:g}", "--out", str(exc))
         u = read_csv(exc, ("t", "u"))["u"]
     else:
-        u = user_style(slew)
+        u = user_style_record(slew)
     data = work / f"{name}_{kind}.csv"
     write_csv(data, {"t": np.arange(u.size) * 2e-5, "u": u, "y": play_x(cfg, u, 2e-5)})
     return data
@@ -157,7 +137,7 @@ def one_plant(name: str, cfg: ScannerConfig, rates: list[float], work: Path, par
     row = {}
     for r in rates:
         tgt, start, n, lines = raster_for(cfg, r)
-        target, volts = work / "target.csv", work / "volts.csv"
+        target, volts = work / f"{name}_{kind}_target.csv", work / f"{name}_{kind}_volts.csv"
         write_csv(target, {"t": np.arange(tgt.size) * sl.DT_S, "y": tgt})
         slew_args = ("--slew-V-per-s", f"{slew:g}") if "dynamics" in selected else ()
         sl.cli("compensate", "--model", str(model), "--target", str(target), "--out", str(volts),
@@ -212,15 +192,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--recordings", nargs="+", choices=["excite", "user"], default=["excite", "user"])
     ap.add_argument("--rates", type=float, nargs="+", default=[1, 4, 10, 50], help="line rates [lines/s]")
     ap.add_argument("--no-write", action="store_true", help="do not update docs/BENCHMARKS.md")
+    ap.add_argument("--jobs", type=int, default=1, help="plants and recordings run in parallel (processes)")
     ap.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                     help="passed to identify, e.g. 'dynamics_options={\"from\": \"static\"}'")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    rows = {}
-    with tempfile.TemporaryDirectory(prefix="unseen-") as tmp:
-        for name in args.plants:
-            for kind in args.recordings:
-                rows[name, kind] = one_plant(name, PLANTS[name][0], args.rates, Path(tmp), tuple(args.param), kind)
+    jobs = [(name, kind) for name in args.plants for kind in args.recordings]
+    with tempfile.TemporaryDirectory(prefix="unseen-") as tmp, ProcessPoolExecutor(max(1, args.jobs)) as pool:
+        futures = {job: pool.submit(one_plant, job[0], PLANTS[job[0]][0], args.rates, Path(tmp), tuple(args.param),
+                                    job[1]) for job in jobs}
+        rows = {job: futures[job].result() for job in jobs}
     head = ("| plant | recording | selected by `auto` | " + " | ".join(f"{r:g} lines/s" for r in args.rates)
             + " |\n|---|---|---|" + "---|" * len(args.rates) + "\n")
     body = "".join(f"| {n} | {k} | {sel} | " + " | ".join(_cell(v[r]) for r in args.rates) + " |\n"

@@ -112,8 +112,9 @@ def _identify(cls: Any, t_s: Any, u_V: Any, y_nm: Any, n_operators: int | None =
               smoothing: float = SMOOTHING, max_rows: int = 200000, memory_depth: int | None = None,
               levels: int | None = None, fit_from_index: int = 0,
               regressors: np.ndarray | None = None, prior: str = "pi",
-              prior_weight: float = PRIOR_WEIGHT) -> tuple[Any, np.ndarray]:
+              prior_weight: float = PRIOR_WEIGHT, exclude: np.ndarray | None = None) -> tuple[Any, np.ndarray]:
     u, y = _check_data(t_s, u_V, y_nm)
+    skip = _exclude_mask(exclude, u.size)
     L = n_operators if n_operators is not None else (levels if levels is not None else 32)
     if isinstance(L, bool) or not isinstance(L, (int, np.integer)) or not 1 <= int(L) <= 512:
         raise ModelError(f"n_operators: number of Preisach levels must be an integer in 1..512, got {L!r}")
@@ -139,7 +140,7 @@ def _identify(cls: Any, t_s: Any, u_V: Any, y_nm: Any, n_operators: int | None =
         log.warning("identify: %d sample(s) of u_V outside %g…%g V are clamped to the grid", n_out, lo, hi)
         u = np.clip(u, lo, hi)
     fit_from_index = number_option("fit_from_index", fit_from_index, lo=0, hi=u.size - 10, integer=True)
-    if fit_from_index and method == "auto":
+    if (fit_from_index or skip is not None) and method == "auto":
         method = "nnls"  # reversal curves from u_min are read from the start of the data
     cap = int(memory_depth) if memory_depth is not None else 2 * L + 2
     fields = {"memory_depth": memory_depth} if memory_depth is not None else {}
@@ -164,16 +165,32 @@ def _identify(cls: Any, t_s: Any, u_V: Any, y_nm: Any, n_operators: int | None =
         model = cls.from_cell_masses(w, lo, hi, y0, fit_method="first-order reversal curves", **fields)
     else:
         w, y0, coef = _nnls_fit(u, y, lo, hi, L, cap, smoothing, max_rows, fit_from_index, regressors,
-                                prior_weight if prior == "pi" else 0.0)
+                                prior_weight if prior == "pi" else 0.0, skip)
         how = f"nnls (smoothing {smoothing:g}" + (f", PI prior {prior_weight:g})" if prior == "pi" else ")")
         model = cls.from_cell_masses(w, lo, hi, y0, fit_method=how, **fields)
-    r = (model.forward().block(u) - y)[fit_from_index:]
+    r = model.forward().block(u) - y
     if coef.size:
-        r = r + (cast(np.ndarray, regressors) @ coef)[fit_from_index:]
+        r = r + cast(np.ndarray, regressors) @ coef
+    r = r[fit_from_index:] if skip is None else r[fit_from_index:][~skip[fit_from_index:]]
     model.fit_residual_nm = float(np.sqrt(np.mean(r * r)))
     model.fit_max_residual_nm = float(np.max(np.abs(r)))
     log.info("identify preisach: %s, %d levels, residual %.4g nm RMS", model.fit_method, L, model.fit_residual_nm)
     return model, coef
+
+
+def _exclude_mask(exclude: Any, n: int) -> np.ndarray | None:
+    """The ``exclude`` option: a boolean per sample, True for samples left out of the nnls
+    fit (they still set the memory; e.g. the transients after a jump of the command,
+    :func:`~afmctl.compensators.record_steps.step_transients`). None when nothing is left
+    out."""
+    if exclude is None:
+        return None
+    mask = np.asarray(exclude)
+    if mask.dtype != bool or mask.shape != (n,):
+        raise ModelError(f"exclude: need one boolean per sample ({n}), got {mask.dtype} of shape {mask.shape}")
+    if mask.all():
+        raise ModelError("exclude: every sample is left out; nothing to fit")
+    return mask if mask.any() else None
 
 
 # ------------------------------------------------------------------ first-order reversal curves
@@ -359,19 +376,19 @@ def _smoothness(L: int) -> np.ndarray:
 
 def _nnls_fit(u: np.ndarray, y: np.ndarray, lo: float, hi: float, L: int, cap: int, smoothing: float,
               max_rows: int, fit_from_index: int = 0, extra: np.ndarray | None = None,
-              prior_weight: float = 0.0) -> tuple[np.ndarray, float, np.ndarray]:
+              prior_weight: float = 0.0, skip: np.ndarray | None = None) -> tuple[np.ndarray, float, np.ndarray]:
     """Cell masses ``w ≥ 0`` [nm], offset ``y0`` [nm] and the coefficients ``c ≥ 0`` of the
     ``extra`` regressors (columns, one value per sample; none: an empty array) of
     ``y ≈ y0 + Φ(u)·w + extra·c`` (regularised nonnegative least squares). With
     ``prior_weight > 0`` a ridge of that relative weight pulls ``w`` towards the prior
     (:func:`_prior_masses`, fitted on the same normal equations): what the data do not
-    determine takes the prior's masses."""
+    determine takes the prior's masses. Samples marked in ``skip`` are no rows of the fit."""
     from scipy.linalg import cholesky
-    n = u.shape[0] - fit_from_index
-    if n > max_rows:
-        rows = np.unique(np.linspace(0, n - 1, max_rows).round().astype(np.int64)) + fit_from_index
-    else:
-        rows = np.arange(fit_from_index, u.shape[0], dtype=np.int64)
+    rows = np.arange(fit_from_index, u.shape[0], dtype=np.int64)
+    if skip is not None:
+        rows = rows[~skip[rows]]
+    if rows.size > max_rows:
+        rows = rows[np.unique(np.linspace(0, rows.size - 1, max_rows).round().astype(np.int64))]
     n_cells = L * (L + 1) // 2
     ne = 0 if extra is None else extra.shape[1]
     nc = n_cells + ne

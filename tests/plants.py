@@ -217,3 +217,28 @@ def staircase(dt_s: float, levels: Sequence[float], dwell_s: float, ramp_s: floa
         parts.append(np.full(nd, float(b)))
     x = np.concatenate(parts)
     return np.arange(x.size) * dt_s, x
+
+
+def user_style_record(slew_V_per_s: float, fs: float = 50_000.0, u_max: float = 150.0) -> np.ndarray:
+    """What a lab records without afmctl's excitation [V] at ``fs`` [Hz], its waveforms
+    pieced together (the command jumps where one starts at another voltage): a rest, nested
+    triangles at 1 Hz (from 0 V to 100, 80, … 20 % of the range, then centred ones of 100, 60
+    and 30 %), 20 triangles at 10 Hz over 80 % of the range, 40 at 40 Hz over 50 %, and a
+    logarithmic 1 Hz → 2 kHz chirp of ±10 V around mid-range whose amplitude falls where it
+    would exceed 80 % of the amplifier's slew limit [V/s]."""
+    def tri(f: float, lo: float, amp: float, cycles: int) -> np.ndarray:
+        t = np.arange(int(round(cycles / f * fs))) / fs
+        return lo + amp * (1.0 - np.abs(2.0 * ((t * f) % 1.0) - 1.0))
+
+    parts = [np.zeros(int(0.2 * fs))] + [tri(1.0, 0.0, a * u_max, 1) for a in (1.0, 0.8, 0.6, 0.4, 0.2)]
+    for a in (1.0, 0.6, 0.3):
+        lo = 0.5 * (1.0 - a) * u_max
+        parts += [np.linspace(0.0, lo, int(0.05 * fs)), tri(1.0, lo, a * u_max, 1), np.linspace(lo, 0.0, int(0.05 * fs))]
+    parts += [tri(10.0, 0.1 * u_max, 0.8 * u_max, 20), tri(40.0, 0.25 * u_max, 0.5 * u_max, 40)]
+    T, mid = 8.0, 0.5 * u_max
+    t = np.arange(int(T * fs)) / fs
+    k = np.log(2000.0) / T
+    amp = np.minimum(10.0, 0.8 * slew_V_per_s / (2 * np.pi * np.exp(k * t)))
+    parts += [np.linspace(0.0, mid, int(0.5 * fs)), mid + amp * np.sin(2 * np.pi * (np.exp(k * t) - 1.0) / k),
+              np.linspace(mid, 0.0, int(0.5 * fs))]
+    return np.concatenate(parts)

@@ -8,7 +8,7 @@ import pytest
 from afmctl.compensators.pi import PIModel
 from afmctl.compensators.preisach import PreisachModel
 from afmctl.compensators.preisach_identify import prior_basis
-from afmctl.compensators.selection import select_model
+from afmctl.compensators.selection import dynamics_bases, select_model
 from afmctl.compensators.selection_folds import MARGIN, choose, complexity, cycle_starts, fold_bounds
 from plants import RelayPreisachPlant
 
@@ -134,3 +134,26 @@ def test_dynamics_win_on_the_fast_part_though_the_slow_parts_dominate_the_mean()
     dyn["fast_rms_nm"] = 5.9           # not clearly better where the dynamics show: not chosen
     dyn.pop("why")
     assert choose([static, dyn]) is static
+
+
+def _scored(structure, rms, peak=None, error=None):
+    row = {"structure": structure, "heldout_rms_nm": rms, "heldout_max_nm": peak if peak is not None else 5 * rms}
+    if error:
+        row["error"] = error
+    return row
+
+
+def test_dynamics_are_tried_on_the_leading_static_candidates():
+    """Where the held-out part moves fast the static candidates are about equally wrong: the
+    best and those within the screen (1.2×) get a +dynamics try, at most two; failed rows
+    and clearly worse ones none."""
+    table = [_scored("preisach", 32.7), _scored("preisach+creep", 33.3), _scored("pi", 47.7), _scored("bouc-wen", 0.0, error="x")]
+    assert [r["structure"] for r in dynamics_bases(table)] == ["preisach", "preisach+creep"]
+    table = [_scored("preisach+creep", 5.8), _scored("preisach", 18.9)]
+    assert [r["structure"] for r in dynamics_bases(table)] == ["preisach+creep"]
+    table = [_scored("a", 10.0), _scored("b", 10.5), _scored("c", 11.0)]
+    assert [r["structure"] for r in dynamics_bases(table)] == ["a", "b"]
+    assert dynamics_bases([_scored("pi", 1.0, error="failed")]) == []
+    # the max criterion screens on the held-out max
+    table = [_scored("pi", 20.0, peak=100.0), _scored("preisach", 10.0, peak=130.0)]
+    assert [r["structure"] for r in dynamics_bases(table, "max")] == ["pi"]

@@ -16,7 +16,7 @@ from afmctl.data.datafiles import read_csv, write_csv
 from afmctl.sim_backend.config import AmplifierConfig, CreepConfig, DynamicsConfig
 from afmctl.sim_backend.scanner import default_scanner_config
 from plants import play_x as play_plant_x
-from plants import stiff_hysteresis
+from plants import stiff_hysteresis, user_style_record
 
 RATE_HZ = 20_000.0          # recording rate: resolves the 1.6 kHz mode
 DT_S = 1e-5                 # raster sample period
@@ -50,6 +50,17 @@ def raster(rate: float, lines: int, x0: float = 5000.0, width: float = 4000.0):
     return tgt, keep
 
 
+def compensated_raster_error(d, model_path, rate: float, lines: int) -> tuple[float, float]:
+    """Max and RMS error [% of the 4 µm line] of the raster compensated through ``afmctl
+    compensate`` with ``model_path`` and played through the plant (files in ``d``)."""
+    tgt, keep = raster(rate, lines)
+    write_csv(d / "target.csv", {"t": np.arange(tgt.size) * DT_S, "y": tgt})
+    assert main(["compensate", "--model", str(model_path), "--target", str(d / "target.csv"),
+                 "--out", str(d / "volts.csv"), "--limits", "0", "150", "--slew-V-per-s", f"{SLEW:g}", "--clip"]) == 0
+    e = 100.0 * (play_x(read_csv(d / "volts.csv", ("t", "u"))["u"], DT_S) - tgt)[keep] / 4000.0
+    return float(np.max(np.abs(e))), float(np.sqrt(np.mean(e * e)))
+
+
 @pytest.fixture(scope="module")
 def model(tmp_path_factory):
     d = tmp_path_factory.mktemp("unseen")
@@ -67,11 +78,35 @@ def model(tmp_path_factory):
 def test_auto_chain_compensates_an_unseen_plant(model, rate, lines, limit_pct):
     d = model
     assert json.loads((d / "auto.json").read_text())["dynamics"] is not None   # the mode and the amplifier show
-    tgt, keep = raster(rate, lines)
-    write_csv(d / "target.csv", {"t": np.arange(tgt.size) * DT_S, "y": tgt})
-    assert main(["compensate", "--model", str(d / "auto.json"), "--target", str(d / "target.csv"),
-                 "--out", str(d / "volts.csv"), "--limits", "0", "150", "--slew-V-per-s", f"{SLEW:g}", "--clip"]) == 0
-    e = 100.0 * (play_x(read_csv(d / "volts.csv", ("t", "u"))["u"], DT_S) - tgt)[keep] / 4000.0
-    peak, rms = float(np.max(np.abs(e))), float(np.sqrt(np.mean(e * e)))
+    peak, rms = compensated_raster_error(d, d / "auto.json", rate, lines)
     print(f"unseen plant, {rate:g} lines/s: {peak:.2f} % max / {rms:.2f} % RMS of the line")
     assert peak <= limit_pct and rms <= 0.5 * limit_pct
+
+
+@pytest.fixture(scope="module")
+def user_model(tmp_path_factory):
+    """The same plant recorded as a lab records it without afmctl's excitation (nested 1 Hz
+    triangles, 10 and 40 Hz triangles, a chirp; the waveforms pieced together with jumps),
+    identified as preisach+creep+dynamics through the CLI."""
+    d = tmp_path_factory.mktemp("unseen-user")
+    u = user_style_record(SLEW, fs=RATE_HZ)
+    write_csv(d / "data.csv", {"t": np.arange(u.size) / RATE_HZ, "u": u, "y": play_x(u, 1.0 / RATE_HZ)})
+    assert main(["identify", "--model", "preisach+creep+dynamics", "--data", str(d / "data.csv"),
+                 "--out", str(d / "chain.json")]) == 0
+    return d
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("rate, lines", [(1.0, 3), (10.0, 6)])
+def test_a_user_style_recording_compensates_an_unseen_plant(user_model, rate, lines):
+    """#24's acceptance from a user-style recording: within 1 % of the line at 1 and 10
+    lines/s (measured 0.57 / 0.64 % from this 20 kHz record; the same plant from a 50 kHz one
+    through `identify --model auto` gave 1.33 / 1.56 % before the static stages were fitted
+    at the record's own rate, without the jumps' transients, and again through the dynamics'
+    inverse)."""
+    d = user_model
+    chain = json.loads((d / "chain.json").read_text())
+    assert 0.03 <= sum(chain["creep"]["creep_weights"]) <= 0.09          # the plant's 0.06
+    peak, rms = compensated_raster_error(d, d / "chain.json", rate, lines)
+    print(f"unseen plant, user-style recording, {rate:g} lines/s: {peak:.2f} % max / {rms:.2f} % RMS of the line")
+    assert peak <= 1.0 and rms <= 0.5

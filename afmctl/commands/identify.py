@@ -49,8 +49,10 @@ Model kinds (--model):
   KIND+creep[+dynamics]
             a chain (kind chain): hysteresis KIND (pi, epi, preisach, bouc-wen), then
             linear creep, then linear dynamics, identified jointly (Hammerstein):
-            hysteresis and creep on block means at <= 2 kHz, the dynamics at the
-            record's rate from its fast parts; needs uniformly spaced samples
+            hysteresis and creep on every sample (preisach; other kinds on block means
+            at <= 2 kHz) less the 50 ms after each jump of the command, the dynamics
+            from the record's fast parts, then the static stages again on the record
+            through the dynamics' inverse while that helps; uniform samples needed
   auto      fit every candidate chain on the first 70 % of the data after the burn-in,
             score each by its prediction error on the last 30 % (held out; the models
             run over the whole record, so the burn-in sets their memory), print the
