@@ -217,7 +217,8 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_write:
         plants = "".join(f"- `{n}`: {PLANTS[n][1]}\n" for n in args.plants)
         write_section(NAME, "## The speed-ladder workflow on plants afmctl was not tuned on\n\n"
-                      f"`.venv/bin/python benchmarks/unseen_plants.py` ({time.perf_counter() - t0:.0f} s). "
+                      f"`.venv/bin/python benchmarks/unseen_plants.py{f' --jobs {args.jobs}' if args.jobs > 1 else ''}` "
+                      f"({time.perf_counter() - t0:.0f} s). "
                       "Variants of the default scanner's x axis; per plant and recording, through the CLI: the "
                       "recording (`excite`: `excite --kind all` at 50 kHz; `user`: nested 1 Hz triangles, "
                       "triangles at 10 and 40 Hz, a 1 Hz → 2 kHz chirp, no afmctl excitation) → the plant → "
