@@ -166,7 +166,7 @@ class ChainModel(HysteresisModel):
         max_step = (slew_V_per_s or math.inf) * dt_s
         slew = float(np.max(np.abs(np.diff(u)))) / dt_s if u.size > 1 else 0.0
         out, clipped, limited = rate_limit(u, u_min_V, u_max_V, max_step, u_start_V)
-        return LimitedInverse(out, math.inf, math.inf, slew, clipped, limited)
+        return LimitedInverse(out, math.inf, math.inf, slew, clipped, limited, 0.0, slew, slew_V_per_s)
 
     def inverse_offline(self, y_nm: np.ndarray, dt_s: float) -> np.ndarray:
         """Voltages [V] for a whole known target ``y_nm`` [nm] at ``dt_s`` [s], no latency,
@@ -203,13 +203,13 @@ class ChainModel(HysteresisModel):
             raise ModelError("data: need equal-length columns t, u, y with at least 8 samples")
         k0 = int(number_option("fit_from_index", fit_from_index, lo=0, hi=t.size - 8, integer=True))
         dt = float(np.median(np.diff(t)))
-        td, ud, yd, k0d, dtd = averaged_for_static(t, u, y, k0, dt, hyst_kind)
+        td, ud, _, k0d, dtd = record_for_static(t, u, y, k0, dt, hyst_kind)
         fit = _StageFit(td, ud, k0d)
         options = {**_without_transients(hyst_kind, options, u, dt), **options}
         n_rounds, with_creep = max(1, int(rounds)), "creep" in stages
 
         def static(y_static: np.ndarray) -> tuple[Any, Any]:
-            y_fit = averaged_for_static(t, u, y_static, k0, dt, hyst_kind)[2]
+            y_fit = record_for_static(t, u, y_static, k0, dt, hyst_kind)[2]
             return _fit_static(hcls, fit, y_fit, dtd, with_creep, n_rounds, n_operators, options)
 
         hyst, creep = static(y)
@@ -297,7 +297,7 @@ def fit_dynamics_stage(hyst: Any, creep: Any, t: np.ndarray, u: np.ndarray, y: n
     return dyn
 
 
-def averaged_for_static(t: np.ndarray, u: np.ndarray, y: np.ndarray, k0: int, dt: float, kind: str = ""
+def record_for_static(t: np.ndarray, u: np.ndarray, y: np.ndarray, k0: int, dt: float, kind: str = ""
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, float]:
     """The record the static stages of hysteresis ``kind`` are fitted on. A Preisach fit
     takes it as it is: it traces its memory sample by sample and fits rows spread over

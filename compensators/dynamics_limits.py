@@ -45,6 +45,15 @@ class LimitedInverse:
     clipped: int
     slew_limited: int
     rounded_s: float = 0.0
+    #: the fastest change [V/s] the static inverse alone asks for the target (no dynamics)
+    static_slew_V_per_s: float = 0.0
+    #: the amplifier's slew limit [V/s] the voltages were fitted to (None: none)
+    slew_limit_V_per_s: float | None = None
+
+    def too_fast_for_the_amplifier(self) -> bool:
+        """True when even the static inverse alone needs more than the slew limit: then no
+        band limit or rounding of the dynamics can follow the target, only a slower one."""
+        return bool(self.slew_limit_V_per_s) and self.static_slew_V_per_s > self.slew_limit_V_per_s  # type: ignore[operator]
 
     def report(self) -> str:
         """One line for the user."""
@@ -62,6 +71,11 @@ class LimitedInverse:
         if self.clipped or self.slew_limited:
             txt += (f"; still beyond them, so clipped and rate-limited before sending: {self.clipped} "
                     f"samples clipped to the range, {self.slew_limited} samples slew-limited")
+        if self.too_fast_for_the_amplifier():
+            share = 100.0 * float(self.slew_limit_V_per_s) / self.static_slew_V_per_s  # type: ignore[arg-type]
+            txt += (f"; the target itself is too fast for the amplifier: its static inverse alone changes by "
+                    f"{self.static_slew_V_per_s:.4g} V/s, beyond the {self.slew_limit_V_per_s:.4g} V/s slew limit "
+                    f"(at {share:.3g} % of this speed or less it would fit)")
         return txt
 
 
@@ -162,7 +176,7 @@ def invert_within_limits(dynamics, target_nm: np.ndarray, dt_s: float,
                                                 u_start_V)
     slew = _max_slew(u, dt_s)
     u_out, clipped, limited = rate_limit(u, u_min_V, u_max_V, (slew_V_per_s or math.inf) * dt_s, u_start_V)
-    res = LimitedInverse(u_out, bw, model_bw, slew, clipped, limited, rounded)
+    res = LimitedInverse(u_out, bw, model_bw, slew, clipped, limited, rounded, _max_slew(base, dt_s), slew_V_per_s)
     log.info("%s", res.report())
     return res
 

@@ -354,6 +354,10 @@ def test_chain_inverse_within_limits_ramps_from_the_resting_voltage(chain):
         res = model.inverse_within_limits(tgt, dt, 0.0, 150.0, 1e4, u_start_V=0.0)
         assert res.u_V[0] <= 1e4 * dt + 1e-12 and res.slew_limited > 0 and "still beyond them, so clipped and rate-limited" in res.report()
         assert np.max(np.abs(np.diff(res.u_V))) <= 1e4 * dt and 0.0 <= res.u_V.min() and res.u_V.max() <= 150.0
+        # the line's own static voltages fit 1e4 V/s: only the first ramp was limited
+        assert 0.0 < res.static_slew_V_per_s < 1e4 and not res.too_fast_for_the_amplifier()
+    slow = chain.inverse_within_limits(tgt, dt, 0.0, 150.0, 500.0)
+    assert slow.too_fast_for_the_amplifier() and "the target itself is too fast for the amplifier" in slow.report()
     # unlimited: the offline inverse is the same path with no limits
     np.testing.assert_array_equal(full.inverse_offline(tgt, dt), full.inverse_within_limits(tgt, dt).u_V)
 
@@ -385,15 +389,15 @@ def test_when_nothing_fits_the_attempt_with_the_least_predicted_error_is_kept(ch
 def test_a_preisach_static_fit_sees_every_sample_other_kinds_block_means():
     """Block means of a fast chirp misstate the Preisach memory (its minor loops), so a
     Preisach stage is fitted on the record as it is; the other kinds on ≤ 2 kHz means."""
-    from afmctl.compensators.chain import STATIC_RATE_HZ, averaged_for_static
+    from afmctl.compensators.chain import STATIC_RATE_HZ, record_for_static
 
     dt = 2e-5
     t = np.arange(20_000) * dt
     u = 75.0 + 10.0 * np.sin(2 * np.pi * 900.0 * t)
     y = 50.0 * u
-    same = averaged_for_static(t, u, y, 100, dt, "preisach")
+    same = record_for_static(t, u, y, 100, dt, "preisach")
     assert same[1] is u and same[2] is y and same[3] == 100 and same[4] == dt
-    td, ud, yd, k0d, dtd = averaged_for_static(t, u, y, 100, dt, "pi")
+    td, ud, yd, k0d, dtd = record_for_static(t, u, y, 100, dt, "pi")
     m = int(1.0 / (dt * STATIC_RATE_HZ))
     assert dtd == pytest.approx(m * dt) and ud.size == u.size // m and k0d == 100 // m
     assert ud[0] == pytest.approx(np.mean(u[:m])) and yd[1] == pytest.approx(np.mean(y[m:2 * m]))

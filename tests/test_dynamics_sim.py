@@ -126,6 +126,10 @@ def test_limited_inverse_never_exceeds_range_or_slew_and_reports():
     assert res.bandwidth_Hz == res.model_bandwidth_Hz and res.rounded_s > 0 and "rounded" in res.report()
     assert res.u_V.min() >= 0 and res.u_V.max() <= 150
     assert np.max(np.abs(np.diff(res.u_V))) <= 1e4 * dt
+    # 3 µm in 10 ms at 80 nm/V is 3750 V/s for the static inverse: within 1e4 V/s, so only
+    # the dynamics asked for too much and the report does not call the target too fast
+    assert 3000.0 < res.static_slew_V_per_s < 4500.0 and not res.too_fast_for_the_amplifier()
+    assert "too fast for the amplifier" not in res.report()
     # without rounding, the band limit of the whole inverse is lowered instead
     low = invert_within_limits(dyn, tgt, dt, static, 0.0, 150.0, slew_V_per_s=1e4, round_first=False)
     assert low.bandwidth_Hz < low.model_bandwidth_Hz and "lowered" in low.report() and low.rounded_s == 0
@@ -134,6 +138,10 @@ def test_limited_inverse_never_exceeds_range_or_slew_and_reports():
     hard = invert_within_limits(dyn, tgt, dt, static, 0.0, 150.0, slew_V_per_s=100.0)
     assert hard.slew_limited > 0 and "still beyond them, so clipped and rate-limited" in hard.report()
     assert np.max(np.abs(np.diff(hard.u_V))) <= 100.0 * dt
+    # ... and it says the target itself is too fast, with the speed share that would fit (100 / ~3750 V/s)
+    assert hard.too_fast_for_the_amplifier() and "the target itself is too fast for the amplifier" in hard.report()
+    share = float(hard.report().split("(at ")[-1].split(" %")[0])
+    assert share == pytest.approx(100.0 * 100.0 / hard.static_slew_V_per_s, rel=1e-2) and 2.0 < share < 3.5
 
 
 def _central_error_pct(y: np.ndarray, tgt: np.ndarray, rate_Hz: float, dt: float) -> float:

@@ -38,8 +38,11 @@ Output:
                        start and end at rest. With --slew-V-per-s (and --limits) the
                        inverse's band limit is lowered until the voltages fit (the
                        turnarounds get rounder); what is still out of reach is clipped
-                       and rate-limited, and reported. A chain model with a dynamics
-                       stage (e.g. preisach+creep+dynamics) is inverted the same way,
+                       and rate-limited, and reported. When even the static (hysteresis,
+                       creep) inverse alone changes faster than S, the report says the
+                       target itself is too fast for the amplifier and at what share of
+                       its speed it would fit: scan slower there. A chain model with a
+                       dynamics stage (e.g. preisach+creep+dynamics) is inverted the same way,
                        within --limits (default: the model's range) and --slew-V-per-s.
   --slew-V-per-s S     the amplifier's slew limit [V/s] (with --dynamics or a chain
                        model with a dynamics stage)
