@@ -185,7 +185,7 @@ class ChainModel(HysteresisModel):
     def identify(cls, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, n_operators: int | None = None,
                  structure: str = "preisach+creep", rounds: int = 2,
                  dynamics_options: dict[str, Any] | None = None, fit_from_index: int = 0,
-                 **options: Any) -> "ChainModel":
+                 left_out: np.ndarray | None = None, **options: Any) -> "ChainModel":
         """Fit the chain ``structure`` jointly (module docstring). ``n_operators`` and
         ``options`` go to the hysteresis kind's ``identify``, ``dynamics_options`` to the
         dynamics kind's; data uniformly sampled (t [s], u [V], y [nm]).
@@ -193,7 +193,11 @@ class ChainModel(HysteresisModel):
         ``fit_from_index`` is a burn-in: the whole record runs through every stage (so the
         hysteresis memory and the creep lags hold the state the recording put them in), but
         only samples from that index on are fitted. Kinds with ``fits_with_burn_in`` get it
-        passed through; the others are fitted on the part after it."""
+        passed through; the others are fitted on the part after it.
+
+        ``left_out``: one boolean per sample, True where the static stages of a kind that fits
+        sample rows (:data:`FULL_RATE_KINDS`) leave the record out of their fit, besides the
+        jumps' transients (:func:`_without_transients`); the memory still runs through them."""
         hyst_kind, stages = parse_structure(structure)
         hcls = model_class(hyst_kind)
         t = check_finite("t_s", t_s).ravel()
@@ -206,11 +210,15 @@ class ChainModel(HysteresisModel):
         td, ud, _, k0d, dtd = record_for_static(t, u, y, k0, dt, hyst_kind)
         fit = _StageFit(td, ud, k0d)
         options = {**_without_transients(hyst_kind, options, u, dt), **options}
+        rows = hyst_kind in FULL_RATE_KINDS
+        if left_out is not None and rows:
+            options["exclude"] = _also_left_out(options, left_out)
         n_rounds, with_creep = max(1, int(rounds)), "creep" in stages
 
-        def static(y_static: np.ndarray) -> tuple[Any, Any]:
+        def static(y_static: np.ndarray, exclude: np.ndarray | None = None) -> tuple[Any, Any]:
             y_fit = record_for_static(t, u, y_static, k0, dt, hyst_kind)[2]
-            return _fit_static(hcls, fit, y_fit, dtd, with_creep, n_rounds, n_operators, options)
+            opts = options if exclude is None or not rows else {**options, "exclude": _also_left_out(options, exclude)}
+            return _fit_static(hcls, fit, y_fit, dtd, with_creep, n_rounds, n_operators, opts)
 
         hyst, creep = static(y)
         if "dynamics" not in stages:
@@ -245,26 +253,60 @@ def refine_with_dynamics(model: "ChainModel", static: Any, t: np.ndarray, u: np.
     through the dynamics' stable non-causal inverse (the fast parts' ringing and lag no longer
     bent into hysteresis and creep), then the dynamics again from their output; repeated while
     the whole chain's RMS error over ``y[k0:stop]`` falls by at least :data:`REFINE_MIN_GAIN`.
-    A round that does not lower it is not kept."""
+    A round that does not lower it is not kept.
+
+    A stage that fits sample rows (:data:`FULL_RATE_KINDS`) is refitted without the stretches
+    the chain before the round does not explain (:func:`~.record_steps.unexplained`; e.g. a
+    mode above the recorded band ringing after every corner of fast triangles):
+    ``static(y_static, exclude)`` takes that mask, and the round is judged on the rest."""
     dt = float(np.median(np.diff(t)))
+    rows = getattr(model.hysteresis, "kind", "") in FULL_RATE_KINDS
 
-    def rms(m: "ChainModel") -> float:
-        return float(np.sqrt(np.mean((m.forward(dt).block(u) - y)[k0:stop] ** 2)))
+    def rms(m: "ChainModel", keep: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(((m.forward(dt).block(u) - y)[k0:stop])[keep[k0:stop]] ** 2)))
 
-    before = rms(model)
     for _ in range(DYNAMICS_REFINEMENTS):
+        skip = _unexplained_by(model, u, y, dt, k0, stop) if rows else np.zeros(u.size, dtype=bool)
+        before = rms(model, ~skip)
         dynamics: Any = model.dynamics           # a LinearDynamicsModel
-        hyst, creep = static(dynamics.inverse_offline(y, dt))
+        hyst, creep = static(dynamics.inverse_offline(y, dt), skip if skip.any() else None)
         refined = ChainModel(hysteresis=hyst, creep=creep,
                              dynamics=fit_dynamics_stage(hyst, creep, t, u, y, k0, dynamics_options))
-        after = rms(refined)
+        after = rms(refined, ~skip)
         log.info("chain: static stages refitted through the dynamics' inverse: RMS %.4g -> %.4g nm", before, after)
         if not after < before:
             break
-        model, gained, before = refined, after < (1.0 - REFINE_MIN_GAIN) * before, after
+        model, gained = refined, after < (1.0 - REFINE_MIN_GAIN) * before
         if not gained:
             break
     return model
+
+
+def _unexplained_by(model: "ChainModel", u: np.ndarray, y: np.ndarray, dt: float, k0: int,
+                    stop: int | None) -> np.ndarray:
+    """The samples of ``y[k0:stop]`` the chain ``model`` cannot explain, as a mask over the
+    whole record; logged: where its residual above the top of the band its dynamics were
+    identified in (``fit_info["f_max_Hz"]``: a mode there is outside the model's reach) is
+    large (:func:`~.record_steps.unexplained`). A slower misfit (rate-dependent hysteresis,
+    a creep) is the static stages' to fit and stays in."""
+    from scipy.signal import butter, sosfiltfilt
+
+    from .record_steps import unexplained
+
+    end = y.size if stop is None else stop
+    mask = np.zeros(y.size, dtype=bool)
+    f_top = float((model.dynamics.fit_info or {}).get("f_max_Hz", 0.0) or 0.0)  # type: ignore[union-attr]
+    if not 0.0 < f_top < 0.4 / dt or end - k0 < 64:
+        return mask
+    resid = model.forward(dt).block(u)[k0:end] - y[k0:end]
+    above = sosfiltfilt(butter(4, f_top, "highpass", fs=1.0 / dt, output="sos"), resid)
+    mask[k0:end] = unexplained(above, dt, float(np.ptp(y[k0:end])))
+    if mask.any():
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8), [0]])))
+        spans = ", ".join(f"{a * dt:.2f}–{b * dt:.2f} s" for a, b in zip(edges[::2], edges[1::2]))
+        log.info("chain: %.3g s the chain does not explain left out of the static refit: %s",
+                 float(mask.sum()) * dt, spans)
+    return mask
 
 
 def fit_dynamics_stage(hyst: Any, creep: Any, t: np.ndarray, u: np.ndarray, y: np.ndarray, k0: int,
@@ -332,6 +374,22 @@ def _without_transients(kind: str, options: dict[str, Any], u: np.ndarray, dt: f
                  jumps(u).size, float(mask.sum()) * dt)
         return {"exclude": mask}
     return {}
+
+
+def _also_left_out(options: dict[str, Any], exclude: Any) -> np.ndarray:
+    """``exclude`` together with the samples ``options["exclude"]`` already leaves out (the
+    jumps' transients, or the caller's own mask). A mask that is not one boolean per sample
+    is passed on as it is, for the fit to name it in its one-line error."""
+    exclude = np.asarray(exclude)
+    given = options.get("exclude")
+    if given is None:
+        return exclude
+    given = np.asarray(given)
+    if given.dtype != bool or given.ndim != 1:
+        return given
+    if exclude.dtype != bool or exclude.shape != given.shape:
+        return exclude
+    return given | exclude
 
 
 class _StageFit:

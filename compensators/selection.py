@@ -54,8 +54,9 @@ DEFAULT_CANDIDATES: tuple[str, ...] = ("pi", "pi+creep", "epi", "preisach", "pre
 
 
 def _fit(structure: str, t: np.ndarray, u: np.ndarray, y: np.ndarray, options: dict[str, Any],
-         fit_from_index: int = 0) -> ChainModel:
-    return ChainModel.identify(t, u, y, structure=structure, fit_from_index=fit_from_index, **options)
+         fit_from_index: int = 0, left_out: np.ndarray | None = None) -> ChainModel:
+    return ChainModel.identify(t, u, y, structure=structure, fit_from_index=fit_from_index, left_out=left_out,
+                               **options)
 
 
 def scored_samples(u_V: np.ndarray, split: int, fit_from_index: int = 0) -> np.ndarray:
@@ -79,8 +80,9 @@ def _with_dynamics(model: ChainModel, t: np.ndarray, u: np.ndarray, y: np.ndarra
     dyn = fit_dynamics_stage(model.hysteresis, model.creep, t, u, y, k0, dyn_options)
     structure = model.structure
 
-    def static(y_static: np.ndarray) -> tuple[Any, Any]:
-        m = _fit(structure, t[:split], u[:split], np.ascontiguousarray(y_static[:split]), options, k0)
+    def static(y_static: np.ndarray, exclude: np.ndarray | None = None) -> tuple[Any, Any]:
+        m = _fit(structure, t[:split], u[:split], np.ascontiguousarray(y_static[:split]), options, k0,
+                 left_out=None if exclude is None else exclude[:split])
         return m.hysteresis, m.creep
 
     chain = ChainModel(hysteresis=model.hysteresis, creep=model.creep, dynamics=dyn)
