@@ -262,45 +262,51 @@ def refine_with_dynamics(model: "ChainModel", static: Any, t: np.ndarray, u: np.
     dt = float(np.median(np.diff(t)))
     rows = getattr(model.hysteresis, "kind", "") in FULL_RATE_KINDS
 
-    def rms(m: "ChainModel", keep: np.ndarray) -> float:
-        return float(np.sqrt(np.mean(((m.forward(dt).block(u) - y)[k0:stop])[keep[k0:stop]] ** 2)))
+    def residual(m: "ChainModel") -> np.ndarray:   # the chain's prediction error over the record [nm]
+        return m.forward(dt).block(u) - y
 
+    def rms(r: np.ndarray, keep: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(r[k0:stop][keep[k0:stop]] ** 2)))
+
+    resid, span = residual(model), float(np.ptp(y[k0:stop]))
     for _ in range(DYNAMICS_REFINEMENTS):
-        skip = _unexplained_by(model, u, y, dt, k0, stop) if rows else np.zeros(u.size, dtype=bool)
-        before = rms(model, ~skip)
+        skip = _unexplained_by(model, resid, dt, k0, stop, span) if rows else np.zeros(u.size, dtype=bool)
+        before = rms(resid, ~skip)
         dynamics: Any = model.dynamics           # a LinearDynamicsModel
         hyst, creep = static(dynamics.inverse_offline(y, dt), skip if skip.any() else None)
         refined = ChainModel(hysteresis=hyst, creep=creep,
                              dynamics=fit_dynamics_stage(hyst, creep, t, u, y, k0, dynamics_options))
-        after = rms(refined, ~skip)
+        refined_resid = residual(refined)
+        after = rms(refined_resid, ~skip)
         log.info("chain: static stages refitted through the dynamics' inverse: RMS %.4g -> %.4g nm", before, after)
         if not after < before:
             break
-        model, gained = refined, after < (1.0 - REFINE_MIN_GAIN) * before
+        model, resid, gained = refined, refined_resid, after < (1.0 - REFINE_MIN_GAIN) * before
         if not gained:
             break
     return model
 
 
-def _unexplained_by(model: "ChainModel", u: np.ndarray, y: np.ndarray, dt: float, k0: int,
-                    stop: int | None) -> np.ndarray:
-    """The samples of ``y[k0:stop]`` the chain ``model`` cannot explain, as a mask over the
-    whole record; logged: where its residual above the top of the band its dynamics were
-    identified in (``fit_info["f_max_Hz"]``: a mode there is outside the model's reach) is
-    large (:func:`~.record_steps.unexplained`). A slower misfit (rate-dependent hysteresis,
-    a creep) is the static stages' to fit and stays in."""
+def _unexplained_by(model: "ChainModel", resid: np.ndarray, dt: float, k0: int, stop: int | None,
+                    span_nm: float) -> np.ndarray:
+    """The samples of ``resid[k0:stop]`` (the chain ``model``'s prediction error over the
+    record [nm], whose output spans ``span_nm``) the chain cannot explain, as a mask over the
+    whole record; logged: where
+    the residual above the top of the band its dynamics were identified in
+    (``fit_info["f_max_Hz"]``: a mode there is outside the model's reach) is large
+    (:func:`~.record_steps.unexplained`). A slower misfit (rate-dependent hysteresis, a
+    creep) is the static stages' to fit and stays in."""
     from scipy.signal import butter, sosfiltfilt
 
     from .record_steps import unexplained
 
-    end = y.size if stop is None else stop
-    mask = np.zeros(y.size, dtype=bool)
+    end = resid.size if stop is None else stop
+    mask = np.zeros(resid.size, dtype=bool)
     f_top = float((model.dynamics.fit_info or {}).get("f_max_Hz", 0.0) or 0.0)  # type: ignore[union-attr]
     if not 0.0 < f_top < 0.4 / dt or end - k0 < 64:
         return mask
-    resid = model.forward(dt).block(u)[k0:end] - y[k0:end]
-    above = sosfiltfilt(butter(4, f_top, "highpass", fs=1.0 / dt, output="sos"), resid)
-    mask[k0:end] = unexplained(above, dt, float(np.ptp(y[k0:end])))
+    above = sosfiltfilt(butter(4, f_top, "highpass", fs=1.0 / dt, output="sos"), resid[k0:end])
+    mask[k0:end] = unexplained(above, dt, span_nm)
     if mask.any():
         edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8), [0]])))
         spans = ", ".join(f"{a * dt:.2f}–{b * dt:.2f} s" for a, b in zip(edges[::2], edges[1::2]))

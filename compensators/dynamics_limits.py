@@ -53,7 +53,8 @@ class LimitedInverse:
     def too_fast_for_the_amplifier(self) -> bool:
         """True when even the static inverse alone needs more than the slew limit: then no
         band limit or rounding of the dynamics can follow the target, only a slower one."""
-        return bool(self.slew_limit_V_per_s) and self.static_slew_V_per_s > self.slew_limit_V_per_s  # type: ignore[operator]
+        limit = self.slew_limit_V_per_s
+        return limit is not None and 0.0 < limit < self.static_slew_V_per_s
 
     def report(self) -> str:
         """One line for the user."""
@@ -71,11 +72,11 @@ class LimitedInverse:
         if self.clipped or self.slew_limited:
             txt += (f"; still beyond them, so clipped and rate-limited before sending: {self.clipped} "
                     f"samples clipped to the range, {self.slew_limited} samples slew-limited")
-        if self.too_fast_for_the_amplifier():
-            share = 100.0 * float(self.slew_limit_V_per_s) / self.static_slew_V_per_s  # type: ignore[arg-type]
+        limit = self.slew_limit_V_per_s
+        if limit is not None and self.too_fast_for_the_amplifier():
             txt += (f"; the target itself is too fast for the amplifier: its static inverse alone changes by "
-                    f"{self.static_slew_V_per_s:.4g} V/s, beyond the {self.slew_limit_V_per_s:.4g} V/s slew limit "
-                    f"(at {share:.3g} % of this speed or less it would fit)")
+                    f"{self.static_slew_V_per_s:.4g} V/s, beyond the {limit:.4g} V/s slew limit "
+                    f"(at {100.0 * limit / self.static_slew_V_per_s:.3g} % of this speed or less it would fit)")
         return txt
 
 

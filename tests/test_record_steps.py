@@ -116,9 +116,10 @@ def test_the_chain_leaves_out_only_what_rings_above_its_dynamics_band():
     u = 75.0 + 60.0 * np.sin(2 * np.pi * 1.0 * t)
     y = model.forward(dt).block(u) - _noise_and_burst(50.0, range(40, 52))
     y[70 * w:82 * w] += 50.0 * np.sin(2 * np.pi * 40.0 * t[70 * w:82 * w])   # slow: 40 Hz
-    mask = _unexplained_by(model, u, y, dt, 0, None)
+    span = float(np.ptp(y))
+    mask = _unexplained_by(model, model.forward(dt).block(u) - y, dt, 0, None, span)
     m = UNEXPLAINED_MARGIN
     assert mask[(40 - m) * w:(52 + m) * w].all() and mask.sum() == (12 + 2 * m) * w
     # the same model with no band recorded: nothing can be said to lie above it
     bare = model.model_copy(update={"dynamics": LinearDynamicsModel.from_modes([(500.0, 0.05)])})
-    assert not _unexplained_by(bare, u, y, dt, 0, None).any()
+    assert not _unexplained_by(bare, bare.forward(dt).block(u) - y, dt, 0, None, span).any()
