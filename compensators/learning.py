@@ -48,8 +48,9 @@ from .base import ModelError
 from .dynamics_limits import rate_limit
 from .learning_laws import Increment, model_based_increment, model_free_increment, periodic_run
 from .learning_spectra import Grid, estimate_lag_samples
-from .learning_weights import (REPORT_CENTRAL_PCT, error_figures, error_weights, find_lines, lines_mask,
-                               rounded_reference)
+from .learning_noise import NO_NOISE, Noise, estimate_noise, noise_gain
+from .learning_weights import (REPORT_CENTRAL_PCT, error_figures, error_weights, find_lines, judged_lines,
+                               line_span_nm, lines_mask, raster_lines, rounded_reference)
 
 log = logging.getLogger(__name__)
 
@@ -90,6 +91,7 @@ class LearnSettings:
     stall_share: float = 0.5
     align: bool = False
     turnaround_weight: float = 1.0
+    judge_lines: tuple[int, ...] | None = None
 
     def check(self) -> None:
         """:class:`ModelError` naming the first setting out of its range."""
@@ -136,6 +138,27 @@ class LearnState:
     ratio_bins: list[int] = field(default_factory=list)
     ratio_re: list[float] = field(default_factory=list)
     ratio_im: list[float] = field(default_factory=list)
+    noise_nm: float | None = None
+    noise_f_Hz: list[float] = field(default_factory=list)
+    noise_psd_nm2: list[float] = field(default_factory=list)
+    noise_source: str = ""
+
+    def noise(self) -> Noise | None:
+        """The least noise measured so far (None before the first)."""
+        if self.noise_nm is None:
+            return None
+        return Noise(self.noise_nm, np.asarray(self.noise_f_Hz or [0.0]), np.asarray(self.noise_psd_nm2 or [0.0]),
+                     self.noise_source)
+
+    def keep_noise(self, noise: Noise) -> Noise:
+        """``noise``, or the smaller one measured before (deterministic differences between
+        the lines only ever add to an estimate); kept."""
+        old = self.noise()
+        if old is not None and old.sigma_nm <= noise.sigma_nm:
+            return old
+        self.noise_nm, self.noise_source = float(noise.sigma_nm), noise.source
+        self.noise_f_Hz, self.noise_psd_nm2 = noise.f_Hz.tolist(), noise.psd_nm2.tolist()
+        return noise
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -160,12 +183,18 @@ class LearnState:
                         best_y_nm=None if best_y is None else [float(v) for v in best_y],
                         ratio_bins=[int(v) for v in d.get("ratio_bins", [])],
                         ratio_re=[float(v) for v in d.get("ratio_re", [])],
-                        ratio_im=[float(v) for v in d.get("ratio_im", [])])
+                        ratio_im=[float(v) for v in d.get("ratio_im", [])],
+                        noise_nm=None if d.get("noise_nm") is None else float(d["noise_nm"]),
+                        noise_f_Hz=[float(v) for v in d.get("noise_f_Hz", [])],
+                        noise_psd_nm2=[float(v) for v in d.get("noise_psd_nm2", [])],
+                        noise_source=str(d.get("noise_source", "")))
             if not len(state.ratio_bins) == len(state.ratio_re) == len(state.ratio_im):
                 raise ValueError("ratio_bins, ratio_re and ratio_im differ in length")
+            if len(state.noise_f_Hz) != len(state.noise_psd_nm2):
+                raise ValueError("noise_f_Hz and noise_psd_nm2 differ in length")
         except (KeyError, TypeError, ValueError, AttributeError) as err:
             raise ModelError(f"learning state: {err!r} is missing or malformed; delete the state file to start afresh") from None
-        for name in ("best_u_V", "previous_u_V", "previous_y_nm", "best_y_nm", "ratio_re", "ratio_im"):
+        for name in ("best_u_V", "previous_u_V", "previous_y_nm", "best_y_nm", "ratio_re", "ratio_im", "noise_psd_nm2"):
             v = getattr(state, name)
             if v is not None and not np.all(np.isfinite(v)):
                 raise ModelError(f"learning state: {name} holds non-finite values; delete the state file")
@@ -228,12 +257,19 @@ class Learner:
         self.settings = settings or LearnSettings()
         self.settings.check()
         self.lines = find_lines(self.target_nm)
+        try:
+            judged, self.judged_text = judged_lines(self.lines, self.settings.judge_lines)
+        except ValueError as err:
+            raise ModelError(str(err)) from None
+        self.judged_ramps = judged
+        self.judged_groups = raster_lines(judged)
         w = error_weights(self.target_nm, self.settings.central_pct, self.settings.lines_only, self.lines)
         self.reference_nm = rounded_reference(self.target_nm, w, self.lines)
         self.weights = np.where(w > 0, 1.0, self.settings.turnaround_weight if self.lines else 0.0)
         #: where the guards judge the error: the central 80 % of each line of a raster (what an AFM
         #: images, and what the error report calls central), else the weighted parts
-        self.judged = lines_mask(self.target_nm.size, self.lines, REPORT_CENTRAL_PCT) > 0 if self.lines else w > 0
+        self.judged = lines_mask(self.target_nm.size, judged, REPORT_CENTRAL_PCT) > 0 if self.lines else w > 0
+        self.line_nm = line_span_nm(self.target_nm, self.lines) if self.lines else (float(np.ptp(self.target_nm)) or 1.0)
         self.grid = Grid.for_record(self.target_nm.size, self.dt_s, self.settings.periodic)
         self.digest = target_digest(self.target_nm, self.dt_s)
         if state is not None and state.target_digest != self.digest:
@@ -269,14 +305,17 @@ class Learner:
         aligned = bool(s.align and round(lag) != 0)
         if aligned:
             y = _shift(y, -int(round(lag)), s.periodic)
-        errors = error_figures(y, self.target_nm, self.lines)
+        errors = error_figures(y, self.target_nm, self.lines, self.judged_ramps)
         e = self.reference_nm - y
-        metric = _weighted_max_pct(e, self.judged, self.target_nm, self.lines)
+        noise = self.state.keep_noise(estimate_noise(y - ref + self.target_nm if self.model is not None else y,
+                                                     self.target_nm, self.judged_groups, self.dt_s, e))
+        metric = self._judged_pct(e, noise)
+        errors.update(noise_nm=noise.sigma_nm, judged_clean_max_pct=metric)
         previous = self._previous()
         stop_reason = self._record(u, y, errors, metric)
         base = self._base(u, y)
-        werr = (self.reference_nm - base[1]) * self.weights
-        inc = self._increment(base, werr, (u, y) + previous if previous else None)
+        werr = self._without_noise((self.reference_nm - base[1]) * self.weights, noise)
+        inc = self._increment(base, werr, (u, y) + previous if previous else None, noise, (u, y))
         self._remember(inc)
         phase_deg, phase_f, stalled = self._phase_check(inc, werr)
         if not stop_reason and stalled and self.state.misses > 0:
@@ -298,14 +337,32 @@ class Learner:
         """After a stop: the best table again, nothing learned, nothing recorded."""
         st = self.state
         best = self._within_limits(np.asarray(st.best_u_V if st.best_u_V is not None else u, dtype=float))[0]
-        errors = error_figures(y, self.target_nm, self.lines)
-        metric = _weighted_max_pct(self.reference_nm - y, self.judged, self.target_nm, self.lines)
+        errors = error_figures(y, self.target_nm, self.lines, self.judged_ramps)
+        e = self.reference_nm - y
+        metric = self._judged_pct(e, st.noise() or estimate_noise(y, self.target_nm, self.judged_groups, self.dt_s, e))
         du = best - u
         return LearnResult(best, st.iteration, self.law, errors, metric, 0.0, False, float(np.max(np.abs(du))),
                            float(np.sqrt(np.mean(du * du))), 0, 0, 0.0, math.nan, 0.0, 0.0, True, st.reason,
                            st.best_iteration)
 
     # ------------------------------------------------------------------ parts of a step
+    def _without_noise(self, e: np.ndarray, noise: Noise) -> np.ndarray:
+        """``e`` [nm] less what stands no higher than the noise (spectral subtraction,
+        :func:`~afmctl.compensators.learning_noise.noise_gain`)."""
+        if noise is NO_NOISE or noise.sigma_nm <= 0:
+            return e
+        spec = self.grid.spectrum(e)
+        n_w = float(np.count_nonzero(e))
+        return self.grid.apply(noise_gain(spec, n_w * noise.at(self.grid.f_Hz)), e)
+
+    def _judged_pct(self, e: np.ndarray, noise: Noise) -> float:
+        """The largest error [% of the line] over the judged parts, its noise left out."""
+        sel = self.judged
+        if not np.any(sel):
+            return 0.0
+        clean = self._without_noise(np.where(sel, e, 0.0), noise)
+        return float(100.0 * np.max(np.abs(clean[sel])) / self.line_nm)
+
     def _samples(self, name: str, x: np.ndarray) -> np.ndarray:
         a = np.ascontiguousarray(x, dtype=np.float64).ravel()
         if a.size != self.target_nm.size:
@@ -362,13 +419,15 @@ class Learner:
         return u, y
 
     def _increment(self, base: tuple[np.ndarray, np.ndarray], werr: np.ndarray,
-                   secant: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None) -> Increment:
+                   secant: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None, noise: Noise,
+                   play: tuple[np.ndarray, np.ndarray]) -> Increment:
         s = self.settings
         rho = (s.rho_max if s.rho_max is not None else DEFAULT_STEP[self.law]) * 0.5 ** self.state.misses
+        psd = noise.at(self.grid.f_Hz) if noise.sigma_nm > 0 else None
         if self.model is None:
-            return model_free_increment(self.grid, base, werr, rho, s.q_cutoff_Hz, secant)
+            return model_free_increment(self.grid, base, werr, rho, s.q_cutoff_Hz, secant, self._known(), psd)
         return model_based_increment(self.grid, self.model, self.dt_s, base, werr, rho, s.q_cutoff_Hz, secant,
-                                     self._known())
+                                     self._known(), psd, play)
 
     def _known(self) -> tuple[np.ndarray, np.ndarray] | None:
         st = self.state
@@ -384,8 +443,6 @@ class Learner:
     def _remember(self, inc: Increment) -> None:
         """Keep the model's measured error for the next iterations (model-based law)."""
         self._last = inc
-        if self.model is None:
-            return
         idx = np.flatnonzero(inc.reliable)
         self.state.ratio_bins = idx.tolist()
         self.state.ratio_re = inc.ratio.real[idx].tolist()

@@ -89,44 +89,75 @@ def step_size(ratio: np.ndarray, rho_max: float) -> np.ndarray:
 def model_based_increment(grid: Grid, chain, dt_s: float, base: tuple[np.ndarray, np.ndarray], werr_nm: np.ndarray,
                           rho_max: float, q_cutoff_Hz: float | None,
                           secant: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
-                          known: tuple[np.ndarray, np.ndarray] | None = None) -> Increment:
+                          known: tuple[np.ndarray, np.ndarray] | None = None,
+                          noise_psd_nm2: np.ndarray | None = None,
+                          play: tuple[np.ndarray, np.ndarray] | None = None) -> Increment:
     """Law (1) with the chain ``chain`` (a :class:`~afmctl.compensators.chain.ChainModel`
     or any static hysteresis model: ``forward``/``inverse`` u [V] ↔ y [nm]) as ``Ĝ``,
     applied to the table ``base = (u [V], y [nm])`` with its weighted error ``werr_nm``.
     ``secant = (u_a, y_a, u_b, y_b)``: two tables and their recordings, from which the
     model's error ``R`` is measured (2) where their difference excites a bin; ``known =
-    (R, mask)``: what earlier iterations measured (kept where not measured anew). Bins
-    never measured take ``R = 1`` (the model trusted). The returned ``ratio`` and
+    (R, mask)``: what earlier iterations measured (kept where not measured anew);
+    ``play = (u, y)``: this play, whose own response ``Y/Ŷ`` measures ``R`` past the
+    model's band (where the model claims nothing: all of it for a model without a
+    dynamics stage) on the bins not measured otherwise; ``noise_psd_nm2``: the recording's
+    noise per bin [nm²] (a bin is measured only where it stands above it). Bins never
+    measured take ``R = 1`` (the model trusted) inside the model's band and are not
+    learned past it: the Q-filter's cut-off is where the measurement stops knowing the
+    response, or the model's band if that is higher. The returned ``ratio`` and
     ``reliable`` are the updated knowledge."""
     dyn = getattr(chain, "dynamics", None)
     static_fwd, static_inv = _static_ops(chain, dt_s)
     periodic = grid.periodic
+    f = grid.f_Hz
 
     def predict(u: np.ndarray) -> np.ndarray:
         return _predict(dyn, periodic_run(static_fwd, u, periodic), dt_s, periodic)
 
     if dyn is not None:
-        d_hat = dyn.discrete(dt_s).frequency_response(grid.f_Hz)
-        cutoff = dyn.inverse_bandwidth_Hz(dt_s) if q_cutoff_Hz is None else q_cutoff_Hz
+        d_hat = dyn.discrete(dt_s).frequency_response(f)
+        band = float(dyn.inverse_bandwidth_Hz(dt_s))
     else:
-        d_hat = np.ones(grid.f_Hz.size, dtype=complex)
-        cutoff = 0.45 / dt_s if q_cutoff_Hz is None else q_cutoff_Hz
-    ratio = np.ones(grid.f_Hz.size, dtype=complex)
-    reliable = np.zeros(grid.f_Hz.size, dtype=bool)
+        d_hat = np.ones(f.size, dtype=complex)
+        band = 0.0                                   # a static model claims no band of its own
+    noise = None if noise_psd_nm2 is None else grid.diff_noise(noise_psd_nm2)
+    ratio = np.ones(f.size, dtype=complex)
+    reliable = np.zeros(f.size, dtype=bool)
     if known is not None:
         ratio[known[1]], reliable = known[0][known[1]], known[1].copy()
     if secant is not None:
         u_a, y_a, u_b, y_b = secant
         r, rel = smoothed_ratio(grid.diff_spectrum(y_a - y_b), grid.diff_spectrum(predict(u_a) - predict(u_b)),
-                                grid.f_Hz, threshold=SECANT_RELIABLE)
+                                f, threshold=SECANT_RELIABLE, noise_power=None if noise is None else 2 * noise)
         ratio[rel], reliable = r[rel], reliable | rel
+    if play is not None:
+        r, rel = smoothed_ratio(grid.diff_spectrum(play[1]), grid.diff_spectrum(predict(play[0])), f,
+                                threshold=SECANT_RELIABLE, noise_power=noise)
+        use = rel & (f > band) & ~reliable
+        ratio[use], reliable = r[use], reliable | use
+    top = float(f[np.flatnonzero(reliable)[-1]]) if np.any(reliable) else 0.0
+    cutoff = max(band, top) if q_cutoff_Hz is None else q_cutoff_Hz
+    if cutoff <= 0:
+        cutoff = 0.45 / dt_s
+    ratio = _fill_between(ratio, reliable, f, band)
+    learned = (f <= max(band, top)) if q_cutoff_Hz is None else np.ones(f.size, dtype=bool)
     rho = step_size(ratio, rho_max)
-    step = corrected_step(rho, ratio, reliable, rho_max)
-    filt = zero_phase_q(grid.f_Hz, cutoff) * step * _regularised_inverse(d_hat)
+    step = corrected_step(rho, ratio, reliable, rho_max) * learned
+    filt = zero_phase_q(f, cutoff) * step * _regularised_inverse(d_hat)
     x = periodic_run(static_fwd, base[0], periodic)
     dx = grid.apply(filt, werr_nm)
     du = periodic_run(static_inv, x + dx, periodic) - periodic_run(static_inv, x, periodic)
     return Increment(du, np.abs(step), ratio, reliable, float(cutoff), _predict(dyn, x, dt_s, periodic))
+
+
+def _fill_between(ratio: np.ndarray, reliable: np.ndarray, f_Hz: np.ndarray, band_Hz: float) -> np.ndarray:
+    """``R`` on the bins not measured: 1 (the model) inside its band, interpolated between
+    the measured bins past it."""
+    out = ratio.copy()
+    past = (f_Hz > band_Hz) & ~reliable
+    if np.any(past) and np.any(reliable):
+        out[past] = interpolate_unreliable(ratio, reliable, fill=1.0)[past]
+    return out
 
 
 #: share of ``ρ_max`` the corrected step takes where the model's phase error is 90° or more
@@ -156,20 +187,32 @@ def _predict(dyn, x: np.ndarray, dt_s: float, periodic: bool) -> np.ndarray:
 
 def model_free_increment(grid: Grid, base: tuple[np.ndarray, np.ndarray], werr_nm: np.ndarray, rho_max: float,
                          q_cutoff_Hz: float | None,
-                         secant: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None) -> Increment:
+                         secant: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+                         known: tuple[np.ndarray, np.ndarray] | None = None,
+                         noise_psd_nm2: np.ndarray | None = None) -> Increment:
     """Law (1) with ``Ĝ_k`` estimated from the iterations themselves (module docstring),
     applied to the table ``base = (u [V], y [nm])``: the secant (3) between the two
     tables and recordings of ``secant = (u_a, y_a, u_b, y_b)`` where their difference
-    excites a bin, else the base's own ``Y/U``; the DC gain from the linear calibration."""
+    excites a bin above the noise (``noise_psd_nm2`` [nm²] per bin), else what earlier
+    secants measured (``known = (Ĝ, mask)``), else the base's own ``Y/U``; the DC gain
+    from the linear calibration. The returned ``ratio``/``reliable`` are the secants'
+    knowledge (to keep); the Q-filter's cut-off is where no measurement knows ``Ĝ``
+    (or where it has rolled off)."""
     f = grid.f_Hz
     sent_V, measured_nm = base
-    g, reliable = smoothed_ratio(grid.diff_spectrum(measured_nm), grid.diff_spectrum(sent_V), f)
+    noise = None if noise_psd_nm2 is None else grid.diff_noise(noise_psd_nm2)
+    g, reliable = smoothed_ratio(grid.diff_spectrum(measured_nm), grid.diff_spectrum(sent_V), f, noise_power=noise)
+    measured = np.zeros(f.size, dtype=bool)
+    g_known = np.ones(f.size, dtype=complex)
+    if known is not None:
+        g_known[known[1]], measured = known[0][known[1]], known[1].copy()
     if secant is not None:
         u_a, y_a, u_b, y_b = secant
         g_sec, rel_sec = smoothed_ratio(grid.diff_spectrum(y_a - y_b), grid.diff_spectrum(u_a - u_b), f,
-                                        threshold=SECANT_RELIABLE)
-        g = np.where(rel_sec, g_sec, g)
-        reliable = reliable | rel_sec
+                                        threshold=SECANT_RELIABLE, noise_power=None if noise is None else 2 * noise)
+        g_known[rel_sec], measured = g_sec[rel_sec], measured | rel_sec
+    g = np.where(measured, g_known, g)
+    reliable = reliable | measured
     gain, offset = calibration(sent_V, measured_nm)
     g[0], reliable[0] = gain, True
     top = float(f[np.flatnonzero(reliable)[-1]])
@@ -178,8 +221,7 @@ def model_free_increment(grid: Grid, base: tuple[np.ndarray, np.ndarray], werr_n
     q = zero_phase_q(f, cutoff) * (f <= top)
     rho = np.full(f.size, float(rho_max))
     du = grid.apply(q * rho * _regularised_inverse(g), werr_nm)
-    ratio = np.ones(f.size, dtype=complex)
-    return Increment(du, rho, ratio, reliable, cutoff, gain * np.asarray(sent_V) + offset)
+    return Increment(du, rho, g_known, measured, cutoff, gain * np.asarray(sent_V) + offset)
 
 
 def roll_off_Hz(f_Hz: np.ndarray, g: np.ndarray, reliable: np.ndarray) -> float:

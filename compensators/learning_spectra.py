@@ -31,6 +31,8 @@ from scipy import fft as sfft
 
 #: a bin is reliable when its windowed excitation is at least this fraction of the peak
 RELIABLE_FRACTION = 1e-5
+#: a measured bin's window holds at least this many times the noise's power
+MIN_SNR = 4.0
 #: half-width of the smoothing window, a fraction of the frequency
 REL_WIDTH = 0.03
 
@@ -65,6 +67,13 @@ class Grid:
         d = x - np.roll(x, 1) if self.periodic else np.diff(x, prepend=x[0])
         return self.spectrum(d)
 
+    def diff_noise(self, noise_psd_nm2: np.ndarray, plays: int = 1) -> np.ndarray:
+        """The expected ``|N(f)|²`` of :meth:`diff_spectrum` of the noise of ``plays``
+        recordings (summed), each of ``n`` samples with the power ``noise_psd_nm2`` per
+        sample at each bin's frequency."""
+        w = 2.0 * np.sin(np.pi * self.f_Hz * self.dt_s)
+        return plays * self.n * np.asarray(noise_psd_nm2, dtype=float) * w * w
+
     def apply(self, response: np.ndarray, x: np.ndarray) -> np.ndarray:
         """``x`` filtered by the frequency response ``response`` (one value per bin): the
         first ``n`` samples of the inverse FFT of ``response · X``."""
@@ -72,12 +81,15 @@ class Grid:
 
 
 def smoothed_ratio(num: np.ndarray, den: np.ndarray, f_Hz: np.ndarray, rel_width: float = REL_WIDTH,
-                   min_bins: int = 2, threshold: float = RELIABLE_FRACTION) -> tuple[np.ndarray, np.ndarray]:
+                   min_bins: int = 2, threshold: float = RELIABLE_FRACTION,
+                   noise_power: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``(ratio, reliable)``: ``Σ num·den* / Σ |den|²`` over the bins within
     ``max(min_bins, rel_width · k)`` of bin ``k`` (wider at high frequency, like a
     fractional-octave smoother), and whether the window's ``Σ |den|²`` is at least
-    ``threshold`` (default :data:`RELIABLE_FRACTION`) of its largest value. Unreliable
-    bins hold 0."""
+    ``threshold`` (default :data:`RELIABLE_FRACTION`) of its largest value and, with
+    ``noise_power`` (the noise's expected ``|N(f)|²`` in ``num``, per bin), the window's
+    ``Σ |num|²`` at least :data:`MIN_SNR` times the noise's: a measurement, not noise.
+    Unreliable bins hold 0."""
     k = np.arange(f_Hz.size)
     half = np.maximum(min_bins, np.floor(rel_width * k)).astype(int)
     lo = np.clip(k - half, 0, f_Hz.size)
@@ -86,6 +98,10 @@ def smoothed_ratio(num: np.ndarray, den: np.ndarray, f_Hz: np.ndarray, rel_width
     power = np.concatenate([[0.0], np.cumsum(np.abs(den) ** 2)])
     p = power[hi] - power[lo]
     reliable = p >= threshold * float(np.max(p)) if p.size and np.max(p) > 0 else np.zeros(p.size, bool)
+    if noise_power is not None:
+        out = np.concatenate([[0.0], np.cumsum(np.abs(num) ** 2)])
+        noise = np.concatenate([[0.0], np.cumsum(noise_power)])
+        reliable &= (out[hi] - out[lo]) >= MIN_SNR * (noise[hi] - noise[lo])
     ratio = np.zeros(f_Hz.size, dtype=complex)
     ratio[reliable] = (cross[hi] - cross[lo])[reliable] / p[reliable]
     return ratio, reliable

@@ -30,10 +30,12 @@ REPORT_CENTRAL_PCT = 80.0
 
 @dataclass(frozen=True)
 class Line:
-    """One line of a raster: samples ``start`` … ``stop − 1``."""
+    """One line (a straight ramp) of a raster: samples ``start`` … ``stop − 1``, ``rising``
+    or falling."""
 
     start: int
     stop: int
+    rising: bool = True
 
     @property
     def n(self) -> int:
@@ -65,8 +67,55 @@ def find_lines(y_nm: np.ndarray) -> list[Line]:
         seg = d[a:b]
         med = float(np.median(seg))
         if np.mean(np.abs(seg - med) <= SLOPE_TOL * abs(med)) >= LINEAR_SHARE:
-            lines.append(Line(int(a), int(b) + 1))    # differences a..b-1 join samples a..b
+            lines.append(Line(int(a), int(b) + 1, med > 0))    # differences a..b-1 join samples a..b
     return lines
+
+
+def raster_lines(lines: list[Line]) -> list[list[Line]]:
+    """The ramps of :func:`find_lines` grouped into the raster's lines: a ramp and the one
+    right after it in the other direction (a trace and its retrace) make one line; a ramp
+    with no such partner (a trace-only raster's, whose flyback is no straight ramp) is a
+    line of its own."""
+    groups: list[list[Line]] = []
+    k = 0
+    while k < len(lines):
+        a = lines[k]
+        b = lines[k + 1] if k + 1 < len(lines) else None
+        if b is not None and b.start - a.stop <= max(2, a.n // 10) and a.rising != b.rising:
+            groups.append([a, b])
+            k += 2
+        else:
+            groups.append([a])
+            k += 1
+    return groups
+
+
+def judged_lines(lines: list[Line], named: tuple[int, ...] | None = None) -> tuple[list[Line], str]:
+    """The ramps whose central part the error is judged on, and a phrase saying which: by
+    default every raster line (:func:`raster_lines`) but the first (the scanner starts it
+    from rest and cannot follow its first milliseconds), all of them when there is only
+    one; ``named``: the raster lines (1-based) to judge instead. Raises ``ValueError``
+    naming a line the raster does not have."""
+    groups = raster_lines(lines)
+    if named:
+        bad = [k for k in named if not 1 <= k <= len(groups)]
+        if bad:
+            raise ValueError(f"judged line {bad[0]}: the target has raster lines 1..{len(groups)}")
+        picked = sorted(set(named))
+        return [ln for k in picked for ln in groups[k - 1]], f"lines {_ranges(picked)} of {len(groups)} (as named)"
+    if len(groups) < 2:
+        return [ln for g in groups for ln in g], f"{'the only line' if groups else 'no line'}"
+    return ([ln for g in groups[1:] for ln in g],
+            f"lines 2..{len(groups)} of {len(groups)} (every line but the first, which starts from rest)")
+
+
+def _ranges(ks: list[int]) -> str:
+    out, start = [], ks[0]
+    for a, b in zip(ks, ks[1:] + [None]):
+        if b != a + 1:
+            out.append(f"{start}" if start == a else f"{start}..{a}")
+            start = b
+    return ", ".join(out)
 
 
 def error_weights(y_nm: np.ndarray, central_pct: float = 80.0, lines_only: bool = False,
@@ -114,19 +163,30 @@ def lines_mask(n: int, lines: list[Line], pct: float) -> np.ndarray:
     return w
 
 
-def error_figures(y_nm: np.ndarray, target_nm: np.ndarray, lines: list[Line] | None = None) -> dict[str, float]:
+def error_figures(y_nm: np.ndarray, target_nm: np.ndarray, lines: list[Line] | None = None,
+                  judged: list[Line] | None = None) -> dict[str, float]:
     """``max_pct``, ``rms_pct`` over the whole record and, when the target has lines,
-    ``central_max_pct`` / ``central_rms_pct`` over the central 80 % of each line; % of
-    the target's span (peak to peak) [nm]."""
+    ``central_max_pct`` / ``central_rms_pct`` over the central 80 % of each line and (with
+    ``judged``, :func:`judged_lines`) ``judged_max_pct`` / ``judged_rms_pct`` over the central
+    80 % of the judged ones; % of the target's span (peak to peak) [nm], of the line for
+    the line figures. ``line_nm``: the line's length [nm] (the span without lines)."""
     tgt = np.asarray(target_nm, dtype=float)
     e = np.asarray(y_nm, dtype=float) - tgt
     span = float(np.ptp(tgt)) or 1.0
     pct = 100.0 * e / span
-    out = {"max_pct": float(np.max(np.abs(pct))), "rms_pct": float(np.sqrt(np.mean(pct * pct)))}
+    out = {"max_pct": float(np.max(np.abs(pct))), "rms_pct": float(np.sqrt(np.mean(pct * pct))), "line_nm": span}
     found = find_lines(tgt) if lines is None else lines
     if found:
-        line = float(np.median([np.ptp(tgt[ln.start:ln.stop]) for ln in found])) or 1.0
-        c = 100.0 * e[lines_mask(tgt.size, found, REPORT_CENTRAL_PCT) > 0] / line
-        out["central_max_pct"] = float(np.max(np.abs(c)))
-        out["central_rms_pct"] = float(np.sqrt(np.mean(c * c)))
+        line = line_span_nm(tgt, found)
+        out["line_nm"] = line
+        for key, part in (("central", found), ("judged", judged)):
+            if part:
+                c = 100.0 * e[lines_mask(tgt.size, part, REPORT_CENTRAL_PCT) > 0] / line
+                out[f"{key}_max_pct"] = float(np.max(np.abs(c)))
+                out[f"{key}_rms_pct"] = float(np.sqrt(np.mean(c * c)))
     return out
+
+
+def line_span_nm(target_nm: np.ndarray, lines: list[Line]) -> float:
+    """The length of the raster's lines [nm]: the median of their spans (1 without lines)."""
+    return float(np.median([np.ptp(target_nm[ln.start:ln.stop]) for ln in lines])) if lines else 1.0
