@@ -48,6 +48,7 @@ from .base import ModelError
 from .dynamics_limits import rate_limit
 from .learning_laws import Increment, model_based_increment, model_free_increment, periodic_run
 from .learning_spectra import Grid, estimate_lag_samples
+from .learning_floor import Floor, name_floor
 from .learning_noise import NO_NOISE, Noise, estimate_noise, noise_gain
 from .learning_weights import (REPORT_CENTRAL_PCT, error_figures, error_weights, find_lines, judged_lines,
                                line_span_nm, lines_mask, raster_lines, rounded_reference)
@@ -59,6 +60,9 @@ LAWS = ("model", "model-free")
 #: sizes its steps from it; the model-free estimate of a hysteretic plant's response is
 #: rougher (benchmarks/learning.py: ρ = 1 oscillates, 0.7 converges in about 8 steps)
 DEFAULT_STEP = {"model": 1.0, "model-free": 0.7}
+#: a rise of the judged error counts (towards the divergence guard) when it exceeds this
+#: share of the noise's σ [% of the line]: the noise left in the figure scatters it
+NOISE_TOLERANCE = 0.5
 
 
 @dataclass(frozen=True)
@@ -142,6 +146,7 @@ class LearnState:
     noise_f_Hz: list[float] = field(default_factory=list)
     noise_psd_nm2: list[float] = field(default_factory=list)
     noise_source: str = ""
+    floor: str = ""
 
     def noise(self) -> Noise | None:
         """The least noise measured so far (None before the first)."""
@@ -187,7 +192,7 @@ class LearnState:
                         noise_nm=None if d.get("noise_nm") is None else float(d["noise_nm"]),
                         noise_f_Hz=[float(v) for v in d.get("noise_f_Hz", [])],
                         noise_psd_nm2=[float(v) for v in d.get("noise_psd_nm2", [])],
-                        noise_source=str(d.get("noise_source", "")))
+                        noise_source=str(d.get("noise_source", "")), floor=str(d.get("floor", "")))
             if not len(state.ratio_bins) == len(state.ratio_re) == len(state.ratio_im):
                 raise ValueError("ratio_bins, ratio_re and ratio_im differ in length")
             if len(state.noise_f_Hz) != len(state.noise_psd_nm2):
@@ -211,7 +216,9 @@ class LearnResult:
     samples, the median step size over learned bins ``rho_median``, the Q cut-off
     ``q_cutoff_Hz``, the largest measured phase error at a learned harmonic
     ``phase_error_deg`` at ``phase_error_f_Hz``, ``stopped``/``reason``,
-    ``best_iteration`` and ``law``."""
+    ``best_iteration`` and ``law``; ``floor``: what a stop stands on (range / slew / noise /
+    line rate / learning, :mod:`~afmctl.compensators.learning_floor`), ``noise_nm``: the
+    recording's noise σ [nm] (not counted as error), ``judged``: which lines are judged."""
 
     u_next_V: np.ndarray
     iteration: int
@@ -231,6 +238,9 @@ class LearnResult:
     stopped: bool
     reason: str
     best_iteration: int
+    floor: str = ""
+    noise_nm: float = 0.0
+    judged: str = ""
 
 
 def target_digest(target_nm: np.ndarray, dt_s: float) -> str:
@@ -266,6 +276,9 @@ class Learner:
         w = error_weights(self.target_nm, self.settings.central_pct, self.settings.lines_only, self.lines)
         self.reference_nm = rounded_reference(self.target_nm, w, self.lines)
         self.weights = np.where(w > 0, 1.0, self.settings.turnaround_weight if self.lines else 0.0)
+        for g in raster_lines(self.lines):       # a line not judged is not learned (the start from rest)
+            if g[0] not in judged:
+                self.weights[g[0].start:g[-1].stop] = 0.0
         #: where the guards judge the error: the central 80 % of each line of a raster (what an AFM
         #: images, and what the error report calls central), else the weighted parts
         self.judged = lines_mask(self.target_nm.size, judged, REPORT_CENTRAL_PCT) > 0 if self.lines else w > 0
@@ -322,8 +335,10 @@ class Learner:
             stop_reason = (f"the model's phase error is {phase_deg:.0f}° (over {s.phase_limit_deg:g}°) at "
                            f"{phase_f:.4g} Hz, and most of the remaining error lies where it is: the model-based law "
                            "cannot converge there (re-identify the model, or learn without --model)")
-        if stop_reason:
-            self.state.stopped, self.state.reason = True, self.state.reason or stop_reason
+        if stop_reason and not self.state.stopped:
+            floor = self._floor(noise, inc, werr)
+            self.state.stopped, self.state.floor = True, floor.kind
+            self.state.reason = f"{stop_reason}; the floor: {floor.phrase}"
         best = np.asarray(self.state.best_u_V, dtype=float) if self.state.stopped else base[0] + inc.du_V
         nxt, clipped, limited = self._within_limits(best)    # a user's first table may be beyond them
         du = nxt - u
@@ -331,7 +346,21 @@ class Learner:
         return LearnResult(nxt, self.state.iteration, self.law, errors, metric, float(lag), aligned,
                            float(np.max(np.abs(du))), float(np.sqrt(np.mean(du * du))), clipped, limited,
                            float(np.median(inc.rho[band])) if np.any(band) else 0.0, inc.q_cutoff_Hz,
-                           phase_deg, phase_f, self.state.stopped, self.state.reason, self.state.best_iteration)
+                           phase_deg, phase_f, self.state.stopped, self.state.reason, self.state.best_iteration,
+                           self.state.floor, noise.sigma_nm, self.judged_text)
+
+    def _floor(self, noise: Noise, inc: Increment, werr: np.ndarray) -> Floor:
+        """What the best table's remaining error stands on (:mod:`~afmctl.compensators.learning_floor`)."""
+        st, s = self.state, self.settings
+        best_u = np.asarray(st.best_u_V, dtype=float)
+        best_y = np.asarray(st.best_y_nm if st.best_y_nm is not None else st.previous_y_nm, dtype=float)
+        power = np.abs(self.grid.spectrum(werr)) ** 2
+        f = self.grid.f_Hz
+        total = float(np.sum(power[f > 0]))
+        high = float(np.sum(power[f > inc.q_cutoff_Hz])) / total if total > 0 else 0.0
+        step = (s.slew_V_per_s or math.inf) * self.dt_s
+        return name_floor(best_u, self.target_nm - best_y, self.judged, noise.sigma_nm, self.line_nm, s.u_min_V,
+                          s.u_max_V, step, high, inc.q_cutoff_Hz)
 
     def _stopped_result(self, u: np.ndarray, y: np.ndarray) -> LearnResult:
         """After a stop: the best table again, nothing learned, nothing recorded."""
@@ -343,7 +372,7 @@ class Learner:
         du = best - u
         return LearnResult(best, st.iteration, self.law, errors, metric, 0.0, False, float(np.max(np.abs(du))),
                            float(np.sqrt(np.mean(du * du))), 0, 0, 0.0, math.nan, 0.0, 0.0, True, st.reason,
-                           st.best_iteration)
+                           st.best_iteration, st.floor, st.noise_nm or 0.0, self.judged_text)
 
     # ------------------------------------------------------------------ parts of a step
     def _without_noise(self, e: np.ndarray, noise: Noise) -> np.ndarray:
@@ -398,7 +427,8 @@ class Learner:
         if metric < st.best_metric_pct:
             st.best_metric_pct, st.best_u_V, st.best_iteration = metric, u.tolist(), st.iteration - 1
             st.best_y_nm = y.tolist()
-        st.rises = st.rises + 1 if metric > prev * (1 + 1e-6) else 0
+        tol = NOISE_TOLERANCE * 100.0 * (st.noise_nm or 0.0) / self.line_nm
+        st.rises = st.rises + 1 if metric > prev * (1 + 1e-6) + tol else 0
         if st.rises >= self.settings.max_rises:
             return (f"the weighted error rose {st.rises} times in a row (to {metric:.3g} %): diverging; "
                     f"keeping the best table (iteration {st.best_iteration}, {st.best_metric_pct:.3g} %)")

@@ -160,19 +160,24 @@ def _fill_between(ratio: np.ndarray, reliable: np.ndarray, f_Hz: np.ndarray, ban
     return out
 
 
-#: share of ``ρ_max`` the corrected step takes where the model's phase error is 90° or more
-CORRECTED_STEP = 0.5
+#: share of ``ρ_max`` the corrected step takes where the measured phase error is
+#: :data:`CORRECT_FROM_DEG` or more
+CORRECTED_STEP = 0.8
+#: from this measured phase error [°] on, the measured response corrects the model (the
+#: real step ``cos θ/|R|`` shrinks the error by only ``|sin θ|`` per iteration: 0.5 at 30°)
+CORRECT_FROM_DEG = 30.0
 
 
 def corrected_step(rho: np.ndarray, ratio: np.ndarray, reliable: np.ndarray, rho_max: float) -> np.ndarray:
     """The step per bin: the real ``ρ`` of :func:`step_size`, except where the measured
-    model error ``R`` turns the phase by 90° or more — no real step converges there — and
-    ``R`` was measured: there the model corrected by it, ``Ĝ·R``, is the filter (the secant
-    method per bin, Li & Bechhoefer), with the complex step ``CORRECTED_STEP·ρ_max / R``.
+    model error ``R`` turns the phase by :data:`CORRECT_FROM_DEG` or more — beyond 90° no
+    real step converges, from 30° on it is slow — and ``R`` was measured: there the model
+    corrected by it, ``Ĝ·R``, is the filter (the secant method per bin, Li & Bechhoefer),
+    with the complex step ``CORRECTED_STEP·ρ_max / R``.
     A model whose phase is that wrong where most of the error lies is still stopped by the
     convergence check (:mod:`afmctl.compensators.learning`)."""
     step = rho.astype(complex)
-    fix = reliable & (np.abs(np.angle(ratio)) >= 0.5 * math.pi) & (np.abs(ratio) > 1e-12)
+    fix = reliable & (np.abs(np.angle(ratio)) >= math.radians(CORRECT_FROM_DEG)) & (np.abs(ratio) > 1e-12)
     step[fix] = CORRECTED_STEP * rho_max / ratio[fix]
     return step
 

@@ -79,12 +79,16 @@ def estimate_noise(y_nm: np.ndarray, target_nm: np.ndarray, groups: list[list[Li
     y = np.asarray(y_nm, dtype=float)
     length, starts = repeating_triples(np.asarray(target_nm, dtype=float), groups)
     if starts and length >= 8:
-        d = np.array([y[s + 2 * length: s + 3 * length] - 2 * y[s + length: s + 2 * length] + y[s: s + length]
-                      for s in starts])
-        d = d - _trend(d)
-        sigma = math.sqrt(float(np.median(d * d)) / CHI2_MEDIAN / 6.0)
-        psd = np.mean(np.abs(np.fft.rfft(d, axis=1)) ** 2, axis=0) / (6.0 * length)
-        psd = _smooth(psd)
+        best: tuple[float, np.ndarray] | None = None
+        for s0 in starts:                     # the quietest triple: a transient only ever adds
+            d = y[s0 + 2 * length: s0 + 3 * length] - 2 * y[s0 + length: s0 + 2 * length] + y[s0: s0 + length]
+            d = d - _trend(d[None, :])[0]
+            var = float(np.median(d * d)) / CHI2_MEDIAN / 6.0
+            if best is None or var < best[0]:
+                best = (var, d)
+        assert best is not None
+        sigma = math.sqrt(best[0])
+        psd = _smooth(np.abs(np.fft.rfft(best[1])) ** 2 / (6.0 * length))
         level = float(np.median(psd[1:])) if psd.size > 2 else sigma * sigma
         psd = np.minimum(psd, PEAK_CLIP * level)             # a transient's line, not noise
         sigma = min(sigma, math.sqrt(float(np.mean(psd))))

@@ -31,8 +31,9 @@ from scipy import fft as sfft
 
 #: a bin is reliable when its windowed excitation is at least this fraction of the peak
 RELIABLE_FRACTION = 1e-5
-#: a measured bin's window holds at least this many times the noise's power
-MIN_SNR = 4.0
+#: a measured bin's window holds at least this many times the noise's power (the noise's
+#: amplitude a quarter of the measured one's at most)
+MIN_SNR = 16.0
 #: half-width of the smoothing window, a fraction of the frequency
 REL_WIDTH = 0.03
 
