@@ -34,7 +34,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from afmctl.compensators.learning_weights import error_figures  # noqa: E402
+from afmctl.compensators.learning_weights import judged_max_pct  # noqa: E402
 from afmctl.config import load_config  # noqa: E402
 from afmctl.control.learn_run import play_recorded  # noqa: E402
 from afmctl.control.learned_table import LearnedSource  # noqa: E402
@@ -47,7 +47,7 @@ RASTERS = {50: (4000.0, 4), 100: (1000.0, 4), 200: (1000.0, 4)}
 #: loop rate per device [Hz] (the NV200's 1024-sample buffer holds the 4-line tables with a
 #: shortened preview padding: afmctl.control.wave_plan.plan_table's max_rows)
 RATES_HZ = {"gcs": 10000, "can": 10000, "nv200": 10000}
-LINE = re.compile(r"afmctl: learn +(\d+): max ([\d.]+) .*central 80 %: max ([\d.]+)")
+LINE = re.compile(r"afmctl: learn +(\d+): x ([\d.e+-]+) nm \(([\d.e+-]+) % of the")
 
 CONFIG = """
 [scanner]
@@ -97,7 +97,7 @@ def played_error(run_toml: Path, table_file: Path) -> float:
     learned = LearnedSource.from_file(table_file)
     with simulated_amplifier(config) as (amp, _scanner):
         y = play_recorded(config, amp, learned, ["x"])["x"]
-    return error_figures(y, learned.learned.table.target_nm[:, 0])["central_max_pct"]
+    return judged_max_pct(y, learned.learned.table.target_nm[:, 0])
 
 
 def one(driver: str, line_rate: int, model: str | None, iterations: int, work: Path) -> dict:

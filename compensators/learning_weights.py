@@ -190,3 +190,13 @@ def error_figures(y_nm: np.ndarray, target_nm: np.ndarray, lines: list[Line] | N
 def line_span_nm(target_nm: np.ndarray, lines: list[Line]) -> float:
     """The length of the raster's lines [nm]: the median of their spans (1 without lines)."""
     return float(np.median([np.ptp(target_nm[ln.start:ln.stop]) for ln in lines])) if lines else 1.0
+
+
+def judged_max_pct(y_nm: np.ndarray, target_nm: np.ndarray, named: tuple[int, ...] | None = None) -> float:
+    """The largest error [% of the line] over the central 80 % of the judged raster lines
+    (:func:`judged_lines`; of the span over the whole record without lines): the figure
+    ``afmctl learn`` prints per axis, for a recording checked the same way."""
+    tgt = np.asarray(target_nm, dtype=float)
+    found = find_lines(tgt)
+    fig = error_figures(y_nm, tgt, found, judged_lines(found, named)[0] if found else None)
+    return fig.get("judged_max_pct", fig["max_pct"])

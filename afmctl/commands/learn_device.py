@@ -19,8 +19,8 @@ the CAN amplifier's; simulated ones with [simulation] enabled = true):
 
 plays the configured trajectory as a wave table (amplifier.output = "wave"), reads the
 scanner's measured motion back through the recorder, computes the next table, and repeats:
-a progress line per iteration (error max / RMS in % of the range, over the central 80 %
-of each line, step size), until the error is at --noise-floor-pct, stops improving, a
+a progress line per iteration (per axis the error over the central 80 % of every raster line
+but the first, in nm and in % of that axis's line, or of its span; the step size), until the error is at --noise-floor-pct, stops improving, a
 guard stops it (error rising twice; a model whose phase is over 90 deg off) or N tables
 have played. The scanner creeps: each play carries the creep of the plays before it, and
 afmctl run later plays the learned table once, from rest. With a model whose chain has a
@@ -87,19 +87,19 @@ def _check_args(args: argparse.Namespace) -> None:
 
 
 def progress_line(report: Any) -> str:
-    """One line per iteration: the worst axis's error, the next step's size, the state."""
+    """One line per iteration: per axis the judged error in nm and % of its line (every line
+    but the first; of its span for an axis without lines), the whole table's worst, the next
+    step's size, the state."""
     s = report.summary()
     if s["max_pct"] is None:
         return f"afmctl: learn {report.iteration:3d}: {report.state}: {report.detail}"
-    central = (f"; central 80 %: max {s['central_max_pct']:.3f} / RMS {s['central_rms_pct']:.3f} %"
-               if s["central_max_pct"] is not None else "")
     step = f"; step {report.rho:.2f}" if report.rho is not None and report.state == "learning" else ""
     tail = f"; {report.state}: {report.detail}" if report.state != "learning" else ""
     history = f"; history term {report.history_nm:.1f} nm" if report.history_nm else ""
     if report.history_nm and report.history_offset_nm:
         history += f" ({report.history_offset_nm:+.1f} nm of it measured by replaying the first table)"
-    return (f"afmctl: learn {report.iteration:3d}: max {s['max_pct']:.3f} / RMS {s['rms_pct']:.3f} % of the range"
-            f"{central}{step}{history}{tail}")
+    return (f"afmctl: learn {report.iteration:3d}: {report.per_axis()}; whole table max {s['max_pct']:.3f} % of "
+            f"the range{step}{history}{tail}")
 
 
 def plot_convergence(reports: list[Any], path: str) -> None:
@@ -155,8 +155,8 @@ def run_device(args: argparse.Namespace) -> int:
     if args.learned_plot:
         plot_convergence(run.reports, args.learned_plot)
     best = min(run.reports, key=lambda r: r.metric_pct if r.metric_pct == r.metric_pct else math.inf)
-    print(f"afmctl: learned table {args.learned_out}: best iteration {best.iteration}, central error "
-          f"{best.metric_pct:.3f} % of the line; play it with [trajectory] kind = \"learned\"", file=sys.stderr)
+    print(f"afmctl: learned table {args.learned_out}: best iteration {best.iteration}, {best.per_axis()}; play it "
+          f"with [trajectory] kind = \"learned\"", file=sys.stderr)
     return 1 if run.reports[-1].state == "fault" else 0
 
 
