@@ -142,7 +142,7 @@ def model_based_increment(grid: Grid, chain, dt_s: float, base: tuple[np.ndarray
     ratio = _fill_between(ratio, reliable, f, band)
     learned = (f <= max(band, top)) if q_cutoff_Hz is None else np.ones(f.size, dtype=bool)
     rho = step_size(ratio, rho_max)
-    step = corrected_step(rho, ratio, reliable, rho_max) * learned
+    step = corrected_step(rho, ratio, reliable, rho_max, np.where(f > band, CORRECT_FROM_DEG, 90.0)) * learned
     filt = zero_phase_q(f, cutoff) * step * _regularised_inverse(d_hat)
     x = periodic_run(static_fwd, base[0], periodic)
     dx = grid.apply(filt, werr_nm)
@@ -163,22 +163,29 @@ def _fill_between(ratio: np.ndarray, reliable: np.ndarray, f_Hz: np.ndarray, ban
 #: share of ``ρ_max`` the corrected step takes where the measured phase error is
 #: :data:`CORRECT_FROM_DEG` or more
 CORRECTED_STEP = 0.8
-#: from this measured phase error [°] on, the measured response corrects the model (the
+#: the largest step per bin, a multiple of ``ρ_max``
+MAX_STEP = 2.0
+#: past the model's band, from this measured phase error [°] on the measured response corrects the model (the
 #: real step ``cos θ/|R|`` shrinks the error by only ``|sin θ|`` per iteration: 0.5 at 30°)
 CORRECT_FROM_DEG = 30.0
 
 
-def corrected_step(rho: np.ndarray, ratio: np.ndarray, reliable: np.ndarray, rho_max: float) -> np.ndarray:
+def corrected_step(rho: np.ndarray, ratio: np.ndarray, reliable: np.ndarray, rho_max: float,
+                   from_deg: float | np.ndarray = 90.0) -> np.ndarray:
     """The step per bin: the real ``ρ`` of :func:`step_size`, except where the measured
-    model error ``R`` turns the phase by :data:`CORRECT_FROM_DEG` or more — beyond 90° no
-    real step converges, from 30° on it is slow — and ``R`` was measured: there the model
+    model error ``R`` turns the phase by ``from_deg`` or more (per bin: 90° inside the
+    model's band, where no real step converges beyond it; :data:`CORRECT_FROM_DEG` past the
+    band, where the measurement is all there is) — and ``R`` was measured: there the model
     corrected by it, ``Ĝ·R``, is the filter (the secant method per bin, Li & Bechhoefer),
-    with the complex step ``CORRECTED_STEP·ρ_max / R``.
+    with the complex step ``CORRECTED_STEP·ρ_max / R``, at most :data:`MAX_STEP`·ρ_max in
+    magnitude.
     A model whose phase is that wrong where most of the error lies is still stopped by the
     convergence check (:mod:`afmctl.compensators.learning`)."""
     step = rho.astype(complex)
-    fix = reliable & (np.abs(np.angle(ratio)) >= math.radians(CORRECT_FROM_DEG)) & (np.abs(ratio) > 1e-12)
+    fix = reliable & (np.abs(np.angle(ratio)) >= np.radians(from_deg)) & (np.abs(ratio) > 1e-12)
     step[fix] = CORRECTED_STEP * rho_max / ratio[fix]
+    big = np.abs(step) > MAX_STEP * rho_max                  # a response measured far smaller than the model's
+    step[big] *= MAX_STEP * rho_max / np.abs(step[big])
     return step
 
 

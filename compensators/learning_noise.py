@@ -32,6 +32,10 @@ OVER_SUBTRACT = 2.0
 #: the noise spectrum is clipped to this many times its median: a narrow peak is a
 #: deterministic difference between the lines (a mode still ringing from the start)
 PEAK_CLIP = 3.0
+#: the noise is at most this many times the top quarter band's level (a sensor's low-pass
+#: may take up to 3/4 of the noise's power there; deterministic differences between the
+#: lines, a transient's or creep's, stand mostly below it)
+TOP_BAND_BOUND = 2.0
 #: the fallback's band: the top quarter of the frequencies
 HIGH_BAND = 0.75
 
@@ -75,9 +79,11 @@ def repeating_triples(target_nm: np.ndarray, groups: list[list[Line]]) -> tuple[
 def estimate_noise(y_nm: np.ndarray, target_nm: np.ndarray, groups: list[list[Line]], dt_s: float,
                    error_nm: np.ndarray | None = None) -> Noise:
     """The noise of the recording ``y_nm`` (module docstring): from repeating judged lines
-    ``groups``, else from the top band of ``error_nm`` (the target less the recording)."""
+    ``groups``, else from the top band of ``error_nm`` (the target less the recording), which also bounds
+    the lines' estimate (:data:`TOP_BAND_BOUND`)."""
     y = np.asarray(y_nm, dtype=float)
     length, starts = repeating_triples(np.asarray(target_nm, dtype=float), groups)
+    top = _top_band(np.asarray(error_nm if error_nm is not None else target_nm - y, dtype=float), dt_s)
     if starts and length >= 8:
         best: tuple[float, np.ndarray] | None = None
         for s0 in starts:                     # the quietest triple: a transient only ever adds
@@ -92,15 +98,24 @@ def estimate_noise(y_nm: np.ndarray, target_nm: np.ndarray, groups: list[list[Li
         level = float(np.median(psd[1:])) if psd.size > 2 else sigma * sigma
         psd = np.minimum(psd, PEAK_CLIP * level)             # a transient's line, not noise
         sigma = min(sigma, math.sqrt(float(np.mean(psd))))
+        if top is not None and sigma > TOP_BAND_BOUND * top.sigma_nm:
+            # the lines differ by more than noise (a transient, creep): the top band bounds it
+            scale = TOP_BAND_BOUND * top.sigma_nm / sigma
+            return Noise(sigma * scale, np.fft.rfftfreq(length, dt_s), psd * scale * scale,
+                         f"{len(starts) + 2} repeating lines, bounded by the top quarter band")
         return Noise(sigma, np.fft.rfftfreq(length, dt_s), psd, f"{len(starts) + 2} repeating lines")
-    e = np.asarray(error_nm if error_nm is not None else target_nm - y, dtype=float)
+    return top or NO_NOISE
+
+
+def _top_band(e: np.ndarray, dt_s: float) -> Noise | None:
+    """White noise at the level of ``e``'s top quarter band (None: too short)."""
     spec = np.abs(np.fft.rfft(np.diff(e))) ** 2 / max(e.size - 1, 1)
     f = np.fft.rfftfreq(e.size - 1, dt_s)
     w = 2.0 * np.sin(np.pi * f * dt_s)                      # the difference's gain
     top = (f >= HIGH_BAND * f[-1]) & (w > 0)
-    if not np.any(top):
-        return NO_NOISE
-    level = float(np.median(spec[top] / w[top] ** 2))
+    if e.size < 8 or not np.any(top):
+        return None
+    level = float(np.median(spec[top] / w[top] ** 2)) / math.log(2.0)   # an exponential power: median = ln 2 · mean
     return Noise(math.sqrt(level), np.zeros(1), np.zeros(1), "the record's top quarter band")
 
 

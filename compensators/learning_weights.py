@@ -111,7 +111,7 @@ def judged_lines(lines: list[Line], named: tuple[int, ...] | None = None) -> tup
 
 def _ranges(ks: list[int]) -> str:
     out, start = [], ks[0]
-    for a, b in zip(ks, ks[1:] + [None]):
+    for a, b in zip(ks, ks[1:] + [-1]):
         if b != a + 1:
             out.append(f"{start}" if start == a else f"{start}..{a}")
             start = b
