@@ -218,6 +218,30 @@ def figure(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+def shared_plants(work: Path, names: list[str]) -> list[str]:
+    """The reference scanners of ``../shared/plants`` (zoo.py) through their own
+    ``check.py`` learn loop (``afmctl learn step --state`` per iteration, with and without
+    the chain): one line per plant and mode, max % of the line at 50 | 100 lines/s, the
+    first table and the last three. A plant's chain is ``WORK/<plant>/model.json``
+    (``check.py --only speed --keep WORK`` identifies it), else identified here."""
+    plants_dir = ROOT.parent / "shared" / "plants"
+    sys.path.insert(0, str(plants_dir))
+    import check  # type: ignore[import-not-found]  # noqa: E402  (../shared/plants/check.py)
+
+    lines = []
+    for name in names:
+        d = work / name
+        d.mkdir(parents=True, exist_ok=True)
+        if not (d / "model.json").exists():
+            check.speed(name, str(d))
+        for mode, its in (("chain", 10), ("none", 20)):
+            traces = check.learn(name, str(d), mode, its)
+            lines.append(f"| {name} | {mode} ({its}) | " + " | ".join(
+                " → ".join(f"{m:.2f}" for m in (tr[0], *tr[-3:])) for tr in traces) + " |")
+            print(lines[-1], flush=True)
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--plants", nargs="+", choices=["default", *sorted(PLANTS)], default=["default", "stiff", "soft"])
@@ -227,7 +251,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-write", action="store_true")
     ap.add_argument("--figure", action="store_true")
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--shared", nargs="*", metavar="PLANT",
+                    help="instead: the reference scanners of ../shared/plants (amp-first two-modes lumpy-noisy) "
+                         "through their check.py learn loop; print only")
     args = ap.parse_args(argv)
+    if args.shared is not None:
+        shared_plants(args.work, args.shared or ["amp-first", "two-modes", "lumpy-noisy"])
+        return 0
     args.work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     rows = []
