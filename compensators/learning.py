@@ -51,7 +51,7 @@ from .learning_spectra import Grid, estimate_lag_samples
 from .learning_floor import Floor, name_floor
 from .learning_noise import NO_NOISE, Noise, estimate_noise, noise_gain
 from .learning_weights import (REPORT_CENTRAL_PCT, error_figures, error_weights, find_lines, judged_lines,
-                               line_span_nm, lines_mask, raster_lines, rounded_reference)
+                               learning_weights, line_span_nm, lines_mask, raster_lines, rounded_reference)
 
 log = logging.getLogger(__name__)
 
@@ -134,6 +134,7 @@ class LearnState:
     best_iteration: int = -1
     rises: int = 0
     misses: int = 0
+    halvings: int = 0
     stopped: bool = False
     reason: str = ""
     previous_u_V: list[float] | None = None
@@ -181,7 +182,7 @@ class LearnState:
                         best_u_V=None if best is None else [float(v) for v in best],
                         best_metric_pct=math.inf if d.get("best_metric_pct") is None else float(d["best_metric_pct"]),
                         best_iteration=int(d.get("best_iteration", -1)), rises=int(d.get("rises", 0)),
-                        misses=int(d.get("misses", 0)),
+                        misses=int(d.get("misses", 0)), halvings=int(d.get("halvings", d.get("misses", 0))),
                         stopped=bool(d.get("stopped", False)), reason=str(d.get("reason", "")),
                         previous_u_V=None if prev_u is None else [float(v) for v in prev_u],
                         previous_y_nm=None if prev_y is None else [float(v) for v in prev_y],
@@ -275,10 +276,7 @@ class Learner:
         self.judged_groups = raster_lines(judged)
         w = error_weights(self.target_nm, self.settings.central_pct, self.settings.lines_only, self.lines)
         self.reference_nm = rounded_reference(self.target_nm, w, self.lines)
-        self.weights = np.where(w > 0, 1.0, self.settings.turnaround_weight if self.lines else 0.0)
-        for g in raster_lines(self.lines):       # a line not judged is not learned (the start from rest)
-            if g[0] not in judged:
-                self.weights[g[0].start:g[-1].stop] = 0.0
+        self.weights = learning_weights(w, self.lines, judged, self.settings.turnaround_weight)
         #: where the guards judge the error: the central 80 % of each line of a raster (what an AFM
         #: images, and what the error report calls central), else the weighted parts
         self.judged = lines_mask(self.target_nm.size, judged, REPORT_CENTRAL_PCT) > 0 if self.lines else w > 0
@@ -423,7 +421,9 @@ class Learner:
         prev = st.history[-1]["weighted_max_pct"] if st.history else math.inf
         st.history.append({**errors, "weighted_max_pct": metric})
         st.iteration += 1
-        st.misses = st.misses + 1 if metric >= st.best_metric_pct else 0
+        better = metric < st.best_metric_pct
+        st.misses = 0 if better else st.misses + 1
+        st.halvings = max(0, st.halvings - 1) if better else st.halvings + 1
         if metric < st.best_metric_pct:
             st.best_metric_pct, st.best_u_V, st.best_iteration = metric, u.tolist(), st.iteration - 1
             st.best_y_nm = y.tolist()
@@ -433,7 +433,7 @@ class Learner:
             return (f"the weighted error rose {st.rises} times in a row (to {metric:.3g} %): diverging; "
                     f"keeping the best table (iteration {st.best_iteration}, {st.best_metric_pct:.3g} %)")
         if st.misses >= self.settings.max_misses:
-            return (f"no better table in {st.misses} iterations (steps down to 1/{2 ** st.misses}): the floor is "
+            return (f"no better table in {st.misses} iterations (steps down to 1/{2 ** st.halvings}): the floor is "
                     f"reached; keeping the best table (iteration {st.best_iteration}, {st.best_metric_pct:.3g} %)")
         return ""
 
@@ -452,7 +452,7 @@ class Learner:
                    secant: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None, noise: Noise,
                    play: tuple[np.ndarray, np.ndarray]) -> Increment:
         s = self.settings
-        rho = (s.rho_max if s.rho_max is not None else DEFAULT_STEP[self.law]) * 0.5 ** self.state.misses
+        rho = (s.rho_max if s.rho_max is not None else DEFAULT_STEP[self.law]) * 0.5 ** self.state.halvings
         psd = noise.at(self.grid.f_Hz) if noise.sigma_nm > 0 else None
         if self.model is None:
             return model_free_increment(self.grid, base, werr, rho, s.q_cutoff_Hz, secant, self._known(), psd)

@@ -69,6 +69,8 @@ class Increment:
     reliable: np.ndarray
     q_cutoff_Hz: float
     prediction_nm: np.ndarray
+    #: the model's error the step was computed with (``ratio`` where it is trusted, else 1; None: ``ratio``)
+    applied: np.ndarray | None = None
 
 
 def periodic_run(op_factory, x: np.ndarray, periodic: bool, periods: int = 3) -> np.ndarray:
@@ -97,15 +99,17 @@ def model_based_increment(grid: Grid, chain, dt_s: float, base: tuple[np.ndarray
     applied to the table ``base = (u [V], y [nm])`` with its weighted error ``werr_nm``.
     ``secant = (u_a, y_a, u_b, y_b)``: two tables and their recordings, from which the
     model's error ``R`` is measured (2) where their difference excites a bin; ``known =
-    (R, mask)``: what earlier iterations measured (kept where not measured anew);
-    ``play = (u, y)``: this play, whose own response ``Y/Ŷ`` measures ``R`` past the
-    model's band (where the model claims nothing: all of it for a model without a
-    dynamics stage) on the bins not measured otherwise; ``noise_psd_nm2``: the recording's
-    noise per bin [nm²] (a bin is measured only where it stands above it). Bins never
-    measured take ``R = 1`` (the model trusted) inside the model's band and are not
-    learned past it: the Q-filter's cut-off is where the measurement stops knowing the
-    response, or the model's band if that is higher. The returned ``ratio`` and
-    ``reliable`` are the updated knowledge."""
+    (R, mask)``: what earlier iterations measured; ``play = (u, y)``: this play, whose own
+    response ``Y/Ŷ`` measures ``R`` past the model's band (where the model claims nothing:
+    all of it for a model without a dynamics stage); ``noise_psd_nm2``: the recording's
+    noise per bin [nm²] (a bin is measured only where it stands above it).
+
+    What the step relies on is :func:`trusted_ratio`'s: the model inside its band unless
+    repeated measurements say its own step would not converge, the play's response past
+    it. Bins past the band that nothing measured are not learned: the Q-filter's cut-off
+    is where the measurement stops knowing the response, or the model's band if that is
+    higher. The returned ``ratio`` and ``reliable`` are the knowledge to keep (every
+    measurement, trusted or not); ``applied`` the error the step was computed with."""
     dyn = getattr(chain, "dynamics", None)
     static_fwd, static_inv = _static_ops(chain, dt_s)
     periodic = grid.periodic
@@ -120,34 +124,55 @@ def model_based_increment(grid: Grid, chain, dt_s: float, base: tuple[np.ndarray
     else:
         d_hat = np.ones(f.size, dtype=complex)
         band = 0.0                                   # a static model claims no band of its own
+    past = f > band
     noise = None if noise_psd_nm2 is None else grid.diff_noise(noise_psd_nm2)
     ratio = np.ones(f.size, dtype=complex)
     reliable = np.zeros(f.size, dtype=bool)
+    repeated = np.zeros(f.size, dtype=bool)
     if known is not None:
         ratio[known[1]], reliable = known[0][known[1]], known[1].copy()
     if secant is not None:
         u_a, y_a, u_b, y_b = secant
         r, rel = smoothed_ratio(grid.diff_spectrum(y_a - y_b), grid.diff_spectrum(predict(u_a) - predict(u_b)),
                                 f, threshold=SECANT_RELIABLE, noise_power=None if noise is None else 2 * noise)
+        again = rel & reliable
+        repeated[again] = repeats(r[again], ratio[again])
         ratio[rel], reliable = r[rel], reliable | rel
+    played = np.zeros(f.size, dtype=bool)
     if play is not None:
         r, rel = smoothed_ratio(grid.diff_spectrum(play[1]), grid.diff_spectrum(predict(play[0])), f,
                                 threshold=SECANT_RELIABLE, noise_power=noise)
-        use = rel & (f > band) & ~reliable
-        ratio[use], reliable = r[use], reliable | use
-    top = float(f[np.flatnonzero(reliable)[-1]]) if np.any(reliable) else 0.0
+        played = rel & past
+        ratio[played], reliable = r[played], reliable | played
+    trusted = trusted_ratio(ratio, reliable, repeated, played, past, rho_max)
+    top = float(f[np.flatnonzero(trusted & past)[-1]]) if np.any(trusted & past) else 0.0
     cutoff = max(band, top) if q_cutoff_Hz is None else q_cutoff_Hz
     if cutoff <= 0:
         cutoff = 0.45 / dt_s
-    ratio = _fill_between(ratio, reliable, f, band)
+    applied = _fill_between(np.where(trusted, ratio, 1.0 + 0j), trusted, f, band)
     learned = (f <= max(band, top)) if q_cutoff_Hz is None else np.ones(f.size, dtype=bool)
-    rho = step_size(ratio, rho_max)
-    step = corrected_step(rho, ratio, reliable, rho_max, np.where(f > band, CORRECT_FROM_DEG, 90.0)) * learned
+    step = corrected_step(step_size(applied, rho_max), applied, trusted, rho_max) * learned
     filt = zero_phase_q(f, cutoff) * step * _regularised_inverse(d_hat)
     x = periodic_run(static_fwd, base[0], periodic)
-    dx = grid.apply(filt, werr_nm)
+    dx = grid.apply(filt, werr_nm, smooth_ends=True)
     du = periodic_run(static_inv, x + dx, periodic) - periodic_run(static_inv, x, periodic)
-    return Increment(du, np.abs(step), ratio, reliable, float(cutoff), _predict(dyn, x, dt_s, periodic))
+    return Increment(du, np.abs(step), ratio, reliable, float(cutoff), _predict(dyn, x, dt_s, periodic), applied)
+
+
+def trusted_ratio(ratio: np.ndarray, reliable: np.ndarray, repeated: np.ndarray, played: np.ndarray,
+                  past: np.ndarray, rho_max: float) -> np.ndarray:
+    """The bins whose measured model error ``ratio`` the step relies on. Past the model's
+    band (``past``): those this play measured (``played``), or where a secant repeated an
+    earlier measurement (``repeated``, :func:`repeats`). Inside it: only where the model's
+    own step ``ρ_max`` would not converge on the measurement (``|1 − ρ_max R| ≥ 1``) and
+    the measurement repeated; elsewhere the model stands. A hysteretic scanner's response
+    to a small change of the table is no fixed linear response, and its secants scatter
+    where the model's own step converges anyway: on the in-house 300 Hz plant a secant at
+    7 Hz, 119° off and repeated, turned 0.075 % into 0.12 % where the model's step went on
+    to 0.07 %; a model whose mode is 30 % off fails by |R| ≈ 8 at its resonance, and there
+    the repeated secants carry the learning."""
+    fails = np.abs(1.0 - rho_max * ratio) >= 1.0
+    return reliable & (played | (repeated & (past | fails)))
 
 
 def _fill_between(ratio: np.ndarray, reliable: np.ndarray, f_Hz: np.ndarray, band_Hz: float) -> np.ndarray:
@@ -165,28 +190,36 @@ def _fill_between(ratio: np.ndarray, reliable: np.ndarray, f_Hz: np.ndarray, ban
 CORRECTED_STEP = 0.8
 #: the largest step per bin, a multiple of ``ρ_max``
 MAX_STEP = 2.0
-#: past the model's band, from this measured phase error [°] on the measured response corrects the model (the
-#: real step ``cos θ/|R|`` shrinks the error by only ``|sin θ|`` per iteration: 0.5 at 30°)
+#: from this measured phase error [°] on, a trusted measurement corrects the model (the real
+#: step ``cos θ/|R|`` shrinks the error by only ``|sin θ|`` per iteration: 0.5 at 30°)
 CORRECT_FROM_DEG = 30.0
 
 
-def corrected_step(rho: np.ndarray, ratio: np.ndarray, reliable: np.ndarray, rho_max: float,
-                   from_deg: float | np.ndarray = 90.0) -> np.ndarray:
-    """The step per bin: the real ``ρ`` of :func:`step_size`, except where the measured
-    model error ``R`` turns the phase by ``from_deg`` or more (per bin: 90° inside the
-    model's band, where no real step converges beyond it; :data:`CORRECT_FROM_DEG` past the
-    band, where the measurement is all there is) — and ``R`` was measured: there the model
-    corrected by it, ``Ĝ·R``, is the filter (the secant method per bin, Li & Bechhoefer),
-    with the complex step ``CORRECTED_STEP·ρ_max / R``, at most :data:`MAX_STEP`·ρ_max in
-    magnitude.
+def corrected_step(rho: np.ndarray, ratio: np.ndarray, trusted: np.ndarray, rho_max: float) -> np.ndarray:
+    """The step per bin: the real ``ρ`` of :func:`step_size`, except where the trusted
+    measured model error ``R`` turns the phase by :data:`CORRECT_FROM_DEG` or more (beyond
+    90° no real step converges, from 30° on it is slow): there the model corrected by it,
+    ``Ĝ·R``, is the filter (the secant method per bin, Li & Bechhoefer), with the complex
+    step ``CORRECTED_STEP·ρ_max / R``, at most :data:`MAX_STEP`·ρ_max in magnitude.
     A model whose phase is that wrong where most of the error lies is still stopped by the
     convergence check (:mod:`afmctl.compensators.learning`)."""
     step = rho.astype(complex)
-    fix = reliable & (np.abs(np.angle(ratio)) >= np.radians(from_deg)) & (np.abs(ratio) > 1e-12)
+    fix = trusted & (np.abs(np.angle(ratio)) >= np.radians(CORRECT_FROM_DEG)) & (np.abs(ratio) > 1e-12)
     step[fix] = CORRECTED_STEP * rho_max / ratio[fix]
     big = np.abs(step) > MAX_STEP * rho_max                  # a response measured far smaller than the model's
     step[big] *= MAX_STEP * rho_max / np.abs(step[big])
     return step
+
+
+def repeats(r_new: np.ndarray, r_old: np.ndarray) -> np.ndarray:
+    """Per bin, whether two measurements of the model's error agree: the corrected step of
+    one (:func:`corrected_step`, ``CORRECTED_STEP / R_old``) also converges on the other,
+    ``|1 − CORRECTED_STEP · R_new / R_old| < 1``. A hysteretic scanner's response to a
+    small change of the table is no fixed linear response: its secants scatter from one
+    iteration to the next (on the in-house plant their phase at one bin went 96°, 71°,
+    83°, 180° over four), and a correction built on one of them pulls the table off."""
+    old = np.where(np.abs(r_old) > 1e-12, r_old, 1e-12)
+    return np.abs(1.0 - CORRECTED_STEP * np.asarray(r_new) / old) < 1.0
 
 
 def _predict(dyn, x: np.ndarray, dt_s: float, periodic: bool) -> np.ndarray:
@@ -232,7 +265,7 @@ def model_free_increment(grid: Grid, base: tuple[np.ndarray, np.ndarray], werr_n
     cutoff = min(top, roll_off_Hz(f, g, reliable)) if q_cutoff_Hz is None else min(q_cutoff_Hz, top)
     q = zero_phase_q(f, cutoff) * (f <= top)
     rho = np.full(f.size, float(rho_max))
-    du = grid.apply(q * rho * _regularised_inverse(g), werr_nm)
+    du = grid.apply(q * rho * _regularised_inverse(g), werr_nm, smooth_ends=True)
     return Increment(du, rho, g_known, measured, cutoff, gain * np.asarray(sent_V) + offset)
 
 

@@ -75,10 +75,29 @@ class Grid:
         w = 2.0 * np.sin(np.pi * self.f_Hz * self.dt_s)
         return plays * self.n * np.asarray(noise_psd_nm2, dtype=float) * w * w
 
-    def apply(self, response: np.ndarray, x: np.ndarray) -> np.ndarray:
+    def apply(self, response: np.ndarray, x: np.ndarray, smooth_ends: bool = False) -> np.ndarray:
         """``x`` filtered by the frequency response ``response`` (one value per bin): the
-        first ``n`` samples of the inverse FFT of ``response · X``."""
-        return sfft.irfft(response * self.spectrum(x), self.n_fft)[: self.n]
+        first ``n`` samples of the inverse FFT of ``response · X``. ``smooth_ends``: a
+        record that is not periodic continues into its padding along raised cosines, from
+        its last value down to 0 and from 0 up to its first (:meth:`padded`), instead of
+        jumping to 0: a jump holds every frequency, and a filter that amplifies high ones
+        (a scanner's inverse) would answer it with a spike at the record's ends."""
+        xx = self.padded(x) if smooth_ends and not self.periodic else np.asarray(x, dtype=float)
+        return sfft.irfft(response * self.spectrum(xx), self.n_fft)[: self.n]
+
+    def padded(self, x: np.ndarray) -> np.ndarray:
+        """``x`` on the whole grid (``n_fft`` samples): the record, then half the padding
+        falling from its last value to 0 and half rising from 0 to its first value (the
+        padding wraps around to the record's start), each along a raised cosine."""
+        x = np.asarray(x, dtype=float)
+        out = np.zeros(self.n_fft)
+        out[: self.n] = x
+        k = (self.n_fft - self.n) // 2
+        if k > 0 and x.size:
+            fall = 0.5 + 0.5 * np.cos(np.pi * np.arange(1, k + 1) / (k + 1))
+            out[self.n: self.n + k] = x[-1] * fall
+            out[self.n_fft - k:] = x[0] * fall[::-1]
+        return out
 
 
 def smoothed_ratio(num: np.ndarray, den: np.ndarray, f_Hz: np.ndarray, rel_width: float = REL_WIDTH,

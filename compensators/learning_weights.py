@@ -155,6 +155,51 @@ def rounded_reference(y_nm: np.ndarray, weights: np.ndarray, lines: list[Line]) 
     return np.where(zero, smooth, y)
 
 
+def learning_weights(zone_weights: np.ndarray, lines: list[Line], judged: list[Line],
+                     turnaround_weight: float) -> np.ndarray:
+    """The weight per sample the learning gives the error: 1 where ``zone_weights``
+    (:func:`error_weights`) is positive, ``turnaround_weight`` in the turnaround zones, and
+    0 where nothing is judged — everything before the first ``judged`` line (the approach
+    and the first line, which the scanner starts from rest) and any raster line between
+    judged ones that is not judged itself. Where the weight falls to 0 it does so along a
+    raised cosine over :func:`taper_samples` samples, inside the part not judged: a hard
+    edge would put the error's jump there into every frequency, and the learning's inverse
+    of the scanner, large at high frequencies, would answer it with voltage spikes (on the
+    in-house 300 Hz plant, steps the amplifier could not slew, which turned 0.14 % into
+    1.0 % and then 4.9 %). What is not learned is played as the table already has it, so
+    the changes between plays measure the scanner where it runs, not where it starts."""
+    w = np.where(zone_weights > 0, 1.0, turnaround_weight if lines else 0.0)
+    if not judged:
+        return w
+    width = taper_samples(w.size, lines)
+    fall = 0.5 + 0.5 * np.cos(np.pi * np.arange(1, width + 1) / (width + 1))      # 1 → 0, ends excluded
+    first = min(ln.start for ln in judged)
+    spans = [(0, first)] + [(g[0].start, g[-1].stop) for g in raster_lines(lines)
+                            if g[0] not in judged and g[0].start >= first]
+    keep = np.ones(w.size)
+    for a, b in spans:
+        keep[a:b] = 0.0
+        k = min(width, (b - a) // 2 if a > 0 else b - a)
+        if a > 0:
+            keep[a:a + k] = fall[:k]
+        if b < w.size:
+            keep[b - k:b] = np.maximum(keep[b - k:b], fall[:k][::-1])
+    return w * keep
+
+
+#: the raised-cosine edge of :func:`learning_weights`: this share of a raster line (the
+#: judged part's margin at each end), or of the record without lines …
+TAPER_SHARE = (100.0 - REPORT_CENTRAL_PCT) / 200.0
+#: … and at least this many samples
+MIN_TAPER = 8
+
+
+def taper_samples(n: int, lines: list[Line]) -> int:
+    """The width [samples] of :func:`learning_weights`' raised-cosine edges."""
+    length = float(np.median([ln.n for ln in lines])) if lines else float(n) / 10.0
+    return max(MIN_TAPER, int(round(TAPER_SHARE * length)))
+
+
 def lines_mask(n: int, lines: list[Line], pct: float) -> np.ndarray:
     """1 on the central ``pct`` % of each line, 0 elsewhere (``n`` samples)."""
     w = np.zeros(n)
