@@ -452,12 +452,13 @@ class Learner:
                    secant: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None, noise: Noise,
                    play: tuple[np.ndarray, np.ndarray]) -> Increment:
         s = self.settings
-        rho = (s.rho_max if s.rho_max is not None else DEFAULT_STEP[self.law]) * 0.5 ** self.state.halvings
+        full = s.rho_max if s.rho_max is not None else DEFAULT_STEP[self.law]
+        rho = full * 0.5 ** self.state.halvings
         psd = noise.at(self.grid.f_Hz) if noise.sigma_nm > 0 else None
         if self.model is None:
             return model_free_increment(self.grid, base, werr, rho, s.q_cutoff_Hz, secant, self._known(), psd)
         return model_based_increment(self.grid, self.model, self.dt_s, base, werr, rho, s.q_cutoff_Hz, secant,
-                                     self._known(), psd, play)
+                                     self._known(), psd, play, full)
 
     def _known(self) -> tuple[np.ndarray, np.ndarray] | None:
         st = self.state

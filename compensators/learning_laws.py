@@ -93,7 +93,8 @@ def model_based_increment(grid: Grid, chain, dt_s: float, base: tuple[np.ndarray
                           secant: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
                           known: tuple[np.ndarray, np.ndarray] | None = None,
                           noise_psd_nm2: np.ndarray | None = None,
-                          play: tuple[np.ndarray, np.ndarray] | None = None) -> Increment:
+                          play: tuple[np.ndarray, np.ndarray] | None = None,
+                          full_step: float | None = None) -> Increment:
     """Law (1) with the chain ``chain`` (a :class:`~afmctl.compensators.chain.ChainModel`
     or any static hysteresis model: ``forward``/``inverse`` u [V] ↔ y [nm]) as ``Ĝ``,
     applied to the table ``base = (u [V], y [nm])`` with its weighted error ``werr_nm``.
@@ -102,7 +103,8 @@ def model_based_increment(grid: Grid, chain, dt_s: float, base: tuple[np.ndarray
     (R, mask)``: what earlier iterations measured; ``play = (u, y)``: this play, whose own
     response ``Y/Ŷ`` measures ``R`` past the model's band (where the model claims nothing:
     all of it for a model without a dynamics stage); ``noise_psd_nm2``: the recording's
-    noise per bin [nm²] (a bin is measured only where it stands above it).
+    noise per bin [nm²] (a bin is measured only where it stands above it); ``full_step``:
+    the law's step before the guard halved it (None: ``rho_max``).
 
     What the step relies on is :func:`trusted_ratio`'s: the model inside its band unless
     repeated measurements say its own step would not converge, the play's response past
@@ -144,14 +146,19 @@ def model_based_increment(grid: Grid, chain, dt_s: float, base: tuple[np.ndarray
                                 threshold=SECANT_RELIABLE, noise_power=noise)
         played = rel & past
         ratio[played], reliable = r[played], reliable | played
-    trusted = trusted_ratio(ratio, reliable, repeated, played, past, rho_max)
+    trusted = trusted_ratio(ratio, reliable, repeated, played, past, rho_max if full_step is None else full_step)
     top = float(f[np.flatnonzero(trusted & past)[-1]]) if np.any(trusted & past) else 0.0
     cutoff = max(band, top) if q_cutoff_Hz is None else q_cutoff_Hz
     if cutoff <= 0:
         cutoff = 0.45 / dt_s
     applied = _fill_between(np.where(trusted, ratio, 1.0 + 0j), trusted, f, band)
     learned = (f <= max(band, top)) if q_cutoff_Hz is None else np.ones(f.size, dtype=bool)
-    step = corrected_step(step_size(applied, rho_max), applied, trusted, rho_max) * learned
+    # every measurement may size a bin's real step down (cos θ/|R|: at 90° and beyond, not learned), a trusted
+    # one also corrects the model (corrected_step)
+    measured = _fill_between(np.where(reliable, ratio, 1.0 + 0j), reliable, f, band)
+    rho = step_size(applied, rho_max)
+    rho = np.where(trusted, rho, np.minimum(rho, step_size(measured, rho_max)))
+    step = corrected_step(rho, applied, trusted, rho_max) * learned
     filt = zero_phase_q(f, cutoff) * step * _regularised_inverse(d_hat)
     x = periodic_run(static_fwd, base[0], periodic)
     dx = grid.apply(filt, werr_nm, smooth_ends=True)
@@ -160,18 +167,19 @@ def model_based_increment(grid: Grid, chain, dt_s: float, base: tuple[np.ndarray
 
 
 def trusted_ratio(ratio: np.ndarray, reliable: np.ndarray, repeated: np.ndarray, played: np.ndarray,
-                  past: np.ndarray, rho_max: float) -> np.ndarray:
+                  past: np.ndarray, full_step: float) -> np.ndarray:
     """The bins whose measured model error ``ratio`` the step relies on. Past the model's
     band (``past``): those this play measured (``played``), or where a secant repeated an
     earlier measurement (``repeated``, :func:`repeats`). Inside it: only where the model's
-    own step ``ρ_max`` would not converge on the measurement (``|1 − ρ_max R| ≥ 1``) and
+    own full step ``ρ`` (``full_step``, before any halving by the guard) would not converge
+    on the measurement (``|1 − ρ R| ≥ 1``: a phase error of 60° or more at ``|R| = 1``) and
     the measurement repeated; elsewhere the model stands. A hysteretic scanner's response
     to a small change of the table is no fixed linear response, and its secants scatter
     where the model's own step converges anyway: on the in-house 300 Hz plant a secant at
     7 Hz, 119° off and repeated, turned 0.075 % into 0.12 % where the model's step went on
     to 0.07 %; a model whose mode is 30 % off fails by |R| ≈ 8 at its resonance, and there
     the repeated secants carry the learning."""
-    fails = np.abs(1.0 - rho_max * ratio) >= 1.0
+    fails = np.abs(1.0 - full_step * ratio) >= 1.0
     return reliable & (played | (repeated & (past | fails)))
 
 

@@ -61,18 +61,21 @@ class Noise:
 NO_NOISE = Noise(0.0, np.zeros(1), np.zeros(1), "none")
 
 
-def repeating_triples(target_nm: np.ndarray, groups: list[list[Line]]) -> tuple[int, list[int]]:
-    """``(length, starts)``: the first samples of every three consecutive raster lines
+def repeating_triples(target_nm: np.ndarray, groups: list[list[Line]]) -> tuple[int, list[tuple[int, int, int]]]:
+    """``(length, triples)``: the first samples of every three consecutive raster lines
     (``groups``, :func:`~afmctl.compensators.learning_weights.raster_lines`) whose targets are
-    the same over ``length`` samples (the shortest line); ``(0, [])`` when none."""
+    the same over ``length`` samples — the shortest line, and no more than the spacing of
+    consecutive lines' starts (a trace and retrace share their turning sample with the next
+    line's: each line is one sample longer than its period); ``(0, [])`` when none."""
     if len(groups) < 3:
         return 0, []
     starts = [g[0].start for g in groups]
-    length = min(g[-1].stop - g[0].start for g in groups)
+    length = min(min(g[-1].stop - g[0].start for g in groups), min(b - a for a, b in zip(starts, starts[1:])))
     tol = 1e-6 * (float(np.ptp(target_nm)) or 1.0)
     seg = [target_nm[s:s + length] for s in starts]
     same = [seg[j].size == length and np.max(np.abs(seg[j] - seg[0])) <= tol for j in range(len(seg))]
-    out = [starts[j] for j in range(len(seg) - 2) if same[j] and same[j + 1] and same[j + 2]]
+    out = [(starts[j], starts[j + 1], starts[j + 2]) for j in range(len(seg) - 2) if same[j] and same[j + 1]
+           and same[j + 2]]
     return (length, out) if out else (0, [])
 
 
@@ -86,8 +89,8 @@ def estimate_noise(y_nm: np.ndarray, target_nm: np.ndarray, groups: list[list[Li
     top = _top_band(np.asarray(error_nm if error_nm is not None else target_nm - y, dtype=float), dt_s)
     if starts and length >= 8:
         best: tuple[float, np.ndarray] | None = None
-        for s0 in starts:                     # the quietest triple: a transient only ever adds
-            d = y[s0 + 2 * length: s0 + 3 * length] - 2 * y[s0 + length: s0 + 2 * length] + y[s0: s0 + length]
+        for a, b, c in starts:                # the quietest triple: a transient only ever adds
+            d = y[c: c + length] - 2 * y[b: b + length] + y[a: a + length]
             d = d - _trend(d[None, :])[0]
             var = float(np.median(d * d)) / CHI2_MEDIAN / 6.0
             if best is None or var < best[0]:
