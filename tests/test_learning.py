@@ -143,14 +143,17 @@ def test_turnarounds_the_scanner_cannot_follow_do_not_pull_the_learning(chain):
 
 
 def test_phase_error_over_90_degrees_stops_and_keeps_the_best_table(plant, chain):
-    """A model whose delay is 3/8 of a line period too long (135° at the line rate)."""
+    """A model whose delay is 3/8 of a line period too long (135° at the line rate). The
+    bins the measurement finds beyond 90° are not learned from their first measurement on,
+    so the error still falls for a while (16.8 → 2.7 % in 7 steps) before the convergence
+    check stops it (iteration 8)."""
     tgt = raster()
     bad = chain.model_copy(update={"dynamics": chain.dynamics.model_copy(update={"delay_s": 2e-4 + 0.375 / LINE_RATE})})
     s = LearnSettings(u_min_V=0.0, u_max_V=150.0, slew_V_per_s=SLEW)
     learner = Learner(tgt, DT, bad, s)
     u0 = chain.inverse_within_limits(tgt, DT, 0.0, 150.0, SLEW).u_V
     u, sent = u0, []
-    for _ in range(6):
+    for _ in range(10):
         sent.append(u)
         res = learner.step(u, plant.run(u))
         if res.stopped:
