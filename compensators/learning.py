@@ -12,7 +12,9 @@ voltages ``u_{k+1}`` (:meth:`Learner.step` → :class:`LearnResult`):
    (a plant's own delay is what the learning must compensate, so this is not the default);
 2. *weighting* — the error ``e_k = y_d − y_k`` counts where accuracy matters
    (:func:`~afmctl.compensators.learning_weights.error_weights`: the central part of
-   each raster line);
+   each raster line) and is judged
+   (:func:`~afmctl.compensators.learning_weights.learning_weights`: nothing before the
+   first judged line, no line between judged ones that is not judged itself);
 3. *the law* — model-based (the identified chain as the learning filter) or model-free
    (the frequency response estimated from the iteration itself), equation (1) of
    :mod:`~afmctl.compensators.learning_laws`;
@@ -23,7 +25,8 @@ voltages ``u_{k+1}`` (:meth:`Learner.step` → :class:`LearnResult`):
 5. *guards* — the **divergence guard**: when the weighted error has risen on
    ``max_rises`` (2) iterations in a row, learning stops and the best table sent so far
    is returned; a table that did not beat the best is not learned from: the next one is
-   learned from the best table with half the step (a quarter after two such, …); the
+   learned from the best table with half the step (a quarter after two such, …; each
+   better table gives one halving back); the
    **convergence check**: when the model's measured phase error
    exceeds 90° at learned harmonics that hold more than ``stall_share`` of the
    remaining weighted error, and the last table did not beat the best, the model-based
@@ -120,7 +123,8 @@ class LearnState:
     ``history`` (one dict of error figures per step, of the table that was *sent*),
     ``best_u_V``/``best_metric_pct``/``best_iteration`` (the sent table with the least
     weighted error), ``rises`` (iterations of rising error in a row), ``misses``
-    (iterations in a row that did not beat the best: each halves the step), ``stopped`` and
+    (iterations in a row that did not beat the best), ``halvings`` (how often the step is
+    halved: one more per miss, one fewer per better table), ``stopped`` and
     ``reason``, ``target_digest`` (which target it belongs to), and the last iteration's
     table and recording ``previous_u_V``/``previous_y_nm`` (for the secant estimate of
     the model's error), ``best_y_nm`` (the best table's recording), and the model's error
@@ -359,6 +363,17 @@ class Learner:
         step = (s.slew_V_per_s or math.inf) * self.dt_s
         return name_floor(best_u, self.target_nm - best_y, self.judged, noise.sigma_nm, self.line_nm, s.u_min_V,
                           s.u_max_V, step, high, inc.q_cutoff_Hz)
+
+    def floor(self) -> Floor | None:
+        """What the best table so far stands on (:mod:`~afmctl.compensators.learning_floor`),
+        for a caller that stops learning by its own rule; None before the first step."""
+        st = self.state
+        last = getattr(self, "_last", None)
+        if st.best_u_V is None or last is None:
+            return st.floor and Floor(st.floor, st.reason) or None
+        noise = st.noise() or NO_NOISE
+        best_y = np.asarray(st.best_y_nm if st.best_y_nm is not None else st.previous_y_nm, dtype=float)
+        return self._floor(noise, last, self._without_noise((self.reference_nm - best_y) * self.weights, noise))
 
     def _stopped_result(self, u: np.ndarray, y: np.ndarray) -> LearnResult:
         """After a stop: the best table again, nothing learned, nothing recorded."""

@@ -23,9 +23,13 @@ zero-phase Q-filter and ``ρ`` the step size. With the true response ``G = Ĝ·R
       R(ω) = Δy(jω) / Δŷ(jω),   Δy = y_k − y_{k−1},  Δŷ = Ĝ(u_k) − Ĝ(u_{k−1})           (2)
 
   (:func:`~afmctl.compensators.learning_spectra.smoothed_ratio`, on the bins the change
-  excites; 1 elsewhere and on the first iteration), and the step size is the one that
-  minimises ``|1 − ρR|`` for a real ρ, ``ρ = cos θ / |R|`` (clipped to ``[0, ρ_max]``;
-  0 where ``|θ| ≥ 90°``: such a bin is not learned).
+  excites; averaged with the one kept where a bin is measured again, :func:`averaged`),
+  and past the model's band the play's own ``Y/Ŷ``. Inside the band the model stands
+  unless two measurements agree that its own step would not converge
+  (:func:`trusted_ratio`); every measurement may size a bin's real step down to the one
+  that minimises ``|1 − ρR|``, ``ρ = cos θ / |R|`` (clipped to ``[0, ρ_max]``; 0 where
+  ``|θ| ≥ 90°``: such a bin is not learned until its ``R`` is trusted); a trusted ``R``
+  corrects the model from 30° of phase error on (:func:`corrected_step`).
 * :func:`model_free_increment` — no model: ``Ĝ_k = Y_k / U_k`` from this iteration's own
   sent voltages and measured motion (Kim & Zou, "Model-less inversion-based iterative
   control", IEEE/ASME Trans. Mechatronics 2013; here the smoothed H1 ratio of the
@@ -37,7 +41,7 @@ zero-phase Q-filter and ``ρ`` the step size. With the true response ``G = Ĝ·R
   — the response to a *change*, which is what the learning relies on: the harmonics that
   hysteresis adds to ``Y_k`` are no response of a linear system to ``U_k`` at that
   frequency, but to a small change they respond nearly linearly (the local slope of the
-  branch). The DC gain comes from a straight-line fit of the motion on the voltages (the
+  branch); a bin measured again is averaged with the one kept. The DC gain comes from a straight-line fit of the motion on the voltages (the
   linear calibration); bins above the highest excited one are not learned.
 """
 from __future__ import annotations

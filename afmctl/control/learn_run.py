@@ -343,7 +343,10 @@ class LearnRun:
                                                       f"{self.options.noise_floor_pct:g} %)"
             return report, None
         if self.options.noise_floor_pct <= 0.0 and self._stalled(metric):
-            report.state, report.detail = "converged", "no further improvement in two iterations (noise floor)"
+            floors = [(a, learner.floor()) for a, learner in learners.items()]
+            named = "; ".join(f"{a}: {fl.phrase}" for a, fl in floors if fl is not None)
+            report.state, report.detail = "converged", ("no further improvement in two iterations; the floor: "
+                                                        + (named or "not named (no step learned)"))
             return report, None
         if stops:
             report.state, report.detail = "diverged", "; ".join(stops) + "; the best table is kept"
