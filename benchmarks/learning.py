@@ -15,7 +15,8 @@ through the command line as a user with an external sensor runs it:
 4. iterations: the table replayed noise-free through a fresh plant (the true x position),
    then ``afmctl learn step --target --sent --measured [--model] --out --limits 0 150
    --slew-V-per-s S --state``; the error of every table: max over the central 80 % of
-   each line, % of the line.
+   each judged line (every raster line but the first, which starts from rest), % of the
+   line.
 
     .venv/bin/python benchmarks/learning.py [--plants default stiff ...] [--rates 50 100]
         [--work DIR] [--no-write] [--figure]
@@ -38,7 +39,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from afmctl.compensators.dynamics_limits import rate_limit  # noqa: E402
-from afmctl.compensators.learning_weights import error_figures  # noqa: E402
+from afmctl.compensators.learning_weights import judged_max_pct  # noqa: E402
 from afmctl.compensators.models import load_model, save_model  # noqa: E402
 from afmctl.data.datafiles import read_csv, write_csv  # noqa: E402
 from afmctl.sim_backend.scanner import default_scanner_config  # noqa: E402
@@ -141,8 +142,9 @@ def first_table(start: str, model: Path, calib: tuple[float, float], target: Pat
 
 def iterate(cfg, target: Path, sent: Path, model: Path | None, iterations: int, slew: float, work: Path
             ) -> tuple[list[float], str]:
-    """Play, measure, learn; the central max error [% of the line] of every table played
-    and the last status line."""
+    """Play, measure, learn; the judged error of every table played (max over the central
+    80 % of every raster line but the first, % of the line: what ``learn step`` judges and
+    prints) and the last status line."""
     tgt = read_csv(target, ("t", "y"))
     state = work / "state.json"
     state.unlink(missing_ok=True)
@@ -150,7 +152,7 @@ def iterate(cfg, target: Path, sent: Path, model: Path | None, iterations: int, 
     for k in range(iterations + 1):
         u = read_csv(sent, ("t", "u"))["u"]
         y = play_x(cfg, u, DT_S)
-        errs.append(error_figures(y, tgt["y"])["central_max_pct"])
+        errs.append(judged_max_pct(y, tgt["y"]))
         if k == iterations:
             break
         meas, nxt = work / "meas.csv", work / f"u{k + 1}.csv"
@@ -163,7 +165,7 @@ def iterate(cfg, target: Path, sent: Path, model: Path | None, iterations: int, 
         sent = nxt
         if "stopped" in status:
             u = read_csv(sent, ("t", "u"))["u"]
-            errs.append(error_figures(play_x(cfg, u, DT_S), tgt["y"])["central_max_pct"])
+            errs.append(judged_max_pct(play_x(cfg, u, DT_S), tgt["y"]))
             break
     return errs, status.split(":", 1)[1].strip() if status else ""
 
