@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import socket
+import subprocess
 import sys
 import threading
 from pathlib import Path
@@ -185,3 +186,20 @@ class TcpRelay:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def make_certificates(directory: Path, names: tuple[str, ...]) -> None:
+    """A throw-away CA (``ca.pem``) and, per name, ``<name>.pem`` / ``<name>.key`` with that
+    common name, valid for localhost and 127.0.0.1, for servers and clients (TLS / mutual
+    TLS tests; the ``openssl`` command line)."""
+    def run(*args: str) -> None:
+        subprocess.run(["openssl", *args], check=True, capture_output=True, cwd=directory)
+    ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes"]
+    run("req", "-x509", *ec, "-keyout", "ca.key", "-out", "ca.pem", "-days", "2", "-subj", "/CN=afmctl-test-ca",
+        "-addext", "basicConstraints=critical,CA:TRUE", "-addext", "keyUsage=critical,keyCertSign,cRLSign")
+    for name in names:
+        (directory / f"{name}.ext").write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\nbasicConstraints=CA:FALSE\n"
+                                               "keyUsage=digitalSignature\nextendedKeyUsage=serverAuth,clientAuth\n")
+        run("req", *ec, "-keyout", f"{name}.key", "-out", f"{name}.csr", "-subj", f"/CN={name}")
+        run("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial",
+            "-out", f"{name}.pem", "-days", "2", "-extfile", f"{name}.ext")

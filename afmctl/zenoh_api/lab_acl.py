@@ -159,6 +159,8 @@ class LabAcl(BaseModel):
                     for flow in ("ingress", "egress")]
             policy("routers", link, self.routers)
         subjects = [{"id": sid, **spec.model_dump(exclude_none=True)} for sid, spec in sorted(self.subjects.items())]
+        used = {rid for p in policies for rid in p["rules"]}
+        rules = [r for r in rules if r["id"] in used]       # a role nobody has grants nothing
         return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
                 "policies": policies}
 
