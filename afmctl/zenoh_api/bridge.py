@@ -53,7 +53,7 @@ log = logging.getLogger(__name__)
 
 #: the loggers of the bridge's parts (a child process forwards their records, see .process)
 LOGGERS = (__name__, "afmctl.zenoh_api.inputs", "afmctl.zenoh_api.cmd_queryable",
-           "afmctl.zenoh_api.worker", "afmctl.zenoh_api.ledger")
+           "afmctl.zenoh_api.worker", "afmctl.zenoh_api.ledger", "afmctl.zenoh_api.presence")
 
 
 class ZenohBridge:
