@@ -184,3 +184,19 @@ def test_two_rooms_a_view_sees_the_other_room_and_recovers_after_the_link_is_cut
 def _publish_until(session, payload: bytes, stop: threading.Event) -> None:
     while not stop.wait(0.05):
         session.put("afm/stage9/status", payload)
+
+
+def test_the_lab_section_of_zenoh_md_shows_the_tests_own_files():
+    """docs/ZENOH.md's "A lab" shows examples/lab/router.toml and acl.toml as they are
+    (every setting line, comments aside), the files tests/test_lab_router.py runs."""
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1]
+    doc = (root / "docs" / "ZENOH.md").read_text()
+    section = doc[doc.index("## A lab"):doc.index("## The simulator's truth")]
+    for name in ("router.toml", "acl.toml"):
+        for line in (root / "examples" / "lab" / name).read_text().splitlines():
+            setting = line.split("#", 1)[0].strip()
+            if setting:
+                assert setting in section, (name, setting)
+    acl = load_acl(root / "examples" / "lab" / "acl.toml")
+    assert sorted(acl.scanners) == ["stage1", "stage2", "stage3"]

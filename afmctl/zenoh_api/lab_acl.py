@@ -33,13 +33,13 @@ connect may serve and watch, nobody may command.
 """
 from __future__ import annotations
 
-import re
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from ..errors import AfmctlError
+from .settings import _KEY_CHUNK_RE
 
 #: keys a scanner's services publish (leaf after ``<prefix>/<scanner>/``)
 PUBLISHED = ("setpoint", "drift", "status", "learn", "sim/**")
@@ -50,7 +50,7 @@ COMMAND_QUERY = "cmd"
 ALIVE = "alive"
 STATUS = "status"
 
-_NAME_RE = re.compile(r"^[A-Za-z0-9_\-.]+$")
+_NAME_RE = _KEY_CHUNK_RE      # a key chunk: what a scanner name or a subject id may hold
 _SUBJECT_FIELDS = ("usernames", "cert_common_names", "interfaces")
 
 
@@ -92,20 +92,14 @@ class LabAcl(BaseModel):
             raise ValueError(f"{value!r}: key chunks of letters, digits, '_', '-', '.' separated by '/'")
         return value
 
-    @field_validator("subjects")
+    @field_validator("subjects", "scanners")
     @classmethod
-    def _subject_ids(cls, value: dict[str, AclSubjectSpec]) -> dict[str, AclSubjectSpec]:
-        for sid in value:
-            if not _NAME_RE.match(sid):
-                raise ValueError(f"subject id {sid!r}: letters, digits, '_', '-', '.' only")
-        return value
-
-    @field_validator("scanners")
-    @classmethod
-    def _scanner_names(cls, value: dict[str, ScannerAccess]) -> dict[str, ScannerAccess]:
+    def _names(cls, value: dict[str, Any], info: ValidationInfo) -> dict[str, Any]:
+        what = "subject id" if info.field_name == "subjects" else "scanner"
         for name in value:
-            if name != "*" and not _NAME_RE.match(name):
-                raise ValueError(f"scanner {name!r}: a scanner name (letters, digits, '_', '-', '.') or '*'")
+            if not _NAME_RE.match(name) and not (what == "scanner" and name == "*"):
+                raise ValueError(f"{what} {name!r}: letters, digits, '_', '-', '.' only"
+                                 + (" (or '*': every scanner)" if what == "scanner" else ""))
         return value
 
     @model_validator(mode="after")
