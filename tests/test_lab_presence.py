@@ -21,6 +21,7 @@ from afmctl.zenoh_api.bridge import ZenohBridge
 from afmctl.zenoh_api.lab_acl import load_acl
 from afmctl.zenoh_api.router import Router, RouterSettings
 from afmctl.zenoh_api.session import open_session
+from afmctl.zenoh_api.sim_publisher import SimPublisher
 from afmctl.zenoh_api.settings import TlsSettings, UserPasswordSettings, ZenohSettings, free_loopback_endpoint
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
@@ -107,6 +108,11 @@ def test_presence_and_the_late_joiners_status_through_a_router():
             assert feed.alive is True and feed.status["state"] == "idle" and feed.status["scanner"] == "stage7"
             bridge.close()
             assert wait_for(lambda: feed.alive is False, 10.0)
+            # the simulator declares its scanner's presence too
+            sim = SimPublisher(client, "sim7")
+            assert wait_for(lambda: "sim7" in view.feeds() and view.feeds()["sim7"].alive is True, 10.0)
+            sim.close()
+            assert wait_for(lambda: view.feeds()["sim7"].alive is False, 10.0)
     finally:
         router.close()
 
