@@ -64,10 +64,11 @@ class DispatchClock:
         pass
 
 
-def worker(name: str, endpoint: str, seconds: float, runs: Path, rate_Hz: float, output: str) -> int:
+def worker(name: str, endpoint: str, seconds: float, runs: Path, rate_Hz: float, output: str, rt: int) -> int:
     """One scanner (the module docstring); prints one JSON line with its figures.
     ``output``: ``stream`` or ``wave`` (the simulated CAN FD amplifier), or ``setpoints``
-    (host-timed, one setpoint per tick into a recording amplifier: the loop's own cost)."""
+    (host-timed, one setpoint per tick into a recording amplifier: the loop's own cost);
+    ``rt``: ``loop.realtime_priority`` (0: none)."""
     from afmctl.control.controller import Controller
     from afmctl.drivers.can_amp import CANAmplifier
     from afmctl.sim_backend.amplifiers.base import RecordingSink
@@ -75,7 +76,7 @@ def worker(name: str, endpoint: str, seconds: float, runs: Path, rate_Hz: float,
     from afmctl.testing import make_config
     from afmctl.zenoh_api.settings import ZenohSettings
     channel = f"lab-{name}-{uuid.uuid4().hex[:6]}"
-    cfg = make_config(runs, "", loop={"rate_Hz": rate_Hz},
+    cfg = make_config(runs, "", loop={"rate_Hz": rate_Hz, **({"realtime_priority": rt} if rt else {})},
                       amplifier={"driver": "can", "port": f"virtual:{channel}", "output": output,
                                  "slew_V_per_s": 1e5, "low_water_s": 0.1, "high_water_s": 0.2, "options": {"fd": True}},
                       safety={"slew_V_per_s": 1e5, "ramp_V_per_s": 2000},
@@ -171,7 +172,7 @@ def phase(mode: str, endpoint: str, args: argparse.Namespace, counter: Counter, 
     seconds = args.seconds
     procs = [subprocess.Popen([sys.executable, __file__, "--worker", name, "--endpoint",
                                endpoint if mode == "router" else "off", "--seconds", str(seconds),
-                               "--rate", str(args.rate), "--output", args.output,
+                               "--rate", str(args.rate), "--output", args.output, "--rt", str(args.rt),
                                "--runs", str(tmp / f"{mode}-{name}")], stdout=subprocess.PIPE, text=True)
              for name in SCANNERS]
     results = {}
@@ -234,7 +235,7 @@ def report(rows: list[dict], args: argparse.Namespace) -> str:
 
 `.venv/bin/python {cmd}` — {len(SCANNERS)} scanners, each its own process (Controller at
 {args.rate:g} Hz, a 50 lines/s raster {what}, `output = "{args.output}"`, run
-log on), {args.seconds:g} s per phase, phases *off* (no zenoh) and *router* (the bridge in its child
+log on, `loop.realtime_priority` {args.rt or "off"}), {args.seconds:g} s per phase, phases *off* (no zenoh) and *router* (the bridge in its child
 process as a client of `afmctl router`, a subscriber in another process through the router)
 interleaved {args.reps}×; 2 CPUs shared with other work, load average {load:.1f} at the end,
 {time.strftime('%Y-%m-%d')}. Lateness is {late}; latency runs from the dispatcher handing a batch out to the subscriber's callback for
@@ -259,6 +260,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=20.0, help="run length of each phase [s] (default 20)")
     ap.add_argument("--reps", type=int, default=2, help="interleaved repetitions of off and router (default 2)")
     ap.add_argument("--rate", type=float, default=10_000.0, help="loop rate of each scanner [Hz] (default 10000)")
+    ap.add_argument("--rt", type=int, default=10, metavar="PRIO",
+                    help="loop.realtime_priority of every scanner, SCHED_FIFO (default 10 as afmctl run on a lab PC; 0: none)")
     ap.add_argument("--output", choices=["stream", "wave", "setpoints"], default="stream",
                     help="amplifier.output (default stream: the simulated CAN FD amplifier's FIFO; setpoints: "
                          "host-timed into a recording amplifier)")
@@ -268,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--runs", type=Path, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
-        return worker(args.worker, args.endpoint, args.seconds, args.runs, args.rate, args.output)
+        return worker(args.worker, args.endpoint, args.seconds, args.runs, args.rate, args.output, args.rt)
     rows = []
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
