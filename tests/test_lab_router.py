@@ -37,6 +37,9 @@ CARDS_JS = """(names) => names.every((n) => {
   const c = document.querySelector(`#lab .card[data-name="${n}"]`);
   return !!c && c.querySelector(".presence").textContent === "alive" && c.querySelector(".cstate").textContent !== "no status";
 })"""
+SAMPLES_JS = """(names) => names.map((n) => window.afmView.scanners[n].counts.setpoint_samples || 0)"""
+GROWN_JS = """([names, before]) => names.every((n, i) =>
+  (window.afmView.scanners[n].counts.setpoint_samples || 0) > before[i] + 100)"""
 GONE_JS = """(n) => { const c = document.querySelector(`#lab .card[data-name="${n}"]`); return !!c && c.classList.contains("gone"); }"""
 
 
@@ -143,13 +146,16 @@ def test_a_lab_of_three_scanners_behind_one_router(tmp_path):
             # the router dies and comes back on the same port: every service publishes again
             lab.kill("router")
             time.sleep(1.0)
+            seen = page.evaluate(SAMPLES_JS, list(SCANNERS))      # what the view had before the restart
             lab.start_router()
             t_up = time.monotonic()
             services = {f"{k}-{s}" for k in ("run", "sim") for s in SCANNERS}
             assert wait_for(lambda: counter.since(t_up) == services, 30.0, 0.02), counter.since(t_up)
             republish_s = time.monotonic() - t_up
             assert republish_s < REPUBLISH_S, republish_s
-            page.wait_for_function(CARDS_JS, arg=list(SCANNERS), timeout=30_000, polling=200)   # the view followed
+            # the view reconnected by itself: its scanners are alive and their setpoints flow again
+            page.wait_for_function(CARDS_JS, arg=list(SCANNERS), timeout=30_000, polling=200)
+            page.wait_for_function(GROWN_JS, arg=[list(SCANNERS), seen], timeout=30_000, polling=200)
 
             # operators stop their own scanners; the run logs hold every sample, outage or not
             assert bob.cmd("stage1", "stop") == []
