@@ -68,14 +68,6 @@ PRIOR_REACH_CELLS = 8.0
 #: threshold bins of the prior's density (equal widths in r = (α − β)/2)
 PRIOR_BINS = 12
 
-#: each diagonal (reversible) cell keeps at least this fraction of the record's mean slope
-#: (output span over the input span): no branch of the fitted model is flat anywhere, so its
-#: inverse never jumps across a gap of the plane on a smooth target (#36: a lab's record gave
-#: a gap followed by a ridge, and the inverse a 2.5 V jump in two samples that rang the
-#: scanner's mode). Right after a reversal a piezo stack's slope is its reversible part, a
-#: third or more of the mean slope, so the floor binds only where the data leave the plane empty
-DIAGONAL_FLOOR = 0.05
-
 #: largest grid for the NNLS fit and the exact nonnegative projection (memory ~ (L²/2)² doubles)
 _NNLS_MAX_LEVELS = 64
 
@@ -440,22 +432,13 @@ def _nnls_fit(u: np.ndarray, y: np.ndarray, lo: float, hi: float, L: int, cap: i
         cholesky(H, lower=False)                # positive definite, or a little more ridge
     except np.linalg.LinAlgError:
         H += 1e-6 * scale * np.eye(nc)
-    # min ½ xᵀHx − Atbᵀx, x ≥ lb (x = lb + z, z ≥ 0: min ½ zᵀHz − (Atb − H lb)ᵀz)
-    lb = np.zeros(nc)
-    lb[:n_cells] = _diagonal_floor(L, float(np.ptp(ysel)))
-    x = lb + nnls_gram(H, Atb - H @ lb)
+    # min ½ xᵀHx − Atbᵀx, x ≥ 0 (= min ‖R x − z‖², RᵀR = H, Rᵀz = Atb)
+    x = nnls_gram(H, Atb)
     x = x / col
     y0 = ymean - float(mean_f @ x)
     w = np.zeros((L, L))
     w[np.tril_indices(L)] = x[:n_cells]
     return w, y0, x[n_cells:]
-
-
-def _diagonal_floor(L: int, span_nm: float) -> np.ndarray:
-    """Lower bounds of the cell masses [nm] (``np.tril_indices(L)`` order): on the diagonal
-    :data:`DIAGONAL_FLOOR` of the mean mass per level (``span_nm / L``), elsewhere 0."""
-    i, j = np.tril_indices(L)
-    return np.where(i == j, DIAGONAL_FLOOR * span_nm / L, 0.0)
 
 
 # ------------------------------------------------------------------ the prior (#24 item 3)
