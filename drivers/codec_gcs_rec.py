@@ -2,7 +2,10 @@
 PI's GCS manuals describe it.
 
 * ``DRC <table> <source> <option>``: record option 2 = actual position of axis <source>
-  [µm], 7 = voltage of output channel <source> [V] (1 commanded position, 3 position error).
+  [µm], 14 = open-loop control value of axis <source> [V] (the voltage commanded: ``SVA``
+  or the wave generator; PIPython's ``OPENLOOP_INPUT_14``), 7 = piezo voltage of output
+  channel <source> [V] (what the amplifier stage puts on the piezo; ``PIEZO_VOLTAGE_7``)
+  (1 commanded position, 3 position error).
 * ``DRT 0 0 0``: every table triggers with the default source 0 — the wave generator's
   start (``WGO``) or ``WGR``; ``RTR <n>``: a point every n servo cycles.
 * ``TNR?`` the number of record tables; ``SPA? 1 0x16000200`` / ``0x16000300`` the points
@@ -23,7 +26,8 @@ from .codec_gcs import encode, parse_items, reply_lines
 from .errors import ProtocolError
 
 OPTION_ACTUAL_POSITION = 2
-OPTION_VOLTAGE = 7
+OPTION_PIEZO_VOLTAGE = 7
+OPTION_OPENLOOP_CONTROL = 14
 TRIGGER_WAVE_START = 0
 MAX_POINTS_PARAM = "0x16000200"
 CHAN_NUMBER_PARAM = "0x16000300"

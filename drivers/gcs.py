@@ -293,8 +293,10 @@ class GCSAmplifier(SerialAmplifier):
                 t = len(tables) + 1
                 if sig == "y_nm":
                     tables.append((t, self._ids[a], rcodec.OPTION_ACTUAL_POSITION))
+                elif sig == "u_V":
+                    tables.append((t, self._ids[a], rcodec.OPTION_OPENLOOP_CONTROL))
                 else:
-                    tables.append((t, str(self._axes.index(a) + 1), rcodec.OPTION_VOLTAGE))
+                    tables.append((t, str(self._axes.index(a) + 1), rcodec.OPTION_PIEZO_VOLTAGE))
                 where[(a, sig)] = t
         self._send_checked(*rcodec.encode_configure(tables, setup.divider))
         return RecorderSetup(setup.axes, setup.signals, setup.points, setup.divider, setup.clock_s,
@@ -331,7 +333,8 @@ class GCSAmplifier(SerialAmplifier):
         col = {t: k for k, t in enumerate(tables)}
         y = {a: data[:, col[t]] * 1000.0 for (a, sig), t in where.items() if sig == "y_nm"}  # µm -> nm
         u = {a: data[:, col[t]].copy() for (a, sig), t in where.items() if sig == "u_V"}
+        v = {a: data[:, col[t]].copy() for (a, sig), t in where.items() if sig == "v_V"}
         period = float(header.get("SAMPLE_TIME", setup.period_s))
         if abs(period - setup.period_s) > 1e-9 * max(period, 1.0):
             raise ProtocolError(f"DRR? SAMPLE_TIME {period:g} s differs from the armed {setup.period_s:g} s")
-        return Recording(time_axis(len(data), setup.period_s), y, u, setup.period_s, "gcs DRR?")
+        return Recording(time_axis(len(data), setup.period_s), y, u, setup.period_s, "gcs DRR?", v)

@@ -43,7 +43,7 @@ log = logging.getLogger(__name__)
 
 #: the DBC's messages this amplifier receives and sends
 _MESSAGES = ("SETPOINT_XYZ", "HEARTBEAT", "STATUS", "ERROR", "LIMITS", "STREAM_CTRL", "STREAM_XYZ",
-             "STREAM_XYZ_FD", "STREAM_STATUS", "REC_CTRL", "REC_READ", "REC_STATUS", "REC_DATA")
+             "STREAM_XYZ_FD", "STREAM_STATUS", "REC_CTRL", "REC_READ", "REC_STATUS", "REC_DATA", "REC_DATA_V")
 #: how often a playing stream reports its FIFO [s of the amplifier clock]
 STATUS_PERIOD_S = 0.01
 
@@ -351,8 +351,11 @@ class SimCANAmplifier:
             axes = [i for i in range(3) if r.axes_mask >> i & 1]
             frames = [(k, i, *r.point(k, i)) for k in range(first, first + count) for i in axes]
         lo, hi = -83886.08, 83886.07                   # the Y_NM signal's range (DBC)
-        for k, i, y, u in frames:
+        monitor = bool(r.signals & 4)
+        for k, i, y, u, v in frames:
             self._send("REC_DATA", {"INDEX": k, "AXIS": i, "Y_NM": min(max(y, lo), hi), "U_V": u})
+            if monitor:
+                self._send("REC_DATA_V", {"INDEX": k, "AXIS": i, "V_V": min(max(v, 0.0), 163.8375)})
 
     def send_stream_status(self) -> None:
         st = self.stream.status()
