@@ -127,9 +127,10 @@ def test_pipython_wave_generator_plays_on_the_simulated_servo_clock():
 def test_pipython_datarecorder_records_a_wave_from_the_simulated_scanner_sensor():
     """PIPython's datarectools.Datarecorder: servo time and table size from SPA? (after an
     unknown parameter it reads the error and carries on), RTR, DRC (actual position of axis 1,
-    voltage of output 1), DRT 0 (start with the wave generator), WGO, DRL? (wait), DRR?
-    (the buffered GCS array read in its background thread); the actual position is the
-    simulated scanner's position sensor."""
+    its open-loop control value, the piezo voltage of output 1), DRT 0 (start with the wave
+    generator), WGO, DRL? (wait), DRR? (the buffered GCS array read in its background
+    thread); the actual position is the simulated scanner's position sensor, the piezo
+    voltage its amplifier stage's output (the command through 5 kHz and the slew limit)."""
     from pipython import datarectools, pitools
     from pipython.datarectools import RecordOptions, TriggerSources
     from afmctl.sim_backend.scanner import Scanner, default_scanner_config
@@ -145,11 +146,13 @@ def test_pipython_datarecorder_records_a_wave_from_the_simulated_scanner_sensor(
                 assert drec.servotime == pytest.approx(50e-6) and drec.maxnumvalues == 262144 // 8
                 drec.numvalues = 200
                 drec.samplerate = 2
-                drec.options = (RecordOptions.ACTUAL_POSITION_2, RecordOptions.PIEZO_VOLTAGE_7)
-                drec.sources = ("1", "1")
+                drec.options = (RecordOptions.ACTUAL_POSITION_2, RecordOptions.OPENLOOP_INPUT_14,
+                                RecordOptions.PIEZO_VOLTAGE_7)
+                drec.sources = ("1", "1", "1")
                 drec.trigsources = TriggerSources.DEFAULT_0
                 drec.arm()
-                assert pi.qDRC([1, 2]) == {1: ["1", 2], 2: ["1", 7]} and pi.qRTR() == 2 and pi.qTNR() == 8
+                assert pi.qDRC([1, 2, 3]) == {1: ["1", 2], 2: ["1", 14], 3: ["1", 7]}
+                assert pi.qRTR() == 2 and pi.qTNR() == 8
                 pitools.writewavepoints(pi, 1, points, bunchsize=50)
                 pi.WSL(1, 1)
                 pi.WGC(1, 1)
@@ -157,9 +160,11 @@ def test_pipython_datarecorder_records_a_wave_from_the_simulated_scanner_sensor(
                 pi.WGO(1, 1)
                 header, data = drec.getdata(timeout=10)
             assert pi.qERR() == 0
-    assert header["NDATA"] == 200 and header["DIM"] == 2 and header["SAMPLE_TIME"] == pytest.approx(100e-6)
-    assert "Actual Position" in header["NAME0"] and "Voltage" in header["NAME1"]
+    assert header["NDATA"] == 200 and header["DIM"] == 3 and header["SAMPLE_TIME"] == pytest.approx(100e-6)
+    assert "Actual Position" in header["NAME0"] and "Open loop" in header["NAME1"] and "Voltage" in header["NAME2"]
     assert data[1] == pytest.approx(points, abs=1e-4)              # the voltage of each wave point
+    lag = [abs(v - p) for v, p in zip(data[2], points)]            # the piezo voltage: after the amplifier
+    assert 1e-3 < max(lag) < 0.1 * (max(points) - min(points))
     assert max(data[0]) - min(data[0]) > 1.0                       # [µm]: the sensor saw the scanner move
 
 

@@ -84,6 +84,10 @@ class Calibrated:
     provenance: dict[str, Any]
     excitation_s: float
     elapsed_s: float
+    #: wall time of the device part (open, excite, validate, return to safe) [s]
+    recording_s: float = 0.0
+    #: what the validation plays last [s]
+    validation_s: float = 0.0
     notes: list[str] = field(default_factory=list)
 
 
@@ -139,7 +143,11 @@ def open_amplifier(stack: contextlib.ExitStack, config: Any) -> Any:
 
 def provenance(config: Any, amp: Any, spec: ExcitationSpec, plans: dict[str, PiecePlan], kind: str) -> dict[str, Any]:
     """What the model file keeps of how it was made (module docstring, step 4)."""
-    from .. import __version__
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        afmctl_version = version("afmctl")
+    except PackageNotFoundError:       # a source tree that was not installed
+        afmctl_version = "unknown"
     try:
         info = dict(amp.info())
     except Exception as err:  # noqa: BLE001 - the identity is a courtesy, not a requirement
@@ -147,7 +155,7 @@ def provenance(config: Any, amp: Any, spec: ExcitationSpec, plans: dict[str, Pie
     identity = {k: v for k, v in info.items() if k in ("identity", "device_type", "sensor", "status_word", "serial")}
     return {
         "made_by": "afmctl calibrate",
-        "afmctl_version": __version__,
+        "afmctl_version": afmctl_version,
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "device": {"driver": config.amplifier.driver, "port": str(info.get("port", config.amplifier.port)),
                    "simulated": bool(config.simulation.enabled), **{k: str(v) for k, v in identity.items()}},
@@ -236,6 +244,8 @@ class Calibration:
                 run.stop()
             joined = self._record(run, plans, signals)
             prov = provenance(run.config, amp, spec, plans, self.kind)
+        recording_s = time.monotonic() - t0
+        validation_s = sum(len(j[1].u_V) - sum(g for _, g in j[1].holds) for j in joined.values()) * run.dt_s
         results = {a: self._identify(a, *joined[a], plans[a]) for a in self.axes}
         model = self._model(results, prov)
         if self.out is not None:
@@ -243,7 +253,8 @@ class Calibration:
             self.out.parent.mkdir(parents=True, exist_ok=True)
             save_model(model, self.out)
         excitation_s = sum(len(p.exc.u_V) for p in plans.values()) / float(self.config.loop.rate_Hz)
-        return Calibrated(model, self.out, results, prov, excitation_s, time.monotonic() - t0)
+        return Calibrated(model, self.out, results, prov, excitation_s, time.monotonic() - t0, recording_s,
+                          validation_s)
 
     def _record(self, run: CalibrationRun, plans: dict[str, PiecePlan],
                 signals: dict[str, tuple[str, ...]]) -> dict[str, tuple[Joined, Joined, int]]:

@@ -176,8 +176,10 @@ def _print(result: Any) -> None:
         for part, e in r.validation.items():
             print(f"validation {part:<12}: max {e['max_pct']:.3f} %, RMS {e['rms_pct']:.3f} % of the "
                   f"{e['span_nm']:.4g} nm span (held out: a second play)")
-    over = 100.0 * (result.elapsed_s / result.excitation_s - 1.0) if result.excitation_s else 0.0
-    print(f"time             : {result.elapsed_s:.1f} s for {result.excitation_s:.1f} s of excitation ({over:+.0f} %)")
+    played = result.excitation_s + result.validation_s
+    over = 100.0 * (result.recording_s / played - 1.0) if played else 0.0
+    print(f"time             : on the device {result.recording_s:.1f} s for {result.excitation_s:.1f} s of excitation "
+          f"and {result.validation_s:.1f} s of validation ({over:+.0f} %); {result.elapsed_s:.1f} s in all")
     dev = result.provenance["device"]
     print(f"device           : {dev['driver']} {dev.get('identity', '')}".rstrip())
     if result.path is not None:
