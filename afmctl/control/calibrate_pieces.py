@@ -224,7 +224,7 @@ def join(pieces: list[PieceRecord], dt_s: float, with_holds: bool = True) -> Joi
                 rows += g
         u.append(p.u_V)
         y.append(p.y_nm)
-        if with_v:
+        if with_v and p.v_V is not None:
             v.append(p.v_V)
         m.append(np.ones(len(p.u_V), dtype=bool))
         rows += len(p.u_V)

@@ -222,7 +222,7 @@ class CalibrationRun:
         except (AmplifierTimeout, AmplifierConnectionError) as err:
             raise CalibrationFault(f"afmctl calibrate: reading the recording failed: {err}") from None
         try:
-            rec = align_to_table(rec, {axis: u}, tol_V=OUTPUT_TOL_V)
+            rec = align_to_table(rec, {axis: u.tolist()}, tol_V=OUTPUT_TOL_V)
         except RecordingMismatch as err:
             raise CalibrationFault(f"afmctl calibrate: {err}") from None
         v = rec.v_V.get(axis)
