@@ -49,6 +49,8 @@ def _model_kind(kind: str) -> Callable[[], None]:
         from afmctl.compensators.base import ModelError
         from afmctl.compensators.models import model_class
         t, u, y = _sweep()
+        if kind == "amplifier":     # fitted to a piezo voltage [V], not a displacement
+            y = model_class(kind).from_lag(50.0, 2e4).forward(DT_S).block(u)  # type: ignore[attr-defined]
         model = model_class(kind).identify(t, u, y)
         dt = DT_S if getattr(model, "time_dependent", False) else None
         forward = model.forward(dt)

@@ -1,17 +1,29 @@
-"""The composite per-axis model: hysteresis → creep → linear dynamics (Hammerstein chain).
+"""The composite per-axis model: amplifier → hysteresis → creep → linear dynamics.
 
-One model file (``kind = "chain"``) holds up to three stages, each itself a model of
+One model file (``kind = "chain"``) holds up to four stages, each itself a model of
 :data:`afmctl.compensators.models.KINDS`:
 
-* ``hysteresis`` — pi, epi, preisach or bouc-wen: ``u`` [V] → ``h`` [nm];
+* ``amplifier`` (optional) — the voltage amplifier before the piezo (kind ``amplifier``,
+  :mod:`afmctl.compensators.amplifier`): command ``u`` [V] → piezo voltage ``v`` [V], its
+  bandwidth and slew limit;
+* ``hysteresis`` — pi, epi, preisach or bouc-wen: ``v`` [V] → ``h`` [nm] (``u`` itself
+  without an amplifier stage);
 * ``creep`` (optional) — a linear creep model (kind ``creep``) from ``h`` [nm] to the
   displacement [nm]; its ``gain_nm_per_V`` is here a unit-less gain ≈ 1 (nm per nm);
 * ``dynamics`` (optional) — a linear dynamics model (kind ``dynamics``) [nm] → [nm].
 
-The forward operator is ``dynamics(creep(hysteresis(u)))``, the inverse (the feedforward
-compensator) ``hysteresis⁻¹(creep⁻¹(dynamics⁻¹(y)))``. The chain's *structure* is the
-string ``<hysteresis>[+creep][+dynamics]``, e.g. ``preisach+creep``; that is what the CLI
-accepts as ``--model`` and what ``afmctl run`` prints.
+The forward operator is ``dynamics(creep(hysteresis(amplifier(u))))``, the inverse (the
+feedforward compensator) ``amplifier⁻¹(hysteresis⁻¹(creep⁻¹(dynamics⁻¹(y))))``. The chain's
+*structure* is the string ``[amplifier+]<hysteresis>[+creep][+dynamics]``, e.g.
+``preisach+creep`` or ``amplifier+preisach+creep+dynamics``; that is what the CLI accepts as
+``--model`` and what ``afmctl run`` prints.
+
+The amplifier stage is identified first: from a recorded piezo voltage ``v_V`` when the
+record has one (:func:`~afmctl.compensators.amplifier.fit_amplifier`), otherwise from the
+record itself, linear → hysteresis → linear (a "sandwich"): the first-order lag below the
+first structural mode that the dynamics stage finds is moved before the hysteresis
+(:func:`amplifier_from_dynamics`). The other stages are then identified on the piezo
+voltage the amplifier stage gives for the record's commands.
 
 Identification (:meth:`ChainModel.identify`) follows the Hammerstein structure. Preisach +
 creep are fitted jointly in one nonnegative least-squares problem per round
@@ -43,8 +55,10 @@ log = logging.getLogger(__name__)
 
 #: hysteresis kinds a chain may start with
 HYSTERESIS_KINDS: tuple[str, ...] = ("pi", "epi", "preisach", "bouc-wen")
-#: optional stages, in chain order
+#: optional stages after the hysteresis, in chain order
 STAGES: tuple[str, ...] = ("creep", "dynamics")
+#: the optional stage before the hysteresis
+AMPLIFIER = "amplifier"
 
 #: creep stage identification: lags between 10 ms and 100 s (5 of them)
 CREEP_OPTIONS: dict[str, Any] = {"n_operators": 5, "tau_min_s": 0.01, "tau_max_s": 100.0}
@@ -64,19 +78,28 @@ FULL_RATE_KINDS: tuple[str, ...] = ("preisach",)
 
 
 def parse_structure(text: str) -> tuple[str, tuple[str, ...]]:
-    """``"preisach+creep+dynamics"`` → ``("preisach", ("creep", "dynamics"))``.
+    """``"preisach+creep+dynamics"`` → ``("preisach", ("creep", "dynamics"))``;
+    ``"amplifier+preisach+dynamics"`` → ``("preisach", ("amplifier", "dynamics"))`` (the
+    amplifier stage, when there is one, first among the stages).
 
     :class:`ModelError` naming the allowed parts for anything else (stages in chain order,
     each at most once)."""
     parts = [p.strip() for p in str(text).split("+")]
-    hyst, stages = parts[0], tuple(parts[1:])
-    allowed = f"<{'|'.join(HYSTERESIS_KINDS)}>[+creep][+dynamics]"
+    pre = parts[:1] == [AMPLIFIER]
+    hyst, stages = (parts[1] if pre and len(parts) > 1 else parts[0]), tuple(parts[2:] if pre else parts[1:])
+    allowed = f"[{AMPLIFIER}+]<{'|'.join(HYSTERESIS_KINDS)}>[+creep][+dynamics]"
     if hyst not in HYSTERESIS_KINDS:
-        raise ModelError(f"model: {text!r}: the chain must start with a hysteresis kind; allowed {allowed}")
+        raise ModelError(f"model: {text!r}: the chain must start with a hysteresis kind (after the optional "
+                         f"amplifier stage); allowed {allowed}")
     order = [STAGES.index(s) if s in STAGES else -1 for s in stages]
     if -1 in order or order != sorted(set(order)):
         raise ModelError(f"model: {text!r}: stages must be creep and/or dynamics, in that order; allowed {allowed}")
-    return hyst, stages
+    return hyst, ((AMPLIFIER,) if pre else ()) + stages
+
+
+def join_structure(hyst: str, stages: Sequence[str]) -> str:
+    """The structure string of ``hyst`` and ``stages`` (any order): the amplifier first."""
+    return "+".join(([AMPLIFIER] if AMPLIFIER in stages else []) + [hyst] + [s for s in STAGES if s in stages])
 
 
 def _as_model(value: Any, where: str, allowed: tuple[str, ...]) -> Any:
@@ -90,15 +113,22 @@ def _as_model(value: Any, where: str, allowed: tuple[str, ...]) -> Any:
 
 
 class ChainModel(HysteresisModel):
-    """Per-axis chain ``hysteresis → creep → dynamics`` (module docstring); u [V] → y [nm]."""
+    """Per-axis chain ``amplifier → hysteresis → creep → dynamics`` (module docstring); u [V] → y [nm]."""
 
     kind: Literal["chain"] = "chain"
     time_dependent: ClassVar[bool] = True
+    amplifier: SerializeAsAny[HysteresisModel] | None = Field(
+        None, description="amplifier stage: command u [V] → piezo voltage v [V] (bandwidth, slew limit)")
     hysteresis: SerializeAsAny[HysteresisModel] = Field(description="pi|epi|preisach|bouc-wen model: u [V] → h [nm]")
     creep: SerializeAsAny[HysteresisModel] | None = Field(None, description="creep model: h [nm] → y [nm], gain ≈ 1")
     dynamics: SerializeAsAny[HysteresisModel] | None = Field(None, description="linear dynamics model [nm] → [nm]")
     selection: list[dict[str, Any]] | None = Field(
         None, description="afmctl identify --model auto: held-out score of every candidate (nm, %)")
+
+    @field_validator("amplifier", mode="before")
+    @classmethod
+    def _amp(cls, v: Any) -> Any:
+        return _as_model(v, "amplifier", (AMPLIFIER,))
 
     @field_validator("hysteresis", mode="before")
     @classmethod
@@ -117,8 +147,9 @@ class ChainModel(HysteresisModel):
 
     @property
     def structure(self) -> str:
-        """``<hysteresis>[+creep][+dynamics]``."""
-        return "+".join([self.hysteresis.kind] + [s for s in STAGES if getattr(self, s) is not None])
+        """``[amplifier+]<hysteresis>[+creep][+dynamics]``."""
+        present = [s for s in (AMPLIFIER, *STAGES) if getattr(self, s) is not None]
+        return join_structure(self.hysteresis.kind, present)
 
     def voltage_range_V(self) -> tuple[float, float] | None:
         """The chain's own identified range, else its hysteresis stage's [V]."""
@@ -126,7 +157,7 @@ class ChainModel(HysteresisModel):
 
     def stages(self) -> list[HysteresisModel]:
         """The stage models in chain (forward) order."""
-        return [m for m in (self.hysteresis, self.creep, self.dynamics) if m is not None]
+        return [m for m in (self.amplifier, self.hysteresis, self.creep, self.dynamics) if m is not None]
 
     def forward(self, dt_s: float | None = None) -> StreamingOperator:
         """Operator u [V] → y [nm] at sample period ``dt_s`` [s]."""
@@ -142,8 +173,19 @@ class ChainModel(HysteresisModel):
         return op
 
     def static_inverse(self, dt_s: float | None = None) -> StreamingOperator:
-        """A fresh compensator of the static part, y [nm] → u [V]: ``creep⁻¹`` then
-        ``hysteresis⁻¹`` (what follows the dynamics' inverse)."""
+        """A fresh compensator of what follows the dynamics' inverse, y [nm] → u [V]:
+        ``creep⁻¹``, ``hysteresis⁻¹`` and ``amplifier⁻¹`` (the amplifier stage's inverse
+        counts the piezo-voltage steps it had to cut to its slew limit: ``n_limited``)."""
+        return Chain(*(m.inverse(dt_s) for m in (self.creep, self.hysteresis, self.amplifier) if m is not None))
+
+    def static_forward(self, dt_s: float | None = None) -> StreamingOperator:
+        """A fresh forward operator of what comes before the dynamics, u [V] → nm: the
+        amplifier, hysteresis and creep stages (:meth:`static_inverse` inverts it)."""
+        return Chain(*(m.forward(dt_s) for m in (self.amplifier, self.hysteresis, self.creep) if m is not None))
+
+    def piezo_inverse(self, dt_s: float | None = None) -> StreamingOperator:
+        """A fresh ``creep⁻¹`` then ``hysteresis⁻¹``, nm → the piezo voltage [V] (the
+        command itself without an amplifier stage)."""
         return Chain(*(m.inverse(dt_s) for m in (self.creep, self.hysteresis) if m is not None))
 
     def inverse_within_limits(self, y_nm: np.ndarray, dt_s: float, u_min_V: float = -math.inf,
@@ -159,9 +201,9 @@ class ChainModel(HysteresisModel):
         sample; None: the first sample), and counted in the result."""
         y = np.ascontiguousarray(check_finite("y_nm", y_nm).ravel())
         if self.dynamics is not None:
-            return invert_within_limits(self.dynamics, y, dt_s, lambda: self.static_inverse(dt_s),
+            return invert_within_limits(self.dynamics, y, dt_s, lambda: self.piezo_inverse(dt_s),
                                         u_min_V, u_max_V, slew_V_per_s, u_start_V=u_start_V,
-                                        forward=lambda: self.forward(dt_s))
+                                        forward=lambda: self.forward(dt_s), amplifier=self.amplifier)
         u = self.static_inverse(dt_s).block(y)
         max_step = (slew_V_per_s or math.inf) * dt_s
         slew = float(np.max(np.abs(np.diff(u)))) / dt_s if u.size > 1 else 0.0
@@ -185,10 +227,13 @@ class ChainModel(HysteresisModel):
     def identify(cls, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, n_operators: int | None = None,
                  structure: str = "preisach+creep", rounds: int = 2,
                  dynamics_options: dict[str, Any] | None = None, fit_from_index: int = 0,
-                 left_out: np.ndarray | None = None, **options: Any) -> "ChainModel":
+                 left_out: np.ndarray | None = None, v_V: np.ndarray | None = None,
+                 **options: Any) -> "ChainModel":
         """Fit the chain ``structure`` jointly (module docstring). ``n_operators`` and
         ``options`` go to the hysteresis kind's ``identify``, ``dynamics_options`` to the
-        dynamics kind's; data uniformly sampled (t [s], u [V], y [nm]).
+        dynamics kind's; data uniformly sampled (t [s], u [V], y [nm]). ``v_V``: the
+        recorded piezo voltage [V] (an amplifier stage is fitted to it; without it, the
+        amplifier stage comes from the record itself: :func:`amplifier_from_dynamics`).
 
         ``fit_from_index`` is a burn-in: the whole record runs through every stage (so the
         hysteresis memory and the creep lags hold the state the recording put them in), but
@@ -199,6 +244,11 @@ class ChainModel(HysteresisModel):
         sample rows (:data:`FULL_RATE_KINDS`) leave the record out of their fit, besides the
         jumps' transients (:func:`_without_transients`); the memory still runs through them."""
         hyst_kind, stages = parse_structure(structure)
+        if AMPLIFIER in stages:
+            rest = join_structure(hyst_kind, [s for s in stages if s != AMPLIFIER])
+            return _with_amplifier(cls, rest, t_s, u_V, y_nm, v_V, dict(
+                n_operators=n_operators, rounds=rounds, dynamics_options=dynamics_options,
+                fit_from_index=fit_from_index, left_out=left_out, **options))
         hcls = model_class(hyst_kind)
         t = check_finite("t_s", t_s).ravel()
         u = np.ascontiguousarray(check_finite("u_V", u_V).ravel())
@@ -225,6 +275,62 @@ class ChainModel(HysteresisModel):
             return cls(hysteresis=hyst, creep=creep)
         model = cls(hysteresis=hyst, creep=creep, dynamics=fit_dynamics_stage(hyst, creep, t, u, y, k0, dynamics_options))
         return refine_with_dynamics(model, static, t, u, y, k0, dynamics_options)
+
+
+def _with_amplifier(cls: Any, rest: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray,
+                    v_V: np.ndarray | None, kw: dict[str, Any]) -> "ChainModel":
+    """``amplifier+<rest>``: the amplifier stage from the recorded piezo voltage ``v_V``, or,
+    without it, from the lag the dynamics of ``rest`` fitted on the commands find
+    (:func:`amplifier_from_dynamics`); then ``rest`` on the piezo voltage the stage gives
+    for the commands. The transients after the commands' jumps stay left out of the static
+    fit (the stage smooths the jumps it would be found by)."""
+    from .amplifier import fit_amplifier
+    from .record_steps import step_transients
+
+    t = check_finite("t_s", t_s).ravel()
+    u = np.ascontiguousarray(check_finite("u_V", u_V).ravel())
+    dt = float(np.median(np.diff(t)))
+    k0 = int(kw.get("fit_from_index", 0) or 0)
+    if v_V is not None:
+        amp = fit_amplifier(t, u, v_V, fit_from_index=k0)
+    else:
+        if "dynamics" not in parse_structure(rest)[1]:
+            raise ModelError(f"model: amplifier+{rest}: without a recorded piezo voltage (column v) the amplifier "
+                             f"stage is found from the dynamics: use amplifier+{rest}+dynamics")
+        first = cls.identify(t, u, y_nm, structure=rest, **kw)
+        amp = amplifier_from_dynamics(first.dynamics)
+        if amp is None:
+            raise ModelError(f"model: amplifier+{rest}: the record shows no first-order lag below the first "
+                             "structural mode to put before the hysteresis")
+    x = amp.forward(dt).block(u)
+    jumps = step_transients(u, dt)
+    given = kw.pop("left_out", None)
+    left_out = jumps if given is None else (np.asarray(given, dtype=bool) | jumps)
+    model = cls.identify(t, x, y_nm, structure=rest, left_out=left_out if left_out.any() else None, **kw)
+    model.amplifier = amp
+    model.u_range_V = (float(np.min(u)), float(np.max(u)))
+    return model
+
+
+def amplifier_from_dynamics(dynamics: Any) -> Any:
+    """The amplifier stage a dynamics stage fitted on the commands holds (linear →
+    hysteresis → linear, the "sandwich"): its slowest first-order lag below the first
+    structural mode (a voltage amplifier's bandwidth under the piezo's capacitance), as an
+    :class:`~afmctl.compensators.amplifier.AmplifierModel` without a slew limit (the record
+    alone does not tell it); None when the dynamics have no such lag."""
+    from .amplifier import AmplifierModel
+    from .dynamics import first_mode_Hz
+
+    if dynamics is None:
+        return None
+    p = dynamics.poles()
+    mode = first_mode_Hz(p) if np.any(np.abs(p.imag) > 0) else math.inf
+    lags = [abs(float(q.real)) / (2 * math.pi) for q in p if q.imag == 0]
+    below = [f for f in lags if f < mode]
+    if not below:
+        return None
+    return AmplifierModel.from_lag(min(below), fit_info={"fitted_from": "the lag of a dynamics stage fitted on the "
+                                                         "commands (no recorded piezo voltage)"})
 
 
 #: where the chain's dynamics stage is identified from (``dynamics_options["from"]``)
@@ -441,18 +547,18 @@ def format_table(table: Sequence[dict[str, Any]]) -> str:
     rows from :func:`afmctl.compensators.selection.score_candidate`): the main split's
     held-out max and RMS, the mean RMS over the folds with their spread, the training RMS;
     under the selected row, why it won."""
-    lines = [f"{'candidate':<24} {'held-out max':>14} {'held-out rms':>15} {'folds: mean rms [min–max]':>28} "
+    lines = [f"{'candidate':<34} {'held-out max':>14} {'held-out rms':>15} {'folds: mean rms [min–max]':>28} "
              f"{'train rms':>10}",
-             f"{'':<24} {'[nm] (%)':>14} {'[nm] (%)':>15} {'[nm]':>28} {'[nm]':>10}"]
+             f"{'':<34} {'[nm] (%)':>14} {'[nm] (%)':>15} {'[nm]':>28} {'[nm]':>10}"]
     for row in table:
         if "error" in row:
-            lines.append(f"{row['structure']:<24} failed: {row['error']}"
+            lines.append(f"{row['structure']:<34} failed: {row['error']}"
                          + (f" (held-out rms {row['heldout_rms_nm']:.4g} nm)" if "heldout_rms_nm" in row else ""))
             continue
         folds = row.get("fold_rms_nm")
         fold_text = (f"{row['mean_rms_nm']:.4g} [{min(folds):.4g}–{max(folds):.4g}] ({len(folds)})"
                      if folds else "–")
-        lines.append(f"{row['structure']:<24} {row['heldout_max_nm']:>7.4g} ({row['heldout_max_pct']:.3g}) "
+        lines.append(f"{row['structure']:<34} {row['heldout_max_nm']:>7.4g} ({row['heldout_max_pct']:.3g}) "
                      f"{row['heldout_rms_nm']:>7.4g} ({row['heldout_rms_pct']:.3g}) {fold_text:>28} "
                      f"{row['train_rms_nm']:>10.4g}")
         if "why" in row:

@@ -48,6 +48,16 @@ def _check_conjugates(name: str, values: np.ndarray) -> None:
                              "complex values must come in conjugate pairs")
 
 
+def first_mode_Hz(poles_rad_per_s: np.ndarray) -> float:
+    """The first structural mode [Hz]: the natural frequency of the lowest complex pole pair;
+    the slowest pole when every pole is real (nothing but lags); 0 without poles."""
+    p = np.asarray(poles_rad_per_s, dtype=complex)
+    if p.size == 0:
+        return 0.0
+    modes = p[np.abs(p.imag) > 0]
+    return float(np.min(np.abs(modes if modes.size else p))) / (2 * math.pi)
+
+
 class LinearDynamicsModel(HysteresisModel):
     """Unit-DC-gain LTI dynamics with delay (``kind = "dynamics"``), nm → nm."""
 
@@ -64,7 +74,7 @@ class LinearDynamicsModel(HysteresisModel):
         "(1: at the end of each hold interval); a sampling convention, so in samples; only with delay_s = 0"))
     initial_nm: FiniteFloat = Field(0.0, description="input and output at rest before the first sample [nm]")
     bandwidth_Hz: FiniteFloat | None = Field(None, gt=0, description="band limit of the inverse [Hz]; "
-                                             "null = 1.5 × the slowest pole")
+                                             "null = 1.5 × the first structural mode (the slowest pole without one)")
     regularisation: FiniteFloat = Field(1e-3, ge=0, le=10, description="Tikhonov λ of the inverse")
     fit_info: dict[str, float | str] | None = Field(None, description="identification summary")
 
@@ -115,15 +125,18 @@ class LinearDynamicsModel(HysteresisModel):
         return discretise(self.zeros(), self.poles(), self.delay_s, float(dt_s), float(self.lead_samples))
 
     def inverse_bandwidth_Hz(self, dt_s: float) -> float:
-        """Band limit of the inverse [Hz]: ``bandwidth_Hz`` or 1.5 × the slowest pole (just
-        above the first structural mode: above it the inverse's gain grows as f², and the
-        sharp corners of a raster would need more voltage and slew than an amplifier has),
-        at most 45 % of the sample rate."""
+        """Band limit of the inverse [Hz]: ``bandwidth_Hz``, or 1.5 × the first structural
+        mode (the lowest complex pole pair's natural frequency: above it the inverse's gain
+        grows as f², and the sharp corners of a raster would need more voltage and slew than
+        an amplifier has). A first-order lag below that mode (an amplifier's bandwidth under
+        a large capacitance) does not set the limit: its inverse only grows as f, and a
+        band stopping below the mode would leave the mode uncancelled (#36: a 354 Hz lag put
+        the band at 531 Hz, under a 648 Hz mode). Without a mode, 1.5 × the slowest pole.
+        At most 45 % of the sample rate."""
         if self.bandwidth_Hz is not None:
             bw = float(self.bandwidth_Hz)
         else:
-            p = self.poles()
-            bw = 1.5 * float(np.min(np.abs(p))) / (2 * math.pi) if p.size else 0.45 / dt_s
+            bw = 1.5 * first_mode_Hz(self.poles()) if self.poles().size else 0.45 / dt_s
         return min(bw, 0.45 / dt_s)
 
     # ------------------------------------------------------------------ operators

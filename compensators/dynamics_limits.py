@@ -133,11 +133,15 @@ def invert_within_limits(dynamics, target_nm: np.ndarray, dt_s: float,
                          static_inverse: Callable[[], StreamingOperator], u_min_V: float, u_max_V: float,
                          slew_V_per_s: float | None = None, min_bandwidth_Hz: float | None = None,
                          u_start_V: float | None = None, round_first: bool = True,
-                         forward: Callable[[], StreamingOperator] | None = None) -> LimitedInverse:
+                         forward: Callable[[], StreamingOperator] | None = None,
+                         amplifier=None) -> LimitedInverse:
     """Voltages [V] for ``target_nm`` through ``dynamics`` (a
     :class:`~afmctl.compensators.dynamics.LinearDynamicsModel`, offline stable inverse)
     and a fresh static inverse from ``static_inverse()`` (nm → V), within
-    [u_min_V, u_max_V] and ``slew_V_per_s``.
+    [u_min_V, u_max_V] and ``slew_V_per_s``. ``amplifier``: a chain's amplifier stage
+    (:class:`~afmctl.compensators.amplifier.AmplifierModel`): ``static_inverse()`` then
+    gives the piezo voltage, the amplifier's inverse the commands, and the piezo voltage
+    must also stay within the amplifier's own slew limit (its inverse never asks for more).
 
     First, at the model's band limit, only the stretches of the target where the voltages
     do not fit (the turnarounds of a raster) are rounded (:func:`round_turnarounds`), with a
@@ -153,25 +157,37 @@ def invert_within_limits(dynamics, target_nm: np.ndarray, dt_s: float,
     model_bw = dynamics.inverse_bandwidth_Hz(dt_s)
     p = dynamics.poles()
     floor = min_bandwidth_Hz or (0.2 * float(np.min(np.abs(p))) / (2 * math.pi) if p.size else model_bw / 10)
-    base = static_inverse().block(target_nm)  # what the static chain alone needs
+    amp_slew = math.inf if amplifier is None or amplifier.slew_V_per_s is None else float(amplifier.slew_V_per_s)
+
+    def to_command(v: np.ndarray) -> np.ndarray:
+        return v if amplifier is None else amplifier.inverse(dt_s).block(v)
+
+    base_v = static_inverse().block(target_nm)  # what the static chain alone needs
+    base = to_command(base_v)
     base_out = bool(np.any((base < u_min_V) | (base > u_max_V)))
     max_slew = slew_V_per_s or math.inf
 
+    def violations(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        bad = _violations(u, dt_s, u_min_V, u_max_V, max_slew, not base_out)
+        return bad | _violations(v, dt_s, -math.inf, math.inf, amp_slew, False) if amplifier is not None else bad
+
     tried: list[tuple[np.ndarray, float, float]] = []      # (voltages, band limit, rounding σ)
 
-    def attempt(y: np.ndarray, bw: float, sigma_s: float = 0.0) -> tuple[np.ndarray, bool]:
-        u = static_inverse().block(dynamics.model_copy(update={"bandwidth_Hz": bw}).inverse_offline(y, dt_s))
+    def attempt(y: np.ndarray, bw: float, sigma_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        v = static_inverse().block(dynamics.model_copy(update={"bandwidth_Hz": bw}).inverse_offline(y, dt_s))
+        u = to_command(v)
         tried.append((u, bw, sigma_s))
-        return u, _max_slew(u, dt_s) <= max_slew and (base_out or not np.any((u < u_min_V) | (u > u_max_V)))
+        return u, violations(u, v)
 
-    u, ok = attempt(target_nm, model_bw)
+    u, bad = attempt(target_nm, model_bw)
+    ok = not bad.any()
     bw, rounded = model_bw, 0.0
     if not ok and round_first:
-        u, ok, rounded = _round_until_fit(target_nm, u, dt_s, attempt, model_bw, floor,
-                                          (u_min_V, u_max_V, max_slew, not base_out))
+        u, ok, rounded = _round_until_fit(target_nm, u, bad, dt_s, attempt, model_bw, floor)
     while not ok and bw / STEP >= floor:
         bw /= STEP
-        u, ok = attempt(target_nm, bw)
+        u, bad = attempt(target_nm, bw)
+        ok = not bad.any()
     if not ok and forward is not None:
         u, bw, rounded = _least_predicted_error(tried, target_nm, forward, (u_min_V, u_max_V, max_slew * dt_s),
                                                 u_start_V)
@@ -182,20 +198,20 @@ def invert_within_limits(dynamics, target_nm: np.ndarray, dt_s: float,
     return res
 
 
-def _round_until_fit(target_nm: np.ndarray, u: np.ndarray, dt_s: float, attempt, model_bw: float, floor_Hz: float,
-                     limits: tuple[float, float, float, bool]) -> tuple[np.ndarray, bool, float]:
-    """Round the target where the voltages ``u`` do not fit, wider each time (module
-    docstring); returns (voltages, whether they fit, the rounding σ [s] or 0)."""
-    lo, hi, max_slew, check_range = limits
-    where = _violations(u, dt_s, lo, hi, max_slew, check_range)
+def _round_until_fit(target_nm: np.ndarray, u: np.ndarray, bad: np.ndarray, dt_s: float, attempt, model_bw: float,
+                     floor_Hz: float) -> tuple[np.ndarray, bool, float]:
+    """Round the target where the voltages ``u`` do not fit (``bad``), wider each time
+    (module docstring); ``attempt(target, band limit, σ)`` returns the voltages and where
+    they do not fit. Returns (voltages, whether they fit, the rounding σ [s] or 0)."""
+    where = bad.copy()
     sigma = 2.0
     sigma_max = 0.133 / (floor_Hz * dt_s)  # a Gaussian of σ has its -3 dB point near 0.133/σ
     best = u
     while sigma <= sigma_max:
-        cand, ok = attempt(round_turnarounds(target_nm, where, sigma), model_bw, sigma * dt_s)
-        if ok:
+        cand, cand_bad = attempt(round_turnarounds(target_nm, where, sigma), model_bw, sigma * dt_s)
+        if not cand_bad.any():
             return cand, True, sigma * dt_s
-        where |= _violations(cand, dt_s, lo, hi, max_slew, check_range)
+        where |= cand_bad
         sigma *= STEP
     return best, False, 0.0
 

@@ -217,8 +217,5 @@ def _regularised_inverse(g: np.ndarray) -> np.ndarray:
 def _static_ops(chain, dt_s: float):
     """Factories of the static part's forward (V → nm) and inverse (nm → V) operators."""
     if hasattr(chain, "static_inverse"):
-        stages = [m for m in (chain.hysteresis, chain.creep) if m is not None]
-        from .base import Chain
-
-        return (lambda: Chain(*(m.forward(dt_s) for m in stages)), lambda: chain.static_inverse(dt_s))
+        return (lambda: chain.static_forward(dt_s)), (lambda: chain.static_inverse(dt_s))
     return (lambda: chain.forward(dt_s)), (lambda: chain.inverse(dt_s))

@@ -35,6 +35,7 @@ KINDS: dict[str, str] = {
     "preisach": "afmctl.compensators.preisach:PreisachModel",
     "bouc-wen": "afmctl.compensators.bouc_wen:BoucWenModel",
     "dynamics": "afmctl.compensators.dynamics:LinearDynamicsModel",
+    "amplifier": "afmctl.compensators.amplifier:AmplifierModel",
     "chain": "afmctl.compensators.chain:ChainModel",
     "scanner": "afmctl.compensators.scanner_model:ScannerModel",
 }

@@ -169,7 +169,81 @@ def _key(row: dict[str, Any], criterion: str = "rms") -> tuple[float, float]:
 def select_model(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates: Sequence[str] = DEFAULT_CANDIDATES,
                  holdout_fraction: float = 0.3, options: dict[str, Any] | None = None,
                  fit_from_index: int = 0, criterion: str = "rms", with_dynamics: bool = True,
-                 ) -> tuple[ChainModel, list[dict[str, Any]]]:
+                 v_V: np.ndarray | None = None) -> tuple[ChainModel, list[dict[str, Any]]]:
+    """:func:`select` with the amplifier stage before the hysteresis (#36). With the recorded
+    piezo voltage ``v_V`` [V] the stage is fitted to it first
+    (:func:`~afmctl.compensators.amplifier.fit_amplifier`) and every candidate is scored on the
+    piezo voltage the stage gives for the commands (their rows named ``amplifier+…``). Without
+    it, the selected chain with dynamics is tried once more with the lag below its first mode
+    moved before the hysteresis (:func:`with_amplifier_stage`), and kept when it predicts the
+    held-out record better."""
+    if v_V is None:
+        best, table, ctx = select(t_s, u_V, y_nm, candidates, holdout_fraction, options, fit_from_index, criterion,
+                                  with_dynamics)
+        if with_dynamics:
+            best = with_amplifier_stage(best, table, *ctx)
+        return best, table
+    from .amplifier import fit_amplifier
+
+    t = check_finite("t_s", t_s).ravel()
+    u = np.ascontiguousarray(check_finite("u_V", u_V).ravel())
+    amp = fit_amplifier(t, u, v_V, fit_from_index=int(fit_from_index))
+    x = amp.forward(float(np.median(np.diff(t)))).block(u)
+    best, table, _ = select(t, x, y_nm, candidates, holdout_fraction, options, fit_from_index, criterion,
+                            with_dynamics)
+    for row in table:
+        row["structure"] = "amplifier+" + row["structure"]
+    best.amplifier, best.u_range_V = amp, (float(np.min(u)), float(np.max(u)))
+    return best, table
+
+
+#: the amplifier variant of a selected chain must predict the held-out record at least this
+#: fraction better (RMS) to be kept
+AMPLIFIER_MIN_GAIN = 0.02
+
+
+def with_amplifier_stage(best: ChainModel, table: list[dict[str, Any]], t: np.ndarray, u: np.ndarray, y: np.ndarray,
+                         split: int, options: dict[str, Any] | None, k0: int,
+                         parts: list[tuple[int, int]]) -> ChainModel:
+    """The selected chain ``best``, or, when its dynamics stage holds a first-order lag below
+    its first mode (:func:`~.chain.amplifier_from_dynamics`), the same structure with that
+    lag as an amplifier stage before the hysteresis, whichever predicts the held-out part
+    of the main split better (by :data:`AMPLIFIER_MIN_GAIN`): the candidate is scored as its
+    structure on the piezo voltage that stage gives for the commands. A row is added to
+    ``table`` either way; the winner's row comes first."""
+    from .chain import amplifier_from_dynamics
+
+    amp = amplifier_from_dynamics(best.dynamics)
+    ref = next((r for r in table if r["structure"] == best.structure and "error" not in r), None)
+    if amp is None or ref is None:
+        return best
+    dt = float(np.median(np.diff(t)))
+    x = amp.forward(dt).block(u)
+    row = score_candidate(best.structure, t, x, y, split, options, k0, dynamics_from_whole=True, parts=parts)
+    row["structure"] = "amplifier+" + best.structure
+    log.info("auto: %s → %s", row["structure"], row)
+    table.append(row)
+    if "error" in row or not row["heldout_rms_nm"] < (1.0 - AMPLIFIER_MIN_GAIN) * ref["heldout_rms_nm"]:
+        return best
+    try:
+        model = _fit(best.structure, t, x, y, options or {}, k0)
+    except (ModelError, ValueError, np.linalg.LinAlgError) as err:
+        row["error"] = f"refitted on the whole record: {' '.join(str(err).split())}"
+        return best
+    model.amplifier, model.u_range_V = amp, (float(np.min(u)), float(np.max(u)))
+    row["why"] = (f"the {amp.bandwidth_Hz:.4g} Hz lag of {best.structure}'s dynamics put before the hysteresis "
+                  f"(an amplifier stage) predicts the held-out record {100 * (1 - row['heldout_rms_nm'] / ref['heldout_rms_nm']):.3g} % "
+                  f"better ({row['heldout_rms_nm']:.4g} vs {ref['heldout_rms_nm']:.4g} nm RMS)")
+    table.remove(row)
+    table.insert(0, row)
+    model.selection = table
+    return model
+
+
+def select(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates: Sequence[str] = DEFAULT_CANDIDATES,
+           holdout_fraction: float = 0.3, options: dict[str, Any] | None = None,
+           fit_from_index: int = 0, criterion: str = "rms", with_dynamics: bool = True,
+           ) -> tuple[ChainModel, list[dict[str, Any]], tuple[Any, ...]]:
     """Score every candidate (module docstring), refit the best on all the data.
 
     ``t_s`` [s] uniformly sampled, ``u_V`` [V], ``y_nm`` [nm]. ``fit_from_index`` is a
@@ -177,7 +251,8 @@ def select_model(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates:
     first ``1 − holdout_fraction`` is fitted and the rest scored (the models run over the
     whole record). ``criterion``: ``rms`` (default) or ``max`` held-out error.
     ``with_dynamics``: also try the best candidate ``+dynamics`` (module docstring). Returns the
-    best model (its ``selection`` field holds the table, best first) and the table."""
+    best model (its ``selection`` field holds the table, best first), the table and what
+    :func:`with_amplifier_stage` needs besides them: ``(t, u, y, split, options, k0, parts)``."""
     t = check_finite("t_s", t_s).ravel()
     u = np.ascontiguousarray(check_finite("u_V", u_V).ravel())
     y = np.ascontiguousarray(check_finite("y_nm", y_nm).ravel())
@@ -220,7 +295,7 @@ def select_model(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates:
         table.sort(key=lambda row: (row is not winner, _mean_key(row)))
     best = _refit_best(table, t, u, y, options or {}, k0)
     best.selection = table
-    return best, table
+    return best, table, (t, u, y, split, options, k0, parts)
 
 
 #: at most this many static candidates are tried again ``+dynamics``

@@ -6,7 +6,7 @@ delay: :func:`afmctl.data.identdata.condition`), then fitted by the kind's own `
 residual is counted after the burn-in, as the command prints it."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -68,23 +68,28 @@ class Names:
 OPTIONS = Names("--param", "--param ", "--y-unit", "--operators", "--burn-in none", "--model {kind}")
 
 
-def read_recording(path: str | Path, columns: tuple[str, ...] = ("t", "u", "y")) -> dict[str, np.ndarray]:
-    """The named columns of a CSV file (header row) as float64 arrays; ``t`` strictly
-    increasing. Errors name the file, the row and the column."""
-    return read_csv(path, columns, min_rows=2)
+def read_recording(path: str | Path, columns: tuple[str, ...] = ("t", "u", "y"),
+                   optional: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+    """The named columns of a CSV file (header row) as float64 arrays (``optional`` ones
+    when present, e.g. ``v``: the recorded piezo voltage [V]); ``t`` strictly increasing.
+    Errors name the file, the row and the column."""
+    return read_csv(path, columns, min_rows=2, optional=optional)
 
 
 def identify(kind: str, data: str | Path | None = None, *, t_s: np.ndarray | None = None,
-             u_V: np.ndarray | None = None, y_nm: np.ndarray | None = None, n_operators: int | None = None,
+             u_V: np.ndarray | None = None, y_nm: np.ndarray | None = None, v_V: np.ndarray | None = None,
+             n_operators: int | None = None,
              y_unit: str = "nm", burn_in: str = "auto", delay: str = "auto", despike: bool = True,
              **params: Any) -> Identified:
-    """Fit ``kind`` (pi, epi, creep, preisach, bouc-wen, dynamics, ``KIND+creep[+dynamics]``
-    or ``auto``) to a CSV file ``data`` (columns t,u,y) or to arrays ``t_s``, ``u_V``,
-    ``y_nm`` (y in ``y_unit``: nm or um). ``burn_in``: ``auto`` (until the input has passed
+    """Fit ``kind`` (pi, epi, creep, preisach, bouc-wen, dynamics, amplifier,
+    ``[amplifier+]KIND[+creep][+dynamics]`` or ``auto``) to a CSV file ``data`` (columns t,u,y
+    and, when the recording has it, v: the piezo voltage [V]) or to arrays ``t_s``, ``u_V``,
+    ``y_nm`` (y in ``y_unit``: nm or um) and optionally ``v_V``. A chain or ``auto`` with the
+    piezo voltage identifies an amplifier stage before the hysteresis from it. ``burn_in``: ``auto`` (until the input has passed
     both extremes), ``none`` or seconds; ``delay``: ``auto`` or seconds; ``params``: the
     kind's options (``afmctl identify --help``, ``--param``), for auto also ``candidates``,
     ``holdout_fraction``, ``criterion``, ``with_dynamics``."""
-    c, where = prepare(kind, data, t_s=t_s, u_V=u_V, y_nm=y_nm, n_operators=n_operators, y_unit=y_unit,
+    c, where = prepare(kind, data, t_s=t_s, u_V=u_V, y_nm=y_nm, v_V=v_V, n_operators=n_operators, y_unit=y_unit,
                        burn_in=burn_in, delay=delay, despike=despike)
     return fit(kind, c, where, n_operators, params)
 
@@ -95,7 +100,8 @@ def is_chain(kind: str) -> bool:
 
 
 def prepare(kind: str, data: str | Path | None = None, *, t_s: np.ndarray | None = None,
-            u_V: np.ndarray | None = None, y_nm: np.ndarray | None = None, n_operators: int | None = None,
+            u_V: np.ndarray | None = None, y_nm: np.ndarray | None = None, v_V: np.ndarray | None = None,
+            n_operators: int | None = None,
             y_unit: str = "nm", burn_in: str = "auto", delay: str = "auto", despike: bool = True,
             names: Names = Names()) -> tuple[Conditioned, str]:
     """The first step of :func:`identify`: the options checked, the recording read (a CSV
@@ -111,9 +117,9 @@ def prepare(kind: str, data: str | Path | None = None, *, t_s: np.ndarray | None
         if cls.has_own_delay and delay == "auto":  # the kind fits its delay itself
             delay = "0"
         uniform = getattr(cls, "time_dependent", False)
-    t, u, y, where = _inputs(data, t_s, u_V, y_nm)
+    t, u, y, v, where = _inputs(data, t_s, u_V, y_nm, v_V)
     return condition(t, u, y * Y_UNITS[y_unit], where, burn_in=burn_in, delay=delay, despike=despike,
-                     uniform=uniform, dynamics_delay=kind == "auto" or "dynamics" in kind), where
+                     uniform=uniform, dynamics_delay=kind == "auto" or "dynamics" in kind, v_V=v), where
 
 
 def fit(kind: str, c: Conditioned, where: str, n_operators: int | None = None, params: dict[str, Any] | None = None,
@@ -126,21 +132,26 @@ def fit(kind: str, c: Conditioned, where: str, n_operators: int | None = None, p
 
 
 def _inputs(data: str | Path | None, t_s: np.ndarray | None, u_V: np.ndarray | None, y_nm: np.ndarray | None,
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
-    arrays = (t_s, u_V, y_nm)
+            v_V: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, str]:
+    arrays = (t_s, u_V, y_nm, v_V)
     if data is not None:
         if any(a is not None for a in arrays):
             raise AfmctlError("identify: give either data (a CSV path) or the arrays t_s, u_V, y_nm, not both")
-        d = read_recording(data)
-        return d["t"], d["u"], d["y"], str(data)
+        d = read_recording(data, optional=("v",))
+        return d["t"], d["u"], d["y"], d.get("v"), str(data)
     if t_s is None or u_V is None or y_nm is None:
         raise AfmctlError("identify: give data (a CSV path with columns t,u,y) or all of t_s, u_V, y_nm")
     t, u, y = (np.ascontiguousarray(a, dtype=np.float64).reshape(-1) for a in (t_s, u_V, y_nm))
-    if not t.size == u.size == y.size or t.size < 2:
-        raise AfmctlError(f"identify: t_s, u_V, y_nm need one equal length ≥ 2 (got {t.size}, {u.size}, {y.size})")
-    if not np.all(np.isfinite(np.concatenate([t, u, y]))) or np.any(np.diff(t) <= 0):
-        raise AfmctlError("identify: t_s, u_V, y_nm must be finite and t_s strictly increasing")
-    return t, u, y, "data"
+    v = None if v_V is None else np.ascontiguousarray(v_V, dtype=np.float64).reshape(-1)
+    if not t.size == u.size == y.size or t.size < 2 or (v is not None and v.size != t.size):
+        names = "t_s, u_V, y_nm" + ("" if v is None else ", v_V")
+        sizes = ", ".join(str(a.size) for a in (t, u, y) + (() if v is None else (v,)))
+        raise AfmctlError(f"identify: {names} need one equal length ≥ 2 (got {sizes})")
+    cols = np.concatenate([t, u, y] + ([] if v is None else [v]))
+    if not np.all(np.isfinite(cols)) or np.any(np.diff(t) <= 0):
+        raise AfmctlError("identify: t_s, u_V, y_nm" + ("" if v is None else ", v_V")
+                          + " must be finite and t_s strictly increasing")
+    return t, u, y, v, "data"
 
 
 def _fit_errors(kind: str, where: str, err: Exception, names: Names) -> Exception:
@@ -167,6 +178,11 @@ def _single(cls: type[HysteresisModel], kind: str, c: Conditioned, n_operators: 
     """One kind, as ``afmctl identify`` fits it: kinds that take ``fit_from_index`` run
     through the burn-in, others are fitted after it."""
     opts = dict(params)
+    if kind == "amplifier":           # command → piezo voltage: fitted to the column v (its "y", in V)
+        if c.v_V is None:
+            raise AfmctlError(f"{where}: kind amplifier is fitted to the recorded piezo voltage: the data need a "
+                              "column v (V); without it, identify a chain amplifier+KIND[+creep]+dynamics")
+        c = replace(c, y_nm=c.v_V, delay_s=0.0)
     t, u, y, k0 = c.t_s, delayed(c.t_s, c.u_V, c.delay_s), c.y_nm, c.fit_from
     if k0 and getattr(cls, "fits_with_burn_in", False):
         opts.setdefault("fit_from_index", k0)
@@ -214,6 +230,7 @@ def _chain(kind: str, c: Conditioned, n_operators: int | None, params: dict[str,
     if n_operators is not None:
         opts["n_operators"] = n_operators
     t, u, y, k = c.t_s, delayed(c.t_s, c.u_V, c.delay_s), c.y_nm, c.fit_from
+    v = None if c.v_V is None else delayed(c.t_s, c.v_V, c.delay_s)
     table: list[Any] | None = None
     holdout: float | None = None
     criterion: str | None = None
@@ -230,10 +247,10 @@ def _chain(kind: str, c: Conditioned, n_operators: int | None, params: dict[str,
                                   "(held-out error)")
             extra = {"candidates": tuple(candidates)} if candidates else {}
             model, table = select_model(t, u, y, holdout_fraction=holdout, options=opts, fit_from_index=k,
-                                        criterion=criterion, with_dynamics=with_dynamics, **extra)
+                                        criterion=criterion, with_dynamics=with_dynamics, v_V=v, **extra)
         else:
             parse_structure(kind)
-            model = ChainModel.identify(t, u, y, structure=kind, fit_from_index=k, **opts)
+            model = ChainModel.identify(t, u, y, structure=kind, fit_from_index=k, v_V=v, **opts)
     except (TypeError, ModelError, np.linalg.LinAlgError) as err:
         raise _fit_errors(kind, where, err, names) from None
     y_fit = np.asarray(model.forward(float(np.median(np.diff(t)))).block(np.ascontiguousarray(u)))

@@ -16,8 +16,11 @@ Fit a model of the scanner to measured data and write it as a JSON model file.
 
 Input:
   --data DATA.csv   header row and columns t,u,y: time (s, strictly increasing), the
-                    voltage sent to the amplifier (V) and the measured displacement (nm).
-                    Extra columns are ignored. Excite the scanner over the range you will
+                    voltage sent to the amplifier (V) and the measured displacement (nm);
+                    optional column v: the voltage at the piezo (V; an amplifier's monitor
+                    output or a controller's recorder channel): a chain or auto then
+                    identifies the amplifier stage before the hysteresis from it.
+                    Other columns are ignored. Excite the scanner over the range you will
                     use: a decaying triangle (nested loops) for hysteresis models, and
                     holds/staircases of a few seconds for the creep-aware kinds (epi,
                     creep; non-uniform samples are resampled for them).
@@ -46,8 +49,12 @@ Model kinds (--model):
             from the record's fast parts (afmctl's multisine, a chirp within the
             amplifier's slew limit, triangles at 10 Hz and up; the parts used are
             printed): frequency response (Welch) fitted by modes + lags + delay
-  KIND+creep[+dynamics]
-            a chain (kind chain): hysteresis KIND (pi, epi, preisach, bouc-wen), then
+  amplifier the amplifier stage alone: bandwidth and slew (current) limit, from column v
+  [amplifier+]KIND[+creep][+dynamics]
+            a chain (kind chain): the amplifier stage before the piezo (its bandwidth and
+            slew limit; from column v, or without it the lag below the first mode that the
+            dynamics find: amplifier+KIND[+creep]+dynamics), hysteresis KIND (pi, epi,
+            preisach, bouc-wen) on the piezo voltage, then
             linear creep, then linear dynamics, identified jointly (Hammerstein):
             hysteresis and creep on every sample (preisach; other kinds on block means
             at <= 2 kHz) less the 50 ms after each jump of the command, the dynamics
@@ -68,7 +75,11 @@ Model kinds (--model):
             first 70 % ('afmctl excite --kind all' does). The best is then tried
             +dynamics when the record has fast parts (record at a rate that resolves
             the scanner's resonance, e.g. 50 kHz; the delay is then fitted by the
-            dynamics stage, not shifted ahead of the hysteresis fit).
+            dynamics stage, not shifted ahead of the hysteresis fit). With column v
+            every candidate gets the amplifier stage fitted to it; without it, the
+            winner is tried once more with its dynamics' lag below the first mode moved
+            before the hysteresis (amplifier+…) and kept if it predicts the held-out
+            part better.
             --param 'candidates=["pi","preisach+creep"]', holdout_fraction=0.3,
             criterion=rms|max, with_dynamics=false
 Real recordings (--data):
@@ -114,7 +125,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("identify", help=HELP, description=DESCRIPTION,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--model", required=True, metavar="KIND",
-                   help="model kind: pi, epi, creep, preisach, bouc-wen, dynamics, a chain KIND+creep[+dynamics], "
+                   help="model kind: pi, epi, creep, preisach, bouc-wen, dynamics, amplifier, a chain "
+                   "[amplifier+]KIND[+creep][+dynamics], "
                         "or auto")
     p.add_argument("--data", metavar="DATA.csv", help="CSV with columns t,u,y (s, V, nm)")
     p.add_argument("--from-images", metavar="SCANS", nargs="+",

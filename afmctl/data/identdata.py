@@ -46,6 +46,8 @@ class Conditioned:
     fit_from: int = 0
     delay_s: float = 0.0
     notes: list[str] = field(default_factory=list)
+    #: the recorded piezo voltage [V] (the optional column ``v``), on the same samples; None without it
+    v_V: np.ndarray | None = None
 
 
 def check_units(u_V: np.ndarray, y_nm: np.ndarray, where: str) -> None:
@@ -206,7 +208,7 @@ def excitation_notes(t_s: np.ndarray, u_V: np.ndarray) -> list[str]:
 
 def condition(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, where: str, *,
               burn_in: str = "auto", delay: str = "auto", despike: bool = True,
-              uniform: bool = False, dynamics_delay: bool = False) -> Conditioned:
+              uniform: bool = False, dynamics_delay: bool = False, v_V: np.ndarray | None = None) -> Conditioned:
     """Units, spikes, uniform sampling, burn-in and delay of measured ``t,u,y`` (see the module
     docstring). ``burn_in``: ``auto``, ``none`` or seconds; ``delay``: ``auto`` or seconds;
     ``uniform``: resample non-uniform records (for time-dependent model kinds; interpolation
@@ -223,7 +225,11 @@ def condition(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, where: str, *,
             c.notes.append(f"spikes: {n} sample(s) of y replaced by their running median")
     changed = False
     if uniform:
-        c.t_s, (c.u_V, c.y_nm), changed = resample_uniform(t_s, u_V, c.y_nm)
+        extra = [] if v_V is None else [v_V]
+        c.t_s, cols, changed = resample_uniform(t_s, u_V, c.y_nm, *extra)
+        c.u_V, c.y_nm = cols[0], cols[1]
+        if v_V is not None:
+            c.v_V = cols[2]
     if changed:
         c.notes.append(f"sampling: non-uniform; resampled to {c.t_s.size} samples every "
                        f"{float(c.t_s[1] - c.t_s[0]):.4g} s")
