@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -30,7 +30,7 @@ import numpy as np
 
 from . import codec_can as codec
 from .base import Amplifier, ConnectionState, VoltageLimits
-from .errors import AmplifierTimeout, LimitError, ProtocolError
+from .errors import AmplifierTimeout, LimitError, ProtocolError, RecordingCancelled
 from .recording import Recording, RecorderSetup, time_axis
 from .stream_safety import check_block
 from .transport_can import CanTransport
@@ -375,7 +375,7 @@ class CANAmplifier(Amplifier):
     def _recorded_points(self, setup: RecorderSetup) -> int:
         return int(self._rec_command(codec.REC_CMD_STATUS)["COUNT"])
 
-    def _read_recording(self, setup: RecorderSetup) -> Recording:
+    def _read_recording(self, setup: RecorderSetup, cancel: Callable[[], bool]) -> Recording:
         """REC_READ in chunks of :attr:`REC_READ_CHUNK` points; each chunk's REC_DATA frames
         (one per point and axis) are awaited before the next is asked for."""
         idx = [self.axes.index(a) for a in setup.axes]
@@ -384,6 +384,8 @@ class CANAmplifier(Amplifier):
         v = np.empty((setup.points, len(idx)))
         monitor = "v_V" in setup.signals
         for first in range(0, setup.points, self.REC_READ_CHUNK):
+            if cancel():
+                raise RecordingCancelled(f"{self.name}: the read-back of the recording was cancelled")
             count = min(self.REC_READ_CHUNK, setup.points - first)
             keys = [(k, i) for k in range(first, first + count) for i in idx]
             with self._cond:

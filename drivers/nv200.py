@@ -24,7 +24,7 @@ import logging
 import time
 from typing import Any, cast
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -331,7 +331,9 @@ class NV200(SerialAmplifier):
         v = {"x": values["v_V"][:n]} if "v_V" in values else {}
         return Recording(time_axis(n, setup.period_s), y, u, setup.period_s, "nv200 recoutf", v)
 
-    def _read_recording(self, setup: RecorderSetup) -> Recording:
+    def _read_recording(self, setup: RecorderSetup, cancel: Callable[[], bool]) -> Recording:
+        """Both channels with one ``recoutf`` each (at most 6144 points: a few seconds at
+        115200 baud; not cancelled mid-way)."""
         if self._rec_cache is None:
             self._rec_cache = self._read_channels(setup)
             self._rec_pending = False

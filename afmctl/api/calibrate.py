@@ -203,6 +203,8 @@ class Calibration:
         self._stop_asked = False
         self.partial: list[Path] = []
         self.specs: dict[str, ExcitationSpec] = {}
+        #: the device part is over (the output at the safe value): a stop now interrupts the identification
+        self.device_done = False
 
     # ------------------------------------------------------------------ the steps
     def stem(self) -> str:
@@ -245,8 +247,17 @@ class Calibration:
             joined = self._record(run, plans, signals)
             prov = provenance(run.config, amp, spec, plans, self.kind)
         recording_s = time.monotonic() - t0
+        self.device_done = True
+        csvs = self._write_recordings(joined)
+        if self._stop_asked:
+            self.partial = list(csvs.values())
+            raise CalibrationStopped("afmctl calibrate: stopped after the recording")
         validation_s = sum(len(j[1].u_V) - sum(g for _, g in j[1].holds) for j in joined.values()) * run.dt_s
-        results = {a: self._identify(a, *joined[a], plans[a]) for a in self.axes}
+        try:
+            results = {a: self._identify(a, csvs[a], *joined[a], plans[a]) for a in self.axes}
+        except KeyboardInterrupt:       # the device is done: Ctrl-C interrupts the identification
+            self.partial = list(csvs.values())
+            raise CalibrationStopped("afmctl calibrate: stopped during the identification") from None
         model = self._model(results, prov)
         if self.out is not None:
             from afmctl.compensators.models import save_model
@@ -309,12 +320,19 @@ class Calibration:
             write_csv(path, join(pieces, run.dt_s).columns())
             self.partial.append(path)
 
-    def _identify(self, axis: str, rec: Joined, val: Joined, minor: int, plan: PiecePlan) -> AxisCalibration:
-        """Write the recording, identify from it, validate on the second play."""
+    def _write_recordings(self, joined: dict[str, tuple[Joined, Joined, int]]) -> dict[str, Path]:
+        """Every axis's recording and validation as CSV; the recordings' paths per axis."""
         self.report_dir.mkdir(parents=True, exist_ok=True)
-        csv = self.csv_path(axis)
-        write_csv(csv, rec.columns())
-        write_csv(self.csv_path(axis, "validation"), val.columns())
+        out = {}
+        for axis, (rec, val, _minor) in joined.items():
+            out[axis] = self.csv_path(axis)
+            write_csv(out[axis], rec.columns())
+            write_csv(self.csv_path(axis, "validation"), val.columns())
+        return out
+
+    def _identify(self, axis: str, csv: Path, rec: Joined, val: Joined, minor: int,
+                  plan: PiecePlan) -> AxisCalibration:
+        """Identify from the recording ``csv``, validate on the second play."""
         fitted = identify(self.kind, csv, **self.params)
         return AxisCalibration(axis, fitted, csv, rec, val, validate(fitted.model, rec, val, minor), minor,
                                len(plan.bounds))

@@ -95,9 +95,18 @@ class ProgressBar:
 
     def __init__(self) -> None:
         self.bar: Any = None
+        self.last: Any = None
+
+    def status(self) -> dict[str, Any]:
+        """Where the calibration is (for zenoh ``status``)."""
+        p = self.last
+        if p is None:
+            return {"what": "starting"}
+        return {"what": p.what, "piece": p.k + 1, "pieces": p.n, "left_s": round(p.left_s, 1)}
 
     def __call__(self, p: Any) -> None:
         from tqdm import tqdm
+        self.last = p
         if self.bar is None:
             self.total = p.left_s
             self.bar = tqdm(total=round(p.left_s, 1), unit="s", file=sys.stderr, desc="afmctl calibrate",
@@ -123,6 +132,10 @@ def run(args: argparse.Namespace) -> int:
     try:
         with contextlib.ExitStack() as stack:
             _install_stop(stack, cal)
+            if cal.config.zenoh.enabled:
+                from .calibrate_zenoh import CalibrationCommands
+                stack.enter_context(CalibrationCommands(cal.config.zenoh, cal.config.scanner.name, cal.stop,
+                                                        bar.status))
             result = cal.run()
     except CalibrationStopped as err:
         bar.close()
@@ -153,6 +166,8 @@ def _install_stop(stack: contextlib.ExitStack, cal: Any) -> None:
     import threading
 
     def on_signal(signum: int, frame: Any) -> None:  # noqa: ARG001
+        if cal.device_done:             # the output is safe already: stop the identification now
+            raise KeyboardInterrupt
         print("\nafmctl: stopping (the output ramps to the safe value)", file=sys.stderr)
         cal.stop()
 

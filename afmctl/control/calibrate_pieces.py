@@ -231,3 +231,24 @@ def join(pieces: list[PieceRecord], dt_s: float, with_holds: bool = True) -> Joi
     uu = np.concatenate(u)
     return Joined(np.arange(len(uu)) * dt_s, uu, np.concatenate(y), np.concatenate(v) if with_v else None,
                   np.concatenate(m), holds)
+
+
+def follow_table(played_V: np.ndarray, table_V: np.ndarray, tol_V: float) -> int:
+    """How many recorded samples a streamed table took: ``played_V`` (the output the
+    recorder saw at each tick [V]) must be ``table_V`` in order with *holds* inserted (a
+    stream FIFO that ran empty holds the last output: the scanner saw those holds, so they
+    belong to the recording). Returns the count of recorded samples through the table's last
+    row; ValueError when the output left the table or the recording ends before it."""
+    played = np.asarray(played_V, dtype=np.float64)
+    table = np.asarray(table_V, dtype=np.float64)
+    i = 0                                   # the next table row to be output
+    for j, v in enumerate(played.tolist()):
+        if i < len(table) and abs(v - table[i]) <= tol_V:
+            i += 1
+            if i == len(table):
+                return j + 1
+        elif i == 0 or abs(v - table[i - 1]) > tol_V:
+            raise ValueError(f"the output left the table at recorded sample {j} ({v:.4g} V; the table's row {i} "
+                             f"is {table[min(i, len(table) - 1)]:.4g} V)")
+    raise ValueError(f"the recording ended after row {i} of {len(table)}: the stream held the output for "
+                     f"{len(played) - i} ticks (the host did not keep the FIFO filled)")

@@ -33,7 +33,7 @@ import numpy as np
 
 from ..config import LEARN_SETTLE_S, CompensationSection
 from ..errors import AfmctlError
-from .calibrate_pieces import PieceRecord
+from .calibrate_pieces import PieceRecord, follow_table
 from .controller import Controller, State
 from .learned_table import LearnedSource, LearnedTable
 from .safety import SafetyLayer
@@ -47,6 +47,9 @@ SIGNAL_SETS = (("y_nm", "u_V", "v_V"), ("y_nm", "v_V"), ("y_nm", "u_V"))
 OUTPUT_TOL_V = 0.01
 #: a return ramp that has not arrived after this [s] is given up (logged)
 RETURN_TIMEOUT_S = 30.0
+#: share of the recorder a streamed piece leaves free: the ticks a FIFO that ran empty held
+#: the output are recorded too (the scanner saw them), after which the table goes on
+STREAM_SLACK = 0.25
 
 
 class CalibrationFault(AfmctlError):
@@ -79,16 +82,33 @@ class TableSource(LearnedSource):
 
 def calibration_config(config: Any) -> Any:
     """``config`` as a calibration plays it: no compensation (the model is what it makes),
-    the output held at the end of each piece, no run log per piece, the settle hold of
+    the output held at the end of each piece, no reconnect (a lost link ends it), no run log
+    per piece, the settle hold of
     ``amplifier.settle_s`` (unset: :data:`~afmctl.config.LEARN_SETTLE_S`)."""
     cfg = config.model_copy(deep=True)
     cfg.compensation = CompensationSection()
     cfg.safety.on_finish = "hold"
+    cfg.safety.max_reconnects = 0       # a lost link ends the calibration (what was recorded is kept)
     cfg.runlog.enabled = False
     cfg.zenoh.enabled = False
     if cfg.amplifier.settle_s is None:
         cfg.amplifier.settle_s = LEARN_SETTLE_S
     return cfg
+
+
+def fifo_margins(config: Any, amp: Any) -> Any:
+    """``config`` with the stream FIFO kept as full as the device allows (CAN: the FIFO
+    filled to 90 % of its capacity, topped up below half). A table streamed into a FIFO must
+    play without a gap — an underrun holds the output, and the recording no longer follows
+    the table — so a calibration keeps the most margin a busy host can have."""
+    status = getattr(amp, "buffer_status", None)
+    if status is None:
+        return config
+    seconds = status().capacity / float(config.loop.rate_Hz)
+    config.amplifier.high_water_s = max(config.amplifier.high_water_s, 0.9 * seconds)
+    config.amplifier.low_water_s = max(config.amplifier.low_water_s, min(0.5 * seconds,
+                                                                          0.8 * config.amplifier.high_water_s))
+    return config
 
 
 def recorder_signals(amp: Any, axis: str) -> tuple[str, ...]:
@@ -108,12 +128,22 @@ def recorder_signals(amp: Any, axis: str) -> tuple[str, ...]:
     raise AfmctlError(f"afmctl calibrate: the {amp.name} records no position of axis {axis}: {last}")
 
 
+def streams(amp: Any) -> bool:
+    """Whether ``amp`` plays a table by streaming it into a FIFO (CAN) rather than from a
+    wave table on the device (GCS, NV200)."""
+    return table_capacity(amp, ["x"] if "x" in amp.axes else list(amp.axes)[:1]) is None
+
+
 def device_capacity(amp: Any, axis: str, signals: tuple[str, ...]) -> int:
     """The most rows one piece may have on ``amp`` for ``axis``: its recorder's points per
-    signal, and its wave table's size (a wave generator; the CAN FIFO streams)."""
+    signal, and its wave table's size (a wave generator); a streamed table
+    (:func:`streams`) leaves :data:`STREAM_SLACK` of the recorder for the holds of a FIFO
+    that runs empty."""
     rec = int(amp.recorder_capacity([axis], signals))
     table = table_capacity(amp, [axis])
-    return min(rec, table) if table is not None else rec
+    if table is None:
+        return max(1, int(rec * (1.0 - STREAM_SLACK)))
+    return min(rec, table)
 
 
 @dataclass
@@ -137,7 +167,7 @@ class CalibrationRun:
         if config.amplifier.output != "wave":
             raise AfmctlError("amplifier.output: afmctl calibrate plays the excitation on the amplifier's clock; "
                               "set output = 'wave'")
-        self.config = calibration_config(config)
+        self.config = fifo_margins(calibration_config(config), amp)
         self.amp = amp
         self.on_progress = on_progress
         self.record_timeout_s = record_timeout_s
@@ -148,6 +178,7 @@ class CalibrationRun:
         self._stop = threading.Event()
         self._ctl: Controller | None = None
         self._first = True
+        self._axis_configs: dict[str, Any] = {}
 
     @property
     def dt_s(self) -> float:
@@ -156,9 +187,12 @@ class CalibrationRun:
     def play(self, what: str, axis: str, signals: tuple[str, ...], tables: list[np.ndarray],
              starts: list[int], left_s: Callable[[int], float]) -> list[PieceRecord]:
         """Play ``tables`` (voltages of ``axis`` [V], one piece each) in turn, recording
-        ``signals``; the others axes hold :attr:`hold_V`. Raises :class:`CalibrationStopped`
-        on a stop, :class:`CalibrationFault` on a lost link."""
+        ``signals``; the other axes hold :attr:`hold_V` (ramped there before the first
+        piece; only ``axis``'s table is uploaded). Raises :class:`CalibrationStopped` on a
+        stop, :class:`CalibrationFault` on a lost link."""
         got = self.pieces.setdefault(what, [])
+        if self._first and not self._stop.is_set():
+            self._to_safe()
         for k, (u, start) in enumerate(zip(tables, starts)):
             if self._stop.is_set():
                 raise CalibrationStopped("afmctl calibrate: stopped")
@@ -174,6 +208,25 @@ class CalibrationRun:
         rows[:, "xyz".index(axis)] = u
         return rows
 
+    def _axis_config(self, axis: str) -> Any:
+        """The calibration's configuration driving ``axis`` alone (its table is the only one
+        uploaded and played; the other outputs hold)."""
+        if axis not in self._axis_configs:
+            cfg = self.config.model_copy(deep=True)
+            cfg.scanner.axes = [axis]
+            self._axis_configs[axis] = cfg
+        return self._axis_configs[axis]
+
+    def _to_safe(self) -> None:
+        """Every driven axis to its safe value before anything plays (a lost link here is a
+        fault as during a piece)."""
+        from afmctl.drivers.errors import AmplifierConnectionError, AmplifierTimeout
+        try:
+            for note in return_to_safe(self.config, self.amp):
+                log.info("before the calibration: %s", note)
+        except (AmplifierTimeout, AmplifierConnectionError) as err:
+            raise CalibrationFault(f"afmctl calibrate: the link failed before the first piece: {err}") from None
+
     def _piece(self, axis: str, signals: tuple[str, ...], u: np.ndarray, start: int) -> PieceRecord:
         """One table played and recorded (module docstring)."""
         n = len(u)
@@ -181,7 +234,7 @@ class CalibrationRun:
                           np.full(n, float(self.config.compensation.temperature.T_C)), 0)
         settle = float(self.config.amplifier.settle_s) if self._first else 0.0
         armed: list[Any] = []
-        ctl = Controller(self.config, self.amp)
+        ctl = Controller(self._axis_config(axis), self.amp)
         ctl.before_wave_start = lambda: armed.append(self._arm(axis, signals, n))
         self._ctl = ctl
         try:
@@ -211,16 +264,23 @@ class CalibrationRun:
         if abs(divider * clock - self.dt_s) > 1e-9 * self.dt_s + 1e-12:
             raise AfmctlError(f"loop.rate_Hz: {self.config.loop.rate_Hz:g} Hz is not a whole number of the "
                               f"recorder's {clock:g} s ticks")
+        if streams(self.amp):      # room for the holds of a FIFO that runs empty (STREAM_SLACK)
+            points = max(points, min(int(self.amp.recorder_capacity([axis], signals)),
+                                     int(points / (1.0 - STREAM_SLACK)) + 1))
         return self.amp.configure_recorder([axis], points=points, divider=divider, signals=signals)
 
     def _read(self, axis: str, table: WaveTable, start: int, t_start: float) -> PieceRecord:
-        from afmctl.drivers.errors import AmplifierConnectionError, AmplifierTimeout
+        from afmctl.drivers.errors import AmplifierConnectionError, AmplifierTimeout, RecordingCancelled
         from afmctl.drivers.recording import RecordingMismatch, align_to_table
         u = table.u_V[:, "xyz".index(axis)]
         try:
-            rec = self.amp.read_recording(timeout_s=self.record_timeout_s)
+            rec = self.amp.read_recording(timeout_s=self.record_timeout_s, cancel=self._stop.is_set)
+        except RecordingCancelled:
+            raise CalibrationStopped("afmctl calibrate: stopped while the recording was read back") from None
         except (AmplifierTimeout, AmplifierConnectionError) as err:
             raise CalibrationFault(f"afmctl calibrate: reading the recording failed: {err}") from None
+        if streams(self.amp) and axis in rec.u_V:
+            return self._streamed(axis, rec, u, start, t_start)
         try:
             rec = align_to_table(rec, {axis: u.tolist()}, tol_V=OUTPUT_TOL_V)
         except RecordingMismatch as err:
@@ -228,6 +288,20 @@ class CalibrationRun:
         v = rec.v_V.get(axis)
         return PieceRecord(start, u.copy(), np.asarray(rec.y_nm[axis], dtype=float),
                            None if v is None else np.asarray(v, dtype=float), t_start)
+
+    def _streamed(self, axis: str, rec: Any, u: np.ndarray, start: int, t_start: float) -> PieceRecord:
+        """A streamed piece: the output the recorder saw (the table with the holds of a FIFO
+        that ran empty: what the scanner was driven with) up to the table's last row."""
+        played = np.asarray(rec.u_V[axis], dtype=float)
+        try:
+            n = follow_table(played, u, OUTPUT_TOL_V)
+        except ValueError as err:
+            raise CalibrationFault(f"afmctl calibrate: axis {axis}: {err}") from None
+        if n > len(u):
+            log.info("axis %s: the stream held the output for %d ticks of a %d-row piece", axis, n - len(u), len(u))
+        v = rec.v_V.get(axis)
+        return PieceRecord(start, played[:n].copy(), np.asarray(rec.y_nm[axis][:n], dtype=float),
+                           None if v is None else np.asarray(v[:n], dtype=float), t_start)
 
     # ------------------------------------------------------------------ requests
     def stop(self) -> None:

@@ -58,6 +58,24 @@ class NV200Recorder:
         self._fill(t_s, strict=True)
         self._held = {"volts": volts, "set": setpoint}
 
+    def outputs_changed(self, t_s: np.ndarray, volts: np.ndarray, setpoints: np.ndarray) -> None:
+        """:meth:`output_changed` for a block of changes (``t_s`` non-decreasing) at once:
+        the same points filled with the same values, without a call per change."""
+        t = np.asarray(t_s, dtype=np.float64)
+        if not len(t):
+            return
+        if self.state == "recording" and self._filled < self.n:
+            # change i holds from point first[i] on (points due strictly before it keep the old)
+            first = np.ceil((t - self.t0_s) / (self.stride * BASE_SAMPLE_S) - 1e-9)
+            upto = int(min(first[-1], self.n))
+            if upto > self._filled:
+                k = np.arange(self._filled, upto)
+                i = np.searchsorted(first, k, side="right") - 1
+                for dst, new, old in ((self._volts, volts, self._held["volts"]), (self._setp, setpoints, self._held["set"])):
+                    dst[self._filled:upto] = np.where(i >= 0, np.asarray(new, dtype=np.float64)[np.maximum(i, 0)], old)
+                self._filled = upto
+        self._held = {"volts": float(volts[-1]), "set": float(setpoints[-1])}
+
     def sync(self, now_s: float) -> None:
         self._fill(now_s, strict=False)
         if self.state == "recording" and self.count() >= self.n:

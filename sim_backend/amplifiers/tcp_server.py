@@ -18,7 +18,7 @@ log = logging.getLogger(__name__)
 
 _POLL_S = 0.1
 #: how often a device with its own clock plays what fell due while the link is idle [s]
-_IDLE_POLL_S = 0.005
+_IDLE_POLL_S = 0.02
 #: how long one reply may wait for the client to read it [s]
 _SEND_TIMEOUT_S = 10.0
 
