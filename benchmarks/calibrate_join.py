@@ -172,11 +172,17 @@ def identify(data: Path, kind: str, out: Path) -> float:
     return time.monotonic() - t0
 
 
+def x_model(path: Path) -> dict:
+    """The x model of a model file (calibrate writes a scanner file for the 3-axis E-727)."""
+    data = json.loads(path.read_text())
+    return data["axes"]["x"] if data.get("kind") == "scanner" else data
+
+
 def scanner_file(model: Path, out: Path) -> Path:
-    """A scanner file with ``model`` on x (y and z: the linear calibration)."""
-    from afmctl.compensators.models import load_model, save_model
+    """A scanner file with ``model``'s x model on x (y and z: the linear calibration)."""
+    from afmctl.compensators.models import model_from_dict, save_model
     from afmctl.compensators.scanner_model import ScannerModel
-    save_model(ScannerModel(axes={"x": load_model(model)}), out)
+    save_model(ScannerModel(axes={"x": model_from_dict(x_model(model))}), out)
     return out
 
 
@@ -187,7 +193,7 @@ def raster_errors(work: Path, model: Path, rates: list[float]) -> dict[float, di
     scanner_json = sl.write_scanner_json(scanner_config(), work / "scanner.json")
     gain = Scanner(scanner_config()).nominal_gain_nm_per_V().tolist()
     chain = scanner_file(model, work / f"scanner-{model.stem}.json")
-    dynamics = "dynamics" in json.dumps(json.loads(model.read_text()).get("structure", ""))
+    dynamics = "dynamics" in str(x_model(model).get("structure", ""))
     out = {}
     for rate in rates:
         wave = ""
@@ -227,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     exc["slew_V_per_s"] = prov["excitation"].get("slew_V_per_s")
     cont = continuous_recording(work, exc)
     ident_s = identify(cont, args.kind, work / "continuous.json")
-    chosen = {name: json.loads((work / f"{name}.json").read_text()) for name in ("cal", "continuous")}
+    chosen = {name: x_model(work / f"{name}.json") for name in ("cal", "continuous")}
     errs = {name: raster_errors(work, work / f"{name}.json", args.rates) for name in ("cal", "continuous")}
     text = report(args, cal, prov, chosen, errs, ident_s, work)
     print(text)

@@ -1,11 +1,11 @@
 """``afmctl calibrate`` (issue 38): the excitation cut into pieces a recorder holds and joined
-with the holds between them (plain arrays); end to end on the simulated E-727 in this process
-(a real pty): a model written with its provenance and a recording CSV with the piezo voltage;
-Ctrl-C on each device — the E-727 over TCP, the NV200 on a pty, the CAN amplifier on the
+with the holds between them (plain arrays); Ctrl-C on each device — the E-727 over TCP, the NV200 on a pty, the CAN amplifier on the
 virtual bus — ends the command with the output at the safe value and nothing playing; a
 ``stop`` on zenoh does the same; a lost link exits 1 and keeps the partial recording; a device
 whose recorder cannot hold the shortest piece is refused in one line before anything moves.
-Excitations are short (the full-size figures are benchmarks/calibrate_join.py)."""
+A whole calibration (a model with its provenance, the recording with the piezo voltage) is
+tests/test_readme_tour.py's instrument tour. Excitations are short (the full-size figures
+are benchmarks/calibrate_join.py)."""
 from __future__ import annotations
 
 import json
@@ -86,6 +86,8 @@ def _config(tmp_path, driver: str, port: str | None = None, *, simulated: bool =
     cfg.dt_s = 5e-5          # two simulation steps per table point: the simulator keeps up on a loaded machine
     (tmp_path / "scanner.json").write_text(cfg.model_dump_json())
     port_line = f'port = "{port}"' if port is not None else ""
+    if "[amplifier.options]" not in extra:              # replies late on a loaded machine are not a lost link
+        extra = "[amplifier.options]\ntimeout_s = 2.0\n" + extra
     sim = (f'[simulation]\nenabled = true\nbaud = 10000000\nscanner = "{tmp_path / "scanner.json"}"\n'
            if simulated else "")
     path = tmp_path / "cal.toml"
@@ -126,28 +128,6 @@ def _calibrate_cmd(config: Path, out: Path, *more: str) -> list[str]:
 @pytest.fixture
 def config_file(tmp_path):
     return _config(tmp_path, "gcs", simulated=True)
-
-
-@pytest.mark.slow
-def test_afmctl_calibrate_on_the_simulated_e727_writes_a_model_with_provenance(config_file, tmp_path):
-    out = tmp_path / "x.json"
-    res = subprocess.run(_calibrate_cmd(config_file, out, "--report", str(tmp_path / "rep")),
-                         capture_output=True, text=True, timeout=600)
-    assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr[-3000:]
-    model = json.loads(out.read_text())
-    prov = model["provenance"]
-    assert model["kind"] == "pi" and prov["device"]["driver"] == "gcs" and "E-727" in prov["device"]["identity"]
-    assert prov["recorder_rate_Hz"] == 10000.0 and prov["settle_s"] == 2.0 and prov["afmctl_version"]
-    assert prov["axes"]["x"]["pieces"] >= 2                  # the recorder's 32,768 points: several pieces
-    val = prov["validation"]["x"]
-    assert set(val) == {"raster", "minor loops", "all"} and val["all"]["max_pct"] < 10.0   # PI on this scanner: ~2-4 %
-    rec = (tmp_path / "rep" / "x.x-recording.csv").read_text().splitlines()
-    assert rec[0] == "t,u,y,v"
-    data = np.loadtxt(rec[1:], delimiter=",")
-    assert np.ptp(data[:, 2]) > 5000.0                       # the sensor saw the scanner sweep the range
-    assert 0 < np.max(np.abs(data[:, 3] - data[:, 1])) < 5.0  # the piezo voltage lags the command a little
-    assert "validation raster" in res.stdout and "written" in res.stdout
-    assert "excite x piece 2/" in res.stderr                 # the progress bar: which piece, how long to go
 
 
 def _interrupt(proc: subprocess.Popen, playing, sig: int = signal.SIGINT) -> float:
@@ -212,7 +192,7 @@ def test_ctrl_c_on_the_can_amplifier_ends_within_2_s_at_the_safe_value_with_no_s
     from afmctl.sim_backend.testing import serve_can
     channel = f"cal-{uuid.uuid4().hex[:8]}"
     with serve_can(channel, _scanner()) as sim:
-        config = _config(tmp_path, "can", f"virtual:{channel}", extra="[amplifier.options]\nfd = true\n")
+        config = _config(tmp_path, "can", f"virtual:{channel}", extra="[amplifier.options]\nfd = true\ntimeout_s = 2.0\n")
         sent: list[float] = []
 
         def interrupt() -> None:

@@ -19,7 +19,8 @@ the model with its provenance.
    falling amplitudes), recorded the same way; the model runs over the excitation and then
    the validation (its memory set by what the scanner saw) and its error over the
    validation is the held-out error, max and RMS in % of the validation's measured span;
-4. **write** — the model (one axis: its model; several: a scanner file, kind ``scanner``)
+4. **write** — the model (a scanner of one axis: its model; of several: a scanner file,
+   kind ``scanner``, with the calibrated axes — ready for ``[compensation] scanner_model``)
    with ``provenance``: device, identity (``*IDN?`` or what the driver reads), recorder
    rate, settle hold, date, afmctl version, the excitation and the pieces.
 
@@ -43,6 +44,7 @@ from ..control.calibrate_pieces import (Joined, PiecePlan, cut_points, excitatio
 from ..control.calibrate_run import (CalibrationFault, CalibrationRun, CalibrationStopped, Progress, device_capacity,
                                      recorder_signals)
 from ..data.datafiles import write_csv
+from ..simulation.link import configured_amplifier
 from ..data.excitation import ExcitationSpec
 from ..errors import AfmctlError
 from .identify import Identified, identify
@@ -126,19 +128,6 @@ def validation_voltages(config: Any, spec: ExcitationSpec) -> tuple[np.ndarray, 
         minor += [lo + share * spec.span_V, lo]
     first = np.concatenate([[lo], through(pts, raster)])
     return np.concatenate([first, through(minor, spec)]), len(first)
-
-
-def open_amplifier(stack: contextlib.ExitStack, config: Any) -> Any:
-    """The configured amplifier, opened: a simulated one in this process with
-    ``[simulation] enabled = true``, else the driver on ``amplifier.port``."""
-    if config.simulation.enabled:
-        from ..simulation.link import simulated_amplifier
-        amp, _scanner = stack.enter_context(simulated_amplifier(config))
-        return amp
-    from ..control.hardware import open_driver
-    amp = open_driver(config, config.amplifier.port)
-    stack.callback(amp.close)
-    return amp
 
 
 def provenance(config: Any, amp: Any, spec: ExcitationSpec, plans: dict[str, PiecePlan], kind: str) -> dict[str, Any]:
@@ -238,7 +227,7 @@ class Calibration:
             raise AfmctlError("amplifier.output: afmctl calibrate plays the excitation on the amplifier's clock; "
                               "set output = 'wave' (gcs, nv200 or can)")
         with contextlib.ExitStack() as stack:
-            amp = open_amplifier(stack, self.config)
+            amp = configured_amplifier(stack, self.config)
             plans, signals, spec = self.plans(amp)
             run = CalibrationRun(self.config, amp, self.on_progress)
             self.run_ = run
@@ -339,7 +328,7 @@ class Calibration:
 
     def _model(self, results: dict[str, AxisCalibration], prov: dict[str, Any]) -> Any:
         prov = {**prov, "validation": {a: r.validation for a, r in results.items()}}
-        if len(results) == 1:
+        if len(self.config.scanner.axes) == 1:      # a one-axis scanner: its model
             model = next(iter(results.values())).identified.model
             return model.model_copy(update={"provenance": prov})
         from afmctl.compensators.scanner_model import ScannerModel

@@ -17,49 +17,52 @@ DESCRIPTION = """\
 Calibrate a scanner on the device that drives it, in one command, then hand the model to
 afmctl learn and afmctl run:
 
-  afmctl calibrate --config RUN.toml --out scanner.json      # excite, record, identify, validate
-  afmctl learn --config RUN.toml --iterations 10 --out scan.afmwave   # with scanner.json in RUN.toml
+  afmctl calibrate --config RUN.toml --out scanner.json          # excite, record, identify, validate
+  afmctl learn --config RUN.toml --iterations 6 --out line.afmwave   # RUN.toml: [compensation] scanner_model = "scanner.json"
   afmctl run --config RUN.toml
 
 The device must play tables on its own clock and record its motion (amplifier.output =
-"wave"; a PI GCS controller such as the E-727, a sensored NV200, the CAN amplifier — or
-their simulators: [simulation] enabled = true, or afmctl sim). For each axis (--axes,
+"wave"): a PI GCS controller such as the E-727, a sensored NV200, the CAN amplifier — or
+their simulators (afmctl sim, or [simulation] enabled = true). For each axis (--axes,
 default the scanner's), afmctl calibrate
 
   1. plays what 'afmctl excite --kind all' writes for the configured amplifier (the axis's
-     voltage limits, loop.rate_Hz, half the slew limit): static loops with reversal curves,
-     a creep staircase, a small-signal multisine. The device's wave table and recorder hold
-     a few thousand points, so it plays it in pieces; between pieces the output holds its
-     last voltage (the scanner's hysteresis memory runs on) and the holds go back into the
-     joined recording. A device whose recorder cannot hold one multisine period is refused
-     before anything moves. The other axes hold their safe value;
-  2. reads the position back through the device's recorder, and the piezo voltage where
-     the device records it (PI record option 7, the NV200's piezo-voltage source, the CAN
-     amplifier's monitor): column v of the recording CSV;
+     voltage limits, loop.rate_Hz, half the slew limit): major and reversal loops, a creep
+     staircase, a small-signal multisine — about a minute. The device's wave table and
+     recorder hold a few thousand points, so it plays in pieces; between pieces the output
+     holds its last voltage (the scanner's hysteresis memory runs on) and the holds go back
+     into the joined recording. A device whose recorder cannot hold one multisine period is
+     refused in one line before anything moves. Only the calibrated axis plays; the others
+     hold their safe value;
+  2. reads the position back through the device's recorder, and the piezo voltage where the
+     device records it: column v of the recording CSV (t,u,y,v);
   3. identifies a model from that recording as 'afmctl identify --model KIND --data' does
      (--kind, default auto: the held-out selection table is printed);
   4. validates it on a second, different play: triangles across the range at the
      configuration's line rate (trajectory.line_rate_Hz) and nested minor loops; prints the
      held-out error in % of the measured span;
-  5. writes the model (one axis: its model; several: a scanner file) with its provenance:
-     device, identity (*IDN?), recorder rate, settle hold, date, afmctl version.
+  5. writes the model with its provenance (device, identity *IDN?, recorder rate, settle
+     hold, date, afmctl version): a one-axis scanner's model, or for a scanner of several
+     axes a scanner file holding the calibrated ones (for [compensation] scanner_model).
 
-Safety as in afmctl run: every table is checked against the limits and the slew limit
-before it is sent; the settle hold (amplifier.settle_s, unset: 2 s) before the first piece;
-Ctrl-C stops the piece playing at once (generator stopped / FIFO flushed) and ramps every
-axis to its safe value (exit 130). A lost link ends with exit 1 and keeps what was recorded
-as *-partial.csv. A progress bar shows the piece and the time to go.
+Safe as afmctl run: every table is checked against the limits and the slew limit before it
+is sent; the settle hold (amplifier.settle_s, unset: 2 s) before the first piece. Ctrl-C,
+SIGTERM or 'stop' on zenoh ([zenoh] enabled = true: the scanner's cmd key answers stop,
+estop and status) stops the piece playing at once (generator stopped / FIFO flushed), cancels
+a read-back, ramps every axis to its safe value and exits 130; during the identification it
+interrupts it (the recording is kept). A lost link ends with exit 1 and keeps what was
+recorded as OUT.<axis>-excite-partial.csv. A progress bar shows the piece and the time to go.
 
 Files (beside --out, or in --report DIR): OUT.<axis>-recording.csv (t,u,y[,v]: s, V, nm, V),
-OUT.<axis>-validation.csv; with --report also the selection table and the validation
-figures (calibration.json) and, with --plot, a figure of the validation.
+OUT.<axis>-validation.csv; with --report also the selection table and the validation figures
+(calibration.json); with --plot a figure of the validation.
 
-Shorter excitations (tests, a first look): --dwell-s, --gap-s, --periods, --f-min-Hz,
+Shorter excitations (a first look, tests): --dwell-s, --gap-s, --periods, --f-min-Hz,
 --f-max-Hz, --sweep-V-per-s as in afmctl excite.
 
-Example, on the simulated E-727 served over TCP:
+Example, the README's tour on the simulated E-727 over TCP (examples/tour.toml):
   afmctl sim --protocol gcs --tcp 127.0.0.1:50000 &
-  afmctl calibrate --config examples/sim_calibrate.toml --out scanner.json --axes x
+  afmctl calibrate --config examples/tour.toml --axes x --out scanner.json
 """
 
 

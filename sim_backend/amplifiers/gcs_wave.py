@@ -204,9 +204,9 @@ class WaveGenerator:
                 g.mode = 0
         if not ts:
             return np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0)
-        t, gid, v = np.concatenate(ts), np.concatenate(gids), np.concatenate(vals)
-        order = np.lexsort((gid, t))
-        return t[order], gid[order], v[order]
+        times, ids, values = np.concatenate(ts), np.concatenate(gids), np.concatenate(vals)
+        order = np.lexsort((ids, times))
+        return times[order], ids[order], values[order]
 
     def _due_end(self, g: Generator, now_s: float) -> int:
         """One past the last point of ``g``'s run due at or before ``now_s`` (exactly the
