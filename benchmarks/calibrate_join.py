@@ -243,7 +243,11 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _structure(model: dict) -> str:
-    return str(model.get("structure") or model.get("kind"))
+    """``amplifier+preisach+creep+dynamics`` for a chain, else the kind."""
+    if model.get("kind") != "chain":
+        return str(model.get("kind"))
+    return "+".join(model[s]["kind"] for s in ("amplifier", "hysteresis", "creep", "dynamics")
+                    if isinstance(model.get(s), dict))
 
 
 def report(args, cal: dict, prov: dict, chosen: dict, errs: dict, ident_s: float, work: Path) -> str:

@@ -40,9 +40,9 @@ from typing import Any
 import numpy as np
 
 from ..control.calibrate_pieces import (Joined, PiecePlan, cut_points, excitation_all, join, plan_pieces,
-                                        ramp_priorities)
+                                        ramp_priorities, shortest_piece)
 from ..control.calibrate_run import (CalibrationFault, CalibrationRun, CalibrationStopped, Progress, device_capacity,
-                                     recorder_signals)
+                                     readback_rows, recorder_signals)
 from ..data.datafiles import write_csv
 from ..simulation.link import configured_amplifier
 from ..data.excitation import ExcitationSpec
@@ -211,8 +211,12 @@ class Calibration:
         for axis in self.axes:
             spec = self.specs[axis] = excitation_spec(self.config, axis, amp, **self.excitation)
             signals[axis] = recorder_signals(amp, axis)
+            exc = excitation_all(spec)
             capacity = device_capacity(amp, axis, signals[axis])
-            plans[axis] = plan_pieces(excitation_all(spec), axis, capacity, f"{self.config.amplifier.driver} "
+            most = readback_rows(amp, signals[axis])
+            if most is not None:        # never below one multisine period: that is refused below
+                capacity = min(capacity, max(most, shortest_piece(exc)))
+            plans[axis] = plan_pieces(exc, axis, capacity, f"{self.config.amplifier.driver} "
                                       f"({', '.join(signals[axis])})")
         return plans, signals, spec
 

@@ -47,6 +47,11 @@ SIGNAL_SETS = (("y_nm", "u_V", "v_V"), ("y_nm", "v_V"), ("y_nm", "u_V"))
 OUTPUT_TOL_V = 0.01
 #: a return ramp that has not arrived after this [s] is given up (logged)
 RETURN_TIMEOUT_S = 30.0
+#: the longest read-back of one piece a stop may have to wait for [s] (see readback_rows)
+UNCANCELLED_READBACK_S = 0.5
+#: the NV200's serial line (also behind its Ethernet adapter) [baud], and the bytes of one
+#: recorded value in its ``recoutf`` reply ("123.456,")
+NV200_UART_BAUD, NV200_BYTES_PER_VALUE = 115200, 8
 #: share of the recorder a streamed piece leaves free: the ticks a FIFO that ran empty held
 #: the output are recorded too (the scanner saw them), after which the table goes on
 STREAM_SLACK = 0.25
@@ -126,6 +131,20 @@ def recorder_signals(amp: Any, axis: str) -> tuple[str, ...]:
         except AmplifierError as err:
             last = err
     raise AfmctlError(f"afmctl calibrate: the {amp.name} records no position of axis {axis}: {last}")
+
+
+def readback_rows(amp: Any, signals: tuple[str, ...]) -> int | None:
+    """The most rows a piece may have so that reading it back takes at most
+    :data:`UNCANCELLED_READBACK_S` of wire time, for a device whose read-back cannot be
+    cancelled mid-way (the NV200: its wave hands the output back by reading the recorder,
+    ``recoutf`` of every point, at 115200 baud even behind an Ethernet adapter — a stop
+    waits for it); None for the others (GCS reads in cancellable chunks, CAN frame by frame)."""
+    if getattr(amp, "name", "") != "nv200":
+        return None
+    transport = getattr(amp, "transport", None)
+    baud = getattr(transport, "baudrate", 0) if not str(getattr(transport, "url", "")).startswith("socket://") else 0
+    bytes_per_s = (baud if baud > 0 else NV200_UART_BAUD) / 10.0
+    return max(1, int(UNCANCELLED_READBACK_S * bytes_per_s / (NV200_BYTES_PER_VALUE * len(signals))))
 
 
 def streams(amp: Any) -> bool:
