@@ -55,10 +55,17 @@ from afmctl.sim_backend.scanner import DriftConfig, Scanner, default_scanner_con
 from sections import write_section  # noqa: E402  (benchmarks/sections.py)
 
 NAME = "calibrate_join"
-RATE_HZ = 10_000.0            # loop.rate_Hz: the table and recorder rate (20 kHz servo / 2)
 SERVO_S = 50e-6
-LIMITS_V = (0.0, 120.0)       # the simulated E-727's output range
 SLEW_V_PER_S = 1.0e4          # the default scanner's amplifier
+#: the devices: loop.rate_Hz (the table and recorder rate) and how the simulator is reached
+DEVICES = {
+    "gcs-tcp": {"rate_Hz": 10_000.0, "what": "the simulated E-727 over TCP (`afmctl sim --protocol gcs --tcp`, "
+                                             "its own process)"},
+    "nv200": {"rate_Hz": 2_000.0, "what": "the simulated sensored NV200 on a pty at its 115200 baud "
+                                          "(`[simulation] enabled`, in the calibrating process)"},
+    "can": {"rate_Hz": 10_000.0, "what": "the simulated CAN amplifier on python-can's virtual bus, CAN FD "
+                                         "(`[simulation] enabled`, in the calibrating process)"},
+}
 #: a short excitation (a first look; not the acceptance figure)
 SHORT = {"dwell_s": 0.5, "gap_s": 0.2, "periods": 4, "f_min_Hz": 20.0, "sweep_V_per_s": 300.0}
 
@@ -80,18 +87,28 @@ def sim_toml(work: Path) -> Path:
     return path
 
 
-def cal_toml(work: Path, port: int) -> Path:
+def cal_toml(work: Path, device: str, port: int | None = None) -> Path:
+    """The calibration's configuration for ``device`` (:data:`DEVICES`)."""
+    link = {"gcs-tcp": f'driver = "gcs"\nport = "socket://127.0.0.1:{port}"',
+            "nv200": 'driver = "nv200"', "can": 'driver = "can"\nport = "virtual:bench-calibrate"'}[device]
+    options = "fd = true\n" if device == "can" else ""
+    simulated = ""
+    if device != "gcs-tcp":
+        scanner = sl.write_scanner_json(scanner_config(), work / "scanner.json")
+        sensor = '[simulation.device]\nsensor = "strain gauge"\n' if device == "nv200" else ""
+        simulated = f'[simulation]\nenabled = true\nscanner = "{scanner}"\n{sensor}'
     path = work / "cal.toml"
     path.write_text(f"""
 [scanner]
 name = "bench"
 [amplifier]
-driver = "gcs"
-port = "socket://127.0.0.1:{port}"
+{link}
 output = "wave"
 slew_V_per_s = {SLEW_V_PER_S!r}
-[loop]
-rate_Hz = {RATE_HZ!r}
+[amplifier.options]
+timeout_s = 2.0
+{options}[loop]
+rate_Hz = {DEVICES[device]["rate_Hz"]!r}
 [safety]
 slew_V_per_s = {SLEW_V_PER_S!r}
 ramp_V_per_s = 2000.0
@@ -100,7 +117,7 @@ line_rate_Hz = 10.0
 [runlog]
 dir = "{work / 'runs'}"
 fsync = false
-""", encoding="utf-8")
+{simulated}""", encoding="utf-8")
     return path
 
 
@@ -112,7 +129,9 @@ def start_sim(work: Path, port: int) -> subprocess.Popen:
     return proc
 
 
-def stop_sim(proc: subprocess.Popen) -> None:
+def stop_sim(proc: subprocess.Popen | None) -> None:
+    if proc is None:
+        return
     proc.send_signal(signal.SIGTERM)
     try:
         proc.wait(timeout=10)
@@ -121,14 +140,14 @@ def stop_sim(proc: subprocess.Popen) -> None:
         proc.wait()
 
 
-def calibrate(work: Path, kind: str, short: bool) -> dict:
-    """``afmctl calibrate`` on the simulated E-727 over TCP; its wall time and output."""
-    port = free_port()
-    sim = start_sim(work, port)
+def calibrate(work: Path, device: str, kind: str, short: bool) -> dict:
+    """``afmctl calibrate`` on the simulated ``device``; its wall time and output."""
+    port = free_port() if device == "gcs-tcp" else None
+    sim = start_sim(work, port) if port is not None else None
     try:
         extra = [f"--{k.replace('_', '-')}={v}" for k, v in SHORT.items()] if short else []
         t0 = time.monotonic()
-        res = subprocess.run([sys.executable, "-m", "afmctl", "calibrate", "--config", str(cal_toml(work, port)),
+        res = subprocess.run([sys.executable, "-m", "afmctl", "calibrate", "--config", str(cal_toml(work, device, port)),
                               "--out", str(work / "cal.json"), "--axes", "x", "--kind", kind,
                               "--report", str(work / "rep"), *extra], capture_output=True, text=True)
         wall = time.monotonic() - t0
@@ -141,13 +160,14 @@ def calibrate(work: Path, kind: str, short: bool) -> dict:
     return {"wall_s": wall, "stdout": res.stdout, "summary": summary}
 
 
-def continuous_recording(work: Path, excitation: dict) -> Path:
-    """The same excitation played in one go through a fresh copy of the scanner (module
-    docstring, step 2): ``t,u,y,v`` at the recorder's instants."""
-    spec = ExcitationSpec(u_min_V=LIMITS_V[0], u_max_V=LIMITS_V[1], rate_Hz=RATE_HZ, **excitation)
+def continuous_recording(work: Path, excitation: dict, u_range_V: tuple[float, float]) -> Path:
+    """The same excitation (``excitation``: the ExcitationSpec fields calibrate stored in the
+    provenance; ``u_range_V``: its range) played in one go through a fresh copy of the
+    scanner (module docstring, step 2): ``t,u,y,v`` at the recorder's instants."""
+    spec = ExcitationSpec(u_min_V=u_range_V[0], u_max_V=u_range_V[1], **excitation)
     u = excitation_all(spec).u_V
     scanner = Scanner(scanner_config())
-    dt = 1.0 / RATE_HZ
+    dt = 1.0 / spec.rate_Hz
     scanner.apply({"x": float(u[0]), "y": 0.0, "z": 0.0}, 0.0)
     scanner.advance(2.0)                           # the settle hold calibrate keeps
     t0 = 2.0 + SERVO_S
@@ -218,6 +238,7 @@ def verdict(cal: dict[str, float], ref: dict[str, float]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default="gcs-tcp", choices=list(DEVICES))
     ap.add_argument("--kind", default="auto")
     ap.add_argument("--rates", type=float, nargs="+", default=[1.0, 10.0, 50.0])
     ap.add_argument("--short", action="store_true", help="a short excitation (a first look)")
@@ -227,18 +248,16 @@ def main(argv: list[str] | None = None) -> int:
     work = args.work or Path(tempfile.mkdtemp(prefix="calibrate-join-"))
     work.mkdir(parents=True, exist_ok=True)
     print("work:", work, flush=True)
-    cal = calibrate(work, args.kind, args.short)
+    cal = calibrate(work, args.device, args.kind, args.short)
     prov = json.loads((work / "cal.json").read_text())["provenance"]
-    exc = {k: v for k, v in prov["excitation"].items() if k not in ("rate_Hz", "slew_V_per_s")}
-    exc["slew_V_per_s"] = prov["excitation"].get("slew_V_per_s")
-    cont = continuous_recording(work, exc)
+    cont = continuous_recording(work, prov["excitation"], tuple(prov["axes"]["x"]["u_range_V"]))
     ident_s = identify(cont, args.kind, work / "continuous.json")
     chosen = {name: x_model(work / f"{name}.json") for name in ("cal", "continuous")}
     errs = {name: raster_errors(work, work / f"{name}.json", args.rates) for name in ("cal", "continuous")}
     text = report(args, cal, prov, chosen, errs, ident_s, work)
     print(text)
     if not args.no_write:
-        write_section(NAME, text)
+        write_section(NAME if args.device == "gcs-tcp" else f"{NAME}_{args.device}", text)
     return 0
 
 
@@ -257,17 +276,23 @@ def report(args, cal: dict, prov: dict, chosen: dict, errs: dict, ident_s: float
                   cal["stdout"])
     device_s, val_s = (float(m.group(1)), float(m.group(3))) if m else (float("nan"), float("nan"))
     axis = prov["axes"]["x"]
-    cmd = "`.venv/bin/python benchmarks/calibrate_join.py" + (f" --kind {args.kind}" if args.kind != "auto" else "") \
-        + (" --short" if args.short else "") + "`"
+    cmd = "`.venv/bin/python benchmarks/calibrate_join.py" \
+        + (f" --device {args.device}" if args.device != "gcs-tcp" else "") \
+        + (f" --kind {args.kind}" if args.kind != "auto" else "") + (" --short" if args.short else "") + "`"
+    lo, hi = axis["u_range_V"]
+    with open(work / "rep" / "cal.x-recording.csv", encoding="utf-8") as f:
+        joined = sum(1 for _ in f) - 1
     lines = [
-        "## `afmctl calibrate` against one continuous recording (#38)",
+        f"## `afmctl calibrate` against one continuous recording (#38): {args.device}",
         "",
         f"{cmd} — {time.strftime('%Y-%m-%d')}, CPython {platform.python_version()}, shared 2-core machine "
         f"(load average {os.getloadavg()[0]:.1f} at the end).",
         "",
-        f"The simulated E-727 over TCP (`afmctl sim --protocol gcs --tcp`, the default scanner without thermal "
-        f"drift), axis x, 0–120 V, `loop.rate_Hz` 10 kHz, `--kind {args.kind}`; the excitation "
-        f"{exc_s:.1f} s ({axis['samples']:,} rows) in {axis['pieces']} pieces of at most {axis['piece_rows']:,} rows. "
+        f"{DEVICES[args.device]['what'][0].upper()}{DEVICES[args.device]['what'][1:]}, the default scanner without "
+        f"thermal drift, axis x, {lo:g}–{hi:g} V, `loop.rate_Hz` {DEVICES[args.device]['rate_Hz'] / 1000:g} kHz, "
+        f"`--kind {args.kind}`; the excitation "
+        f"{exc_s:.1f} s ({axis['samples']:,} rows) in {axis['pieces']} pieces of at most {axis['piece_rows']:,} rows; "
+        f"the joined recording, holds between the pieces included, {joined:,} rows. "
         "The reference: the same excitation played in one go through a fresh copy of the scanner, recorded at "
         "the same instants, identified by `afmctl identify`. Raster: 4 µm lines through `afmctl run` (the speed "
         "ladder's Controller path), x error over the central 80 % of every trace and retrace, % of the line.",
