@@ -111,7 +111,28 @@ def record_parts(u: np.ndarray, t: np.ndarray, segment: Any) -> list[tuple[int, 
     if segment == "small-signal":
         bounds = small_signal_bounds(u, t)
         return whole if bounds is None else [bounds]
-    return dynamics_parts(u, t) or whole
+    return small_signal_first(u, t, dynamics_parts(u, t)) or whole
+
+
+#: a fast part whose input spans more than this fraction of the record's span is large-signal
+LARGE_FRACTION = 0.2
+
+
+def small_signal_first(u: np.ndarray, t: np.ndarray, parts: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """``parts`` without the large-signal ones (input over more than :data:`LARGE_FRACTION` of
+    the span: the large fast triangles and steps of ``afmctl excite --kind fast``) when the
+    record also has a small-signal run of at least :data:`FAST_MIN_S` (afmctl's multisine):
+    that measures the best linear approximation cleanly, and the large parts' hysteresis
+    harmonics would cost the coherence the high bins need (a 1.6 kHz mode lost behind a
+    triangle part: kept bins up to 0.8 kHz instead of past the mode). A record without such
+    a run keeps every part (a lab's chirp, fast triangles)."""
+    small = small_signal_bounds(u, t)
+    if small is None or (small[1] - small[0]) * float(t[1] - t[0]) < FAST_MIN_S:
+        return parts
+    span = float(np.ptp(u))
+    keep = [(a, b) for a, b in parts
+            if (a <= small[0] and b >= small[1]) or float(np.ptp(u[a:b])) <= LARGE_FRACTION * span]
+    return keep or parts
 
 
 def dynamics_parts(u: np.ndarray, t: np.ndarray) -> list[tuple[int, int]]:

@@ -225,8 +225,29 @@ def test_compensate_dynamics_option_errors(capsys, tmp_path):
     assert rc == 2 and "uniformly" in err
     rc, out, err = run_cli(["compensate", "--model", tmp_path / "lin.json", "--slew-V-per-s", "5",
                             "--target", tmp_path / "tgt.csv", "--out", tmp_path / "v.csv"], capsys)
+    assert rc == 2 and "uniformly" in err          # a slew limit needs the sample period
+    rc, out, err = run_cli(["compensate", "--model", tmp_path / "lin.json", "--slew-V-per-s", "-5",
+                            "--target", tmp_path / "tgt.csv", "--out", tmp_path / "v.csv"], capsys)
     assert rc == 2 and "--slew-V-per-s" in err
     write_csv(tmp_path / "tgt.csv", {"t": np.array([0.0, 1e-5, 2e-5]), "y": np.zeros(3)})
     rc, out, err = run_cli(["compensate", "--model", tmp_path / "dyn.json", "--target", tmp_path / "tgt.csv",
                             "--out", tmp_path / "v.csv"], capsys)
     assert rc == 2 and "--dynamics" in err and "dyn.json" in err
+
+
+def test_compensate_slew_limit_holds_for_a_model_without_dynamics(capsys, tmp_path):
+    """#36: --slew-V-per-s with any model: the voltages are rate-limited, the report says how
+    many samples and that the target itself is too fast, and the largest step is printed."""
+    from afmctl.compensators.models import save_model
+
+    save_model(linear_80(), tmp_path / "lin.json")
+    t = np.arange(2000) * 1e-4
+    y = 4000.0 * (1 - np.abs(2 * ((t * 20.0) % 1.0) - 1))           # 50 V at 2 kV/s, turnarounds every 25 ms
+    write_csv(tmp_path / "tgt.csv", {"t": t, "y": y})
+    rc, out, err = run_cli(["compensate", "--model", tmp_path / "lin.json", "--slew-V-per-s", "1000",
+                            "--target", tmp_path / "tgt.csv", "--out", tmp_path / "v.csv"], capsys)
+    assert rc == 0, err
+    u = read_csv(tmp_path / "v.csv", ("t", "u"))["u"]
+    assert np.max(np.abs(np.diff(u))) <= 1000.0 * 1e-4 * (1 + 1e-9)
+    assert "slew-limited" in out and "too fast for the amplifier" in out and "at 50 % of this speed" in out
+    assert "largest step     : " in out and "V per sample" in out

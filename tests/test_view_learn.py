@@ -9,7 +9,7 @@ import time
 import pytest
 
 from afmctl.testing import wait_for
-from afmctl.view.testing import Browser, _Proc, canvas_pixels
+from afmctl.view.testing import Browser, ChildProcess, canvas_pixels
 from afmctl.zenoh_api.learn import LearnPublisher
 from afmctl.zenoh_api.settings import loopback_pair
 
@@ -30,7 +30,7 @@ def _publish_until_seen(pub, page, errors, state_last: str) -> None:
 def test_view_plots_the_convergence_of_a_learning_run(tmp_path):
     srv, _cli = loopback_pair()
     with LearnPublisher(srv, "s1") as pub:
-        view = _Proc([sys.executable, "-m", "afmctl", "view", "--http", "127.0.0.1:0", "--scanner", "s1",
+        view = ChildProcess([sys.executable, "-m", "afmctl", "view", "--http", "127.0.0.1:0", "--scanner", "s1",
                       "--connect", srv.listen[0]], tmp_path, "view")
         try:
             url = view.wait_line("afmctl view: http://", 120.0).split(": ", 1)[1]

@@ -140,30 +140,14 @@ def test_open_session_error_is_one_line():
         first.close()
 
 
-def _make_certs(d):
-    """A throw-away CA and certificates with CN service/operator/viewer (openssl CLI)."""
-    import subprocess
-
-    def run(*args):
-        subprocess.run(["openssl", *args], check=True, capture_output=True, cwd=d)
-    ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes"]
-    run("req", "-x509", *ec, "-keyout", "ca.key", "-out", "ca.pem", "-days", "2", "-subj", "/CN=afmctl-test-ca",
-        "-addext", "basicConstraints=critical,CA:TRUE", "-addext", "keyUsage=critical,keyCertSign,cRLSign")
-    for name in ("service", "operator", "viewer"):
-        (d / f"{name}.ext").write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\nbasicConstraints=CA:FALSE\n"
-                                       "keyUsage=digitalSignature\nextendedKeyUsage=serverAuth,clientAuth\n")
-        run("req", *ec, "-keyout", f"{name}.key", "-out", f"{name}.csr", "-subj", f"/CN={name}")
-        run("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial",
-            "-out", f"{name}.pem", "-days", "2", "-extfile", f"{name}.ext")
-
-
 def test_mtls_access_control_by_certificate_common_name(tmp_path):
     """Mutual TLS on loopback; only the certificate with CN 'operator' may put a trajectory."""
     import shutil
     from afmctl.zenoh_api.settings import TlsSettings, free_loopback_endpoint
     if shutil.which("openssl") is None:
         pytest.skip("openssl command not available to make test certificates")
-    _make_certs(tmp_path)
+    from afmctl.view.labstack import make_certificates
+    make_certificates(tmp_path, ("service", "operator", "viewer"))
     endpoint = "tls/localhost:" + free_loopback_endpoint().rsplit(":", 1)[1]
 
     def tls(name):

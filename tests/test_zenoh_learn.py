@@ -33,6 +33,9 @@ def test_iterations_reach_a_subscriber_in_order():
             last = pub.publish(3, {"max_pct": 0.1, "rms_pct": 0.02, "central_max_pct": 0.05,
                                    "central_rms_pct": 0.01}, state="converged", detail="noise floor")
             msgs.append(decode_json(got.get(timeout=5), LearnMsg))
+            # while learning, the scanner's presence token is declared (afmctl view lists it)
+            alive = [str(r.ok.key_expr) for r in sub_session.liveliness().get("afm/*/alive", timeout=5) if r.ok]
+            assert alive == ["afm/s1/alive"], alive
         finally:
             sub.undeclare()
             sub_session.close()

@@ -28,13 +28,15 @@ def compensate(model: HysteresisModel, y_nm: np.ndarray, *, dt_s: float | None =
     ``limits_V``: the allowed range (default: the model's voltage range, else 0..150 V); a
     voltage outside it raises :class:`LimitsExceeded` unless ``clip``. ``dynamics`` (a
     'dynamics' model) or a chain's own dynamics stage is inverted offline over the whole
-    target within the limits and ``slew_V_per_s`` (docs/COMPENSATORS.md). ``model_name`` and
+    target within the limits and ``slew_V_per_s`` (docs/COMPENSATORS.md); any other model's
+    voltages are rate-limited to ``slew_V_per_s`` [V/s] (the report says how many samples,
+    and when the target itself is too fast). ``model_name`` and
     ``where`` name the model and the target in error messages; ``progress(n)`` is called as
     chunks of a long target are done."""
     _check_kinds(model, dynamics, slew_V_per_s, model_name)
     y = np.ascontiguousarray(y_nm, dtype=np.float64).reshape(-1)
     with_dynamics = dynamics is not None or getattr(model, "dynamics", None) is not None
-    dt = _period(model, with_dynamics, dt_s, t_s, where)
+    dt = _period(model, with_dynamics or slew_V_per_s is not None, dt_s, t_s, where)
     lo, hi, source = model_limits_V(model, limits_V)
     report = None
     inverse = None if with_dynamics else _inverse(model, dt, model_name)   # blamed on the model
@@ -59,7 +61,22 @@ def compensate(model: HysteresisModel, y_nm: np.ndarray, *, dt_s: float | None =
         i = int(np.flatnonzero(bad)[0])
         raise LimitsExceeded(f"{where}: sample {i} needs {u[i]:.6g} V, outside the limits {lo:g}..{hi:g} V "
                              f"({source}; {n_bad} samples); pass limits_V or clip=True", i, float(u[i]), n_bad)
+    if inverse is not None and slew_V_per_s is not None:   # the static inverse within the amplifier's slew
+        assert dt is not None  # _period gives one whenever a slew limit is given
+        u, report = _within_slew(u, dt, (lo, hi), slew_V_per_s)
+        return Compensated(u, (lo, hi), source, n_bad, report)
     return Compensated(np.clip(u, lo, hi) if n_bad else u, (lo, hi), source, n_bad, report)
+
+
+def _within_slew(u: np.ndarray, dt: float, limits: tuple[float, float], slew: float) -> tuple[np.ndarray, str]:
+    """A model without dynamics: its voltages clipped to ``limits`` and rate-limited to
+    ``slew`` [V/s], and the report of what that took (the too-fast share included)."""
+    from afmctl.compensators.dynamics_limits import LimitedInverse, rate_limit
+
+    fastest = float(np.max(np.abs(np.diff(u)))) / dt if u.size > 1 else 0.0
+    out, clipped, limited = rate_limit(u, limits[0], limits[1], slew * dt)
+    res = LimitedInverse(out, math.inf, math.inf, fastest, clipped, limited, 0.0, fastest, slew)
+    return out, res.report()
 
 
 def _check_kinds(model: HysteresisModel, dynamics: HysteresisModel | None, slew: float | None, name: str) -> None:
@@ -73,8 +90,6 @@ def _check_kinds(model: HysteresisModel, dynamics: HysteresisModel | None, slew:
         raise AfmctlError(f"dynamics: {name} already holds a dynamics stage ({getattr(model, 'structure', '')})")
     if dynamics is not None and dynamics.kind != "dynamics":
         raise AfmctlError(f"dynamics: kind {dynamics.kind!r}; a 'dynamics' model is needed")
-    if slew is not None and dynamics is None and not own:
-        raise AfmctlError("slew_V_per_s: only used with a dynamics model or a chain with a dynamics stage")
     if slew is not None and not (math.isfinite(slew) and slew > 0):
         raise AfmctlError(f"slew_V_per_s: {slew}; need a finite rate > 0 V/s")
 

@@ -44,8 +44,13 @@ Output:
                        its speed it would fit: scan slower there. A chain model with a
                        dynamics stage (e.g. preisach+creep+dynamics) is inverted the same way,
                        within --limits (default: the model's range) and --slew-V-per-s.
-  --slew-V-per-s S     the amplifier's slew limit [V/s] (with --dynamics or a chain
-                       model with a dynamics stage)
+  --slew-V-per-s S     the amplifier's slew limit [V/s], with every model: with dynamics
+                       as above; otherwise the voltages are rate-limited to it and the
+                       report says how many samples that took (and when the target
+                       itself is too fast). A chain with an amplifier stage also keeps
+                       the piezo voltage within the stage's own identified slew limit.
+The largest voltage step per sample the voltages make is printed: a step the amplifier and
+the scanner's first mode would turn into ringing shows there.
 
 The model's operator starts from the state stored in the model file (a scanner at rest)
 and runs through the whole file. A preisach model clamps targets it cannot reach to the
@@ -102,11 +107,17 @@ def run(args: argparse.Namespace) -> int:
                           f"{lo:g}..{hi:g} V ({source}; {err.count} samples); give --limits LO HI, "
                           "or add --clip to clip them") from None
     if res.dynamics_report is not None:
-        print(f"dynamics         : {res.dynamics_report}")
+        label = "dynamics" if dyn is not None or getattr(model, "dynamics", None) is not None else "slew"
+        print(f"{label:<17}: {res.dynamics_report}")
     print(limits_line)
     if res.clipped:
         print(f"clipped          : {res.clipped} of {res.u_V.size} samples to [{lo:g}, {hi:g}] V")
     u = res.u_V
+    if u.size > 1:
+        k = int(np.argmax(np.abs(np.diff(u))))
+        step = float(u[k + 1] - u[k])
+        print(f"largest step     : {step:+.4g} V per sample, from {u[k]:.6g} V at row {k + 2} "
+              f"({abs(step) / float(t[k + 1] - t[k]):.4g} V/s)")
     write_csv(args.out, {"t": t, "u": u})
     print(f"written          : {args.out} ({u.size} rows, u from {u.min():.6g} to {u.max():.6g} V)")
     return 0
@@ -122,9 +133,6 @@ def _check_flags(args: argparse.Namespace, model) -> None:
                           "--dynamics beside a --model that maps volts (pi, epi, creep, preisach, bouc-wen, chain)")
     if args.dynamics is not None and getattr(model, "dynamics", None) is not None:
         raise AfmctlError(f"--dynamics: {args.model} already holds a dynamics stage ({model.structure}); drop --dynamics")
-    with_dynamics = args.dynamics is not None or getattr(model, "dynamics", None) is not None
-    if args.slew_V_per_s is not None and not with_dynamics:
-        raise AfmctlError("--slew-V-per-s: only used with --dynamics DYN.json or a chain model with a dynamics stage")
     slew = args.slew_V_per_s
     if slew is not None and not (math.isfinite(slew) and slew > 0):
         raise AfmctlError(f"--slew-V-per-s: {slew}; need a finite rate > 0 V/s")

@@ -22,11 +22,19 @@ carry (e.g. 50 lines/s at 20 kHz).
 Ctrl-C or SIGTERM ramps the output to the safe value and stops cleanly; a second Ctrl-C
 is an emergency stop (ramp at the slew limit).
 
+With --serve (needs [zenoh] enabled = true) the service starts idle and stays up: an
+operator starts and stops the scanner over zenoh (`cmd start` {{"configured": true}} runs the
+configured trajectory, `cmd stop` ends it), as often as wanted, each run with its own run
+log, until Ctrl-C or SIGTERM. The scanner's presence (its zenoh liveliness token
+<prefix>/<scanner>/alive) lasts as long as the process: a lab of scanners behind one
+`afmctl router` (docs/ZENOH.md, "A lab").
+
 Examples:
   afmctl run --config examples/sim_inprocess.toml
   afmctl run --config examples/sim_wave_gcs.toml        # 50 lines/s on a GCS wave table
   afmctl run --config examples/mdt693b_serial.toml --log runs/scan1.afmlog
   AFMCTL_AMPLIFIER__PORT=/dev/ttyUSB1 afmctl run --config examples/mdt693b_serial.toml
+  afmctl run --config examples/lab/stage1.toml --port socket://127.0.0.1:50000 --serve
 
 Environment: AFMCTL_<SECTION>__<KEY>=value overrides the file (e.g. AFMCTL_LOOP__RATE_HZ=500).
 
@@ -61,6 +69,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help=f"stop after S seconds, 0 < S <= {MAX_SECONDS:g} (default: end of trajectory)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.add_argument("--serve", action="store_true",
+                   help="start idle and serve zenoh commands (cmd start / stop, again and again) until Ctrl-C or "
+                        "SIGTERM; needs [zenoh] enabled = true")
     p.add_argument("--drift-images", metavar="DIR",
                    help="watch DIR for new AFM frames of one area (.gwy/.gsf/.tif/.ibw, Nanoscope .spm/.000–.999) while "
                         "scanning and feed "
@@ -174,6 +185,23 @@ def _wait_for_run(ctl, args: argparse.Namespace, stops: dict) -> None:
                   f"{s['lateness_p99_s'] * 1e6:7.1f} us  missed {s['missed_deadlines']}", file=sys.stderr)
 
 
+def _serve(ctl, args: argparse.Namespace, stops: dict) -> None:
+    """--serve: runs are started and stopped over zenoh; wait for Ctrl-C / SIGTERM (the
+    first stops a running run), then for the run to end."""
+    import sys
+    import time
+    next_report = time.monotonic() + 2.0
+    while stops["n"] == 0:
+        time.sleep(0.05)
+        if not args.quiet and time.monotonic() >= next_report:
+            next_report = time.monotonic() + 2.0
+            s = ctl.stats()
+            print(f"afmctl: {s['state']:8s} samples {s['samples']:>9d}  p99 lateness "
+                  f"{s['lateness_p99_s'] * 1e6:7.1f} us  missed {s['missed_deadlines']}", file=sys.stderr)
+    if ctl.running:
+        ctl.wait(30.0)
+
+
 def _print_summary(summary: dict) -> None:
     print(f"state             {summary['state']}")
     print(f"samples           {summary['samples']} at {summary['rate_Hz']:g} Hz")
@@ -216,21 +244,23 @@ def _exit_status(ctl, summary: dict) -> int:
     if ctl.trajectory_error is not None:
         print(f"afmctl: error: trajectory: {ctl.trajectory_error}; the run was stopped", file=sys.stderr)
         return EXIT_BAD_INPUT
-    return EXIT_OK if summary["state"] == State.STOPPED.value else EXIT_FAULT
+    return EXIT_OK if summary["state"] in (State.STOPPED.value, State.IDLE.value) else EXIT_FAULT
 
 
 def run(args: argparse.Namespace) -> int:
     import contextlib
-    import json
     import sys
 
     from ..control import cpu_pinning
     from ..config import load_config
     from ..control.controller import Controller
+    from ..errors import AfmctlError
 
     _check_seconds(args.seconds)
     config = load_config(args.config, overrides={"amplifier": {"port": args.port}} if args.port else None)
     scanner = None
+    if getattr(args, "serve", False) and not config.zenoh.enabled:
+        raise AfmctlError(f"--serve: {args.config} has [zenoh] enabled = false; runs are started over zenoh")
     # this thread, the in-process simulator and the zenoh process: off the loop's CPU
     cpu_pinning.pin_this_thread(cpu_pinning.plan_for(config.loop).others)
     warning = link_warning(config)
@@ -257,6 +287,13 @@ def run(args: argparse.Namespace) -> int:
 
         stops = {"n": 0}
         _install_signals(stack, ctl, stops)
+        if getattr(args, "serve", False):
+            print(f"afmctl: serving {config.scanner.name} over zenoh ({config.zenoh.mode}); an operator starts "
+                  "and stops it (cmd start / stop); stop the service with Ctrl-C or SIGTERM", file=sys.stderr)
+            _serve(ctl, args, stops)
+            ctl.close()
+            summary = _summary(ctl, config, scanner)
+            return _finish(args, summary, ctl)
         ctl.start(config.trajectory, runlog_path=args.log)
         # always, --quiet included: which axes are compensated, by which model, from which file
         print(f"afmctl: compensation {ctl.pipeline.describe()}", file=sys.stderr)
@@ -274,6 +311,12 @@ def run(args: argparse.Namespace) -> int:
         _wait_for_run(ctl, args, stops)
         ctl.close()
         summary = _summary(ctl, config, scanner)
+    return _finish(args, summary, ctl)
+
+
+def _finish(args: argparse.Namespace, summary: dict, ctl) -> int:
+    """Print the summary (text or --json); the exit status."""
+    import json
     if args.json:
         print(json.dumps(summary, indent=2))
     else:

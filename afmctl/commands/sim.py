@@ -46,7 +46,8 @@ shows as it builds up. Zenoh is OFF by default, so plain `afmctl sim` opens no n
   afmctl sim --zenoh --zenoh-listen tcp/127.0.0.1:7500 --scanner stage1
                                                        # publishes afm/stage1/sim/tip
 
-Port 7447 is also the default of `afmctl run`; when both run on one machine give the
+While zenoh is on, the simulator declares the scanner's presence, the liveliness token
+<prefix>/<scanner>/alive (docs/ZENOH.md). Port 7447 is also the default of `afmctl run`; when both run on one machine give the
 simulator another port with --zenoh-listen (or, with --zenoh-connect ENDPOINT alone,
 connect it to a peer or router and listen on nothing). Publishing is decimated to publish_rate_Hz
 (at most one sample per tick, i.e. 1/tick_s) and runs in its own thread with a small

@@ -22,7 +22,7 @@ keys `afmctl run` and `afmctl sim --zenoh` publish (docs/ZENOH.md):
   * the loop statistics and state from `status`;
   * the image [nm] as it builds up (the simulator's sim/image: `afmctl sim --sample ...`).
 
-The viewer only subscribes; it never commands the scanner. It joins zenoh as a peer that
+The viewer only watches; it never commands the scanner. It joins zenoh as a peer that
 listens on nothing and connects to the endpoints you give:
 
   afmctl run --config stage1.toml &                 # [zenoh] listen = ["tcp/127.0.0.1:7447"]
@@ -30,8 +30,14 @@ listens on nothing and connects to the endpoints you give:
   afmctl view --connect tcp/127.0.0.1:7447 --connect tcp/127.0.0.1:7500
   # then open http://127.0.0.1:8765/ in a browser
 
-Without --scanner every scanner under the prefix is shown (a selector on the page); with
---scanner NAME (repeatable) only those. The page is served on 127.0.0.1 only, unless
+Without --scanner every scanner under the prefix is shown (a card per scanner side by side
+and a selector for the panels); with --scanner NAME (repeatable) only those. The viewer
+watches the scanners' liveliness tokens (<prefix>/<scanner>/alive): a scanner appears when
+its `afmctl run`, `sim` or `learn` starts, is greyed out when it went away, and its last
+status is asked for at once. A whole lab behind one `afmctl router` (docs/ZENOH.md):
+
+  afmctl view --config examples/lab/view.toml --connect tcp/127.0.0.1:7447
+ The page is served on 127.0.0.1 only, unless
 --http says otherwise (port 0: any free port; the URL is printed first).
 
 TLS, mutual TLS and user/password authentication: give a TOML file whose [zenoh] table
@@ -48,7 +54,8 @@ its listen endpoints are ignored, the viewer listens on nothing):
   user = "viewer"
   password = "..."
 
-With the service's access control on, the viewer must be one of its `observers`.
+With the service's (or the lab router's) access control on, the viewer must be one of its
+`observers`.
 Stop with Ctrl-C.
 """
 

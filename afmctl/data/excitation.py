@@ -15,6 +15,15 @@ Each generator returns the command voltage ``u_V`` sampled at ``rate_Hz`` and st
   mean of the two, falling as 1/f above it, so that the rate of change stays moderate),
   repeated so Welch's method can average; its amplitude keeps the rate of change within
   half of ``slew_V_per_s``.
+* :func:`fast` — large triangles (10–90 % of the range) at rising rates, 2 Hz up to
+  100 Hz (or what the sample rate and the slew limit allow), then large steps between 30 and
+  70 % of the range (a jump, or a ramp at ``slew_V_per_s``). A small-signal multisine sees
+  the amplifier and the scanner's dynamics only in series (``G_amp·G_mech`` times the
+  hysteresis's local slope); large fast triangles tell a lag *before* the hysteresis (it
+  rounds the voltage the loop turns on) from one *after* it (it rounds the loop's output),
+  and show how the loops change with the scan rate (fast creep, rate-dependent hysteresis);
+  the steps drive the amplifier into its slew (current) limit, which no small signal
+  reaches (#36).
 * :func:`concatenate` — segments joined by holds of ``gap_s`` (settling), each joined to the
   next by a ramp at the sweep speed.
 
@@ -158,6 +167,39 @@ def dynamics(spec: ExcitationSpec) -> np.ndarray:
                            hold(mid, spec.gap_s, spec), ramp(mid, lo, spec)])
 
 
+#: :func:`fast`: triangle rates [Hz] (those the sample rate and slew limit allow), and at
+#: least this many cycles and seconds at each
+FAST_RATES_HZ: tuple[float, ...] = (2.0, 5.0, 10.0, 20.0, 50.0, 100.0)
+FAST_CYCLES, FAST_MIN_S = 3, 0.4
+#: :func:`fast`: step levels (fractions of the range), steps each way, and the hold at each [s]
+STEP_LEVELS, STEP_COUNT, STEP_HOLD_S = (0.3, 0.7), 4, 0.02
+
+
+def fast(spec: ExcitationSpec) -> np.ndarray:
+    """Triangles between 10 and 90 % of the range at :data:`FAST_RATES_HZ` (each rate at least
+    :data:`FAST_CYCLES` cycles and :data:`FAST_MIN_S`), up to the rate with 100 samples per
+    cycle and the one whose ramps stay within half of ``slew_V_per_s``; then
+    :data:`STEP_COUNT` steps up and down between :data:`STEP_LEVELS` of the range, held
+    :data:`STEP_HOLD_S` each (module docstring). Starts at ``u_min_V``."""
+    lo, hi = spec.u_min_V + 0.1 * spec.span_V, spec.u_min_V + 0.9 * spec.span_V
+    top = spec.rate_Hz / 100.0
+    if spec.slew_V_per_s:
+        top = min(top, 0.5 * spec.slew_V_per_s / (2.0 * (hi - lo)))
+    parts = [np.array([spec.u_min_V]), ramp(spec.u_min_V, lo, spec)]
+    for f in (f for f in FAST_RATES_HZ if f <= top):
+        n = int(round(max(FAST_CYCLES / f, FAST_MIN_S) * f)) * int(round(spec.rate_Hz / f))
+        ph = (np.arange(1, n + 1) / spec.rate_Hz * f) % 1.0
+        parts.append(lo + (hi - lo) * (1.0 - np.abs(2.0 * ph - 1.0)))
+    a, b = (spec.u_min_V + x * spec.span_V for x in STEP_LEVELS)
+    parts.append(ramp(lo, a, spec))
+    hold_n = max(1, int(round(STEP_HOLD_S * spec.rate_Hz)))
+    edge = ExcitationSpec(**{**spec.__dict__, "sweep_V_per_s": spec.slew_V_per_s or math.inf})
+    for level, prev in [(b, a), (a, b)] * STEP_COUNT:
+        parts += [np.full(hold_n, prev), ramp(prev, level, edge)]
+    parts += [np.full(hold_n, a), ramp(a, spec.u_min_V, spec)]
+    return np.concatenate(parts)
+
+
 def concatenate(parts: list[np.ndarray], spec: ExcitationSpec) -> np.ndarray:
     """Segments joined by holds of ``gap_s`` (and ramps where their ends differ)."""
     out = [parts[0]]
@@ -169,15 +211,15 @@ def concatenate(parts: list[np.ndarray], spec: ExcitationSpec) -> np.ndarray:
     return np.concatenate(out)
 
 
-KINDS = ("static", "creep", "dynamics", "all")
+KINDS = ("static", "creep", "dynamics", "fast", "all")
 
 
 def excitation(kind: str, spec: ExcitationSpec) -> np.ndarray:
     """The voltage sequence of ``kind`` (one of :data:`KINDS`), within [u_min_V, u_max_V]."""
     check_spec(spec)
-    makers = {"static": static, "creep": creep, "dynamics": dynamics}
+    makers = {"static": static, "creep": creep, "dynamics": dynamics, "fast": fast}
     if kind == "all":
-        u = concatenate([makers[k](spec) for k in ("static", "creep", "dynamics")], spec)
+        u = concatenate([makers[k](spec) for k in ("static", "creep", "dynamics", "fast")], spec)
     elif kind in makers:
         u = makers[kind](spec)
     else:

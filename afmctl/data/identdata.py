@@ -203,7 +203,24 @@ def excitation_notes(t_s: np.ndarray, u_V: np.ndarray) -> list[str]:
     if half.size < 2 or float(np.max(half)) < 3.0 * float(np.min(half)):
         notes.append("the input runs at one rate: rate dependence and resonance (+dynamics) are not identified; "
                      "record a chirp: afmctl excite --kind dynamics")
+    elif not _large_fast_part(t_s, u_V):
+        notes.append("no large fast part (triangles at 10 Hz and up over much of the range, or steps): an amplifier "
+                     "lag before the hysteresis is not told from one after it and the amplifier's slew limit is not "
+                     "seen; record afmctl excite --kind fast (and the piezo voltage as column v if the amplifier or "
+                     "controller gives it)")
     return notes
+
+
+def _large_fast_part(t_s: np.ndarray, u_V: np.ndarray) -> bool:
+    """Whether the record has a fast part (:func:`~afmctl.compensators.dynamics_identify.fast_parts`)
+    whose input spans more than a fifth of the record's span."""
+    from afmctl.compensators.dynamics_identify import LARGE_FRACTION, fast_parts
+
+    d = np.diff(t_s)
+    if d.size == 0 or float(np.max(d) - np.min(d)) > 1e-3 * float(np.median(d)):
+        return True                      # non-uniform samples: not judged here
+    span = float(np.ptp(u_V))
+    return any(float(np.ptp(u_V[a:b])) > LARGE_FRACTION * span for a, b in fast_parts(u_V, t_s))
 
 
 def condition(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, where: str, *,

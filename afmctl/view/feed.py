@@ -1,8 +1,12 @@
 """The zenoh side of ``afmctl view``: one session, subscribers on the published keys of
 one or more scanners, one :class:`~afmctl.view.scanner_feed.ScannerFeed` per scanner.
 
-The viewer only ever *subscribes* (what an ``observers`` subject of the service's access
-control may do); it never puts or queries. Its session is built from
+The viewer only ever *watches* (what an ``observers`` subject of the service's or the lab
+router's access control may do): it subscribes, watches the scanners' liveliness tokens
+``<prefix>/<scanner>/alive`` (which scanners exist; one whose token went away is marked
+gone) and asks each scanner that appears for its last ``status`` at once (the status
+queryable every ``afmctl run`` serves), so a late joiner need not wait for the next one.
+It never puts, and never queries ``cmd``. Its session is built from
 :class:`afmctl.zenoh_api.settings.ZenohSettings`, so TLS, mutual TLS and user/password
 authentication work as for any other peer (docs/ZENOH.md)."""
 from __future__ import annotations
@@ -48,6 +52,7 @@ class ViewFeed:
         self._lock = threading.Lock()
         self._session: Any = None
         self._subs: list[Any] = []
+        self._alive_sub: Any = None
         self.ignored = 0          # messages of scanners beyond MAX_SCANNERS or with invalid names
 
     @property
@@ -69,8 +74,45 @@ class ViewFeed:
         for key in keys:
             leaf = key.split("/", self.settings.prefix.count("/") + 2)[-1]
             self._subs.append(self._session.declare_subscriber(key, self._callback(leaf)))
-        log.info("watching %s", ", ".join(keys))
+        # presence: the tokens alive now (history) and every one that comes or goes
+        self._alive_sub = self._session.liveliness().declare_subscriber(self.alive_key(), self._on_alive,
+                                                                         history=True)
+        log.info("watching %s and %s", ", ".join(keys), self.alive_key())
         return self
+
+    def alive_key(self) -> str:
+        """The liveliness key expression watched (one scanner's, or every scanner's)."""
+        name = self.scanners[0] if self.scanners and len(self.scanners) == 1 else "*"
+        return f"{self.settings.prefix}/{name}/alive"
+
+    def _on_alive(self, sample: Any) -> None:
+        """zenoh callback: a scanner's token came (ask for its status at once) or went."""
+        import zenoh
+        skip = len(self.settings.prefix) + 1
+        name = str(sample.key_expr)[skip:].split("/", 1)[0]
+        if self.scanners and name not in self.scanners:
+            return
+        feed = self.feed(name)
+        if feed is None:
+            return
+        came = sample.kind == zenoh.SampleKind.PUT
+        feed.set_alive(came)
+        log.info("scanner %s %s", name, "alive" if came else "gone")
+        if came and self._session is not None:
+            try:
+                self._session.get(self.settings.key(name, "status"), self._status_reply(feed))
+            except Exception:  # noqa: BLE001 - the session is closing
+                log.debug("status query failed", exc_info=True)
+
+    def _status_reply(self, feed: ScannerFeed) -> Callable[[Any], None]:
+        def on_reply(reply: Any) -> None:
+            if reply.ok is None:
+                return
+            try:
+                feed.on_status(reply.ok.payload.to_bytes())
+            except MessageError as err:
+                feed.reject("status", err)
+        return on_reply
 
     def _callback(self, leaf: str) -> Callable[[Any], None]:
         method = LEAVES[leaf]
@@ -109,6 +151,9 @@ class ViewFeed:
             return dict(self._feeds)
 
     def close(self) -> None:
+        if self._alive_sub is not None:
+            self._alive_sub.undeclare()
+            self._alive_sub = None
         for sub in self._subs:
             sub.undeclare()
         self._subs.clear()

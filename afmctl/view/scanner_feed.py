@@ -75,6 +75,10 @@ class ScannerFeed:
         self.counts = {k: 0 for k in ("setpoint_batches", "setpoint_samples", "seq_gaps", "tips", "drift",
                                       "status", "image", "learn", "rejected")}
         self.last_rejected: str | None = None
+        #: presence: True while its liveliness token is alive, False once it went away,
+        #: None when none was ever seen (a service without presence, or not yet)
+        self.alive: bool | None = None
+        self.alive_changed_s: float | None = None       # time.time() of the last change
         self._lock = threading.Lock()
         self._sp_dec, self._tip_dec = Decimator(display_rate_Hz), Decimator(display_rate_Hz)
         self._sp_clock, self._tip_clock = ClockOffset(), ClockOffset()
@@ -92,6 +96,12 @@ class ScannerFeed:
             self.counts["rejected"] += 1
             self.last_rejected = f"{what}: {err}"
         log.debug("%s: rejected %s: %s", self.name, what, err)
+
+    def set_alive(self, alive: bool) -> None:
+        """The scanner's liveliness token came (True) or went away (False)."""
+        with self._lock:
+            self.alive = alive
+            self.alive_changed_s = time.time()
 
     def on_setpoints(self, payload: bytes, arrival_s: float | None = None) -> None:
         seq, rec = decode_setpoints(payload)
@@ -224,6 +234,8 @@ class ScannerFeed:
             out["learn"], cursor["learn"] = self.learn.since(cursor.get("learn", 0))
             out["learn_state"] = self.learn_state
             out["status"] = self.status
+            out["alive"] = self.alive
+            out["alive_changed_s"] = self.alive_changed_s
             out["counts"] = dict(self.counts)
             out["last_rejected"] = self.last_rejected
             out["offsets_s"] = {"setpoint": self._sp_clock.offset_s, "tip": self._tip_clock.offset_s}

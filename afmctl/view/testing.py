@@ -82,11 +82,13 @@ password = "viewer-pw"
 """
 
 
-class _Proc:
-    """A child process whose stdout lines are collected by a reader thread."""
+class ChildProcess:
+    """A child process whose stdout lines are collected by a reader thread; its stderr goes
+    to ``<workdir>/<name>.stderr.txt``. ``env``: variables added to the environment (whose
+    own ``AFMCTL_*`` are left out)."""
 
-    def __init__(self, argv: list[str], workdir: Path, name: str) -> None:
-        env = {k: v for k, v in os.environ.items() if not k.startswith("AFMCTL_")}
+    def __init__(self, argv: list[str], workdir: Path, name: str, env: dict[str, str] | None = None) -> None:
+        env = {**{k: v for k, v in os.environ.items() if not k.startswith("AFMCTL_")}, **(env or {})}
         env["PYTHONUNBUFFERED"] = "1"
         self.name = name
         self.err_path = workdir / f"{name}.stderr.txt"
@@ -137,7 +139,7 @@ class LiveStack:
         self.scanner, self.rate_Hz, self.lines, self.line_rate_Hz = scanner, rate_Hz, lines, line_rate_Hz
         self.repeat = repeat
         self.duration_s = duration_s
-        self.procs: dict[str, _Proc] = {}
+        self.procs: dict[str, ChildProcess] = {}
         self.url = self.sim_endpoint = self.run_endpoint = ""
 
     def _py(self, *args: str) -> list[str]:
@@ -152,7 +154,7 @@ class LiveStack:
     def start_sim(self) -> tuple[str, str]:
         (self.workdir / "sim.toml").write_text(SIM_TOML.format(users=self._users()))
         ep = free_loopback_endpoint()
-        sim = self.procs["sim"] = _Proc(self._py(
+        sim = self.procs["sim"] = ChildProcess(self._py(
             "sim", "--config", str(self.workdir / "sim.toml"), "--protocol", "gcs", "--tcp", "127.0.0.1:0",
             "--zenoh-listen", ep, "--scanner", self.scanner, "--sample", "grating2d",
             "--duration", str(self.duration_s)), self.workdir, "sim")
@@ -167,7 +169,7 @@ class LiveStack:
         cfg.write_text(RUN_TOML.format(scanner=self.scanner, port=port, rate_Hz=self.rate_Hz, dir=self.workdir,
                                        lines=self.lines, line_rate_Hz=self.line_rate_Hz, repeat=self.repeat,
                                        endpoint=ep, users=users))
-        self.procs["run"] = _Proc(self._py("run", "--config", str(cfg)), self.workdir, "run")
+        self.procs["run"] = ChildProcess(self._py("run", "--config", str(cfg)), self.workdir, "run")
         return ep
 
     def start_view(self, *endpoints: str) -> str:
@@ -176,7 +178,7 @@ class LiveStack:
         args = ["view", "--config", str(cfg), "--http", "127.0.0.1:0", "--scanner", self.scanner]
         for ep in endpoints:
             args += ["--connect", ep]
-        view = self.procs["view"] = _Proc(self._py(*args), self.workdir, "view")
+        view = self.procs["view"] = ChildProcess(self._py(*args), self.workdir, "view")
         self.url = view.wait_line("afmctl view: http://", 120.0).split(": ", 1)[1]
         return self.url
 

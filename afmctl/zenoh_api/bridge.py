@@ -9,6 +9,9 @@
   loop, and no sample is dropped (:mod:`.publishers`);
 * it subscribes to ``.../trajectory`` and ``.../temperature``; the zenoh callbacks only
   check size, decode and validate the payload and put it on a bounded queue (:mod:`.inputs`);
+* it declares the liveliness token ``.../alive`` (:mod:`.presence`) and serves
+  ``.../status`` as a queryable too: a late joiner asks for the last status at once instead
+  of waiting for the next one (any observer may; ``cmd status`` is an operator's);
 * it serves ``.../cmd`` (start, stop, estop, status, config, drift-measurement — a drift
   measurement for the Kalman filter, see docs/DRIFT.md); queries are queued too
   (:mod:`.cmd_queryable`).
@@ -37,6 +40,7 @@ from .inputs import LEAVES, InputSubscribers, position_range_from_config
 from .jsonvalues import jsonable, state_name
 from .ledger import RECENT_ERRORS, BridgeLedger
 from .messages import StatusMsg
+from .presence import declare_alive, undeclare_quietly
 from .publishers import RecordPublishers
 from .session import open_session
 from .settings import ZenohSettings
@@ -49,7 +53,7 @@ log = logging.getLogger(__name__)
 
 #: the loggers of the bridge's parts (a child process forwards their records, see .process)
 LOGGERS = (__name__, "afmctl.zenoh_api.inputs", "afmctl.zenoh_api.cmd_queryable",
-           "afmctl.zenoh_api.worker", "afmctl.zenoh_api.ledger")
+           "afmctl.zenoh_api.worker", "afmctl.zenoh_api.ledger", "afmctl.zenoh_api.presence")
 
 
 class ZenohBridge:
@@ -108,6 +112,21 @@ class ZenohBridge:
                                         self._ledger, put)
         self._cmd = CommandQueryable(s, self.keys["cmd"], self.settings, self.controller, self.position_range_nm,
                                      self._ledger, put, self.status)
+        self._status_queryable = s.declare_queryable(self.keys["status"], self._on_status_query, complete=True)
+        self._alive = declare_alive(s, self.settings, self.scanner_name)
+
+    def _on_status_query(self, query: Any) -> None:
+        """zenoh callback: the last published status (a late joiner's first picture)."""
+        payload = self._pub.last_status
+        try:
+            if payload is None and not self.closed:
+                payload = self.status().to_json_bytes()
+            if payload is not None:
+                query.reply(self.keys["status"], payload)
+        except Exception:  # noqa: BLE001 - the querier may be gone, the controller too
+            log.debug("status query not answered", exc_info=True)
+        finally:
+            query.drop()
 
     # ------------------------------------------------------------------ lifecycle
     def __enter__(self) -> "ZenohBridge":
@@ -127,6 +146,8 @@ class ZenohBridge:
                 remove(self)
             except Exception:  # pragma: no cover - best effort
                 log.debug("remove_sink failed", exc_info=True)
+        undeclare_quietly(self._alive)
+        self._status_queryable.undeclare()
         self._inputs.undeclare()
         self._cmd.undeclare()
         self._worker.stop()

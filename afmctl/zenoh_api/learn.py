@@ -9,6 +9,7 @@ from typing import Any
 
 from .session import open_session
 from .messages import LearnMsg
+from .presence import declare_alive, undeclare_quietly
 from .settings import ZenohSettings
 
 log = logging.getLogger(__name__)
@@ -17,13 +18,15 @@ log = logging.getLogger(__name__)
 class LearnPublisher:
     """Publishes iterations of one learning run. ``settings``: the ``[zenoh]`` table;
     ``scanner``: the scanner's name; ``session``: an open session to use (not closed here),
-    else one is opened from ``settings`` and closed by :meth:`close`."""
+    else one is opened from ``settings`` and closed by :meth:`close`. While it lives, the
+    scanner's liveliness token ``<prefix>/<scanner>/alive`` is declared (:mod:`.presence`)."""
 
     def __init__(self, settings: ZenohSettings, scanner: str, session: Any = None) -> None:
         self.key = settings.key(scanner, "learn")
         self._own = session is None
         self.session = open_session(settings, scanner) if session is None else session
         self._pub = self.session.declare_publisher(self.key)
+        self._alive = declare_alive(self.session, settings, scanner)
         self.seq = 0
 
     def publish(self, iteration: int, error: dict[str, float | None], *, step: float | None = None,
@@ -38,6 +41,7 @@ class LearnPublisher:
 
     def close(self) -> None:
         try:
+            undeclare_quietly(self._alive)
             self._pub.undeclare()
         finally:
             if self._own:

@@ -37,6 +37,7 @@ class RecordPublishers:
         self._closed = closed
         self._seq = {"setpoint": 0, "drift": 0, "status": 0}
         self._last_setpoint: tuple[int, list[float]] | None = None   # (sample seq, u_V) of the last record
+        self.last_status: bytes | None = None       # the last status payload (the status queryable's answer)
         self._pub: dict[str, Any] = {}
         self._pub["setpoint"] = session.declare_publisher(keys["setpoint"], congestion_control=block,
                                                           reliability=reliable, priority=zenoh.Priority.DATA_HIGH)
@@ -101,7 +102,8 @@ class RecordPublishers:
             if self._closed.is_set():
                 return
             msg = msg.model_copy(update={"seq": self._seq["status"]})
-            self._pub["status"].put(msg.to_json_bytes())
+            self.last_status = msg.to_json_bytes()
+            self._pub["status"].put(self.last_status)
             self._seq["status"] += 1
 
 

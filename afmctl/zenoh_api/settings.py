@@ -187,6 +187,8 @@ class ZenohSettings(BaseModel):
                                    description="incoming payloads larger than this are rejected")
     max_segment_samples: int = Field(1_000_000, ge=1, le=50_000_000,
                                      description="most samples one trajectory message may carry or generate")
+    reconnect_period_s: float = Field(0.5, ge=0.05, le=60.0,
+                                      description="how often a lost connect endpoint (a router) is retried [s]")
 
     @field_validator("listen", "connect")
     @classmethod
@@ -268,6 +270,9 @@ class ZenohSettings(BaseModel):
             # above our own limit the bridge still sees the payload and reports it on
             # status, far above it zenoh drops it before it fills the memory
             "transport/link/rx/max_message_size": RX_LIMIT_FACTOR * self.max_message_bytes,
+            # a lost router is retried every reconnect_period_s (zenoh's default backs off to 4 s)
+            "connect/retry": {"period_init_ms": round(1000 * self.reconnect_period_s),
+                              "period_max_ms": round(1000 * self.reconnect_period_s), "period_increase_factor": 1},
         }
         if self.tls.configured:
             t = self.tls

@@ -11,6 +11,7 @@ import numpy as np
 
 from .jsonvalues import jsonable
 from .messages import SCHEMA_VERSION, SimTipMsg
+from .presence import declare_alive, undeclare_quietly
 from .session import open_session
 from .settings import ZenohSettings
 
@@ -21,6 +22,8 @@ class SimPublisher:
     ``publish_tip(t_s, position_nm)`` → ``sim/tip`` (JSON :class:`~afmctl.zenoh_api.messages.SimTipMsg`,
     one position [nm] x, y, z at time ``t_s`` [s]); ``publish_json(leaf, data)`` →
     ``sim/<leaf>`` for anything else (e.g. image metadata). Blocking congestion control.
+    While it lives, the scanner's liveliness token ``<prefix>/<scanner>/alive`` is declared
+    (:mod:`.presence`).
     """
 
     def __init__(self, settings: ZenohSettings | None = None, scanner_name: str = "scanner", *,
@@ -35,6 +38,7 @@ class SimPublisher:
                                                    congestion_control=self._block)
         self._seq: dict[str, int] = {"tip": 0}
         self._lock = threading.Lock()
+        self._alive = declare_alive(self.session, self.settings, scanner_name)
 
     def publish_tip(self, t_s: float, position_nm: Any) -> None:
         pos = [float(v) for v in np.asarray(position_nm, float).reshape(3)]
@@ -52,6 +56,7 @@ class SimPublisher:
             self._seq[leaf] = seq + 1
 
     def close(self) -> None:
+        undeclare_quietly(self._alive)
         self._tip.undeclare()
         if self._own_session:
             self.session.close()

@@ -34,6 +34,7 @@ function ingest(frame) {
     }
     ingestLearn(s, f);
     s.status = f.status; s.counts = f.counts; s.tracking = f.tracking; s.lastRejected = f.last_rejected;
+    s.alive = f.alive;
     if ("image" in f) { s.image = f.image; }
   }
   state.frames++; state.dirty = true; state.lastFrameMs = performance.now();
@@ -49,13 +50,70 @@ function ingestLearn(s, f) {
   s.learnState = ls;
 }
 
+// presence of a scanner: its liveliness token alive, gone, or never seen (no presence)
+function presence(s) { return s.alive === true ? "alive" : s.alive === false ? "gone" : "unknown"; }
+
 function updateSelector() {
   const sel = document.getElementById("scanner"), names = Object.keys(state.scanners).sort();
-  if (sel.options.length !== names.length) {
-    sel.innerHTML = names.map((n) => `<option>${esc(n)}</option>`).join("");
+  const labels = names.map((n) => (presence(state.scanners[n]) === "gone" ? `${n} (gone)` : n));
+  if (sel.dataset.labels !== labels.join("|")) {
+    sel.innerHTML = names.map((n, i) => `<option value="${esc(n)}">${esc(labels[i])}</option>`).join("");
+    sel.dataset.labels = labels.join("|");
     if (!state.selected || !names.includes(state.selected)) { state.selected = names[0] || null; }
     sel.value = state.selected;
   }
+  updateLab(names);
+}
+
+// the lab: one card per scanner, side by side (state, loop figures, the voltages of the
+// last seconds); a scanner whose token went away is greyed out; a click shows it below
+function updateLab(names) {
+  const lab = document.getElementById("lab");
+  for (const n of names) {
+    let card = lab.querySelector(`.card[data-name="${CSS.escape(n)}"]`);
+    if (!card) {
+      card = document.createElement("div");
+      card.className = "card"; card.dataset.name = n;
+      card.innerHTML = `<div class="head"><b>${esc(n)}</b><span class="presence"></span><span class="cstate"></span></div>` +
+        `<canvas class="spark"></canvas><div class="figs muted"></div>`;
+      card.addEventListener("click", () => { selectScanner(n); });
+      lab.appendChild(card);
+    }
+    const s = state.scanners[n], st = (s.status && s.status.stats) || {}, p = presence(s);
+    card.classList.toggle("gone", p === "gone");
+    card.classList.toggle("selected", n === state.selected);
+    card.querySelector(".presence").textContent = p;
+    card.querySelector(".cstate").textContent = (s.status && s.status.state) || "no status";
+    card.querySelector(".figs").textContent = `samples ${fmtN(st.samples, 9)} · p99 lateness ` +
+      `${st.lateness_p99_s === undefined ? "–" : fmtN(st.lateness_p99_s * 1e6) + " µs"} · missed ${fmtN(st.missed_deadlines, 9)}`;
+    drawSpark(card.querySelector(".spark"), s);
+  }
+}
+
+function selectScanner(name) {
+  state.selected = name; state.dirty = true;
+  document.getElementById("scanner").value = name;
+  updateLab(Object.keys(state.scanners).sort());
+}
+
+function drawSpark(canvas, s) {
+  const dpr = window.devicePixelRatio || 1, r = canvas.getBoundingClientRect();
+  const w = Math.max(20, Math.round(r.width * dpr)), h = Math.max(20, Math.round(r.height * dpr));
+  if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; }
+  const ctx = canvas.getContext("2d");
+  ctx.clearRect(0, 0, w, h);
+  const rows = s.setpoints.length ? recent(s.setpoints, timeRange(s, WINDOW_S)) : [];
+  if (rows.length < 2) { return; }
+  const t0 = rows[0][0], t1 = rows[rows.length - 1][0] || t0 + 1;
+  const yr = extent([4, 5, 6].map((k) => col(rows, k)));
+  ["x", "y", "z"].forEach((a, i) => {
+    ctx.strokeStyle = AXIS_COLORS[a]; ctx.lineWidth = dpr; ctx.beginPath();
+    rows.forEach((row, j) => {
+      const x = ((row[0] - t0) / Math.max(t1 - t0, 1e-9)) * (w - 2) + 1, y = h - 1 - ((row[4 + i] - yr[0]) / (yr[1] - yr[0])) * (h - 2);
+      if (j) { ctx.lineTo(x, y); } else { ctx.moveTo(x, y); }
+    });
+    ctx.stroke();
+  });
 }
 
 function col(rows, k) { return rows.map((r) => r[k]); }
@@ -250,9 +308,7 @@ function connect() {
   ws.onclose = () => { link.textContent = "disconnected — retrying"; setTimeout(connect, 1000); };
 }
 
-document.getElementById("scanner").addEventListener("change", (ev) => {
-  state.selected = ev.target.value; state.dirty = true;
-});
+document.getElementById("scanner").addEventListener("change", (ev) => { selectScanner(ev.target.value); });
 window.addEventListener("resize", () => { state.dirty = true; });
 setupPlots();
 connect();
