@@ -27,8 +27,8 @@ their simulators (afmctl sim, or [simulation] enabled = true). For each axis (--
 default the scanner's), afmctl calibrate
 
   1. plays what 'afmctl excite --kind all' writes for the configured amplifier (the axis's
-     voltage limits, loop.rate_Hz, half the slew limit): major and reversal loops, a creep
-     staircase, a small-signal multisine — about a minute. The device's wave table and
+     voltage limits, loop.rate_Hz, the slew limit): major and reversal loops, a creep
+     staircase, a small-signal multisine, large fast triangles and steps — about a minute. The device's wave table and
      recorder hold a few thousand points, so it plays in pieces; between pieces the output
      holds its last voltage (the scanner's hysteresis memory runs on) and the holds go back
      into the joined recording. A device whose recorder cannot hold one multisine period is

@@ -5,6 +5,7 @@ on (docs/ZENOH.md, *Commands*): ``stop`` and ``estop`` stop it as Ctrl-C does (t
 playing stops, the output ramps to the safe value, the command exits 130); ``status``
 answers ``{"state": "calibrating", "what", "piece", "pieces", "left_s"}``; any other
 command is refused (``ok: false``, naming the three). Every query gets exactly one reply.
+Like run, sim and learn it declares the scanner's presence (``<prefix>/<scanner>/alive``).
 """
 from __future__ import annotations
 
@@ -25,6 +26,7 @@ class CalibrationCommands:
 
     def __init__(self, settings: Any, scanner: str, stop: Callable[[], None],
                  status: Callable[[], dict[str, Any]]) -> None:
+        from ..zenoh_api.presence import declare_alive
         from ..zenoh_api.session import open_session
         self.settings = settings
         self.key = settings.key(scanner, "cmd")
@@ -32,6 +34,7 @@ class CalibrationCommands:
         self._status = status
         self.session = open_session(settings, scanner)
         self._queryable = self.session.declare_queryable(self.key, self._on_query, complete=True)
+        self._alive = declare_alive(self.session, settings, scanner)     # as run, sim and learn do
 
     def _on_query(self, query: Any) -> None:
         """zenoh callback: decode, act (a stop only sets a flag), reply once; never blocks."""
@@ -60,7 +63,9 @@ class CalibrationCommands:
         reply(query, CmdReply(seq=req.seq, cmd=req.cmd, ok=True, result=result))
 
     def close(self) -> None:
+        from ..zenoh_api.presence import undeclare_quietly
         try:
+            undeclare_quietly(self._alive)
             self._queryable.undeclare()
         finally:
             self.session.close()

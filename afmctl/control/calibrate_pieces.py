@@ -61,17 +61,18 @@ class Excitation:
 def excitation_all(spec: ExcitationSpec) -> Excitation:
     """:func:`afmctl.data.excitation.excitation` of kind ``all`` for ``spec``, with its cut
     priorities: the multisine's inside is :data:`NO_CUT` but at its period boundaries."""
-    from ..data.excitation import check_spec
+    from ..data.excitation import check_spec, fast
     check_spec(spec)
-    parts = [static(spec), creep(spec), dynamics(spec)]
+    parts = [static(spec), creep(spec), dynamics(spec), fast(spec)]
     u = np.clip(concatenate(parts, spec), spec.u_min_V, spec.u_max_V)
     prio = ramp_priorities(u)
     period = len(multisine(ExcitationSpec(**{**spec.__dict__, "periods": 0})))
-    # where the multisine lies: the dynamics part is last; inside it, after the lead-in
-    # (one sample, the ramp to mid-range, the hold), then (periods + 1) periods
+    # where the multisine lies: the dynamics part ends where the first three parts joined
+    # end; inside it, after the lead-in (one sample, the ramp to mid-range, the hold), then
+    # (periods + 1) periods
     dyn = parts[2]
     lead = len(dyn) - (spec.periods + 1) * period - len(_tail(spec))
-    start = len(u) - len(dyn) + lead
+    start = len(concatenate(parts[:3], spec)) - len(dyn) + lead
     stop = start + (spec.periods + 1) * period
     prio[start:stop - 1] = NO_CUT
     prio[start + period - 1:stop:period] = CUT_AT_TURN        # after each whole period
