@@ -307,7 +307,7 @@ def report(args, cal: dict, prov: dict, chosen: dict, errs: dict, ident_s: float
         + ", ".join(f"{p} max {v['max_pct']:.2f} / RMS {v['rms_pct']:.2f} %"
                     for p, v in summary["axes"]["x"]["validation"].items()) + ".",
         "",
-        "| lines/s | calibrate max / RMS [%] | continuous max / RMS [%] | within 10 % or 0.05 % |",
+        "| lines/s | calibrate max / RMS [%] | continuous max / RMS [%] | calibrate's max no worse by over 10 % (or 0.05 % of the line) |",
         "|---|---|---|---|",
     ]
     for rate in args.rates:
