@@ -9,6 +9,7 @@ The Python API (docs/PYTHON.md), arrays in and arrays out, units in every name::
     volts = afmctl.compensate(fit.model, target_nm).u_V          # feedforward voltages [V]
     y_nm = afmctl.predict(model, t_s, u_V)                       # the model's displacement [nm]
     t_s, u_V = afmctl.excite("all", 0.0, 150.0, 50_000.0)        # what to record for identify
+    cal = afmctl.calibrate("run.toml", "scanner.json")           # excite, record, identify on the device
 
 ``load_model``, ``read_recording``, the result types (``Identified``, ``Validation``,
 ``Compensated``) and the real-time ``Controller`` complete it. Nothing is imported until a
@@ -41,6 +42,9 @@ _API = {
     "LimitsExceeded": "afmctl.api.models",
     "compensate": "afmctl.api.compensation",
     "excite": "afmctl.api.excite",
+    "calibrate": "afmctl.api.calibrate",
+    "Calibration": "afmctl.api.calibrate",
+    "Calibrated": "afmctl.api.calibrate",
     "Controller": "afmctl.control.controller",
     "AfmctlError": "afmctl.errors",
 }
@@ -50,6 +54,7 @@ __all__ = sorted(_API)
 if TYPE_CHECKING:  # the names for type checkers and editors; at run time __getattr__ loads them
     from typing import Any
 
+    from .api.calibrate import Calibrated, Calibration, calibrate
     from .api.compensation import compensate
     from .api.excite import excite
     from .api.identify import Identified, identify, read_recording

@@ -18,7 +18,8 @@ import sys
 from collections.abc import Sequence
 
 #: verbs in the order ``afmctl --help`` lists them
-VERBS = ("demo", "run", "sim", "view", "router", "excite", "identify", "compensate", "learn", "model", "drift", "amp", "log",
+VERBS = ("demo", "run", "sim", "view", "router", "excite", "calibrate", "identify", "compensate", "learn", "model", "drift",
+         "amp", "log",
          "report", "schema")
 
 DESCRIPTION = """\

@@ -1,7 +1,8 @@
 """One recorded play on each device link: upload the table, arm the recorder, play, read the
 recording back — the time each step takes, and the read-back against the link's ceiling.
 
-GCS (E-727 simulator) and NV200 over real ptys throttled to 115200 baud (11,520 B/s), CAN on
+GCS (E-727 simulator) and NV200 over real ptys throttled to 115200 baud (11,520 B/s), GCS over
+loopback TCP (the E-727's Ethernet port, ``socket://``: no baud rate), CAN on
 python-can's ``virtual`` bus (no bit timing: a real 1 Mbit/s bus carries ~8,000 frames/s, the
 ceiling quoted). The simulated default scanner with its position sensor is the sink. The
 recording holds ``--points`` points of x's position and voltage at the table's rate (GCS and
@@ -40,10 +41,20 @@ def _table(n: int) -> np.ndarray:
     return 20.0 + 80.0 * (0.5 - 0.5 * np.cos(2 * np.pi * np.arange(n) / n))
 
 
-def _serial_run(protocol: str, n: int) -> dict[str, float]:
+def _served(protocol: str, tcp: bool, **options):
+    """The simulated device with the default scanner as its load, on a pty or on loopback TCP."""
+    sink = Scanner(default_scanner_config())
+    if not tcp:
+        return serve_pty(protocol, sink=sink, **options)
+    from afmctl.sim_backend.amplifiers import make_device
+    from afmctl.sim_backend.amplifiers.tcp_server import TcpServer
+    return TcpServer(make_device(protocol, sink, **options))
+
+
+def _serial_run(protocol: str, n: int, tcp: bool = False) -> dict[str, float]:
     table = _table(n)
     options = {"sensor": "strain gauge"} if protocol == "nv200" else {}
-    with serve_pty(protocol, sink=Scanner(default_scanner_config()), **options) as server:
+    with _served(protocol, tcp, **options) as server:
         with open_amplifier(protocol, server.port) as amp:
             amp.set_voltages({"x": float(table[0])})
             t0 = time.perf_counter()
@@ -103,14 +114,17 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--points", type=int, default=1000)
+    ap.add_argument("--devices", nargs="+", default=["gcs", "gcs-tcp", "nv200", "can"],
+                    choices=["gcs", "gcs-tcp", "nv200", "can"], help="links to measure (a subset: printed only)")
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args()
     rows = []
-    for device in ("gcs", "nv200", "can"):
-        runs = [(_can_run(args.points) if device == "can" else _serial_run(device, args.points))
+    for device in args.devices:
+        runs = [(_can_run(args.points) if device == "can" else
+                 _serial_run(device.split("-")[0], args.points, tcp=device.endswith("-tcp")))
                 for _ in range(args.reps)]
         med = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
-        ceiling = _ceiling_s(device, args.points, med["bytes"])
+        ceiling = _ceiling_s(device, args.points, med["bytes"]) if device != "gcs-tcp" else float("nan")
         rows.append((device, med, ceiling))
         print(device, {k: round(v, 4) for k, v in med.items()}, "ceiling", round(ceiling, 3), flush=True)
     body = [
@@ -120,7 +134,8 @@ def main() -> None:
         f"{args.reps} runs; CPython {platform.python_version()}, shared 2-core machine.",
         "",
         f"{args.points} points of x (position from the simulated scanner's sensor and output voltage), "
-        "recorded at the table rate (10 kHz). GCS/NV200 over ptys throttled to 115200 baud; CAN on "
+        "recorded at the table rate (10 kHz). GCS/NV200 over ptys throttled to 115200 baud; gcs-tcp: the "
+        "E-727 over loopback TCP (`socket://`, no baud rate: no ceiling); CAN on "
         "python-can's virtual bus (the ceiling column assumes a real 1 Mbit/s bus, ~8,000 frames/s). "
         "Upload = `upload_wave` (CAN: `start_stream`; its samples go with the play); play = until the "
         "recorder holds every point; read-back = `read_recording`.",
@@ -129,15 +144,19 @@ def main() -> None:
         "|---|---|---|---|---|---|---|",
     ]
     for device, med, ceiling in rows:
+        ceil = "–" if ceiling != ceiling else f"{ceiling:.3f} s"
+        ratio = "–" if ceiling != ceiling else f"{med['read_s'] / ceiling:.2f}×"
         body.append(f"| {device} | {med['upload_s']:.3f} s | {med['arm_s'] * 1e3:.1f} ms | {med['play_s']:.3f} s | "
-                    f"{med['read_s']:.3f} s | {ceiling:.3f} s | {med['read_s'] / ceiling:.2f}× |")
-    gcs_b, nv_b = rows[0][1]["bytes"], rows[1][1]["bytes"]
-    body += ["", f"Read-back ceiling: the replies' bytes at 11,520 B/s (GCS `DRR?` {gcs_b:.0f} B = "
-             f"{gcs_b / args.points:.1f} B per two-table point; NV200 two `recoutf` {nv_b:.0f} B = "
-             f"{nv_b / args.points:.1f} B per point); CAN one REC_DATA frame per point and axis."]
+                    f"{med['read_s']:.3f} s | {ceil} | {ratio} |")
+    got = {device: med for device, med, _ in rows}
+    if "gcs" in got and "nv200" in got:
+        gcs_b, nv_b = got["gcs"]["bytes"], got["nv200"]["bytes"]
+        body += ["", f"Read-back ceiling: the replies' bytes at 11,520 B/s (GCS `DRR?` {gcs_b:.0f} B = "
+                 f"{gcs_b / args.points:.1f} B per two-table point; NV200 two `recoutf` {nv_b:.0f} B = "
+                 f"{nv_b / args.points:.1f} B per point); CAN one REC_DATA frame per point and axis."]
     text = "\n".join(body)
     print(text)
-    if not args.no_write:
+    if len(rows) == 4 and not args.no_write:
         _write_section("recorder", text)
 
 

@@ -125,9 +125,12 @@ def small_signal_first(u: np.ndarray, t: np.ndarray, parts: list[tuple[int, int]
     that measures the best linear approximation cleanly, and the large parts' hysteresis
     harmonics would cost the coherence the high bins need (a 1.6 kHz mode lost behind a
     triangle part: kept bins up to 0.8 kHz instead of past the mode). A record without such
-    a run keeps every part (a lab's chirp, fast triangles)."""
+    a run, or whose small run is not stationary (a lab's chirp: :func:`stationary`), keeps
+    every part."""
     small = small_signal_bounds(u, t)
     if small is None or (small[1] - small[0]) * float(t[1] - t[0]) < FAST_MIN_S:
+        return parts
+    if not stationary(u[small[0]:small[1]], 1024):
         return parts
     span = float(np.ptp(u))
     keep = [(a, b) for a, b in parts

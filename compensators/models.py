@@ -54,6 +54,9 @@ class HysteresisModel(BaseModel):
     #: (``y(t) = M[u](t − delay_s)``); estimated by ``afmctl identify`` from measured data
     delay_s: float = Field(default=0.0, ge=0.0, le=1.0, allow_inf_nan=False,
                            description="input–output delay [s], 0…1 s")
+    provenance: dict[str, Any] | None = Field(
+        default=None, description="how the model was made (afmctl calibrate: device, identity, recorder rate, "
+                                  "settle hold, date, afmctl version, excitation, validation); not used by the model")
     #: which model kinds are time-dependent (need a uniform sample period)
     time_dependent: ClassVar[bool] = False
     #: whether the kind models the input–output delay itself (then ``delay_s`` is its own

@@ -271,7 +271,7 @@ def select(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates: Seque
     if inside < 0.5:
         raise ModelError(f"data: only {inside:.0%} of the held-out last {holdout_fraction:.0%} lies inside the input "
                          "range of the rest; excite the full voltage range early in the record")
-    table = []
+    table, candidates = covered_candidates(t[k0:], u[k0:], candidates)
     parts = dynamics_parts(u, t)
     for structure in candidates:
         row = score_candidate(structure, t, u, y, split, options, k0, parts=parts)
@@ -296,6 +296,27 @@ def select(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates: Seque
     best = _refit_best(table, t, u, y, options or {}, k0)
     best.selection = table
     return best, table, (t, u, y, split, options, k0, parts)
+
+
+#: the failed row of a candidate the record cannot identify
+NOT_COVERED_CREEP = ("not tried: the record has no hold after a step, so a creep stage would fit the hysteresis "
+                     "model's misfit, not creep (record holds: afmctl excite --kind creep)")
+
+
+def covered_candidates(t: np.ndarray, u: np.ndarray, candidates: Sequence[str]
+                       ) -> tuple[list[dict[str, Any]], list[str]]:
+    """The candidates the record (after its burn-in: times ``t`` [s], input ``u`` [V]) can
+    identify, and a failed row for each it cannot (:mod:`.coverage`): ``+creep`` and ``epi``
+    (inflexion creep) need a hold after a step. When that would leave none, all are kept."""
+    from .coverage import Coverage
+
+    cov = Coverage.of(t, u)
+    if cov.holds:
+        return [], list(candidates)
+    keep = [c for c in candidates if "creep" not in parse_structure(c)[1] and parse_structure(c)[0] != "epi"]
+    if not keep:
+        return [], list(candidates)
+    return [{"structure": c, "error": NOT_COVERED_CREEP} for c in candidates if c not in keep], keep
 
 
 #: at most this many static candidates are tried again ``+dynamics``

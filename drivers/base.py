@@ -44,7 +44,7 @@ from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from .errors import (AmplifierConnectionError, AmplifierError, AmplifierTimeout, LimitError, ProtocolError,
-                     RecorderUnavailable)
+                     RecorderUnavailable, RecordingCancelled)
 from .recording import Recording, RecorderSetup, check_axes_signals, check_points
 
 log = logging.getLogger(__name__)
@@ -317,8 +317,9 @@ class Amplifier(AmplifierInterface):
         """Points recorded so far (per signal, the least over them)."""
         raise NotImplementedError
 
-    def _read_recording(self, setup: RecorderSetup) -> Recording:
-        """Read the whole recording back (every point is there)."""
+    def _read_recording(self, setup: RecorderSetup, cancel: Callable[[], bool]) -> Recording:
+        """Read the whole recording back (every point is there); a backend that reads in
+        chunks raises :class:`RecordingCancelled` between two when ``cancel()`` is true."""
         raise NotImplementedError
 
     def _no_recorder(self) -> RecorderUnavailable:
@@ -559,14 +560,21 @@ class Amplifier(AmplifierInterface):
             self._guard()
             return self._io(self._recorded_points, setup)
 
-    def read_recording(self, timeout_s: float = 10.0, poll_s: float = 0.02) -> Recording:
+    def read_recording(self, timeout_s: float = 10.0, poll_s: float = 0.02,
+                       cancel: Callable[[], bool] | None = None) -> Recording:
         """Wait (at most ``timeout_s`` [s]) until the armed recording holds every point,
         then read it back as a :class:`~afmctl.drivers.recording.Recording` (t_s from the
         wave start; y_nm, u_V per axis). A recording that does not fill in time raises
-        :class:`~afmctl.drivers.errors.AmplifierTimeout` saying how far it got."""
+        :class:`~afmctl.drivers.errors.AmplifierTimeout` saying how far it got. ``cancel``:
+        asked while waiting and between the read-back's chunks; true gives up with
+        :class:`~afmctl.drivers.errors.RecordingCancelled` (a long read-back over a slow
+        link, seconds to minutes, never holds up a stop)."""
         setup = self._armed_setup()
+        stop = cancel if cancel is not None else (lambda: False)
         deadline = time.monotonic() + timeout_s
         while True:
+            if stop():
+                raise RecordingCancelled(f"{self.name}: the read-back of the recording was cancelled")
             n = self.recorded_points()
             if n >= setup.points:
                 break
@@ -576,7 +584,7 @@ class Amplifier(AmplifierInterface):
             time.sleep(poll_s)
         with self._lock:
             self._guard()
-            rec = self._io(self._read_recording, setup)
+            rec = self._io(self._read_recording, setup, stop)
         if len(rec) != setup.points:
             raise ProtocolError(f"{self.name}: the recording read back has {len(rec)} points, {setup.points} were armed")
         return rec

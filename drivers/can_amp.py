@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -30,7 +30,7 @@ import numpy as np
 
 from . import codec_can as codec
 from .base import Amplifier, ConnectionState, VoltageLimits
-from .errors import AmplifierTimeout, LimitError, ProtocolError
+from .errors import AmplifierTimeout, LimitError, ProtocolError, RecordingCancelled
 from .recording import Recording, RecorderSetup, time_axis
 from .stream_safety import check_block
 from .transport_can import CanTransport
@@ -83,13 +83,15 @@ class CANAmplifier(Amplifier):
         self._ids = {name: codec.frame_id(name) for name in
                      (codec.SETPOINT, codec.HEARTBEAT, codec.STATUS, codec.ERROR, codec.LIMITS,
                       codec.STREAM_CTRL, codec.STREAM_SAMPLE, codec.STREAM_STATUS, codec.REC_CTRL, codec.REC_READ,
-                      codec.REC_STATUS, codec.REC_DATA)}
+                      codec.REC_STATUS, codec.REC_DATA, codec.REC_DATA_V)}
         self._rx_kinds = {self._ids[k]: k for k in (codec.STATUS, codec.ERROR, codec.LIMITS, codec.STREAM_STATUS,
-                                                    codec.REC_STATUS, codec.REC_DATA)}
+                                                    codec.REC_STATUS, codec.REC_DATA, codec.REC_DATA_V)}
         self._rec_status: dict[str, float] | None = None
         self._rec_status_count = 0
         #: REC_DATA frames received: (index, axis index) -> (y_nm, u_V)
         self._rec_data: dict[tuple[int, int], tuple[float, float]] = {}
+        #: REC_DATA_V frames received: (index, axis index) -> piezo voltage [V]
+        self._rec_v: dict[tuple[int, int], float] = {}
         super().__init__(transport, **options)
 
     @classmethod
@@ -135,6 +137,8 @@ class CANAmplifier(Amplifier):
                 self._rec_status_count += 1
             elif kind == codec.REC_DATA:
                 self._rec_data[(int(sig["INDEX"]), int(sig["AXIS"]))] = (float(sig["Y_NM"]), float(sig["U_V"]))
+            elif kind == codec.REC_DATA_V:
+                self._rec_v[(int(sig["INDEX"]), int(sig["AXIS"]))] = float(sig["V_V"])
             else:
                 self._errors.append(codec.error_from(sig, bytes(msg.data)))
             self._cond.notify_all()
@@ -371,30 +375,38 @@ class CANAmplifier(Amplifier):
     def _recorded_points(self, setup: RecorderSetup) -> int:
         return int(self._rec_command(codec.REC_CMD_STATUS)["COUNT"])
 
-    def _read_recording(self, setup: RecorderSetup) -> Recording:
+    def _read_recording(self, setup: RecorderSetup, cancel: Callable[[], bool]) -> Recording:
         """REC_READ in chunks of :attr:`REC_READ_CHUNK` points; each chunk's REC_DATA frames
         (one per point and axis) are awaited before the next is asked for."""
         idx = [self.axes.index(a) for a in setup.axes]
         y = np.empty((setup.points, len(idx)))
         u = np.empty((setup.points, len(idx)))
+        v = np.empty((setup.points, len(idx)))
+        monitor = "v_V" in setup.signals
         for first in range(0, setup.points, self.REC_READ_CHUNK):
+            if cancel():
+                raise RecordingCancelled(f"{self.name}: the read-back of the recording was cancelled")
             count = min(self.REC_READ_CHUNK, setup.points - first)
             keys = [(k, i) for k in range(first, first + count) for i in idx]
             with self._cond:
                 self._rec_data.clear()
+                self._rec_v.clear()
             self._send_and_await(
                 lambda: self.transport.send(self._ids[codec.REC_READ], codec.encode_rec_read(first, count),
                                             self.timeout_s),
-                lambda: 0, lambda _: all(k in self._rec_data for k in keys) or bool(self._errors), "REC_DATA")
+                lambda: 0, lambda _: all(k in self._rec_data and (not monitor or k in self._rec_v) for k in keys)
+                or bool(self._errors), "REC_DATA")
             self._raise_pending()
             with self._cond:
                 for k in range(first, first + count):
                     for j, i in enumerate(idx):
                         y[k, j], u[k, j] = self._rec_data[(k, i)]
+                        v[k, j] = self._rec_v.get((k, i), np.nan)
         t = time_axis(setup.points, setup.period_s)
         ys = {a: y[:, j].copy() for j, a in enumerate(setup.axes)} if "y_nm" in setup.signals else {}
         us = {a: u[:, j].copy() for j, a in enumerate(setup.axes)} if "u_V" in setup.signals else {}
-        return Recording(t, ys, us, setup.period_s, "can REC_DATA")
+        vs = {a: v[:, j].copy() for j, a in enumerate(setup.axes)} if monitor else {}
+        return Recording(t, ys, us, setup.period_s, "can REC_DATA", vs)
 
 
 def _buffer_status(sig: dict[str, float]) -> BufferStatus:

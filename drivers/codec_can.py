@@ -21,6 +21,7 @@ REC_CTRL        host     CMD (0 status/1 arm/2 stop), AXES, SIGNALS (bit masks),
 REC_READ        host     FIRST, COUNT — send those recorded points back
 REC_STATUS      amp      REC_STATE, AXES, SIGNALS, COUNT (recorded), CAPACITY, DIVIDER
 REC_DATA        amp      INDEX, AXIS, Y_NM (24 bit signed, 0.01 nm), U_V — one recorded point
+REC_DATA_V      amp      INDEX, AXIS, V_V — that point's piezo voltage (output stage monitor)
 ==============  =======  ==========================================================
 
 Buffered stream (device-timed output): the host sends STREAM_CTRL start with the rate,
@@ -42,10 +43,11 @@ SETPOINT, HEARTBEAT, STATUS, ERROR, LIMITS = "SETPOINT_XYZ", "HEARTBEAT", "STATU
 STREAM_CTRL, STREAM_SAMPLE, STREAM_STATUS = "STREAM_CTRL", "STREAM_XYZ", "STREAM_STATUS"
 STREAM_SAMPLE_FD = "STREAM_XYZ_FD"
 REC_CTRL, REC_READ, REC_STATUS, REC_DATA = "REC_CTRL", "REC_READ", "REC_STATUS", "REC_DATA"
+REC_DATA_V = "REC_DATA_V"
 REC_CMD_STATUS, REC_CMD_ARM, REC_CMD_STOP = 0, 1, 2
 REC_STATES = {0: "idle", 1: "armed", 2: "recording", 3: "done", 4: "fault"}
 #: SIGNALS bits of REC_CTRL / REC_STATUS
-REC_SIGNAL_BITS = {"y_nm": 1, "u_V": 2}
+REC_SIGNAL_BITS = {"y_nm": 1, "u_V": 2, "v_V": 4}
 CMD_STATUS, CMD_START, CMD_FLUSH, CMD_DRAIN = 0, 1, 2, 3
 STREAM_STATES = {0: "idle", 1: "armed", 2: "playing", 3: "draining", 4: "fault"}
 FLAG_REQ_STATUS = 0x01

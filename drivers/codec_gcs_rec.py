@@ -2,7 +2,10 @@
 PI's GCS manuals describe it.
 
 * ``DRC <table> <source> <option>``: record option 2 = actual position of axis <source>
-  [µm], 7 = voltage of output channel <source> [V] (1 commanded position, 3 position error).
+  [µm], 14 = open-loop control value of axis <source> [V] (the voltage commanded: ``SVA``
+  or the wave generator; PIPython's ``OPENLOOP_INPUT_14``), 7 = piezo voltage of output
+  channel <source> [V] (what the amplifier stage puts on the piezo; ``PIEZO_VOLTAGE_7``)
+  (1 commanded position, 3 position error).
 * ``DRT 0 0 0``: every table triggers with the default source 0 — the wave generator's
   start (``WGO``) or ``WGR``; ``RTR <n>``: a point every n servo cycles.
 * ``TNR?`` the number of record tables; ``SPA? 1 0x16000200`` / ``0x16000300`` the points
@@ -15,6 +18,7 @@ PI's GCS manuals describe it.
 """
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 
 import numpy as np
@@ -23,7 +27,8 @@ from .codec_gcs import encode, parse_items, reply_lines
 from .errors import ProtocolError
 
 OPTION_ACTUAL_POSITION = 2
-OPTION_VOLTAGE = 7
+OPTION_PIEZO_VOLTAGE = 7
+OPTION_OPENLOOP_CONTROL = 14
 TRIGGER_WAVE_START = 0
 MAX_POINTS_PARAM = "0x16000200"
 CHAN_NUMBER_PARAM = "0x16000300"
@@ -69,6 +74,23 @@ def split_line(buffer: bytes | bytearray) -> int:
     return i + 1 if i >= 0 else -1
 
 
+#: the end of a GCS answer: an LF not preceded by a space
+_ANSWER_END = re.compile(rb"(?<! )\n")
+#: the longest run of ``DRR?`` data lines taken as one frame [bytes]
+MAX_DATA_BLOCK = 16 * 1024 * 1024
+
+
+def split_answer(buffer: bytes | bytearray) -> int:
+    """Length of the rest of a GCS answer (through its last line) or -1: the data lines
+    of a ``DRR?`` chunk in one frame (one scan, however many lines)."""
+    m = _ANSWER_END.search(buffer)
+    if m is None:
+        if len(buffer) > MAX_DATA_BLOCK:
+            raise ProtocolError(f"DRR? answer: no last line in {len(buffer)} bytes", data=bytes(buffer[:200]))
+        return -1
+    return m.end()
+
+
 def is_last_line(line: bytes) -> bool:
     """The last line of a GCS answer ends with an LF not preceded by a space."""
     return line.endswith(b"\n") and not line.endswith(b" \n")
@@ -98,15 +120,19 @@ def parse_data(header: dict[str, str], lines: Sequence[bytes], columns: int) -> 
         raise ProtocolError(f"DRR? answer: {len(lines)} lines of DIM={dim}, header NDATA={ndata}; "
                             f"{columns} columns were asked")
     split = None if sep == 32 else chr(sep)
-    out = np.empty((ndata, columns))
-    for k, raw in enumerate(lines):
-        cells = raw.decode("ascii", "replace").strip().split(split)
-        try:
-            row = [float(c) for c in cells]
-        except ValueError:
-            raise ProtocolError(f"DRR? data line {k + 1} is not numbers", data=bytes(raw)) from None
-        if len(row) != columns or not np.all(np.isfinite(row)):
-            raise ProtocolError(f"DRR? data line {k + 1}: {len(row)} finite values expected {columns}",
-                                data=bytes(raw))
-        out[k] = row
+    cells = [raw.decode("ascii", "replace").strip().split(split) for raw in lines]
+    try:
+        out = np.array(cells, dtype=np.float64).reshape(ndata, columns)   # all lines at once
+        ok = bool(np.all(np.isfinite(out)))
+    except ValueError:                  # a line of other length or not numbers: find it
+        ok = False
+    if not ok:
+        for k, (raw, row) in enumerate(zip(lines, cells)):
+            try:
+                values = [float(c) for c in row]
+            except ValueError:
+                raise ProtocolError(f"DRR? data line {k + 1} is not numbers", data=bytes(raw)) from None
+            if len(values) != columns or not all(np.isfinite(values)):
+                raise ProtocolError(f"DRR? data line {k + 1}: {len(values)} finite values expected {columns}",
+                                    data=bytes(raw))
     return out

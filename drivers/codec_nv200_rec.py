@@ -22,7 +22,12 @@ from .errors import ProtocolError
 
 BASE_SAMPLE_S = 50e-6
 BUFFER_SIZE = 6144
-SOURCES = {"y_nm": 0, "u_V": 2}
+#: the recorder's source per signal: the position, the setpoint (in open loop the voltage
+#: commanded: the waveform generator's sample or ``set``), the piezo voltage (what the
+#: amplifier stage puts on the piezo)
+SOURCES = {"y_nm": 0, "u_V": 1, "v_V": 2}
+#: the recorder's channels (signals one recording holds at most)
+CHANNELS = 2
 AUTOSTART_WAVEFORM = 2
 #: the longest ``recoutf`` reply accepted [bytes] (6144 values of up to 24 characters)
 MAX_RECOUTF = BUFFER_SIZE * 24 + 64

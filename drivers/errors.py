@@ -45,3 +45,8 @@ class RecorderUnavailable(AmplifierError):
     """The device has no data recorder (or none for what was asked, e.g. a position on a
     unit without a sensor): measure the motion with an external sensor and give it as a
     file (``t,y`` nm or ``t,x,y,z`` nm CSV; docs/DRIVERS.md, "Recording the motion")."""
+
+
+class RecordingCancelled(AmplifierError):
+    """A read-back of the data recorder was given up at the caller's request (between two
+    of its chunks: the link is left clean)."""

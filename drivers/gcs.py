@@ -15,7 +15,7 @@ plays the uploaded tables on the controller's servo clock (axis k on generator a
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, cast
 
 import numpy as np
@@ -24,7 +24,7 @@ from . import codec_gcs as codec
 from . import codec_gcs_rec as rcodec
 from . import codec_gcs_wave as wcodec
 from .base import VoltageLimits
-from .errors import LimitError, ProtocolError
+from .errors import LimitError, ProtocolError, RecordingCancelled
 from .recording import Recording, RecorderSetup, time_axis
 from .wave_check import WaveStatus, check_table
 from .serial_amp import SerialAmplifier
@@ -35,6 +35,9 @@ _AXES = ("x", "y", "z")
 
 #: longest wait for one line of a data recorder's buffered reply (``DRR?``) [s]
 RECORD_LINE_TIMEOUT_S = 5.0
+#: a read-back goes in ``DRR?`` chunks of about this much wire time [s] (a cancel waits at
+#: most one), of RECORD_CHUNK_MIN .. RECORD_CHUNK_MAX points
+RECORD_CHUNK_S, RECORD_CHUNK_MIN, RECORD_CHUNK_MAX = 0.5, 256, 8192
 
 class GCSAmplifier(SerialAmplifier):
     """``GCSAmplifier(transport, n_axes=3, check_every=50, host_limits=None, ...)``.
@@ -293,8 +296,10 @@ class GCSAmplifier(SerialAmplifier):
                 t = len(tables) + 1
                 if sig == "y_nm":
                     tables.append((t, self._ids[a], rcodec.OPTION_ACTUAL_POSITION))
+                elif sig == "u_V":
+                    tables.append((t, self._ids[a], rcodec.OPTION_OPENLOOP_CONTROL))
                 else:
-                    tables.append((t, str(self._axes.index(a) + 1), rcodec.OPTION_VOLTAGE))
+                    tables.append((t, str(self._axes.index(a) + 1), rcodec.OPTION_PIEZO_VOLTAGE))
                 where[(a, sig)] = t
         self._send_checked(*rcodec.encode_configure(tables, setup.divider))
         return RecorderSetup(setup.axes, setup.signals, setup.points, setup.divider, setup.clock_s,
@@ -305,12 +310,43 @@ class GCSAmplifier(SerialAmplifier):
         counts = rcodec.parse_counts(self._query("DRL? " + " ".join(map(str, tables))), tables)
         return min(counts.values())
 
-    def _read_recording(self, setup: RecorderSetup) -> Recording:
-        """``DRR? 1 <points> <tables>``, read line by line (header, then one line a point)."""
+    def _read_recording(self, setup: RecorderSetup, cancel: Callable[[], bool]) -> Recording:
+        """``DRR? <first> <n> <tables>`` in chunks of :meth:`_read_chunk` points (each read
+        line by line: header, then one line a point); ``cancel()`` is asked between chunks."""
         where: dict = setup.extra["tables"]  # type: ignore[assignment]
         tables = sorted(where.values())
+        chunk = self._read_chunk(len(tables))
+        parts: list[np.ndarray] = []
+        header: dict[str, str] = {}
+        for first in range(0, setup.points, chunk):
+            if cancel():
+                raise RecordingCancelled(f"{self.name}: the read-back of the recording was cancelled")
+            n = min(chunk, setup.points - first)
+            header, data = self._read_part(tables, first + 1, n)
+            if len(data) != n:
+                raise ProtocolError(f"DRR? {first + 1} {n}: {len(data)} points came back")
+            parts.append(data)
+        data = np.concatenate(parts) if parts else np.zeros((0, len(tables)))
+        return self._recording(setup, header, data)
+
+    def _read_chunk(self, tables: int) -> int:
+        """Points per ``DRR?`` (a power of two): about :data:`RECORD_CHUNK_S` of the link's
+        wire time (a TCP link has no baud rate: the most), so a cancel waits at most that."""
+        if self._s_per_byte() == 0.0:
+            return RECORD_CHUNK_MAX
+        fit = RECORD_CHUNK_S / (12 * tables * self._s_per_byte())    # "-12.345678 " per table
+        return int(min(RECORD_CHUNK_MAX, max(RECORD_CHUNK_MIN, 2 ** int(np.log2(max(fit, 1.0))))))
+
+    def _s_per_byte(self) -> float:
+        """Wire time of a byte [s] (8N1; 0 on a link without a baud rate)."""
+        if self.transport.url.startswith("socket://") or self.transport.baudrate <= 0:
+            return 0.0
+        return 10.0 / self.transport.baudrate
+
+    def _read_part(self, tables: list[int], first: int, points: int) -> tuple[dict[str, str], np.ndarray]:
+        """One ``DRR?`` answer: its header and its rows (points, tables)."""
         self._settle()
-        self.transport.write(rcodec.encode_read(tables, setup.points))
+        self.transport.write(rcodec.encode_read(tables, points, first))
         # the controller assembles a long buffered reply while it sends it: allow each line
         # more than a short reply's timeout (a loaded host or a slow link stretches it)
         wait = max(RECORD_LINE_TIMEOUT_S, self.transport.timeout_s)
@@ -323,15 +359,22 @@ class GCSAmplifier(SerialAmplifier):
             if line.strip().upper().startswith(b"# END_HEADER") or rcodec.is_last_line(line):
                 break
         data_lines: list[bytes] = []
-        while not rcodec.is_last_line(head[-1] if not data_lines else data_lines[-1]):
-            data_lines.append(self.transport.read_frame(rcodec.split_line, wait))
+        if not rcodec.is_last_line(head[-1]):   # the data lines in one read: through the last one
+            block = self.transport.read_frame(rcodec.split_answer, wait + points * 12 * len(tables) * self._s_per_byte())
+            data_lines = block[:-1].split(b"\n")
         header = rcodec.parse_header(head)
         data = rcodec.parse_data(header, data_lines, len(tables))
         self._check()
-        col = {t: k for k, t in enumerate(tables)}
+        return header, data
+
+    def _recording(self, setup: RecorderSetup, header: dict[str, str], data: np.ndarray) -> Recording:
+        """The rows read back as a :class:`Recording` (µm → nm; the sample time checked)."""
+        where: dict = setup.extra["tables"]  # type: ignore[assignment]
+        col = {t: k for k, t in enumerate(sorted(where.values()))}
         y = {a: data[:, col[t]] * 1000.0 for (a, sig), t in where.items() if sig == "y_nm"}  # µm -> nm
         u = {a: data[:, col[t]].copy() for (a, sig), t in where.items() if sig == "u_V"}
+        v = {a: data[:, col[t]].copy() for (a, sig), t in where.items() if sig == "v_V"}
         period = float(header.get("SAMPLE_TIME", setup.period_s))
         if abs(period - setup.period_s) > 1e-9 * max(period, 1.0):
             raise ProtocolError(f"DRR? SAMPLE_TIME {period:g} s differs from the armed {setup.period_s:g} s")
-        return Recording(time_axis(len(data), setup.period_s), y, u, setup.period_s, "gcs DRR?")
+        return Recording(time_axis(len(data), setup.period_s), y, u, setup.period_s, "gcs DRR?", v)

@@ -24,7 +24,7 @@ import logging
 import time
 from typing import Any, cast
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -273,6 +273,9 @@ class NV200(SerialAmplifier):
                 "nv200: this actuator has no position sensor, so the recorder has no position to record; "
                 "record u_V only, or measure the motion with an external sensor and give it as a file "
                 "(t,y in nm; docs/DRIVERS.md, 'Recording the motion')")
+        if len(signals) > rcodec.CHANNELS:
+            raise LimitError(f"nv200: the recorder has {rcodec.CHANNELS} channels; {len(signals)} signals "
+                             f"({', '.join(signals)}) do not fit one recording")
         return rcodec.BUFFER_SIZE
 
     def _configure_recorder(self, setup: RecorderSetup) -> RecorderSetup:
@@ -325,9 +328,12 @@ class NV200(SerialAmplifier):
         n = min(len(v) for v in values.values())
         y = {"x": values["y_nm"][:n] * 1000.0} if "y_nm" in values else {}   # µm -> nm
         u = {"x": values["u_V"][:n]} if "u_V" in values else {}
-        return Recording(time_axis(n, setup.period_s), y, u, setup.period_s, "nv200 recoutf")
+        v = {"x": values["v_V"][:n]} if "v_V" in values else {}
+        return Recording(time_axis(n, setup.period_s), y, u, setup.period_s, "nv200 recoutf", v)
 
-    def _read_recording(self, setup: RecorderSetup) -> Recording:
+    def _read_recording(self, setup: RecorderSetup, cancel: Callable[[], bool]) -> Recording:
+        """Both channels with one ``recoutf`` each (at most 6144 points: a few seconds at
+        115200 baud; not cancelled mid-way)."""
         if self._rec_cache is None:
             self._rec_cache = self._read_channels(setup)
             self._rec_pending = False

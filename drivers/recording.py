@@ -16,7 +16,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 #: what a recorder can record per axis: the measured position [nm], the output voltage [V]
-SIGNALS = ("y_nm", "u_V")
+#: (the command the device outputs), the piezo voltage [V] (what reaches the piezo after
+#: the amplifier stage's bandwidth and slew: the NV200's piezo-voltage source, PI's record
+#: option 7, the CAN amplifier's monitor), where the device has it
+SIGNALS = ("y_nm", "u_V", "v_V")
 
 
 @dataclass(frozen=True)
@@ -40,8 +43,9 @@ class RecorderSetup:
 @dataclass(frozen=True)
 class Recording:
     """A recorded motion: ``t_s`` (N,) [s] from the record trigger (the wave start),
-    per axis ``y_nm`` (N,) measured position [nm] and ``u_V`` (N,) output voltage [V]
-    (each only for the signals recorded), ``period_s`` [s], and where it came from
+    per axis ``y_nm`` (N,) measured position [nm], ``u_V`` (N,) output voltage [V] and
+    ``v_V`` (N,) piezo voltage [V] (each only for the signals recorded), ``period_s`` [s],
+    and where it came from
     (``source``: e.g. ``"gcs DRR?"``, ``"nv200 recoutf"``, ``"can REC_DATA"``,
     ``"file motion.csv"``)."""
 
@@ -50,17 +54,18 @@ class Recording:
     u_V: Mapping[str, np.ndarray]
     period_s: float
     source: str
+    v_V: Mapping[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         n = len(self.t_s)
-        for name, group in (("y_nm", self.y_nm), ("u_V", self.u_V)):
+        for name, group in (("y_nm", self.y_nm), ("u_V", self.u_V), ("v_V", self.v_V)):
             for axis, arr in group.items():
                 if len(arr) != n:
                     raise ValueError(f"recording {self.source}: {name}[{axis}] has {len(arr)} points, t_s has {n}")
 
     @property
     def axes(self) -> tuple[str, ...]:
-        return tuple(dict.fromkeys([*self.y_nm, *self.u_V]))
+        return tuple(dict.fromkeys([*self.y_nm, *self.u_V, *self.v_V]))
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -129,7 +134,8 @@ def align_to_table(rec: Recording, tables_V: Mapping[str, Sequence[float]], *, c
                                     + _shift_hint(rec.u_V[axis], want, first, tol_V) + "; not learned from")
     sl = slice(first, last)
     return Recording(time_axis(n, rec.period_s), {a: v[sl].copy() for a, v in rec.y_nm.items()},
-                     {a: v[sl].copy() for a, v in rec.u_V.items()}, rec.period_s, rec.source)
+                     {a: v[sl].copy() for a, v in rec.u_V.items()}, rec.period_s, rec.source,
+                     {a: v[sl].copy() for a, v in rec.v_V.items()})
 
 
 def _shift_hint(u_V: np.ndarray, table: np.ndarray, first: int, tol_V: float) -> str:

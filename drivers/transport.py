@@ -19,6 +19,8 @@ log = logging.getLogger(__name__)
 
 #: granularity of blocking reads [s]; deadlines are enforced by the read loop
 _POLL_S = 0.01
+#: most bytes taken in one read of what has arrived [bytes]
+_READ_CHUNK = 65536
 
 
 class SerialTransport:
@@ -53,6 +55,9 @@ class SerialTransport:
             # two programs writing to one amplifier is never intended: lock the device
             serial_options.setdefault("exclusive", True)
         self._options = serial_options
+        # pyserial's socket:// port says only whether a byte waits (in_waiting 0 or 1), not
+        # how many: there, what has arrived is taken by a read that does not wait
+        self._in_waiting_exact = not url.startswith("socket://")
         self._port: Any = None  # a pyserial port (pyserial ships no type information)
         self._buf = bytearray()
 
@@ -109,20 +114,32 @@ class SerialTransport:
             raise AmplifierTimeout(f"write to {self.url}: {n} of {len(data)} bytes", data=data)
 
     def _read_some(self, block: bool) -> bytes:
+        """What has arrived (all of it, up to :data:`_READ_CHUNK` bytes); with ``block``,
+        first waiting up to one poll interval for a byte."""
         import serial
         port = self._require()
         try:
             n = port.in_waiting
             if n:
-                return port.read(n)
-            if block:
-                first = port.read(1)
-                if first:
-                    more = port.in_waiting
-                    return first + (port.read(more) if more else b"")
-            return b""
+                data = port.read(n)
+            elif block:
+                data = port.read(1)
+            else:
+                return b""
+            return data + self._read_arrived(port) if data else data
         except (serial.SerialException, OSError) as err:
             raise AmplifierConnectionError(f"read from {self.url} failed: {err}") from None
+
+    def _read_arrived(self, port: Any) -> bytes:
+        """The bytes that have arrived, without waiting for more."""
+        if self._in_waiting_exact:
+            n = port.in_waiting
+            return port.read(n) if n else b""
+        port.timeout = 0                 # socket://: read what is there and return at once
+        try:
+            return port.read(_READ_CHUNK)
+        finally:
+            port.timeout = _POLL_S
 
     def backlog_s(self) -> float:
         """Estimated wire time of the bytes written but not yet sent [s]."""

@@ -243,22 +243,27 @@ class Scanner:
             if not self._captures:          # the sensor wakes settled at the present position
                 self.sensor.reset(self._pos)
             self._captures.append(cap)
-            cap.hold(self.time_s, self.sensor.last_nm, self.config.dt_s)
+            cap.hold(self.time_s, self.sensor.last_nm, self.config.dt_s, self._piezo_now())
         return cap
 
-    def _sense(self, pos: np.ndarray, dt: float) -> None:
-        """Run the position sensor over a simulated block and hand its readings to the
-        waiting captures (only while one waits)."""
+    def _piezo_now(self) -> np.ndarray:
+        """The piezo voltage [x, y, z] V now (after the amplifier stage)."""
+        return np.array([self.axes[a].u_piezo_V for a in AXES])
+
+    def _sense(self, pos: np.ndarray, dt: float, volts: np.ndarray, volts_before: np.ndarray) -> None:
+        """Run the position sensor over a simulated block and hand its readings (and the
+        block's piezo voltages ``volts`` [V], ``volts_before`` those held at its start) to
+        the waiting captures (only while one waits)."""
         before = self.sensor.last_nm.copy()
         readings = self.sensor.block(pos, dt)
         for cap in self._captures:
-            cap.fill(self.time_s, dt, readings, before)
+            cap.fill(self.time_s, dt, readings, before, volts, volts_before)
         self._captures = [c for c in self._captures if not c.done]
 
     def piezo_voltage_V(self) -> np.ndarray:
         """Voltage at each piezo [x, y, z] V (after the amplifier model)."""
         with self._lock:
-            return np.array([self.axes[a].u_piezo_V for a in AXES])
+            return self._piezo_now()
 
     def held_voltage_V(self) -> np.ndarray:
         """The command voltage currently held [x, y, z] V."""
@@ -306,14 +311,15 @@ class Scanner:
                     raise ModelError(f"T_C: expected {n} finite temperatures [°C], got shape {T.shape}")
             disp = np.empty((n, 3))
             volts = np.empty((n, 3))
+            volts_before = self._piezo_now() if self._captures else None
             for i, a in enumerate(AXES):
                 y, v = self.axes[a].run(np.ascontiguousarray(u[:, i]), dt, return_voltage=True)
                 disp[:, i] = y
                 volts[:, i] = v
             drift = self._drift.block(T, volts, dt)
             pos = self._compose(disp, drift)
-            if n and self._captures:
-                self._sense(pos, dt)
+            if n and volts_before is not None:
+                self._sense(pos, dt, volts, volts_before)
             if n:
                 self._pos = pos[-1].copy()
                 self._held_V = u[-1].copy()

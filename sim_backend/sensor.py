@@ -10,7 +10,9 @@ the scanner's seed, so turning the sensor on changes no other output of the scan
 A :class:`SensorCapture` asks for readings at times t0_s + k·period_s (an amplifier's data
 recorder armed at a wave start): the scanner fills it as simulated time passes them, each
 with the reading of the last simulation sample ending at or before that time (the recorder
-samples and holds). The sensor runs only while a capture waits; when the first capture
+samples and holds), and beside it the piezo voltage of that sample (``v_V``: the amplifier
+stage's output, after its bandwidth and slew, before the hysteresis — what a device's
+piezo-voltage monitor records). The sensor runs only while a capture waits; when the first capture
 arrives it starts settled at the present position (filter state = position, delay line
 filled with it), as a sensor that has been on all along with the scanner at rest.
 """
@@ -32,7 +34,8 @@ SAMPLE_TOL = 1e-6
 
 class SensorCapture:
     """Readings [x, y, z] nm wanted at ``t_s[k] = t0_s + k·period_s`` (k < n), filled by
-    the scanner: ``y_nm`` (n, 3) (NaN until filled), ``count`` filled so far, ``done``."""
+    the scanner: ``y_nm`` (n, 3) (NaN until filled), the piezo voltages ``v_V`` (n, 3) [V]
+    at the same instants, ``count`` filled so far, ``done``."""
 
     def __init__(self, t0_s: float, period_s: float, n: int) -> None:
         if not (math.isfinite(t0_s) and math.isfinite(period_s) and period_s > 0 and n >= 0):
@@ -41,6 +44,7 @@ class SensorCapture:
         self.period_s = float(period_s)
         self.t_s = self.t0_s + self.period_s * np.arange(int(n))
         self.y_nm = np.full((int(n), 3), np.nan)
+        self.v_V = np.full((int(n), 3), np.nan)
         self.count = 0
         self.cancelled = False
 
@@ -52,16 +56,21 @@ class SensorCapture:
         """Stop filling (a recorder re-armed or stopped); what was filled stays."""
         self.cancelled = True
 
-    def hold(self, until_s: float, reading: np.ndarray, dt_s: float) -> None:
-        """Readings due at or before ``until_s`` [s] (already past when asked) get ``reading``."""
+    def hold(self, until_s: float, reading: np.ndarray, dt_s: float, volts: np.ndarray | None = None) -> None:
+        """Readings due at or before ``until_s`` [s] (already past when asked) get ``reading``
+        (and the piezo voltages ``volts`` [V])."""
         k1 = int(np.searchsorted(self.t_s, until_s + SAMPLE_TOL * dt_s, side="right"))
         if k1 > self.count and not self.cancelled:
             self.y_nm[self.count:k1] = reading
+            if volts is not None:
+                self.v_V[self.count:k1] = volts
             self.count = k1
 
-    def fill(self, t_start_s: float, dt_s: float, readings: np.ndarray, before: np.ndarray) -> None:
+    def fill(self, t_start_s: float, dt_s: float, readings: np.ndarray, before: np.ndarray,
+             volts: np.ndarray | None = None, volts_before: np.ndarray | None = None) -> None:
         """Take the readings of a simulated block: ``readings[i]`` at the end of sample i,
-        i.e. at ``t_start_s + (i + 1)·dt_s``; ``before`` is the reading held at ``t_start_s``."""
+        i.e. at ``t_start_s + (i + 1)·dt_s``; ``before`` is the reading held at ``t_start_s``;
+        ``volts`` / ``volts_before`` the piezo voltages [V] likewise."""
         n = len(readings)
         if n == 0 or self.cancelled:
             return
@@ -73,6 +82,8 @@ class SensorCapture:
         idx = np.floor((self.t_s[k0:k1] - t_start_s) / dt_s + SAMPLE_TOL).astype(np.int64) - 1
         rows = np.where(idx[:, None] >= 0, readings[np.clip(idx, 0, n - 1)], before[None, :])
         self.y_nm[k0:k1] = rows
+        if volts is not None and volts_before is not None:
+            self.v_V[k0:k1] = np.where(idx[:, None] >= 0, volts[np.clip(idx, 0, n - 1)], volts_before[None, :])
         self.count = k1
 
 

@@ -50,7 +50,7 @@ SERVICE_ARROWS: dict[str, set[str]] = {
     "simulation": {"control", "zenoh_api"},
     "reports": {"control", "data", "simulation"},
     "view": {"zenoh_api"},
-    "api": {"data"},
+    "api": {"data", "control", "simulation"},
     "commands": {"api", "control", "data", "inputs", "reports", "simulation", "zenoh_api", "view"},
 }
 SERVICE_TOP_LEVEL = {"__init__", "__main__", "cli", "config", "errors", "figures", "kernels",

@@ -70,13 +70,16 @@ def test_diverged_joint_fit_is_refused_without_force_and_written_with_it(lagged_
 
 
 def test_auto_never_selects_a_failed_candidate(lagged_record, tmp_path, capsys):
+    """A candidate the record cannot identify is a failed row, never selected: this record of
+    sines has no hold, so auto does not even try preisach+creep (#36; fitted on its own it
+    diverges, the test above)."""
     out = tmp_path / "auto.json"
     rc = main(["identify", "--model", "auto", "--delay", "0", "--data", str(lagged_record), "--out", str(out),
                "--param", 'candidates=["preisach+creep","pi"]', "--param", "with_dynamics=false"])
     text = capsys.readouterr().out
     assert rc == 0
     row = next(ln for ln in text.splitlines() if ln.startswith("preisach+creep"))
-    assert "failed:" in row and "creep fractions sum" in row
+    assert "failed:" in row and "not tried: the record has no hold after a step" in row
     assert "selected         : pi" in text
 
 

@@ -92,7 +92,8 @@ def test_auto_on_a_mid_scale_start_is_not_distorted(tmp_path, capsys):
     assert "burn-in" in out
     np.testing.assert_allclose(model.hysteresis.weights, W_NM_PER_V, rtol=1e-4)
     assert fit_rms(out) < 1e-4 * np.ptp(y)
-    assert max(row["heldout_rms_pct"] for row in model.selection) < 0.01
+    scored = [row for row in model.selection if "error" not in row]     # +creep: no hold, not tried
+    assert scored and max(row["heldout_rms_pct"] for row in scored) < 0.01
     # the same record taken as starting at rest: visibly bent (the test can fail)
     bent, out_none = auto("--burn-in", "none")
     assert fit_rms(out_none) > 1e-3 * np.ptp(y)

@@ -127,14 +127,16 @@ def test_pipython_wave_generator_plays_on_the_simulated_servo_clock():
 def test_pipython_datarecorder_records_a_wave_from_the_simulated_scanner_sensor():
     """PIPython's datarectools.Datarecorder: servo time and table size from SPA? (after an
     unknown parameter it reads the error and carries on), RTR, DRC (actual position of axis 1,
-    voltage of output 1), DRT 0 (start with the wave generator), WGO, DRL? (wait), DRR?
-    (the buffered GCS array read in its background thread); the actual position is the
-    simulated scanner's position sensor."""
+    its open-loop control value, the piezo voltage of output 1), DRT 0 (start with the wave
+    generator), WGO, DRL? (wait), DRR? (the buffered GCS array read in its background
+    thread); the actual position is the simulated scanner's position sensor, the piezo
+    voltage its amplifier stage's output (the command through 5 kHz and the slew limit; the
+    sine's steepest slope, 6.3 kV/s, is within the default scanner's 10 kV/s)."""
     from pipython import datarectools, pitools
     from pipython.datarectools import RecordOptions, TriggerSources
     from afmctl.sim_backend.scanner import Scanner, default_scanner_config
     scanner = Scanner(default_scanner_config())
-    points = [30.0 + 20.0 * math.sin(2 * math.pi * k / 100) for k in range(200)]
+    points = [30.0 + 20.0 * math.sin(2 * math.pi * k / 200) for k in range(200)]
     with serve_pty("gcs", sink=scanner) as server:
         with _pipython(server.port) as pi:
             pi.SVO(pi.axes, [False, False, False])
@@ -145,11 +147,13 @@ def test_pipython_datarecorder_records_a_wave_from_the_simulated_scanner_sensor(
                 assert drec.servotime == pytest.approx(50e-6) and drec.maxnumvalues == 262144 // 8
                 drec.numvalues = 200
                 drec.samplerate = 2
-                drec.options = (RecordOptions.ACTUAL_POSITION_2, RecordOptions.PIEZO_VOLTAGE_7)
-                drec.sources = ("1", "1")
+                drec.options = (RecordOptions.ACTUAL_POSITION_2, RecordOptions.OPENLOOP_INPUT_14,
+                                RecordOptions.PIEZO_VOLTAGE_7)
+                drec.sources = ("1", "1", "1")
                 drec.trigsources = TriggerSources.DEFAULT_0
                 drec.arm()
-                assert pi.qDRC([1, 2]) == {1: ["1", 2], 2: ["1", 7]} and pi.qRTR() == 2 and pi.qTNR() == 8
+                assert pi.qDRC([1, 2, 3]) == {1: ["1", 2], 2: ["1", 14], 3: ["1", 7]}
+                assert pi.qRTR() == 2 and pi.qTNR() == 8
                 pitools.writewavepoints(pi, 1, points, bunchsize=50)
                 pi.WSL(1, 1)
                 pi.WGC(1, 1)
@@ -157,9 +161,13 @@ def test_pipython_datarecorder_records_a_wave_from_the_simulated_scanner_sensor(
                 pi.WGO(1, 1)
                 header, data = drec.getdata(timeout=10)
             assert pi.qERR() == 0
-    assert header["NDATA"] == 200 and header["DIM"] == 2 and header["SAMPLE_TIME"] == pytest.approx(100e-6)
-    assert "Actual Position" in header["NAME0"] and "Voltage" in header["NAME1"]
+    assert header["NDATA"] == 200 and header["DIM"] == 3 and header["SAMPLE_TIME"] == pytest.approx(100e-6)
+    assert "Actual Position" in header["NAME0"] and "Open loop" in header["NAME1"] and "Voltage" in header["NAME2"]
     assert data[1] == pytest.approx(points, abs=1e-4)              # the voltage of each wave point
+    # the piezo voltage: point k is read as wave point k goes out, so it holds point k-1
+    # through the amplifier's 5 kHz lag (32 us against the 100 us points: settled but not quite)
+    lag = [abs(v - p) for v, p in zip(data[2][1:], points)]
+    assert 1e-3 < max(lag) < 0.05 * (max(points) - min(points))
     assert max(data[0]) - min(data[0]) > 1.0                       # [µm]: the sensor saw the scanner move
 
 
@@ -401,15 +409,15 @@ def test_sensored_nv200_get_voltages_returns_volts(sensor):
 
 
 def _count_first_run(dev, n: int):
-    """Wrap the simulator's waveform output: remember when the first ``n`` samples played."""
-    inner = dev.wave.apply
+    """Wrap the simulator's waveform generator: remember when the first ``n`` samples played."""
+    inner = dev.wave.take_due
     dev.first_run_s = []
 
-    def apply(percent: float, t_s: float) -> None:
-        if len(dev.first_run_s) < n:
-            dev.first_run_s.append(t_s)
-        inner(percent, t_s)
-    return apply
+    def take_due(now_s: float):
+        t, values = inner(now_s)
+        dev.first_run_s.extend(t.tolist()[:max(0, n - len(dev.first_run_s))])
+        return t, values
+    return take_due
 
 
 @pytest.mark.slow
@@ -419,7 +427,7 @@ def test_nv200_library_waveform_generator_uploads_and_runs_on_the_simulated_cloc
     client = ROOT / "tests" / "vendor" / "nv200_wave_client.py"
     with serve_pty("nv200") as server:
         before = len(server.sink.history)
-        server.device.wave.apply = _count_first_run(server.device, 3 * 12)
+        server.device.wave.take_due = _count_first_run(server.device, 3 * 12)
         res = subprocess.run([nv200_python, str(client), server.port, "3"], capture_output=True,
                              text=True, timeout=120)
         assert res.returncode == 0, res.stderr[-2000:]
@@ -445,9 +453,10 @@ def test_nv200_library_waveform_generator_uploads_and_runs_on_the_simulated_cloc
 
 @pytest.mark.slow
 def test_nv200_library_data_recorder_records_a_waveform_run_from_the_simulated_sensor(nv200_python):
-    """The library's DataRecorder: recsrc (position, voltage), recast 2 (start with the
+    """The library's DataRecorder: recsrc (position, piezo voltage), recast 2 (start with the
     waveform generator), recstr, reclen, recrun (arm, then poll until 0), recoutf of both
-    channels; the position is the simulated scanner's sensor [µm]."""
+    channels; the position is the simulated scanner's sensor [µm], the piezo voltage its
+    amplifier stage's output (5 ms points: steps of at most 20 V settle within one)."""
     from afmctl.sim_backend.scanner import Scanner, default_scanner_config
     client = ROOT / "tests" / "vendor" / "nv200_recorder_client.py"
     scanner = Scanner(default_scanner_config())
@@ -456,9 +465,12 @@ def test_nv200_library_data_recorder_records_a_waveform_run_from_the_simulated_s
                              text=True, timeout=180)
         assert res.returncode == 0, res.stderr[-2000:]
         out = json.loads(res.stdout.strip().splitlines()[-1])
-    assert out["finished"] and out["sources"] == [0, 2] and out["sample_time_ms"] == pytest.approx(0.2)
+    assert out["finished"] and out["sources"] == [0, 2] and out["sample_time_ms"] == pytest.approx(5.0)
     assert len(out["position"]) == len(out["voltage"]) == 24
-    assert out["voltage"] == pytest.approx(out["values_V"] * 2, abs=0.01)   # sample k = buffer point k
+    # point k is read as buffer point k goes out: the piezo holds point k-1, settled (point 1
+    # is still slewing from the 0 V before the run up to the first point's 60 V)
+    assert out["voltage"][0] == pytest.approx(0.0, abs=0.01) and 0.0 < out["voltage"][1] < 60.0
+    assert out["voltage"][2:] == pytest.approx((out["values_V"] * 2)[1:-1], abs=0.05)
     pos = out["position"]                                                  # µm: the scanner moved
     assert max(pos) - min(pos) > 2.0
 

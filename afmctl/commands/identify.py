@@ -71,7 +71,9 @@ Model kinds (--model):
             win most folds, else the simplest adequate one is kept; the table shows
             the folds' spread and why the winner won. A fit that failed (training
             error above a straight line's, optimiser not converged, a parameter on
-            its bound) is listed as failed and never selected. Excite the full voltage range in the
+            its bound) is listed as failed and never selected. A record without a hold
+            after a step (>= 0.1 s) does not try +creep or epi ('not tried' rows:
+            creep would fit the hysteresis misfit). Excite the full voltage range in the
             first 70 % ('afmctl excite --kind all' does). The best is then tried
             +dynamics when the record has fast parts (record at a rate that resolves
             the scanner's resonance, e.g. 50 kHz; the delay is then fitted by the

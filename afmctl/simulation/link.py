@@ -70,6 +70,19 @@ def simulated_amplifier(config) -> Iterator[tuple[Any, Any]]:
         yield amp, scanner
 
 
+def configured_amplifier(stack: contextlib.ExitStack, config) -> Any:
+    """The configured amplifier, opened and closed with ``stack``: a simulated one served in
+    this process with ``[simulation] enabled = true`` (:func:`simulated_amplifier`), else the
+    driver on ``amplifier.port``."""
+    if config.simulation.enabled:
+        amp, _scanner = stack.enter_context(simulated_amplifier(config))
+        return amp
+    from ..control.hardware import open_driver
+    amp = open_driver(config, config.amplifier.port)
+    stack.callback(amp.close)
+    return amp
+
+
 def identify_pi_models(folder: str | Path, axes: str = "xy", dt_s: float = 1e-3, n: int = 400,
                        n_operators: int = 10, scanner_config=None) -> dict[str, Path]:
     """PI models identified from a simulated scanner (default: the default scanner) on a

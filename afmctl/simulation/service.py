@@ -27,6 +27,9 @@ log = logging.getLogger(__name__)
 
 #: how often a ``--record`` file is flushed while the simulator runs [s]
 RECORD_FLUSH_S = 0.5
+#: how far the simulator's clock loop keeps the scanner behind the wall clock when the
+#: device plays samples on its own clock (handed over on the server's polls) [s]
+DEVICE_CLOCK_LAG_S = 0.25
 
 
 class AmplifierSection(BaseModel):
@@ -154,11 +157,15 @@ class SimService:
     def _loop(self) -> None:
         tick = self.settings.sim.tick_s
         advance = getattr(self.scanner, "advance", None)
+        # a device with its own clock (a wave generator) hands its samples to the scanner
+        # when the server polls it: the scanner stays behind by DEVICE_CLOCK_LAG_S here, so
+        # that those samples are never in its past (they would be dropped: the table unplayed)
+        lag = DEVICE_CLOCK_LAG_S if hasattr(self.device, "poll") else 0.0
         next_flush = self.clock() + RECORD_FLUSH_S
         while not self._stop.wait(tick):
             t = self.clock()
             if advance is not None:
-                advance(t)
+                advance(t - lag)
             if self.recorder is not None and t >= next_flush:
                 self.recorder.flush()             # the record grows while the simulator runs
                 next_flush = t + RECORD_FLUSH_S

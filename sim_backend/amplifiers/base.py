@@ -2,6 +2,8 @@
 injection hooks used by tests."""
 from __future__ import annotations
 
+import math
+
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -131,6 +133,21 @@ class SimDevice:
         self._inject: object | None = None
         self._rx = bytearray()
         self._pair_end: int | None = None
+
+    #: the load is advanced on polls in steps of at least this [s] (a step costs a fixed
+    #: overhead: many small ones would cost more than the simulation itself)
+    LOAD_STEP_S = 0.05
+
+    def advance_load(self, now_s: float) -> None:
+        """Bring a load that simulates on its own time (the simulated scanner: ``advance``)
+        up to ``now_s`` [s] with the outputs held, once it lags by :data:`LOAD_STEP_S`.
+        Called on the servers' idle polls, so the load keeps pace with the device's clock: a
+        reply never waits for seconds of idle simulation to catch up (a loaded host takes
+        longer than a client's reply timeout)."""
+        advance = getattr(self.sink, "advance", None)
+        if advance is not None and now_s - getattr(self, "_load_t", -math.inf) >= self.LOAD_STEP_S:
+            self._load_t = now_s
+            advance(now_s)
 
     def inject_error(self, code: object = None) -> None:
         """Make the next command fail with a device error (protocol-specific ``code``)."""

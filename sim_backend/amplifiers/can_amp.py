@@ -43,9 +43,11 @@ log = logging.getLogger(__name__)
 
 #: the DBC's messages this amplifier receives and sends
 _MESSAGES = ("SETPOINT_XYZ", "HEARTBEAT", "STATUS", "ERROR", "LIMITS", "STREAM_CTRL", "STREAM_XYZ",
-             "STREAM_XYZ_FD", "STREAM_STATUS", "REC_CTRL", "REC_READ", "REC_STATUS", "REC_DATA")
+             "STREAM_XYZ_FD", "STREAM_STATUS", "REC_CTRL", "REC_READ", "REC_STATUS", "REC_DATA", "REC_DATA_V")
 #: how often a playing stream reports its FIFO [s of the amplifier clock]
 STATUS_PERIOD_S = 0.01
+#: stream samples wait for the sink until the oldest is this old [s] (see _run_stream)
+SINK_BATCH_S = 0.02
 
 
 def read_dbc_text() -> str:
@@ -238,7 +240,7 @@ class SimCANAmplifier:
             elif sig["REQ_STATE"] == 2:
                 self.enabled = False
                 with self._stream_lock:  # disabled outputs stop a stream where it stands
-                    self._run_stream(self.now())
+                    self._run_stream(self.now(), flush=True)
                     if self.stream.state is not StreamState.IDLE:
                         self.stream.flush()
             if sig["REQ_INFO"]:
@@ -276,6 +278,8 @@ class SimCANAmplifier:
             changed = values != self.outputs
             self.outputs = values
             if changed and self.sink is not None:
+                with self._stream_lock:      # what the stream played reaches the sink first
+                    self._run_stream(self.now(), flush=True)
                 self.sink.apply(dict(values), self.now())
         if int(sig["FLAGS"]) & 1:
             self.send_status()
@@ -289,12 +293,17 @@ class SimCANAmplifier:
         self._played_t.append(t_s)
         self._played_V.append(values)
 
-    def _run_stream(self, now_s: float) -> None:
-        """Play every tick due by ``now_s`` and hand the samples to the sink in one block
+    def _run_stream(self, now_s: float, flush: bool = False) -> None:
+        """Play every tick due by ``now_s`` and hand the samples to the sink in blocks
         (``sink.play(t_s, rows_V)`` where the sink has it — the simulated scanner simulates a
-        block in one call, which 10 kHz needs — else one ``apply`` per sample)."""
+        block in one call, which 10 kHz needs — else one ``apply`` per sample): the samples
+        wait until the oldest is :data:`SINK_BATCH_S` old, the stream stops, or ``flush``
+        (the sink must be current: its sensor read, a setpoint applied). A block per frame
+        received costs the simulation more than real time on a busy host."""
         self.stream.run_until(now_s)
         if not self._played_t:
+            return
+        if not flush and self.stream.state is not StreamState.IDLE and now_s - self._played_t[0] < SINK_BATCH_S:
             return
         t, rows = self._played_t, self._played_V
         self._played_t, self._played_V = [], []
@@ -316,7 +325,7 @@ class SimCANAmplifier:
         """Play what is due, bring the sink's simulation (its sensor) and the recorder to now
         (under the stream lock)."""
         now = self.now()
-        self._run_stream(now)
+        self._run_stream(now, flush=True)
         advance = getattr(self.sink, "advance", None)
         if advance is not None and getattr(self.sink, "capture_sensor", None) is not None:
             advance(now)
@@ -351,8 +360,11 @@ class SimCANAmplifier:
             axes = [i for i in range(3) if r.axes_mask >> i & 1]
             frames = [(k, i, *r.point(k, i)) for k in range(first, first + count) for i in axes]
         lo, hi = -83886.08, 83886.07                   # the Y_NM signal's range (DBC)
-        for k, i, y, u in frames:
+        monitor = bool(r.signals & 4)
+        for k, i, y, u, v in frames:
             self._send("REC_DATA", {"INDEX": k, "AXIS": i, "Y_NM": min(max(y, lo), hi), "U_V": u})
+            if monitor:
+                self._send("REC_DATA_V", {"INDEX": k, "AXIS": i, "V_V": min(max(v, 0.0), 163.8375)})
 
     def send_stream_status(self) -> None:
         st = self.stream.status()
@@ -363,7 +375,7 @@ class SimCANAmplifier:
     def _stream_ctrl(self, sig: dict) -> None:
         cmd = int(sig["CMD"])
         with self._stream_lock:
-            self._run_stream(self.now())
+            self._run_stream(self.now(), flush=True)
             if cmd == 1:
                 rate = float(sig["RATE_HZ"])
                 if rate < 1:

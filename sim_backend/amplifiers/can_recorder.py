@@ -5,7 +5,10 @@ Armed (REC_CTRL arm: axes, signals, points, divider), it starts with the stream'
 the tick of the first sample played after arming (for a fresh stream its sample 0 at t0).
 Point k is taken at t0 + k·divider/rate: the output voltage in force then (stream sample
 k·divider) and the scanner's position sensor at that instant (the response to the samples
-before it; without a sensor in the sink there is no position and it is sent as 0). It holds
+before it; without a sensor in the sink there is no position and it is sent as 0) and, with
+SIGNALS bit 2, the piezo voltage then (the monitor of the output stage: the scanner's
+amplifier stage output, after its bandwidth and slew; without a sink the voltage in force).
+It holds
 ``CAPACITY`` points per signal; REC_READ asks for a range of them back.
 """
 from __future__ import annotations
@@ -66,7 +69,7 @@ class TickRecorder:
         if self.state is RecState.ARMED:
             self.t0_s, self.period_s = t_s, self.divider / rate_Hz
             self._volts, self._filled = np.zeros((self.points, 3)), 0
-            self.capture = self.sensor(t_s, self.period_s, self.points) if self.signals & 1 else None
+            self.capture = self.sensor(t_s, self.period_s, self.points) if self.signals & 5 else None
             self.state = RecState.RECORDING
         self._fill(t_s, strict=True)
         self._held = np.asarray(values, dtype=np.float64)
@@ -95,9 +98,12 @@ class TickRecorder:
             n = min(n, self.capture.count)
         return n
 
-    def point(self, k: int, axis: int) -> tuple[float, float]:
-        """(position [nm], voltage [V]) of point ``k`` on axis index ``axis``; a signal not
-        recorded reads 0."""
+    def point(self, k: int, axis: int) -> tuple[float, float, float]:
+        """(position [nm], voltage [V], piezo voltage [V]) of point ``k`` on axis index
+        ``axis``; a signal not recorded reads 0."""
         y = float(self.capture.y_nm[k, axis]) if self.capture is not None and self.signals & 1 else 0.0
         u = float(self._volts[k, axis]) if self.signals & 2 else 0.0
-        return (y if math.isfinite(y) else 0.0), u
+        v = 0.0
+        if self.signals & 4:
+            v = float(self.capture.v_V[k, axis]) if self.capture is not None else float(self._volts[k, axis])
+        return (y if math.isfinite(y) else 0.0), u, (v if math.isfinite(v) else 0.0)

@@ -24,6 +24,8 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from typing import cast
 
+import numpy as np
+
 from .base import SimDevice, Sink
 from .gcs_recorder import (DATA_REC_CHAN_NUMBER_PARAM, DATA_REC_MAX_POINTS_PARAM, N_TABLES, TOTAL_POINTS,
                            DataRecorder, RecorderError)
@@ -63,8 +65,6 @@ class SimGCS(SimDevice):
         self.error = 0
         self.travel_um = (0.0, 100.0)
         self.target = {k: 0.0 for k in _AXIS}
-        #: while :meth:`poll` plays: the (t_s, [x, y, z] V) rows for the sink's play(), else None
-        self._played: list[tuple[float, list[float]]] | None = None
         #: per generator the output offset added to every wave value (``WOS``; 0 at power-on)
         self.wave_offset_V = {int(k): 0.0 for k in _AXIS}
         #: the data recorder (:mod:`.gcs_recorder`): reads the sink's position sensor if it has one
@@ -98,34 +98,78 @@ class SimGCS(SimDevice):
         return bytes(out + super().feed(data))
 
     def poll(self, now_s: float | None = None) -> None:
-        """Play the wave points that fell due by now (or ``now_s``; the pty server calls this when idle),
-        handed to the sink in one block (``sink.play(t_s, rows_V)`` where the sink has it —
-        the simulated scanner simulates a block in one call, which 20 kHz on three axes
-        needs — else one ``apply`` per change)."""
-        play: Callable[..., None] | None = getattr(self.sink, "play", None)
-        self._played = [] if play is not None else None
-        try:
-            self.wave.run_until(self.now() if now_s is None else now_s)
-        finally:
-            played, self._played = self._played, None
-        if played and play is not None:
-            play([t for t, _ in played], [row for _, row in played])
+        """Play the wave points that fell due by now (or ``now_s``; the servers call this when
+        idle), then bring the load up to now. The points go as one block: the outputs
+        computed for all of them at once, the recorder told in one call, the sink handed the
+        changes in one ``sink.play(t_s, rows_V)`` where it has one (the simulated scanner
+        simulates a block in one call) else one ``apply`` per change. A call per point costs
+        more than the 50 µs servo cycle on a loaded host, and a simulator that falls behind
+        its own clock never answers again."""
+        now = self.now() if now_s is None else now_s
+        self._play_due(now)
+        self.advance_load(now)
 
-    def _wave_apply(self, gen: int, value: float, t_s: float) -> None:
+    def _play_due(self, now_s: float) -> None:
+        """The wave points due by ``now_s`` as one block (:meth:`poll`)."""
+        t, gid, val = self.wave.take_due(now_s)
+        if not len(t):
+            return
+        rows = self._wave_rows(gid, val)
+        prev = np.vstack([[self.outputs[a] for a in "xyz"], rows[:-1]])
+        changed = np.any(rows != prev, axis=1)
+        if not changed.any():
+            return
+        t, rows = t[changed], rows[changed]
+        for i, a in enumerate("xyz"):
+            self.outputs[a] = float(rows[-1, i])
+        self.recorder.outputs_changed(t, {k: rows[:, "xyz".index(a)] for k, a in _AXIS.items()})
+        play: Callable[..., None] | None = getattr(self.sink, "play", None)
+        if play is not None:
+            play(t, rows)
+        elif self.sink is not None:
+            for tk, row in zip(t.tolist(), rows.tolist()):
+                self.sink.apply(dict(zip("xyz", row)), tk)
+
+    def _wave_rows(self, gid: np.ndarray, value: np.ndarray) -> np.ndarray:
+        """The outputs [x, y, z] V after each wave point (generator ``gid``, table value
+        ``value``), as :meth:`_wave_apply` sets them one by one."""
+        rows = np.empty((len(gid), 3))
+        idx = np.arange(len(gid))
+        for key, axis in _AXIS.items():
+            mine = gid == int(key)
+            col = "xyz".index(axis)
+            if not mine.any():
+                rows[:, col] = self.outputs[axis]
+                continue
+            volts = self._wave_volts(int(key), value[mine])
+            at = np.maximum.accumulate(np.where(mine, idx, -1))
+            full = np.empty(len(gid))
+            full[mine] = volts
+            rows[:, col] = np.where(at >= 0, full[np.maximum(at, 0)], self.outputs[axis])
+        return rows
+
+    def _wave_volts(self, gen: int, value: np.ndarray) -> np.ndarray:
+        """Generator ``gen``'s table values as output voltages [V]: plus its ``WOS`` offset,
+        a position [µm] mapped onto the voltage range with the servo on, clipped to
+        VMI..VMA (the requested extremes noted)."""
         key = str(gen)
-        axis = _AXIS[key]
-        value += self.wave_offset_V[gen]     # generator output = WOS offset + wave value
+        value = value + self.wave_offset_V[gen]     # generator output = WOS offset + wave value
         if self.servo[key]:  # a position [µm] → the voltage that puts the ideal servo there
             t0, t1 = self.travel_um
             value = self.vmi[key] + (value - t0) / (t1 - t0) * (self.vma[key] - self.vmi[key])
-        self._requested(value, axis)
-        v = min(max(value, self.vmi[key]), self.vma[key])
+        axis = _AXIS[key]
+        self._requested(float(value.min()), axis)
+        self._requested(float(value.max()), axis)
+        return np.clip(value, self.vmi[key], self.vma[key])
+
+    def _wave_apply(self, gen: int, value: float, t_s: float) -> None:
+        """One wave point (a generator stopped by ``WGO 0`` plays what fell due one by one)."""
+        v = float(self._wave_volts(gen, np.array([value]))[0])
+        axis = _AXIS[str(gen)]
         if self.outputs[axis] != v:
             self.outputs[axis] = v
             self.recorder.output_changed(t_s, self._channel_volts())
-            if self._played is not None:
-                self._played.append((t_s, [self.outputs[a] for a in "xyz"]))
-            elif self.sink is not None:
+            if self.sink is not None:
                 self.sink.apply(dict(self.outputs), t_s)
 
     def _channel_volts(self) -> dict[str, float]:

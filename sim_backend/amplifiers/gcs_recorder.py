@@ -5,8 +5,11 @@ from PIPython's ``GCSBaseCommands`` / ``gcs2datarectools`` and PI's GCS manuals)
 
 * ``DRC <table> <source> <option>`` — what a record table records: option 0 nothing,
   1 commanded position of axis <source> [µm], 2 actual position of axis <source> [µm],
-  3 position error (1 − 2) [µm], 7 voltage of output channel <source> [V]; ``DRC?``
-  answers ``<table>=<source> <option>``.
+  3 position error (1 − 2) [µm], 7 piezo voltage of output channel <source> [V]
+  (PIPython's ``PIEZO_VOLTAGE_7``: the voltage the amplifier stage puts on the piezo),
+  14 open-loop control value of axis <source> [V] (``OPENLOOP_INPUT_14``: the voltage
+  commanded in open loop, ``SVA`` or the wave generator); ``DRC?`` answers
+  ``<table>=<source> <option>``.
 * ``DRT <table> <trigger> <value>`` — when recording (re)starts (table 0 = every table):
   0 default (``WGO`` starting a generator, ``WGR``), 1 any command that changes the position
   (``MOV``, ``SVA``, ``WGO``, ``WGR``), 2 the next command (then back to 0), 4 at once;
@@ -21,16 +24,17 @@ from PIPython's ``GCSBaseCommands`` / ``gcs2datarectools`` and PI's GCS manuals)
 
 Timing: a trigger at time t starts the table at the first servo tick t0 >= t (a ``WGO`` on
 the tick the generators start: record point 0 is taken in the servo cycle that outputs wave
-point 0). Point k is taken at t0 + k·RTR·servo_cycle: a voltage or commanded position is
-the value in force then (wave point k at RTR = wave rate), an actual position the scanner's
-position sensor at that instant (:meth:`Scanner.capture_sensor`) — the response to the
-points before it. Without a sensor in the sink the actual position is the device's linear
-model of the output (as ``POS?``). A table records until it holds ``max_points`` points.
+point 0). Point k is taken at t0 + k·RTR·servo_cycle: an open-loop control value or
+commanded position is the value in force then (wave point k at RTR = wave rate), an actual
+position the scanner's position sensor at that instant (:meth:`Scanner.capture_sensor`) —
+the response to the points before it — and a piezo voltage the scanner's amplifier stage
+output at that instant (after its bandwidth and slew; the capture's ``v_V``). Without a sensor in the sink the actual position is the device's linear
+model of the output (as ``POS?``) and the piezo voltage the command. A table records until it holds ``max_points`` points.
 """
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -42,7 +46,9 @@ TOTAL_POINTS = 262_144
 DATA_REC_MAX_POINTS_PARAM = 0x16000200
 DATA_REC_CHAN_NUMBER_PARAM = 0x16000300
 OPTIONS = {0: "Nothing", 1: "Commanded Position of axis", 2: "Actual Position of axis",
-           3: "Position Error of axis", 7: "Voltage of output chan"}
+           3: "Position Error of axis", 7: "Voltage of output chan", 14: "Open loop control of axis"}
+#: the options read from the scanner (its position sensor, its amplifier stage)
+CAPTURED = (2, 3, 7)
 TRIGGERS = (0, 1, 2, 4)
 
 
@@ -93,6 +99,29 @@ class DataRecorder:
         self._fill(t_s, strict=True)
         self._held.update(volts)
 
+    def outputs_changed(self, t_s: np.ndarray, volts: Mapping[str, np.ndarray]) -> None:
+        """:meth:`output_changed` for a block of changes at once: from ``t_s[i]`` (non-
+        decreasing) on the outputs per channel are ``volts[channel][i]`` — the same points
+        filled with the same values as one call per change, without a call per change."""
+        t = np.asarray(t_s, dtype=np.float64)
+        if not len(t):
+            return
+        period = self.rate * self.servo_cycle_s
+        for tab in self._filling:
+            if tab.filled >= self.max_points or tab.t0_s is None:
+                continue
+            # change i holds from point first[i] on (points due strictly before it keep the old)
+            first = np.ceil((t - tab.t0_s) / period - 1e-9)
+            upto = int(min(first[-1], self.max_points))
+            if upto > tab.filled:
+                k = np.arange(tab.filled, upto)
+                i = np.searchsorted(first, k, side="right") - 1
+                col = np.asarray(volts[tab.source], dtype=np.float64)
+                tab.volts[tab.filled:upto] = np.where(i >= 0, col[np.maximum(i, 0)], self._held[tab.source])
+                tab.filled = upto
+        self._filling = [t for t in self._filling if t.filled < self.max_points]
+        self._held.update({c: float(v[-1]) for c, v in volts.items()})
+
     def sync(self, now_s: float) -> None:
         """Points due by ``now_s`` take the outputs in force."""
         self._fill(now_s, strict=False)
@@ -129,12 +158,12 @@ class DataRecorder:
         t0 = math.ceil(now_s / self.servo_cycle_s - 1e-9) * self.servo_cycle_s
         period = self.rate * self.servo_cycle_s
         capture = None
-        if any(t.option in (2, 3) for t in tables):
+        if any(t.option in CAPTURED for t in tables):
             capture = self.sensor(t0, period, self.max_points)
         for tab in tables:
             if tab.capture is not None:
                 tab.capture.cancel()
-            tab.t0_s, tab.capture = t0, capture if tab.option in (2, 3) else None
+            tab.t0_s, tab.capture = t0, capture if tab.option in CAPTURED else None
             tab.volts, tab.filled = np.zeros(self.max_points), 0
         self._filling = [t for t in self.tables.values() if t.t0_s is not None and t.filled < self.max_points]
 
@@ -192,7 +221,9 @@ class DataRecorder:
         its unit."""
         tab = self.tables[t]
         volts = tab.volts[first:first + n]
-        if tab.option == 7:
+        if tab.option == 7 and tab.capture is not None:
+            return tab.capture.v_V[first:first + n, self.channels.index(tab.source)].copy()
+        if tab.option in (7, 14):
             return volts.copy()
         commanded = np.array([self.model_um(tab.source, float(v)) for v in volts])
         if tab.option == 1:

@@ -19,6 +19,8 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numpy as np
+
 #: the controller's servo cycle [s] unless given: the E-727's servo update time per its user
 #: manual (E727T0005), read by hosts as parameter 0x0E000200 (SERVO_UPDATE_TIME)
 SERVO_CYCLE_S = 50e-6
@@ -46,6 +48,7 @@ class Generator:
     k: int = 0               # next point of the run
     played: int = 0
     points: list[float] = field(default_factory=list)  # table as it was when started
+    values: np.ndarray = field(default_factory=lambda: np.zeros(0))  # the same as an array
 
 
 def lin_segment(seg_len: int, amplitude: float, offset: float, n: int, first: int, speed: int) -> list[float]:
@@ -162,6 +165,7 @@ class WaveGenerator:
         # the generator starts at the next tick of the servo clock (tick n at n * servo_cycle_s)
         t0 = math.ceil(now_s / self.servo_cycle_s - 1e-9) * self.servo_cycle_s
         g.mode, g.t0_s, g.k, g.points = mode, t0, 0, list(self.tables[g.table])
+        g.values = np.asarray(g.points, dtype=np.float64)
 
     def _gen(self, gen: int) -> Generator:
         if gen not in self.gens:
@@ -174,23 +178,48 @@ class WaveGenerator:
         return g.t0_s + k * g.rate * self.servo_cycle_s
 
     def run_until(self, now_s: float) -> int:
-        """Apply every point due at or before ``now_s``, in time order across generators;
-        returns how many were applied."""
-        due: list[tuple[float, int, float]] = []
+        """Apply every point due at or before ``now_s``, in time order across generators
+        (one ``apply`` per point); returns how many were applied."""
+        t, gid, v = self.take_due(now_s)
+        for tk, gk, vk in zip(t.tolist(), gid.tolist(), v.tolist()):
+            self.apply(gk, vk, tk)
+        return len(t)
+
+    def take_due(self, now_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every point due at or before ``now_s`` as arrays in time order across generators
+        (ties by generator): times [s], generator ids, table values; the generators move
+        past them (what :meth:`run_until` applies one by one, without a call per point)."""
+        ts, gids, vals = [], [], []
         for gid, g in self.gens.items():
             if not g.mode:
                 continue
-            total = len(g.points) * g.cycles if g.cycles else math.inf
-            while g.k < total and (t := self.point_time_s(g, g.k)) <= now_s:
-                due.append((t, gid, g.points[g.k % len(g.points)]))
-                g.k += 1
-                g.played += 1
-            if g.k >= total:
+            k = np.arange(g.k, self._due_end(g, now_s))
+            if len(k):
+                ts.append(g.t0_s + k * g.rate * self.servo_cycle_s)
+                gids.append(np.full(len(k), gid))
+                vals.append(g.values[k % len(g.values)])
+                g.k += len(k)
+                g.played += len(k)
+            if g.k >= (len(g.points) * g.cycles if g.cycles else math.inf):
                 g.mode = 0
-        due.sort(key=lambda e: (e[0], e[1]))
-        for t, gid, v in due:
-            self.apply(gid, v, t)
-        return len(due)
+        if not ts:
+            return np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0)
+        times, ids, values = np.concatenate(ts), np.concatenate(gids), np.concatenate(vals)
+        order = np.lexsort((ids, times))
+        return times[order], ids[order], values[order]
+
+    def _due_end(self, g: Generator, now_s: float) -> int:
+        """One past the last point of ``g``'s run due at or before ``now_s`` (exactly the
+        points whose :meth:`point_time_s` is not after it)."""
+        total = len(g.points) * g.cycles if g.cycles else math.inf
+        step = g.rate * self.servo_cycle_s
+        end = max(g.k, int(math.floor((now_s - g.t0_s) / step)) + 1) if now_s >= g.t0_s else g.k
+        end = int(min(end, total))
+        while end < total and self.point_time_s(g, end) <= now_s:
+            end += 1
+        while end > g.k and self.point_time_s(g, end - 1) > now_s:
+            end -= 1
+        return end
 
     def running_mask(self) -> int:
         return sum(1 << (gid - 1) for gid, g in self.gens.items() if g.mode)

@@ -28,6 +28,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import cast
 
+import numpy as np
+
 from .base import SimDevice, Sink
 from .nv200_recorder import NV200Recorder
 from .nv200_wave import BUFFER_SIZE, RANGES as WAVE_RANGES, WaveBuffer
@@ -94,7 +96,7 @@ class SimNV200(SimDevice):
         """Play the waveform, then bring the sink's simulation (its sensor) and the recorder up
         to now (the recorder must not fill samples due by now before the wave has played them)."""
         now = self.now()
-        self.wave.run_until(now)
+        self._play_due(now)
         advance = getattr(self.sink, "advance", None)
         if advance is not None and getattr(self.sink, "capture_sensor", None) is not None:
             advance(now)
@@ -125,8 +127,39 @@ class SimNV200(SimDevice):
         return DEVICE_TYPE + b"\r\n"
 
     def poll(self) -> None:
-        """Play the waveform samples that fell due by now (the pty server calls this when idle)."""
-        self.wave.run_until(self.now())
+        """Play the waveform samples that fell due by now and bring the load up to now (the
+        servers call this when idle)."""
+        now = self.now()
+        self._play_due(now)
+        self.advance_load(now)
+
+    def _play_due(self, now_s: float) -> None:
+        """The waveform samples due by ``now_s`` as one block: the outputs for all of them at
+        once, the recorder told in one call, the sink handed the changes in one
+        ``sink.play(t_s, rows_V)`` where it has one (else one ``apply`` per change) — one
+        call per sample costs more than the 50 µs tick on a loaded host."""
+        t, percent = self.wave.take_due(now_s)
+        if not len(t) or self.params["modsrc"] != 3:
+            return
+        lo, hi = self.params["avmin"], self.params["avmax"]
+        v = lo + percent / 100.0 * (hi - lo)
+        self._requested(float(v.min()), "x")
+        self._requested(float(v.max()), "x")
+        v = np.clip(v, lo, hi)
+        changed = v != np.concatenate([[self.outputs["x"]], v[:-1]])
+        if not changed.any():
+            return
+        t, v = t[changed], v[changed]
+        self.outputs["x"] = float(v[-1])
+        self.recorder.outputs_changed(t, v, v)
+        play, held = getattr(self.sink, "play", None), getattr(self.sink, "held_voltage_V", None)
+        if play is not None and held is not None:       # the load's other axes keep their voltage
+            rows = np.repeat(np.asarray(held(), dtype=np.float64).reshape(1, 3), len(v), axis=0)
+            rows[:, 0] = v
+            play(t, rows)
+        elif self.sink is not None:
+            for tk, vk in zip(t.tolist(), v.tolist()):
+                self.sink.apply({**self.outputs, "x": vk}, tk)
 
     def _wave_apply(self, percent: float, t_s: float) -> None:
         if self.params["modsrc"] != 3:

@@ -2,7 +2,9 @@
 library, ``DataRecorder``, and piezosystem jena's NV200 command list).
 
 Two channels (0, 1) record in parallel, each from the source ``recsrc,<ch>,<src>``: 0 piezo
-position (µm with a sensor; the piezo voltage without one), 1 setpoint, 2 piezo voltage [V],
+position (µm with a sensor; the piezo voltage without one), 1 setpoint (in open loop the
+voltage commanded), 2 piezo voltage [V] (the scanner's amplifier stage output, read with the
+sensor's capture; without a sensor the voltage commanded),
 3 position error, 4 its absolute value, 6/7 piezo currents (0 here). The base rate is
 20 kHz (50 µs); ``recstr`` keeps every n-th sample; ``reclen`` points per channel (at most
 6144; 0 = the whole buffer). ``recast`` says what starts it once ``recrun,1`` armed it: 0 at
@@ -56,6 +58,24 @@ class NV200Recorder:
         self._fill(t_s, strict=True)
         self._held = {"volts": volts, "set": setpoint}
 
+    def outputs_changed(self, t_s: np.ndarray, volts: np.ndarray, setpoints: np.ndarray) -> None:
+        """:meth:`output_changed` for a block of changes (``t_s`` non-decreasing) at once:
+        the same points filled with the same values, without a call per change."""
+        t = np.asarray(t_s, dtype=np.float64)
+        if not len(t):
+            return
+        if self.state == "recording" and self._filled < self.n:
+            # change i holds from point first[i] on (points due strictly before it keep the old)
+            first = np.ceil((t - self.t0_s) / (self.stride * BASE_SAMPLE_S) - 1e-9)
+            upto = int(min(first[-1], self.n))
+            if upto > self._filled:
+                k = np.arange(self._filled, upto)
+                i = np.searchsorted(first, k, side="right") - 1
+                for dst, new, old in ((self._volts, volts, self._held["volts"]), (self._setp, setpoints, self._held["set"])):
+                    dst[self._filled:upto] = np.where(i >= 0, np.asarray(new, dtype=np.float64)[np.maximum(i, 0)], old)
+                self._filled = upto
+        self._held = {"volts": float(volts[-1]), "set": float(setpoints[-1])}
+
     def sync(self, now_s: float) -> None:
         self._fill(now_s, strict=False)
         if self.state == "recording" and self.count() >= self.n:
@@ -88,7 +108,7 @@ class NV200Recorder:
         self.t0_s = float(now_s)
         self.stride, self.n = int(stride), int(reclen) or BUFFER_SIZE
         self._volts, self._setp, self._filled = np.zeros(self.n), np.zeros(self.n), 0
-        wants_position = any(s in (0, 3, 4) for s in self.recsrc.values())
+        wants_position = any(s in (0, 2, 3, 4) for s in self.recsrc.values())   # 2: the amplifier stage
         self.capture = (self.sensor(self.t0_s, self.stride * BASE_SAMPLE_S, self.n)
                         if wants_position and self.has_sensor else None)
         self.state = "recording"
@@ -104,8 +124,8 @@ class NV200Recorder:
         n = self.count()
         src = self.recsrc[ch]
         volts, setp = self._volts[:n], self._setp[:n]
-        if src == 2:
-            return volts.copy()
+        if src == 2:                     # the piezo voltage: the amplifier stage's output
+            return self.capture.v_V[:n, 0].copy() if self.capture is not None else volts.copy()
         if src == 1:
             return setp.copy()
         if src in (6, 7):

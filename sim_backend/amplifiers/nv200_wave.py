@@ -16,6 +16,8 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
+import numpy as np
+
 BUFFER_SIZE = 1024
 BASE_SAMPLE_S = 50e-6
 #: parameter -> (lowest, highest) accepted
@@ -70,15 +72,34 @@ class WaveBuffer:
         return self.t0_s + k * self.params["gtarb"] * BASE_SAMPLE_S
 
     def run_until(self, now_s: float) -> int:
-        """Apply every sample due at or before ``now_s``; the generator stops after the last."""
+        """Apply every sample due at or before ``now_s`` (one ``apply`` each); the generator
+        stops after the last."""
+        t, values = self.take_due(now_s)
+        for tk, vk in zip(t.tolist(), values.tolist()):
+            self.apply(vk, tk)
+        return len(t)
+
+    def take_due(self, now_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """Every sample due at or before ``now_s`` as arrays (times [s], buffer values [%]),
+        the generator moved past them (what :meth:`run_until` applies one by one)."""
         if not self.params["grun"]:
-            return 0
-        total, n = self.length(), 0
-        while self.k < total and (t := self.sample_time_s(self.k)) <= now_s:
-            self.apply(self.values[self.index(self.k)], t)
-            self.k += 1
-            n += 1
-        self.played += n
+            return np.zeros(0), np.zeros(0)
+        total = self.length()
+        step = self.params["gtarb"] * BASE_SAMPLE_S
+        end = max(self.k, int(math.floor((now_s - self.t0_s) / step)) + 1) if now_s >= self.t0_s else self.k
+        end = int(min(end, total))
+        while end < total and self.sample_time_s(end) <= now_s:
+            end += 1
+        while end > self.k and self.sample_time_s(end - 1) > now_s:
+            end -= 1
+        k = np.arange(self.k, end)
+        p = self.params
+        first = p["gearb"] - p["goarb"] + 1
+        idx = np.where(k < first, p["goarb"] + k, p["gsarb"] + (k - first) % max(p["gearb"] - p["gsarb"] + 1, 1))
+        t = self.t0_s + k * p["gtarb"] * BASE_SAMPLE_S
+        values = np.asarray(self.values, dtype=np.float64)[idx] if len(k) else np.zeros(0)
+        self.k = end
+        self.played += len(k)
         if self.k >= total:
             self.params["grun"] = 0
-        return n
+        return t, values

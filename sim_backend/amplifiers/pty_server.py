@@ -28,6 +28,9 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
+#: how long a reply waits for a host whose input buffer is full before it is dropped [s]
+HOST_STALL_S = 5.0
+
 
 class _WireClock:
     """When the last byte of a chunk of ``n`` bytes has crossed the wire [monotonic s].
@@ -189,7 +192,7 @@ class PtyServer:
         poll = getattr(self.device, "poll", None)
         while not stop.is_set():
             try:
-                ready, _, _ = select.select([master], [], [], 0.005 if poll else 0.02)
+                ready, _, _ = select.select([master], [], [], 0.02)
                 if not ready:
                     continuous = False
                     if poll is not None:
@@ -220,6 +223,18 @@ class PtyServer:
             if reply:
                 self._txq.put((time.monotonic() + self.latency_s, reply))
 
+    def _wait_writable(self, stop: threading.Event, master: int) -> bool:
+        """Wait until the host has read some of its input (True), at most HOST_STALL_S."""
+        deadline = time.monotonic() + HOST_STALL_S
+        while not stop.is_set() and time.monotonic() < deadline:
+            try:
+                _, ready, _ = select.select([], [master], [], 0.02)
+            except (OSError, ValueError):
+                return False
+            if ready:
+                return True
+        return False
+
     def _tx_loop(self, stop: threading.Event, master: int, txq: "queue.Queue[tuple[float, bytes]]") -> None:
         clock = _WireClock(self.baud)
         pending = b""
@@ -243,8 +258,11 @@ class PtyServer:
             try:
                 n = os.write(master, chunk)
             except BlockingIOError:
-                # The host's input buffer is full (nobody reading): without flow control
-                # the bytes are lost, as on a real line.
+                # The host's input buffer is full. The links these devices have (USB, TCP,
+                # a UART with RTS/CTS) hold the sender until the host reads; a host that
+                # reads nothing for HOST_STALL_S is gone and the reply is lost.
+                if self._wait_writable(stop, master):
+                    continue
                 self.bytes_dropped += len(pending)
                 pending = b""
                 continue

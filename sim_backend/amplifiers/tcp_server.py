@@ -10,12 +10,17 @@ pty server feeds (``feed(bytes) -> bytes``), so every protocol behaves alike on 
 from __future__ import annotations
 
 import logging
+import select
 import socket
 import threading
 
 log = logging.getLogger(__name__)
 
 _POLL_S = 0.1
+#: how often a device with its own clock plays what fell due while the link is idle [s]
+_IDLE_POLL_S = 0.02
+#: how long one reply may wait for the client to read it [s]
+_SEND_TIMEOUT_S = 10.0
 
 
 def parse_endpoint(text: str) -> tuple[str, int]:
@@ -101,9 +106,19 @@ class TcpServer:
             log.info("%s: client %s gone", self.port, peer)
 
     def _serve(self, conn: socket.socket) -> None:
-        """Bytes in → the device → its reply out, until the client closes or we stop."""
+        """Bytes in → the device → its reply out, until the client closes or we stop. While
+        no byte arrives, a device with its own clock (a wave generator) plays on every
+        :data:`_IDLE_POLL_S`, as on the pty server (else the scanner, advanced by the
+        simulator's clock meanwhile, would hold the old voltage through the table)."""
+        poll = getattr(self.device, "poll", None)
+        conn.settimeout(_SEND_TIMEOUT_S)         # a long reply (DRR?) waits for a slow reader
         while not self._stop.is_set():
             try:
+                ready, _, _ = select.select([conn], [], [], _IDLE_POLL_S if poll is not None else _POLL_S)
+                if not ready:
+                    if poll is not None:
+                        poll()
+                    continue
                 data = conn.recv(65536)
             except TimeoutError:
                 continue

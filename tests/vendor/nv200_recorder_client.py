@@ -18,13 +18,13 @@ async def main(port: str, cycles: int) -> dict:
     await dev.connect(auto_adjust_comm_params=False)
     gen = WaveformGenerator(dev)
     wave = WaveformGenerator.WaveformData(
-        values=[60.0 + 40.0 * math.sin(2 * math.pi * k / 12) for k in range(12)], sample_time_ms=0.2)
+        values=[60.0 + 40.0 * math.sin(2 * math.pi * k / 12) for k in range(12)], sample_time_ms=5.0)
     await gen.set_waveform(wave, unit=WaveformUnit.VOLTAGE)
     rec = DataRecorder(dev)
     await rec.set_data_source(0, DataRecorderSource.PIEZO_POSITION)
     await rec.set_data_source(1, DataRecorderSource.PIEZO_VOLTAGE)
     await rec.set_autostart_mode(RecorderAutoStartMode.START_ON_WAVEFORM_GEN_RUN)
-    await rec.set_recorder_stride(4)                 # 4 x 50 us = the waveform's 0.2 ms
+    await rec.set_recorder_stride(100)               # 100 x 50 us = the waveform's 5 ms
     await rec.set_sample_buffer_size(12 * cycles)
     await rec.start_recording()                      # armed: the generator starts it
     await gen.start(cycles=cycles)

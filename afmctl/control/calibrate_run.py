@@ -1,0 +1,363 @@
+"""``afmctl calibrate`` on a device: play voltage tables piece by piece on the amplifier's
+clock and record each through the device's own data recorder (the position, the output
+voltage, and the piezo voltage where the device records it).
+
+Each piece (:mod:`afmctl.control.calibrate_pieces`) is played exactly as ``afmctl run``
+plays a wave table (:class:`afmctl.control.controller.Controller`, ``output = "wave"``):
+every row checked against the limits and the slew limit before anything is sent, the
+upload while the output rests, the approach ramp and the settle hold
+(``amplifier.settle_s``, unset: :data:`~afmctl.config.LEARN_SETTLE_S`) before the first
+piece, the table on the device's clock, the device's recorder armed once the table is
+on it (it starts with the table). Between pieces the output *holds* its last voltage
+(the next piece starts there: no approach, no hold of its own), so the scanner's
+hysteresis memory runs on unbroken; :func:`calibrate_pieces.join` puts the holds back.
+
+Requests: :meth:`CalibrationRun.stop` (Ctrl-C, zenoh ``stop``) stops the piece playing at
+once (wave generator stopped / FIFO flushed, the output holds), then :func:`return_to_safe`
+ramps every driven axis to its safe value at ``safety.ramp_V_per_s`` and stops anything
+the device still plays. A lost link ends the run with :class:`CalibrationFault`; what was
+recorded so far stays in :attr:`CalibrationRun.pieces`.
+
+Units: V, nm, s.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..config import LEARN_SETTLE_S, CompensationSection
+from ..errors import AfmctlError
+from .calibrate_pieces import PieceRecord, follow_table
+from .controller import Controller, State
+from .learned_table import LearnedSource, LearnedTable
+from .safety import SafetyLayer
+from .wave_plan import WaveTable, table_capacity
+
+log = logging.getLogger(__name__)
+
+#: the signals a calibration asks a recorder for, best first (the NV200 records two)
+SIGNAL_SETS = (("y_nm", "u_V", "v_V"), ("y_nm", "v_V"), ("y_nm", "u_V"))
+#: recorded output voltages must equal the table within this [V] (the devices' resolution)
+OUTPUT_TOL_V = 0.01
+#: a return ramp that has not arrived after this [s] is given up (logged)
+RETURN_TIMEOUT_S = 30.0
+#: the longest read-back of one piece a stop may have to wait for [s] (see readback_rows)
+UNCANCELLED_READBACK_S = 0.5
+#: the NV200's serial line (also behind its Ethernet adapter) [baud], and the bytes of one
+#: recorded value in its ``recoutf`` reply ("123.456,")
+NV200_UART_BAUD, NV200_BYTES_PER_VALUE = 115200, 8
+#: share of the recorder a streamed piece leaves free: the ticks a FIFO that ran empty held
+#: the output are recorded too (the scanner saw them), after which the table goes on
+STREAM_SLACK = 0.25
+
+
+class CalibrationFault(AfmctlError):
+    """The link was lost (or the device faulted) during the calibration; what was recorded
+    before is kept (:attr:`CalibrationRun.pieces`)."""
+
+
+class CalibrationStopped(AfmctlError):
+    """A stop request ended the calibration (the output was ramped to the safe value)."""
+
+
+class TableSource(LearnedSource):
+    """A planned table as the controller's trajectory (played as ``afmctl run`` plays a
+    learned table), with its own settle hold [s]."""
+
+    def __init__(self, table: WaveTable, settle_s: float, name: str) -> None:
+        super().__init__(LearnedTable(table, {}, ""), name)
+        self._settle_s = float(settle_s)
+
+    def settle_s(self, config: Any) -> float:
+        return self._settle_s
+
+    def blocks_at(self, dt_s: float, block_samples: int = 256):
+        from ..inputs.trajectories import blocks_of
+        return blocks_of(self.targets_nm(), block_samples)
+
+    def table_for(self, config: Any) -> WaveTable:
+        return self.learned.table
+
+
+def calibration_config(config: Any) -> Any:
+    """``config`` as a calibration plays it: no compensation (the model is what it makes),
+    the output held at the end of each piece, no reconnect (a lost link ends it), no run log
+    per piece, the settle hold of
+    ``amplifier.settle_s`` (unset: :data:`~afmctl.config.LEARN_SETTLE_S`)."""
+    cfg = config.model_copy(deep=True)
+    cfg.compensation = CompensationSection()
+    cfg.safety.on_finish = "hold"
+    cfg.safety.max_reconnects = 0       # a lost link ends the calibration (what was recorded is kept)
+    cfg.runlog.enabled = False
+    cfg.zenoh.enabled = False
+    if cfg.amplifier.settle_s is None:
+        cfg.amplifier.settle_s = LEARN_SETTLE_S
+    return cfg
+
+
+def fifo_margins(config: Any, amp: Any) -> Any:
+    """``config`` with the stream FIFO kept as full as the device allows (CAN: the FIFO
+    filled to 90 % of its capacity, topped up below half). A table streamed into a FIFO must
+    play without a gap — an underrun holds the output, and the recording no longer follows
+    the table — so a calibration keeps the most margin a busy host can have."""
+    status = getattr(amp, "buffer_status", None)
+    if status is None:
+        return config
+    seconds = status().capacity / float(config.loop.rate_Hz)
+    config.amplifier.high_water_s = max(config.amplifier.high_water_s, 0.9 * seconds)
+    config.amplifier.low_water_s = max(config.amplifier.low_water_s, min(0.5 * seconds,
+                                                                          0.8 * config.amplifier.high_water_s))
+    return config
+
+
+def recorder_signals(amp: Any, axis: str) -> tuple[str, ...]:
+    """The richest of :data:`SIGNAL_SETS` the device records for ``axis``; one line when it
+    records no position."""
+    from afmctl.drivers.errors import AmplifierError
+    if not getattr(amp, "has_recorder", False):
+        raise AfmctlError(f"amplifier.driver = '{amp.name}' has no data recorder this driver reads: record the motion "
+                          "with an external sensor (afmctl excite, then afmctl identify --data)")
+    last: Exception | None = None
+    for sig in SIGNAL_SETS:
+        try:
+            amp.recorder_capacity([axis], sig)
+            return sig
+        except AmplifierError as err:
+            last = err
+    raise AfmctlError(f"afmctl calibrate: the {amp.name} records no position of axis {axis}: {last}")
+
+
+def readback_rows(amp: Any, signals: tuple[str, ...]) -> int | None:
+    """The most rows a piece may have so that reading it back takes at most
+    :data:`UNCANCELLED_READBACK_S` of wire time, for a device whose read-back cannot be
+    cancelled mid-way (the NV200: its wave hands the output back by reading the recorder,
+    ``recoutf`` of every point, at 115200 baud even behind an Ethernet adapter — a stop
+    waits for it); None for the others (GCS reads in cancellable chunks, CAN frame by frame)."""
+    if getattr(amp, "name", "") != "nv200":
+        return None
+    transport = getattr(amp, "transport", None)
+    baud = getattr(transport, "baudrate", 0) if not str(getattr(transport, "url", "")).startswith("socket://") else 0
+    bytes_per_s = (baud if baud > 0 else NV200_UART_BAUD) / 10.0
+    return max(1, int(UNCANCELLED_READBACK_S * bytes_per_s / (NV200_BYTES_PER_VALUE * len(signals))))
+
+
+def streams(amp: Any) -> bool:
+    """Whether ``amp`` plays a table by streaming it into a FIFO (CAN) rather than from a
+    wave table on the device (GCS, NV200)."""
+    return table_capacity(amp, ["x"] if "x" in amp.axes else list(amp.axes)[:1]) is None
+
+
+def device_capacity(amp: Any, axis: str, signals: tuple[str, ...]) -> int:
+    """The most rows one piece may have on ``amp`` for ``axis``: its recorder's points per
+    signal, and its wave table's size (a wave generator); a streamed table
+    (:func:`streams`) leaves :data:`STREAM_SLACK` of the recorder for the holds of a FIFO
+    that runs empty."""
+    rec = int(amp.recorder_capacity([axis], signals))
+    table = table_capacity(amp, [axis])
+    if table is None:
+        return max(1, int(rec * (1.0 - STREAM_SLACK)))
+    return min(rec, table)
+
+
+@dataclass
+class Progress:
+    """Where a calibration is: ``what`` (``excite x``, ``validate x``), piece ``k`` of
+    ``n``, seconds of excitation to go ``left_s``."""
+
+    what: str
+    k: int
+    n: int
+    left_s: float
+
+
+class CalibrationRun:
+    """Plays tables on one open amplifier and records them (module docstring).
+    ``config``: a run configuration (``output = "wave"``); ``on_progress``: called before
+    each piece."""
+
+    def __init__(self, config: Any, amp: Any, on_progress: Callable[[Progress], None] | None = None,
+                 record_timeout_s: float = 30.0) -> None:
+        if config.amplifier.output != "wave":
+            raise AfmctlError("amplifier.output: afmctl calibrate plays the excitation on the amplifier's clock; "
+                              "set output = 'wave'")
+        self.config = fifo_margins(calibration_config(config), amp)
+        self.amp = amp
+        self.on_progress = on_progress
+        self.record_timeout_s = record_timeout_s
+        self.axes = [a for a in config.scanner.axes if a in amp.axes]
+        self.hold_V = {a: config.safety.safe_value(a) for a in self.axes}
+        #: every piece recorded so far, per what was played (``excite x`` ...)
+        self.pieces: dict[str, list[PieceRecord]] = {}
+        self._stop = threading.Event()
+        self._ctl: Controller | None = None
+        self._first = True
+        self._axis_configs: dict[str, Any] = {}
+
+    @property
+    def dt_s(self) -> float:
+        return float(self.config.dt_s)
+
+    def play(self, what: str, axis: str, signals: tuple[str, ...], tables: list[np.ndarray],
+             starts: list[int], left_s: Callable[[int], float]) -> list[PieceRecord]:
+        """Play ``tables`` (voltages of ``axis`` [V], one piece each) in turn, recording
+        ``signals``; the other axes hold :attr:`hold_V` (ramped there before the first
+        piece; only ``axis``'s table is uploaded). Raises :class:`CalibrationStopped` on a
+        stop, :class:`CalibrationFault` on a lost link."""
+        got = self.pieces.setdefault(what, [])
+        if self._first and not self._stop.is_set():
+            self._to_safe()
+        for k, (u, start) in enumerate(zip(tables, starts)):
+            if self._stop.is_set():
+                raise CalibrationStopped("afmctl calibrate: stopped")
+            if self.on_progress is not None:
+                self.on_progress(Progress(what, k, len(tables), left_s(k)))
+            got.append(self._piece(axis, signals, u, start))
+        return got
+
+    def _rows(self, axis: str, u: np.ndarray) -> np.ndarray:
+        rows = np.zeros((len(u), 3))
+        for a in self.axes:
+            rows[:, "xyz".index(a)] = self.hold_V[a]
+        rows[:, "xyz".index(axis)] = u
+        return rows
+
+    def _axis_config(self, axis: str) -> Any:
+        """The calibration's configuration driving ``axis`` alone (its table is the only one
+        uploaded and played; the other outputs hold)."""
+        if axis not in self._axis_configs:
+            cfg = self.config.model_copy(deep=True)
+            cfg.scanner.axes = [axis]
+            self._axis_configs[axis] = cfg
+        return self._axis_configs[axis]
+
+    def _to_safe(self) -> None:
+        """Every driven axis to its safe value before anything plays (a lost link here is a
+        fault as during a piece)."""
+        from afmctl.drivers.errors import AmplifierConnectionError, AmplifierTimeout
+        try:
+            for note in return_to_safe(self.config, self.amp):
+                log.info("before the calibration: %s", note)
+        except (AmplifierTimeout, AmplifierConnectionError) as err:
+            raise CalibrationFault(f"afmctl calibrate: the link failed before the first piece: {err}") from None
+
+    def _piece(self, axis: str, signals: tuple[str, ...], u: np.ndarray, start: int) -> PieceRecord:
+        """One table played and recorded (module docstring)."""
+        n = len(u)
+        table = WaveTable(np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3)), self._rows(axis, u),
+                          np.full(n, float(self.config.compensation.temperature.T_C)), 0)
+        settle = float(self.config.amplifier.settle_s) if self._first else 0.0
+        armed: list[Any] = []
+        ctl = Controller(self._axis_config(axis), self.amp)
+        ctl.before_wave_start = lambda: armed.append(self._arm(axis, signals, n))
+        self._ctl = ctl
+        try:
+            ctl.start(TableSource(table, settle, f"calibration piece at sample {start}"))
+            if self._stop.is_set():
+                ctl.stop()
+            while not ctl.wait(0.05):
+                pass
+            stats = ctl.stats()
+        finally:
+            ctl.close()
+            self._ctl = None
+        self._first = False
+        played = int((stats.get("wave") or {}).get("played", 0))
+        if ctl.trajectory_error is not None:
+            raise AfmctlError(f"afmctl calibrate: the table cannot be played: {ctl.trajectory_error}")
+        if ctl.state is not State.STOPPED:
+            raise CalibrationFault(f"afmctl calibrate: the link failed during the play ({ctl.state.value}: "
+                                   f"{stats.get('last_error') or 'see the log'})")
+        if played != n or not armed:
+            raise CalibrationStopped(f"afmctl calibrate: stopped during a piece ({played} of {n} samples played)")
+        return self._read(axis, table, start, float(ctl.wave_times.get("start", time.monotonic())))
+
+    def _arm(self, axis: str, signals: tuple[str, ...], points: int) -> Any:
+        clock = self.amp.recorder_clock_s()
+        divider = max(1, round(self.dt_s / clock))
+        if abs(divider * clock - self.dt_s) > 1e-9 * self.dt_s + 1e-12:
+            raise AfmctlError(f"loop.rate_Hz: {self.config.loop.rate_Hz:g} Hz is not a whole number of the "
+                              f"recorder's {clock:g} s ticks")
+        if streams(self.amp):      # room for the holds of a FIFO that runs empty (STREAM_SLACK)
+            points = max(points, min(int(self.amp.recorder_capacity([axis], signals)),
+                                     int(points / (1.0 - STREAM_SLACK)) + 1))
+        return self.amp.configure_recorder([axis], points=points, divider=divider, signals=signals)
+
+    def _read(self, axis: str, table: WaveTable, start: int, t_start: float) -> PieceRecord:
+        from afmctl.drivers.errors import AmplifierConnectionError, AmplifierTimeout, RecordingCancelled
+        from afmctl.drivers.recording import RecordingMismatch, align_to_table
+        u = table.u_V[:, "xyz".index(axis)]
+        try:
+            rec = self.amp.read_recording(timeout_s=self.record_timeout_s, cancel=self._stop.is_set)
+        except RecordingCancelled:
+            raise CalibrationStopped("afmctl calibrate: stopped while the recording was read back") from None
+        except (AmplifierTimeout, AmplifierConnectionError) as err:
+            raise CalibrationFault(f"afmctl calibrate: reading the recording failed: {err}") from None
+        if streams(self.amp) and axis in rec.u_V:
+            return self._streamed(axis, rec, u, start, t_start)
+        try:
+            rec = align_to_table(rec, {axis: u.tolist()}, tol_V=OUTPUT_TOL_V)
+        except RecordingMismatch as err:
+            raise CalibrationFault(f"afmctl calibrate: {err}") from None
+        v = rec.v_V.get(axis)
+        return PieceRecord(start, u.copy(), np.asarray(rec.y_nm[axis], dtype=float),
+                           None if v is None else np.asarray(v, dtype=float), t_start)
+
+    def _streamed(self, axis: str, rec: Any, u: np.ndarray, start: int, t_start: float) -> PieceRecord:
+        """A streamed piece: the output the recorder saw (the table with the holds of a FIFO
+        that ran empty: what the scanner was driven with) up to the table's last row."""
+        played = np.asarray(rec.u_V[axis], dtype=float)
+        try:
+            n = follow_table(played, u, OUTPUT_TOL_V)
+        except ValueError as err:
+            raise CalibrationFault(f"afmctl calibrate: axis {axis}: {err}") from None
+        if n > len(u):
+            log.info("axis %s: the stream held the output for %d ticks of a %d-row piece", axis, n - len(u), len(u))
+        v = rec.v_V.get(axis)
+        return PieceRecord(start, played[:n].copy(), np.asarray(rec.y_nm[axis][:n], dtype=float),
+                           None if v is None else np.asarray(v[:n], dtype=float), t_start)
+
+    # ------------------------------------------------------------------ requests
+    def stop(self) -> None:
+        """End the calibration: the piece playing stops at once (the output holds), then
+        :meth:`finish` ramps to the safe value."""
+        self._stop.set()
+        ctl = self._ctl
+        if ctl is not None:
+            ctl.stop()
+
+    @property
+    def stopped(self) -> bool:
+        return self._stop.is_set()
+
+    def finish(self) -> list[str]:
+        """Stop anything the device still plays and ramp every driven axis to its safe value
+        (:func:`return_to_safe`); one line per thing done."""
+        return return_to_safe(self.config, self.amp)
+
+
+def return_to_safe(config: Any, amp: Any, timeout_s: float = RETURN_TIMEOUT_S) -> list[str]:
+    """Stop what ``amp`` plays on its own clock (wave generator, FIFO), read the output back
+    and ramp every driven axis of ``config`` to ``safety.safe_V`` at ``safety.ramp_V_per_s``
+    within the limits and the slew limit."""
+    axes = [a for a in config.scanner.axes if a in amp.axes]
+    dt = max(float(config.dt_s), 0.002)
+    safety = SafetyLayer(amp, axes, {a: config.limits(a) for a in axes}, config.slew_V_per_s(), dt,
+                         {a: config.safety.safe_value(a) for a in axes})
+    notes = safety.stop_leftover_playback()
+    notes += safety.sync_from_device()
+    target = [config.safety.safe_value(a) for a in axes]
+    deadline = time.monotonic() + timeout_s
+    while not safety.ramp_step(target, config.safety.ramp_V_per_s):
+        if time.monotonic() > deadline:
+            notes.append(f"the return to the safe value did not arrive within {timeout_s:g} s")
+            break
+        time.sleep(dt)
+    amp.flush()
+    notes.append("the output ramped to the safe value")
+    return notes
