@@ -259,11 +259,13 @@ class ChainModel(HysteresisModel):
         dt = float(np.median(np.diff(t)))
         td, ud, _, k0d, dtd = record_for_static(t, u, y, k0, dt, hyst_kind)
         fit = _StageFit(td, ud, k0d)
+        caller = dict(options)                 # a mask of the caller's own is kept as it is
         options = {**_without_transients(hyst_kind, options, u, dt), **options}
         rows = hyst_kind in FULL_RATE_KINDS
         if left_out is not None and rows:
             options["exclude"] = _also_left_out(options, left_out)
-        fast = _fast_parts_to_leave_out(t, u, k0) if rows else None
+        fast = (_fast_parts_to_leave_out(t, u, k0)
+                if rows and "dynamics" in stages and "exclude" not in caller else None)
         if fast is not None:
             options["exclude"] = _also_left_out(options, fast)
         n_rounds, with_creep = max(1, int(rounds)), "creep" in stages
@@ -481,9 +483,11 @@ SLOW_COVERAGE = 0.95
 
 def _fast_parts_to_leave_out(t: np.ndarray, u: np.ndarray, k0: int) -> np.ndarray | None:
     """One boolean per sample, True in the record's fast parts
-    (:func:`~.dynamics_identify.fast_parts`: input content above ~10 Hz), when the rest of
+    (:func:`~.dynamics_identify.fast_parts`: input content above ~10 Hz), for the static
+    stages of a chain with a dynamics stage (which is fitted on them), when the rest of
     the record after the burn-in ``k0`` still covers :data:`SLOW_COVERAGE` of the input's
-    range; None otherwise (a record of fast parts only keeps them). A lag before or after
+    range; None otherwise (a record of fast parts only keeps them; a caller's own
+    ``exclude`` mask is used as given). A lag before or after
     the hysteresis turns fast triangles into wider loops, which a static fit takes for
     hysteresis: on the lumpy-Preisach reference scanner (a 260 Hz amplifier) recorded the
     way a lab does, without the piezo voltage, the Preisach stage fitted on the whole record
