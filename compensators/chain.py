@@ -493,16 +493,14 @@ def _fast_parts_to_leave_out(t: np.ndarray, u: np.ndarray, k0: int) -> np.ndarra
     way a lab does, without the piezo voltage, the Preisach stage fitted on the whole record
     left 2.97 % max at 1 line/s, fitted on its slow part 0.55 %. The fast parts are what the
     dynamics stage is fitted on."""
-    from .dynamics_identify import fast_parts
+    from .dynamics_identify import fast_parts, is_uniform, parts_mask
 
-    if t.size < 2 or float(np.max(np.diff(t)) - np.min(np.diff(t))) > 1e-3 * float(np.median(np.diff(t))):
+    if not is_uniform(t):
         return None
     parts = fast_parts(u, t)
     if not parts:
         return None
-    mask = np.zeros(u.size, dtype=bool)
-    for a, b in parts:
-        mask[a:b] = True
+    mask = parts_mask(u.size, parts)
     slow = u[k0:][~mask[k0:]]
     span = float(np.ptp(u[k0:]))
     if slow.size < 1000 or span <= 0 or float(np.ptp(slow)) < SLOW_COVERAGE * span:

@@ -93,6 +93,24 @@ def uniform_dt(t_s: np.ndarray) -> float:
     return dt
 
 
+def is_uniform(t_s: np.ndarray) -> bool:
+    """Whether ``t_s`` [s] is strictly increasing and uniformly sampled (:func:`uniform_dt`)."""
+    try:
+        uniform_dt(t_s)
+    except ModelError:
+        return False
+    return True
+
+
+def parts_mask(n: int, parts: list[tuple[int, int]], margin: int = 0) -> np.ndarray:
+    """One boolean per sample of a record of ``n``: True inside each ``(start, stop)`` of
+    ``parts`` and up to ``margin`` samples after it."""
+    mask = np.zeros(n, dtype=bool)
+    for a, b in parts:
+        mask[a:min(n, b + margin)] = True
+    return mask
+
+
 #: ``segment`` values of :func:`fit_dynamics`
 SEGMENTS: tuple[str, ...] = ("auto", "small-signal", "all")
 

@@ -129,6 +129,7 @@ def run_device(args: argparse.Namespace) -> int:
     from ..config import load_config
     from ..control.learn_run import LearnOptions, LearnRun, settle_advice
     from ..control.learned_table import save_learned
+    from ..simulation.link import configured_amplifier
     from .run import _install_signals
     _check_args(args)
     config = load_config(args.config)
@@ -139,7 +140,7 @@ def run_device(args: argparse.Namespace) -> int:
     options = LearnOptions(iterations=args.iterations, noise_floor_pct=args.noise_floor_pct, settings=settings,
                            use_model=not args.model_free, history_term=not args.no_history_term)
     with contextlib.ExitStack() as stack:
-        amp = _open_amplifier(stack, config)
+        amp = configured_amplifier(stack, config)
         publish = _publisher(stack, config)
 
         def on_iteration(report: Any) -> None:
@@ -158,17 +159,6 @@ def run_device(args: argparse.Namespace) -> int:
     print(f"afmctl: learned table {args.learned_out}: best iteration {best.iteration}, central error "
           f"{best.metric_pct:.3f} % of the line; play it with [trajectory] kind = \"learned\"", file=sys.stderr)
     return 1 if run.reports[-1].state == "fault" else 0
-
-
-def _open_amplifier(stack: contextlib.ExitStack, config: Any) -> Any:
-    if config.simulation.enabled:
-        from ..simulation.link import simulated_amplifier
-        amp, _scanner = stack.enter_context(simulated_amplifier(config))
-        return amp
-    from ..control.hardware import open_driver
-    amp = open_driver(config, config.amplifier.port)
-    stack.callback(amp.close)
-    return amp
 
 
 def _publisher(stack: contextlib.ExitStack, config: Any) -> Any:
