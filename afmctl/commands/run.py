@@ -254,6 +254,8 @@ def run(args: argparse.Namespace) -> int:
     from ..control import cpu_pinning
     from ..config import load_config
     from ..control.controller import Controller
+    from ..control.rate_check import mode_warnings
+    from ..simulation.link import load_scanner_config
     from ..errors import AfmctlError
 
     _check_seconds(args.seconds)
@@ -297,6 +299,9 @@ def run(args: argparse.Namespace) -> int:
         ctl.start(config.trajectory, runlog_path=args.log)
         # always, --quiet included: which axes are compensated, by which model, from which file
         print(f"afmctl: compensation {ctl.pipeline.describe()}", file=sys.stderr)
+        simulated = load_scanner_config(config.simulation.scanner) if config.simulation.enabled else None
+        for line in mode_warnings(config, list(getattr(ctl.pipeline, "models", [])), simulated):
+            print(f"afmctl: warning: {line}", file=sys.stderr)
         if config.amplifier.output == "wave":
             print("afmctl: wave: the whole trajectory is computed before it plays (as `afmctl compensate` "
                   "does) and played on the amplifier's clock; the output does not lag it", file=sys.stderr)
