@@ -22,7 +22,11 @@ Printed: the errors in % of the target range over the samples that track the tra
 (ramps left out), and the tracking error per axis in nm and in % of that axis's line (the
 fast axis of a raster) or step (its slow axis: the move per line) over the central 80 % of
 each line, or in % of the axis's range over the whole record when the target is no raster
-(as `afmctl run` prints it for a run on the simulator).
+(as `afmctl run` prints it for a run on the simulator). The replay holds each logged voltage
+for one loop period from rest: for a device-timed run (output = "wave") the host's approach
+ramp and settle hold took longer than their rows' loop periods, and the replay reads the
+tip at the end of each period where a recorder reads it as the next sample starts, so there
+the figure `afmctl run` measured with the device's recorder is the one to go by.
 
 A log torn by a crash is read up to the last intact chunk.
 """

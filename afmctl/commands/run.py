@@ -136,7 +136,7 @@ def _summary(ctl, config, scanner, recorder=None) -> dict:
         if end > start:
             out["tracking"] = replayed_tracking(config, sp, (start, end)) if scanner is not None else {}
             if recorder is not None:
-                measured = recorder.errors(sp, (sp["seq"] >= start) & (sp["seq"] < end))
+                measured = recorder.errors()
                 out["tracking"]["recorded"] = measured.as_dict() if measured is not None else None
                 out["tracking"]["recorded_why_not"] = recorder.why_not
     return out
@@ -248,8 +248,8 @@ def _print_summary(summary: dict) -> None:
     if summary.get("stream"):
         st = summary["stream"]
         print(f"stream            {st['queued']} samples queued; device underruns {st['underruns']}, lowest FIFO "
-              f"level {st['lowest_level']} samples (marks {st['low_water']}..{st['high_water']}); lateness above "
-              "= the producer's wake-ups")
+              f"level {st['lowest_level']} samples (marks {st['low_water']}..{st['high_water']}); the host's lateness "
+              "is the producer's wake-ups")
     if summary.get("wave"):
         w = summary["wave"]
         print(f"wave              {w['played']} of {w['samples']} table samples played on the {w['player']}"
