@@ -136,3 +136,15 @@ def test_sim_wave_gcs_example(tmp_path, monkeypatch, capsys):
     assert rc == 0 and s["state"] == "stopped" and s["errors"] == 0, s
     assert s["output"] == "wave" and s["wave"]["played"] == s["wave"]["samples"] >= 10 / 50.0 * 20000
     assert "wave generator" in s["wave"]["player"] and s["slew_limited"] == 0
+    # the device's recorder measured the play: per axis, over the lines' central part, in nm and %
+    rec = s["tracking"]["recorded"]
+    assert rec["part"] == "the central 80 % of each of the 20 lines (x is the fast axis)", s["tracking"]
+    x, y = rec["axes"]["x"], rec["axes"]["y"]
+    assert (x["reference"], y["reference"]) == ("line", "step") and "z" not in rec["axes"]     # z holds
+    assert 5.0 < x["max_pct"] < 60.0 and x["max_nm"] == pytest.approx(x["max_pct"] * 40.0)    # no model: ~23 %
+    # the summary as printed: device-timed, so no missed deadlines; per-axis figures named
+    from afmctl.commands.run import _print_summary
+    _print_summary(s)
+    out = capsys.readouterr().out
+    assert "device-timed" in out and "missed deadlines" not in out
+    assert "measured by the device's recorder" in out and "of its 4000 nm line" in out

@@ -189,6 +189,8 @@ class Controller:
         #: device was told to start ("start"), when the host saw the table end ("end") and
         #: when the finish ended ("finished")
         self.wave_times: dict[str, float] = {}
+        #: output = "wave": the table planned for the present run (set before the upload)
+        self.wave_table: Any = None
         self._drift_meas: collections.deque = collections.deque()
         self._ring = np.zeros((_RING, N_COLS))
         self._hist = loop_stats.new_histogram()
