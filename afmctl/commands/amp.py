@@ -71,8 +71,8 @@ connect, narrowed by --limit) and every step against --max-step (default
 each row to the next. A refusal names the row, what it measured and the fix.
 
 A serial line sets the pace: at 115200 baud an MDT693B carries about 770 one-axis
-setpoints/s, so 3000 rows at 1 ms (3.00 s) take about 3.9 s, and the command warns;
---rate 700 keeps a steady rate instead. Over TCP (socket://) no baud rate applies.
+setpoints/s, so 3000 rows at 1 ms (3.00 s) take about 3.9 s (longer on a busy host), and
+the command warns, naming a --rate the link kept. Over TCP (socket://) no baud rate applies.
 
 Example (after afmctl amp ... set x=10; volts.csv starts at 21.6 V):
   afmctl amp --driver mdt693b --port /dev/pts/3 stream --file volts.csv --axis x --max-step 15
