@@ -194,6 +194,8 @@ class Controller:
         self._hist = loop_stats.new_histogram()
         self._whist = loop_stats.new_histogram()
         self._missed_log: collections.deque = collections.deque(maxlen=32)
+        #: run time [s] (ticks × period) of the watchdog's latest trips (:meth:`watchdog_report`)
+        self._watchdog_log: collections.deque = collections.deque(maxlen=4)
         self._reset_stats()
         self._T_C = float(config.compensation.temperature.T_C)
         self._T_file: tuple[np.ndarray, np.ndarray] | None = None
@@ -238,6 +240,28 @@ class Controller:
     def running(self) -> bool:
         """True while the loop thread (or its dispatcher) is alive."""
         return any(t is not None and t.is_alive() for t in (self._thread, self._dispatcher))
+
+    @property
+    def queue_running(self) -> bool:
+        """True while a queue-mode run (run-time segments: ``start(None)`` or
+        ``trajectory.kind = "queue"``) runs and has not been asked to stop: segments are
+        played as they arrive, and another start has nothing to do."""
+        return self.running and self._queue_mode and self._request is None
+
+    def watchdog_report(self) -> str | None:
+        """Why the watchdog tripped during the last run, one line for a summary (when, what
+        it saw, what it did); None when it did not trip."""
+        n = self._watchdog_trips
+        if not n:
+            return None
+        sa = self.config.safety
+        times = ", ".join(f"{t:.3f}" for t in self._watchdog_log)
+        when = f"at {times} s" if n <= len(self._watchdog_log) else f"the last at {times} s"
+        why = ("the queue ran empty (queue mode plays each segment as it arrives and waits for the next)"
+               if self._queue_mode else "the trajectory source fell behind the loop")
+        action = "held the output" if sa.on_stall == "hold" else "ramped the output to the safe value"
+        return (f"{n} trip{'' if n == 1 else 's'} ({when}): no trajectory sample for safety.watchdog_s = "
+                f"{sa.watchdog_s:g} s, {why}; the loop {action} (safety.on_stall) until the next sample")
 
     def add_sink(self, sink: Any) -> None:
         """Register an object with ``on_setpoints``/``on_drift``/``on_status`` (any subset)."""
@@ -459,6 +483,7 @@ class Controller:
         self._hist[:] = 0
         self._whist[:] = 0
         self._missed_log.clear()
+        self._watchdog_log.clear()
         self._late_max = 0.0
         self._missed = self._overruns = self._dropped = 0
         self._errors = self._faults = self._reconnects = self._watchdog_trips = 0

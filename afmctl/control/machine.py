@@ -459,6 +459,7 @@ class LoopMachine:
             if ctl._state is not State.HOLDING:
                 self.fsm.fire(Event.STALL)
                 ctl._watchdog_trips += 1
+                ctl._watchdog_log.append(ctl._tick * ctl.dt_s)
                 ctl._set_state(State.HOLDING, "watchdog",
                                f"no trajectory sample for {self.watchdog.since(now):.3f} s")
             self._stall_action()
