@@ -393,8 +393,8 @@ def fit_frf(frf: FRF, n_modes: int, n_lags: int, dt_s: float,
             grow_from: np.ndarray | None = None) -> tuple[np.ndarray, float]:
     """Least-squares fit of the structure to ``frf``; returns the best parameter vector and
     its RMS complex log error (≈ relative error). Started from a few lags and the response's
-    peaks, or (``grow_from``: the parameters of the fit with one mode less) from that fit
-    with one mode added (:func:`grown_starts`). A best start that spends :data:`MAX_NFEV`
+    peaks, and (``grow_from``: the parameters of the fit with one mode less) from that fit
+    with one mode added (:func:`grown_starts`); the best end wins. A best start that spends :data:`MAX_NFEV`
     evaluations is continued once; one that still has not converged is recorded in
     ``frf.unconverged_modes``."""
     from scipy.optimize import least_squares
@@ -407,11 +407,10 @@ def fit_frf(frf: FRF, n_modes: int, n_lags: int, dt_s: float,
 
     f_hi = float(frf.f_Hz[-1])
     _, lb, ub = _initial(frf, n_modes, n_lags, f_hi, dt_s)
+    starts = [_initial(frf, n_modes, n_lags, lag_Hz, dt_s)[0]
+              for lag_Hz in ([0.3 * f_hi, f_hi, 3 * f_hi] if n_lags else [f_hi])]
     if grow_from is not None:
-        starts = grown_starts(grow_from, frf, n_modes - 1, n_lags)
-    else:
-        starts = [_initial(frf, n_modes, n_lags, lag_Hz, dt_s)[0]
-                  for lag_Hz in ([0.3 * f_hi, f_hi, 3 * f_hi] if n_lags else [f_hi])]
+        starts = grown_starts(grow_from, frf, n_modes - 1, n_lags) + starts
     best = None
     for x0 in starts:
         x0 = np.clip(x0, lb + 1e-12, ub - 1e-12)

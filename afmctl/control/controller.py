@@ -83,6 +83,7 @@ from .safety import SafetyLayer
 log = logging.getLogger(__name__)
 
 _RING = RING_ROWS
+XYZ_AXES = ("x", "y", "z")
 #: drift measurements waiting for the loop thread (more are refused)
 MAX_PENDING_DRIFT_MEASUREMENTS = 64
 _END = END_OF_TRAJECTORY
@@ -393,9 +394,16 @@ class Controller:
         self.runlog_path = Path(runlog_path)
 
     def _warm_up(self) -> None:
-        """Run the chain once off the loop thread (compiles/loads numba kernels), then reset."""
+        """Run the chain once off the loop thread (compiles/loads numba kernels), then reset;
+        at the middle of each axis's voltage range by the linear calibration (a target the
+        models reach: at 0 nm a Preisach model whose 0 V gives 85 nm warned of a clamp for a
+        sample that is never sent)."""
+        mid = [0.0, 0.0, 0.0]
+        for i, k in enumerate(self.safety.index):
+            cal = self.config.scanner.axis_spec(XYZ_AXES[k])
+            mid[k] = cal.nm_per_V * (0.5 * (self.safety.lo[i] + self.safety.hi[i]) - cal.offset_V)
         try:
-            self.pipeline.step(0.0, 0.0, 0.0, self._T_C, (0.0, 0.0, 0.0))
+            self.pipeline.step(mid[0], mid[1], mid[2], self._T_C, (0.0, 0.0, 0.0))
         except Exception as err:  # a model that cannot take 0 nm still works from its range
             log.debug("warm-up step failed: %s", err)
         self.pipeline.reset()
