@@ -125,7 +125,8 @@ def _summary(ctl, config, scanner, recorder=None) -> dict:
            "latency_samples": st["latency_samples"], "latency_s": st["latency_s"],
            "output": st["output"], "stream": st["stream"], "wave": st["wave"],
            "runlog": str(ctl.runlog_path) if ctl.runlog_path else None,
-           "runlog_error": ctl.runlog_error, "trajectory_error": ctl.trajectory_error}
+           "runlog_error": ctl.runlog_error, "trajectory_error": ctl.trajectory_error,
+           "watchdog": ctl.watchdog_report()}
     if (scanner is not None or recorder is not None) and ctl.runlog_path is not None and ctl.runlog_error is None:
         reader = RunLogReader(ctl.runlog_path)
         ev = reader.events()
@@ -244,6 +245,8 @@ def _print_summary(summary: dict) -> None:
         print(f"missed deadlines  {summary['missed_deadlines']} (> half a period late); overruns {summary['overruns']}")
     print(f"errors            {summary['errors']} (faults {summary['faults']}, reconnects {summary['reconnects']}, "
           f"watchdog trips {summary['watchdog_trips']})")
+    if summary.get("watchdog"):
+        print(f"watchdog          {summary['watchdog']}")
     print(f"safety            slew-limited {summary['slew_limited']} samples, clamped {summary['clamped']}")
     if summary.get("stream"):
         st = summary["stream"]
