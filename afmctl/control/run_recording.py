@@ -17,16 +17,12 @@ from typing import Any
 
 import numpy as np
 
-from ..data.axis_errors import ErrorReport, axis_errors
+from ..data.axis_errors import MIN_SPAN_NM, ErrorReport
 
 log = logging.getLogger(__name__)
 
 #: recorded output voltages must equal the table within this [V] (the devices' resolution)
 OUTPUT_TOL_V = 0.01
-
-
-#: an axis whose target moves less than this [nm] peak to peak is not recorded (it holds)
-MIN_SPAN_NM = 1.0
 
 
 class RunRecorder:
@@ -68,6 +64,8 @@ class RunRecorder:
         """The per-axis errors of the recorded motion against the table's target, or None
         (``why_not``) when the table did not play to its end or the recording is unusable."""
         from afmctl.drivers.recording import align_to_table
+
+        from .learn_run import judged_errors
         table = self.ctl.wave_table
         if self.setup is None:
             self.why_not = self.why_not or "the table did not start"
@@ -82,9 +80,5 @@ class RunRecorder:
         except Exception as err:  # noqa: BLE001 - a mismatch, a timeout, a link fault: a summary, never a crash
             self.why_not = f"the recording was not usable: {str(err).removesuffix('; not learned from')}"
             return None
-        target = np.asarray(table.target_nm, dtype=float)
-        pos = target.copy()
-        axes = [a for a in self.axes if a in rec.y_nm]
-        for a in axes:
-            pos[:, "xyz".index(a)] = np.asarray(rec.y_nm[a], dtype=float)
-        return axis_errors(target, pos, "".join(a for a in "xyz" if a in axes))
+        return judged_errors(table.target_nm, {a: np.asarray(rec.y_nm[a], dtype=float)
+                                               for a in self.axes if a in rec.y_nm})

@@ -65,16 +65,13 @@ def simulated_amplifier(config) -> Iterator[tuple[Any, Any]]:
                 raise AfmctlError(f"simulation.device: {err} (simulated {driver})") from None
             port = server.port
         from ..control.hardware import open_driver
-        if driver == "can" and "timeout_s" not in config.amplifier.options:
-            # the simulated amplifier answers from a thread of this process: under load the
-            # loop's thread holds the interpreter for longer than a device on a wire would
-            # take to answer (0.5 s, the driver's default, went by at a 2 kHz loop)
-            config = config.model_copy(update={"amplifier": config.amplifier.model_copy(
-                update={"options": {**config.amplifier.options, "timeout_s": SIMULATED_CAN_TIMEOUT_S}})})
-        if driver != "can" and "baudrate" not in config.amplifier.options:
-            # the driver paces its writes to the simulated link's rate, as to a real port's
-            config = config.model_copy(update={"amplifier": config.amplifier.model_copy(
-                update={"options": {**config.amplifier.options, "baudrate": config.simulation.baud}})})
+        # the simulated amplifier answers from a thread of this process: under load the loop's
+        # thread holds the interpreter for longer than a device on a wire would take to answer
+        # (0.5 s, the driver's default, went by at a 2 kHz loop); a serial driver paces its
+        # writes to the simulated link's rate, as to a real port's
+        default = {"timeout_s": SIMULATED_CAN_TIMEOUT_S} if driver == "can" else {"baudrate": config.simulation.baud}
+        config = config.model_copy(update={"amplifier": config.amplifier.model_copy(
+            update={"options": {**default, **config.amplifier.options}})})
         amp = open_driver(config, port)
         stack.callback(amp.close)
         yield amp, scanner
@@ -122,19 +119,24 @@ def tracking_error(config, setpoints: np.ndarray, seq_range: tuple[int, int] | N
     Each voltage is held for one loop period, simulated at the scanner's own time step
     (so the ringing of its resonance after each step is in the result), and the position
     is compared at the end of the period — what a sensor sampled at the loop rate reads.
-    Returns max and RMS absolute error per axis over ``seq_range`` (default: all)."""
+    Returns max and RMS absolute error per axis over ``seq_range`` (default: all), and
+    ``judged``: per axis in nm and % of its line or step over the central part of a
+    raster's lines (:func:`afmctl.data.axis_errors.axis_errors`)."""
+    from afmctl.data.axis_errors import axis_errors
     if len(setpoints) == 0:
         return {}
-    err = replay_positions_nm(config, setpoints) - setpoints["target_nm"]
+    pos, tgt = replay_positions_nm(config, setpoints), setpoints["target_nm"]
     if seq_range is not None:
         sel = (setpoints["seq"] >= seq_range[0]) & (setpoints["seq"] < seq_range[1])
-        err = err[sel]
-    if len(err) == 0:
+        pos, tgt = pos[sel], tgt[sel]
+    if len(tgt) == 0:
         return {}
+    err = pos - tgt
     axes = list(config.scanner.axes)
     idx = ["xyz".index(a) for a in axes]
     return {"axes": axes, "max_abs_nm": [float(np.abs(err[:, i]).max()) for i in idx],
-            "rms_nm": [float(np.sqrt(np.mean(err[:, i] ** 2))) for i in idx]}
+            "rms_nm": [float(np.sqrt(np.mean(err[:, i] ** 2))) for i in idx],
+            "judged": axis_errors(tgt, pos, "".join(a for a in "xyz" if a in axes)).as_dict()}
 
 
 def replay_positions_nm(config, setpoints: np.ndarray) -> np.ndarray:
