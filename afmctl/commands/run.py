@@ -115,7 +115,6 @@ def link_warning(config) -> str | None:
 
 def _summary(ctl, config, scanner, recorder=None) -> dict:
     from ..control.runlog import RunLogReader
-    from ..simulation.link import tracking_error
     st = ctl.stats()
     out = {"state": st["state"], "samples": st["samples"], "ticks": st["ticks"], "rate_Hz": st["rate_Hz"],
            "lateness_p50_s": st["lateness_p50_s"], "lateness_p99_s": st["lateness_p99_s"],
@@ -136,12 +135,32 @@ def _summary(ctl, config, scanner, recorder=None) -> dict:
         ends = [e["seq"] for e in ev if e.get("event") in ("end", "stop", "estop")]
         end = min(ends) if ends else len(sp)
         if end > start:
-            out["tracking"] = tracking_error(config, sp, (start, end)) if scanner is not None else {}
+            out["tracking"] = replayed_tracking(config, sp, (start, end)) if scanner is not None else {}
             if recorder is not None:
                 measured = recorder.errors()
                 out["tracking"]["recorded"] = measured.as_dict() if measured is not None else None
                 out["tracking"]["recorded_why_not"] = recorder.why_not
     return out
+
+
+def replayed_tracking(config, setpoints, seq_range: tuple[int, int]) -> dict:
+    """The tracking error of a simulated run: the voltages sent replayed through a fresh
+    simulated scanner (:func:`afmctl.simulation.link.replay_positions_nm`), over the setpoints
+    of ``seq_range`` (those that track the trajectory). ``axes``, ``max_abs_nm``, ``rms_nm``
+    over all of them, and ``judged``: per axis in nm and % of its line or step over the
+    central part of a raster's lines (:func:`afmctl.data.axis_errors.axis_errors`)."""
+    import numpy as np
+
+    from ..data.axis_errors import axis_errors
+    from ..simulation.link import replay_positions_nm
+    sel = (setpoints["seq"] >= seq_range[0]) & (setpoints["seq"] < seq_range[1])
+    pos, tgt = replay_positions_nm(config, setpoints)[sel], setpoints["target_nm"][sel]
+    axes = [a for a in "xyz" if a in config.scanner.axes]
+    idx = ["xyz".index(a) for a in axes]
+    err = pos - tgt
+    return {"axes": axes, "max_abs_nm": [float(np.abs(err[:, i]).max()) for i in idx],
+            "rms_nm": [float(np.sqrt(np.mean(err[:, i] ** 2))) for i in idx],
+            "judged": axis_errors(tgt, pos, "".join(axes)).as_dict()}
 
 
 def _check_seconds(seconds: float | None) -> None:

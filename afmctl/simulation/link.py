@@ -119,24 +119,19 @@ def tracking_error(config, setpoints: np.ndarray, seq_range: tuple[int, int] | N
     Each voltage is held for one loop period, simulated at the scanner's own time step
     (so the ringing of its resonance after each step is in the result), and the position
     is compared at the end of the period — what a sensor sampled at the loop rate reads.
-    Returns max and RMS absolute error per axis over ``seq_range`` (default: all), and
-    ``judged``: per axis in nm and % of its line or step over the central part of a
-    raster's lines (:func:`afmctl.data.axis_errors.axis_errors`)."""
-    from afmctl.data.axis_errors import axis_errors
+    Returns max and RMS absolute error per axis over ``seq_range`` (default: all)."""
     if len(setpoints) == 0:
         return {}
-    pos, tgt = replay_positions_nm(config, setpoints), setpoints["target_nm"]
+    err = replay_positions_nm(config, setpoints) - setpoints["target_nm"]
     if seq_range is not None:
         sel = (setpoints["seq"] >= seq_range[0]) & (setpoints["seq"] < seq_range[1])
-        pos, tgt = pos[sel], tgt[sel]
-    if len(tgt) == 0:
+        err = err[sel]
+    if len(err) == 0:
         return {}
-    err = pos - tgt
     axes = list(config.scanner.axes)
     idx = ["xyz".index(a) for a in axes]
     return {"axes": axes, "max_abs_nm": [float(np.abs(err[:, i]).max()) for i in idx],
-            "rms_nm": [float(np.sqrt(np.mean(err[:, i] ** 2))) for i in idx],
-            "judged": axis_errors(tgt, pos, "".join(a for a in "xyz" if a in axes)).as_dict()}
+            "rms_nm": [float(np.sqrt(np.mean(err[:, i] ** 2))) for i in idx]}
 
 
 def replay_positions_nm(config, setpoints: np.ndarray) -> np.ndarray:
