@@ -637,7 +637,10 @@ def format_validation_error(err: ValidationError, where: str = "config", model: 
 
 
 def _resolve_paths(cfg: Config, base: Path) -> Config:
-    """Make relative file paths in the configuration relative to the file's directory."""
+    """Make relative file paths in the configuration relative to the file's directory: every
+    path field of the schema (``runlog.dir`` with its default ``runs`` too; the trajectory's
+    ``path`` or ``file``; ``compensation.drift.params`` when it names a JSON file), absolute
+    paths as they are."""
     def fix(p: Path | None) -> Path | None:
         return p if p is None or p.is_absolute() else base / p
     for ax in AXES:
@@ -648,6 +651,9 @@ def _resolve_paths(cfg: Config, base: Path) -> Config:
     t.file = fix(t.file)
     if isinstance(cfg.trajectory, FileSpec):
         cfg.trajectory.path = fix(cfg.trajectory.path)  # type: ignore[assignment]
+    if isinstance(cfg.trajectory, LearnedSpec):
+        cfg.trajectory.file = fix(cfg.trajectory.file)  # type: ignore[assignment]
+    cfg.runlog.dir = fix(cfg.runlog.dir)  # type: ignore[assignment]
     cfg.simulation.scanner = fix(cfg.simulation.scanner)
     d = cfg.compensation.drift
     if d.params.endswith(".json") and not Path(d.params).is_absolute():

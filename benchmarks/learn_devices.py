@@ -47,7 +47,8 @@ RASTERS = {50: (4000.0, 4), 100: (1000.0, 4), 200: (1000.0, 4)}
 #: loop rate per device [Hz] (the NV200's 1024-sample buffer holds the 4-line tables with a
 #: shortened preview padding: afmctl.control.wave_plan.plan_table's max_rows)
 RATES_HZ = {"gcs": 10000, "can": 10000, "nv200": 10000}
-LINE = re.compile(r"afmctl: learn +(\d+): x ([\d.e+-]+) nm \(([\d.e+-]+) % of the")
+#: a progress line: iteration, x's max error over the central 80 % of the lines [nm] and [% of the line]
+LINE = re.compile(r"afmctl: learn +(\d+): x max ([\d.e+-]+) nm \(([\d.e+-]+) %\)")
 
 CONFIG = """
 [scanner]

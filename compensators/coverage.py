@@ -77,10 +77,9 @@ def longest_hold_s(t_s: np.ndarray, u_V: np.ndarray, tol: float) -> float:
 def large_fast_part(t_s: np.ndarray, u_V: np.ndarray) -> bool:
     """Whether the record has a fast part whose input spans more than a fifth of the record's
     span (non-uniform samples: taken as yes, not judged here)."""
-    from .dynamics_identify import LARGE_FRACTION, fast_parts
+    from .dynamics_identify import LARGE_FRACTION, fast_parts, is_uniform
 
-    d = np.diff(t_s)
-    if d.size == 0 or float(np.max(d) - np.min(d)) > 1e-3 * float(np.median(d)):
+    if not is_uniform(t_s):
         return True
     span = float(np.ptp(u_V))
     return any(float(np.ptp(u_V[a:b])) > LARGE_FRACTION * span for a, b in fast_parts(u_V, t_s))

@@ -292,8 +292,12 @@ class _PreisachBase(StreamingOperator):
         """Present memory: u_min, alternating dominant extrema, present input [V]."""
         return self.s[: self.ist[0] + 1].copy()
 
+    #: log a warning on the first clamp since :meth:`reset` (the loop turns it off while it
+    #: primes a preview inverse with samples that are never sent, afmctl.control.machine)
+    warn_clamps: bool = True
+
     def _warn(self, before: int, what: str) -> None:
-        if self.ist[1] > before and not self._warned:
+        if self.ist[1] > before and not self._warned and self.warn_clamps:
             self._warned = True
             log.warning("Preisach %s: %d sample(s) outside the model range were clamped (input range %g…%g V); "
                         "further clamping is counted in n_clamped", what, int(self.ist[1] - before),

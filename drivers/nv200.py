@@ -129,8 +129,7 @@ class NV200(SerialAmplifier):
             log.warning("nv200 on %s: stored settings %s changed to 0 (open loop, setpoint from the "
                         "serial link); %s", self.transport.url,
                         ", ".join(f"{k} was {v}" for k, v in self.changed_settings.items()),
-                        "restored at close" if self.restore_settings else
-                        "left so after close (restore_settings=True restores them)")
+                        "restored at close" if self.restore_settings else "left so after close")
 
     def _read_voltages(self) -> dict[str, float]:
         if self.sensor == "none":

@@ -40,4 +40,6 @@ class SerialAmplifier(Amplifier):
         self._reset_pipeline()
 
     def _info_extra(self) -> dict[str, object]:
+        if self.transport.url.startswith("socket://"):
+            return {"link": "TCP (no baud rate)"}
         return {"baudrate": self.transport.baudrate}

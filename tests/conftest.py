@@ -169,7 +169,8 @@ SLOW_TESTS = frozenset({
 # one process): `make test` runs the suite on two workers with `--dist loadfile` (a file's
 # tests on one worker, so its module fixtures are built once), and starting these first keeps
 # one long file from running alone at the end while the other worker idles.
-LONG_FILES = ("test_demo.py", "test_vendor_clients.py", "test_unseen_plant.py", "test_soak.py",   # 80 70 62 44
+LONG_FILES = ("test_unseen_plant.py", "test_readme_tour.py", "test_demo.py", "test_vendor_clients.py",  # 120+ 90 80 70
+              "test_calibrate.py", "test_soak.py",
               "test_view_live.py", "test_lab_router.py", "test_wave_run.py", "test_image_dynamics.py", "test_chain.py",  # 40 34 24 15
               "test_learn_device.py", "test_hil.py", "test_dynamics_sim.py", "test_dynamics_source.py",
               "test_fit_health.py", "test_realdata.py", "test_realdata_splits.py")

@@ -206,3 +206,64 @@ def test_wave_record_is_refused_on_a_device_without_a_recorder(mdt, tmp_path, ca
                  "--record", str(tmp_path / "m.csv")]) == 2
     err = capsys.readouterr().err
     assert "afmctl: error:" in err and "no data recorder" in err and "external sensor" in err
+
+
+def test_a_refused_first_row_says_it_is_measured_from_the_output_and_how_to_pass(mdt, tmp_path, capsys):
+    """The README's tour: after set x=10, a file starting at 21.6 V is a step from the present
+    output (not between rows); the message names the fix, and --max-step after the action works."""
+    path = write_csv(tmp_path / "v.csv", "t,u", [[0, 21.6], [0.01, 22.0], [0.02, 22.4]])
+    base = ["amp", "--driver", "mdt693b", "--port", mdt.port]
+    assert main(base + ["set", "x=10"]) == 0
+    capsys.readouterr()
+    assert main(base + ["stream", "--file", path]) == 2
+    err = capsys.readouterr().err
+    assert "row 2" in err and "from the present output of axis x (10 V)" in err and "--max-step 11.6" in err
+    assert "set x=21.6" in err and err.count("\n") == 1
+    assert main(base + ["stream", "--file", path, "--max-step", "11.6"]) == 0
+    assert mdt.device.outputs["x"] == 22.4
+
+
+def test_stream_help_lists_max_step(capsys):
+    with pytest.raises(SystemExit):
+        main(["amp", "--driver", "mdt693b", "--port", "x", "stream", "--help"])
+    out = capsys.readouterr().out
+    assert "--max-step V" in out and "present output" in out and "115200 baud" in out
+
+
+def test_refusals_name_the_fix(mdt, tmp_path, capsys):
+    base = ["amp", "--driver", "mdt693b", "--port", mdt.port]
+    path = write_csv(tmp_path / "v.csv", "t,u", [[0, 0.0], [0.01, 60.0]])
+    assert main(base + ["--limit", "0:50", "stream", "--file", path]) == 2
+    err = capsys.readouterr().err
+    assert "outside the limits [0, 50] V" in err and "narrowed by --limit" in err
+    assert "afmctl compensate ... --limits 0 50 --clip" in err
+    assert main(base + ["stream", "--file", path]) == 2
+    assert "step of 60 V from the row before" in (err := capsys.readouterr().err) and "--max-step 60 " in err
+    assert main(base + ["--max-step", "5", "set", "x=30"]) == 2
+    err = capsys.readouterr().err
+    assert "set x=30: a step of 30 V from the present output" in err and "--max-step 30" in err
+    assert "max_step_V" not in err
+    assert mdt.sink.count == 0
+
+
+def test_info_over_tcp_shows_no_baud_rate(capsys):
+    from afmctl.sim_backend.amplifiers import RecordingSink, make_device
+    from afmctl.sim_backend.amplifiers.tcp_server import TcpServer
+    with TcpServer(make_device("gcs", RecordingSink())) as server:
+        assert main(["amp", "--driver", "gcs", "--port", server.port, "info"]) == 0
+    out = capsys.readouterr().out
+    assert "baudrate" not in out and "link: TCP (no baud rate)" in out
+    assert "device_limits_V: {'x': [0.0, 120.0]" in out       # the range the controller reports
+
+
+def test_nv200_settings_advice_speaks_the_command_line(tmp_path, capsys, caplog):
+    with serve_pty("nv200") as server:
+        base = ["amp", "--driver", "nv200", "--port", server.port]
+        assert main(base + ["set", "x=5"]) == 0
+        err = capsys.readouterr().err + caplog.text
+        assert "--restore-settings" in err and "restore_settings=True" not in err
+        server.device.params["modsrc"] = 1        # as stored in the unit, e.g. after a power cycle
+        assert main(base + ["--restore-settings", "set", "x=6"]) == 0
+        assert server.device.params["modsrc"] == 1          # written back at the end
+    assert main(["amp", "--driver", "gcs", "--port", "x", "--restore-settings", "info"]) == 2
+    assert "only --driver nv200" in capsys.readouterr().err

@@ -17,19 +17,16 @@ import pytest
 from afmctl.compensators.chain import ChainModel
 from afmctl.compensators.creep import LinearCreepModel
 from afmctl.compensators.dynamics import LinearDynamicsModel
-from afmctl.compensators.learning_weights import judged_max_pct
 from afmctl.compensators.models import save_model
 from afmctl.compensators.pi import PIModel
-from afmctl.config import load_config
-from afmctl.control.learn_run import play_recorded
-from afmctl.control.learned_table import LearnedSource, load_learned
+from afmctl.control.learned_table import load_learned
 from afmctl.control.runlog import RunLogReader
-from afmctl.simulation.link import simulated_amplifier
 
 pytestmark = pytest.mark.slow
 
 SLEW_V_PER_S = 1.0e4
-LINE = re.compile(r"afmctl: learn +(\d+): x ([\d.e+-]+) nm \(([\d.e+-]+) % of the")
+#: a progress line: iteration, x's max error over the central 80 % of the lines [nm] and [% of the line]
+LINE = re.compile(r"afmctl: learn +(\d+): x max ([\d.e+-]+) nm \(([\d.e+-]+) %\) / RMS .* of its 2000 nm line")
 
 
 def scanner_file(tmp_path):
@@ -132,21 +129,26 @@ def test_afmctl_learn_on_the_simulated_e727_and_run_plays_the_learned_table(tmp_
                                                      **fill))
     run = _cli("run", "--config", str(tmp_path / "run.toml"), "--json", "--log", str(tmp_path / "r.afmlog"))
     assert run.returncode == 0, run.stderr[-3000:]
-    assert json.loads(run.stdout)["wave"]["played"] == len(learned.table)
+    summary = json.loads(run.stdout)
+    assert summary["wave"]["played"] == len(learned.table)
+    assert "missed deadlines" not in run.stdout and "device-timed" not in run.stdout   # --json: the dict only
+    # afmctl run measured the play with the recorder, as learn did: the learned figure, per axis
+    recorded = summary["tracking"]["recorded"]
+    assert recorded["part"] == ("the central 80 % of lines 2..3 of 3 (every line but the first, which starts "
+                                "from rest); x is the fast axis"), recorded
+    run_pct = recorded["axes"]["x"]["max_pct"]
+    # within 20 % of the learned figure, or 1.5 nm (0.075 % of the line): near the noise floor (1-2 nm) two
+    # plays from rest differ by about 1 nm (seen: 0.065 % learned, 0.12 % and 0.06 % played)
+    assert run_pct <= 0.25 * first and abs(run_pct - best) <= 0.2 * best + 0.075, (run_pct, best, first)
     sp = RunLogReader(tmp_path / "r.afmlog").setpoints()
     ev = {e["event"]: e["seq"] for e in RunLogReader(tmp_path / "r.afmlog").events()}
     rows = sp[(sp["seq"] >= ev["ramp-done"]) & (sp["seq"] < ev["end"])]
     np.testing.assert_allclose(rows["u_V"][:, 0], u[:len(rows)], atol=1e-9)
-    # ... with the error it was learned to, measured the same way (the device's recorder)
-    config = load_config(tmp_path / "run.toml")
-    with simulated_amplifier(config) as (amp, _scanner):
-        y = play_recorded(config, amp, LearnedSource.from_file(tmp_path / "L.afmwave"), ["x"])["x"]
-    played = judged_max_pct(y, learned.table.target_nm[:, 0])
-    # each play carries the creep of the plays before it; learning took out what the model's
-    # creep stage says they left (the history term), so the table is right for this play from
-    # rest: measured 0.04-0.06 % learned vs 0.055-0.06 % played here with the default 2 s hold
-    # (0.12-0.13 % with a 0.2 s hold, 0.40 % with that and --no-history-term)
-    assert played <= 0.25 * first and played <= best + 0.2, (played, best, first)
+    # the run above measured it the same way (the device's recorder). Each play carries the
+    # creep of the plays before it; learning took out what the model's creep stage says they
+    # left (the history term), so the table is right for the play from rest: measured
+    # 0.04-0.06 % learned vs 0.055-0.06 % played with the default 2 s hold (0.12-0.13 % with
+    # a 0.2 s hold, 0.40 % with that and --no-history-term)
 
 
 def test_a_device_without_a_recorder_is_refused_in_one_line(tmp_path):

@@ -102,6 +102,11 @@ def test_readme_instrument_tour_runs_as_written_on_afmctl_sim(tmp_path):
     from afmctl.testing import stop_process
     lines = _tour_lines()
     assert lines[0].startswith("mkdir -p tour") and lines[-1] == "kill %1", lines
+    # the README waits for the simulator's first line (its address) before calibrating, as
+    # this test does below: a command pasted at once would otherwise find nothing listening
+    sim_line, wait_line = lines[1], lines.pop(2)
+    assert sim_line.endswith("> sim.txt &") and wait_line.startswith("until grep -qs socket:// sim.txt;"), lines
+    lines[1] = sim_line.removesuffix("> sim.txt &") + "&"
     assert [ln.split()[1] for ln in lines[1:-1]] == ["sim", "calibrate", "learn", "run"]
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -18,6 +18,10 @@ from afmctl.sim_backend.scanner import default_scanner_config
 from plants import play_x as play_plant_x
 from plants import stiff_hysteresis, user_style_record
 
+#: the module fixture identifies a 20 kHz recording (``auto`` with its dynamics stage): about
+#: 2 minutes on a quiet 2-core machine, over 4 when the machine is loaded
+pytestmark = pytest.mark.timeout(600)
+
 RATE_HZ = 20_000.0          # recording rate: resolves the 1.6 kHz mode
 DT_S = 1e-5                 # raster sample period
 SLEW = 2.0e4                # the plant amplifier's slew limit [V/s]
@@ -68,8 +72,10 @@ def model(tmp_path_factory):
                  "--slew-V-per-s", f"{SLEW:g}", "--out", str(d / "exc.csv")]) == 0
     e = read_csv(d / "exc.csv", ("t", "u"))
     write_csv(d / "data.csv", {"t": e["t"], "u": e["u"], "y": play_x(e["u"], 1.0 / RATE_HZ)})
+    # one candidate: what is tested is the chain auto builds on it (the +dynamics variant, the
+    # refit), not the choice between kinds (tests/test_selection*.py); two cost over 5 minutes
     assert main(["identify", "--model", "auto", "--data", str(d / "data.csv"), "--out", str(d / "auto.json"),
-                 "--param", 'candidates=["preisach", "preisach+creep"]']) == 0
+                 "--param", 'candidates=["preisach+creep"]']) == 0
     return d
 
 

@@ -7,7 +7,7 @@ import math
 import time
 from typing import Any
 
-from . import amp_wave
+from . import amp_checks, amp_wave
 
 log = logging.getLogger(__name__)
 
@@ -35,23 +35,55 @@ Actions:
   get                       read back the applied output voltages
   set x=V [y=V z=V]         set some axes, then read back
   wave --file VOLTS.csv --rate-Hz R [--cycles N] [--record MOTION.csv]
-                            play the rows on the amplifier's own clock through its
-                            stream FIFO (driver can) or as wave tables on the
-                            controller's servo clock (driver gcs), N times
+                            play the rows on the amplifier's own clock: through its
+                            stream FIFO (driver can), as wave tables on the servo
+                            clock (gcs) or through the waveform buffer (nv200), N times
   stream --file VOLTS.csv   send every row in order at the times of its t column (or
                             at --rate HZ rows per second), print the rate achieved and
                             warn when the link could not keep that timing. Columns t,u
-                            (one axis, chosen with --axis) or t,ux,uy,uz (s, V). Steps
-                            between rows (and from the present output to the first
-                            row) above --max-step (default 10 V when streaming) refuse
-                            the whole file before anything is sent.
+                            (one axis, chosen with --axis) or t,ux,uy,uz (s, V).
+
+--max-step V (before or after the action) refuses any step over V volts from one output
+to the next — for stream and wave (default 10 V there) from the present output to the
+file's first row and between rows — and names the largest step it found. A serial line
+limits stream: at 115200 baud an MDT693B takes about 770 one-axis (380 three-axis)
+setpoints/s, so a file of 1 kHz rows takes longer than its t column says (3000 rows:
+about 3.9 s for 3 s); --rate sets a steady rate the link keeps. Over TCP (socket://) no
+baud rate applies.
 
 Examples:
   afmctl amp --driver mdt693b --port /dev/ttyUSB0 info
   afmctl amp --driver mdt693b --port /dev/pts/5 --limit 0:100 set x=10 y=20
+  afmctl amp --driver mdt693b --port /dev/pts/5 stream --file volts.csv --axis x --max-step 15
+  afmctl amp --driver gcs --port socket://192.168.0.10:50000 info     # E-727 over Ethernet
   afmctl amp --driver nv200 --port /dev/ttyUSB1 stream --file ramp.csv --rate 500
   afmctl amp --driver can --port virtual:afm0 wave --file scan.csv --rate-Hz 5000 --cycles 10
 """
+
+
+STREAM_DESCRIPTION = f"""\
+Send every row of VOLTS.csv in order at the times of its t column [s] (row i at t_i - t_0
+after the start), or at --rate HZ. Columns t,u (one axis, --axis) or t,ux,uy,uz [V].
+
+Before anything is sent every row is checked against the limits (the device's, read at
+connect, narrowed by --limit) and every step against --max-step (default
+{DEFAULT_STREAM_STEP_V:g} V): the step from the present output to the first row, then from
+each row to the next. A refusal names the row, what it measured and the fix.
+
+A serial line sets the pace: at 115200 baud an MDT693B carries about 770 one-axis
+setpoints/s, so 3000 rows at 1 ms (3.00 s) take about 3.9 s (longer on a busy host), and
+the command warns, naming a --rate the link kept. Over TCP (socket://) no baud rate applies.
+
+Example (after afmctl amp ... set x=10; volts.csv starts at 21.6 V):
+  afmctl amp --driver mdt693b --port /dev/pts/3 stream --file volts.csv --axis x --max-step 15
+"""
+
+
+def add_max_step(parser) -> None:
+    """``--max-step`` after the action too (SUPPRESS: an absent one keeps the value given before it)."""
+    parser.add_argument("--max-step", type=float, default=argparse.SUPPRESS, metavar="V",
+                        help="refuse any step over V volts: from the present output to the first row, "
+                             f"and between rows (default {DEFAULT_STREAM_STEP_V:g} V)")
 
 
 def _limit(text: str) -> tuple[str | None, float, float]:
@@ -95,21 +127,25 @@ def register(subparsers) -> None:
                    help="host voltage limits in V, narrowing the device's; repeat per axis")
     p.add_argument("--max-step", type=float, default=None, metavar="V",
                    help="refuse any step larger than this many volts from the last output "
-                        f"(stream: default {DEFAULT_STREAM_STEP_V:g} V)")
+                        f"(stream, wave: default {DEFAULT_STREAM_STEP_V:g} V)")
+    p.add_argument("--restore-settings", action="store_true",
+                   help="nv200: write back the stored settings (cl, modsrc) this command had to change, "
+                        "at its end (off by default: restoring closed loop or the analog input moves the "
+                        "actuator once afmctl lets go)")
     actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
     actions.add_parser("info", help="identity, limits, state")
     actions.add_parser("get", help="read back the applied voltages")
     s = actions.add_parser("set", help="set voltages, e.g. set x=10 y=20.5")
     s.add_argument("values", nargs="+", type=_assignment, metavar="AXIS=V")
     st = actions.add_parser("stream", help="stream a CSV of voltages (t,u or t,ux,uy,uz)",
-                            description="Send every row of VOLTS.csv in order at the times of its t column "
-                                        "[s] (row i at t_i - t_0 after the start). Columns t,u (one axis, "
-                                        "--axis) or t,ux,uy,uz [V].")
+                            formatter_class=argparse.RawDescriptionHelpFormatter,
+                            description=STREAM_DESCRIPTION)
     st.add_argument("--file", required=True, metavar="VOLTS.csv")
     st.add_argument("--axis", choices=["x", "y", "z"], default="x", help="axis of a t,u file (default x)")
     st.add_argument("--rate", type=float, default=None, metavar="HZ",
                     help="send HZ rows per second, ignoring the t column (default: the t column's timing)")
-    amp_wave.add_parser(actions)
+    add_max_step(st)
+    amp_wave.add_parser(actions, add_max_step)
     p.set_defaults(func=run)
 
 
@@ -151,21 +187,37 @@ def run(args) -> int:
         options["max_step_V"] = args.max_step
     elif args.action in ("stream", "wave"):
         options["max_step_V"] = DEFAULT_STREAM_STEP_V
+    if args.restore_settings:
+        if args.driver != "nv200":
+            raise AfmctlError(f"--restore-settings: only --driver nv200 changes stored settings (got {args.driver})")
+        options["restore_settings"] = True
     amp = open_amplifier(args.driver, args.port, baudrate=args.baud, timeout_s=args.timeout, **options)
     with amp:
+        _say_changed_settings(amp, args)
         if args.action == "info":
             for key, value in amp.info().items():
                 print(f"{key}: {value}")
         elif args.action == "get":
             print(_fmt(amp.get_voltages()))
         elif args.action == "set":
+            amp_checks.check_set(amp, dict(args.values))
             amp.set_voltages(dict(args.values))
             print(_fmt(amp.get_voltages()))
         elif args.action == "wave":
-            amp_wave.play(amp, rows, args, _check_file_limits, _fmt)
+            amp_wave.play(amp, rows, args, amp_checks.check_rows, _fmt)
         else:
             _stream(amp, rows, args)
     return 0
+
+
+def _say_changed_settings(amp, args) -> None:
+    """An NV200 whose stored settings the driver changed (it warns which): the option that
+    writes them back (stderr)."""
+    import sys
+    changed = getattr(amp, "changed_settings", None)
+    if changed and not args.restore_settings:
+        was = ", ".join(f"{k}={v}" for k, v in changed.items())
+        print(f"afmctl amp: add --restore-settings to write {was} back at the end", file=sys.stderr)
 
 
 def _load_stream(args) -> tuple[list[str], "object", list[str], "object"]:
@@ -184,40 +236,13 @@ def _load_stream(args) -> tuple[list[str], "object", list[str], "object"]:
     raise AfmctlError(f"{args.file}: needs columns t,u (one axis) or t,ux,uy,uz (three axes)")
 
 
-def _check_file_limits(amp, loaded, path) -> None:
-    import numpy as np
-
-    from ..errors import AfmctlError
-    axes, values, columns, _ = loaded
-    lim = amp.limits
-    for k, (axis, col) in enumerate(zip(axes, columns)):
-        if axis not in lim:
-            raise AfmctlError(f"{path}: column {col}: axis {axis} is not driven by {amp.name} "
-                              f"(axes: {', '.join(amp.axes)})")
-        lo, hi = lim[axis].min_V, lim[axis].max_V
-        bad = np.flatnonzero((values[:, k] < lo) | (values[:, k] > hi))
-        if bad.size:
-            i = int(bad[0])
-            raise AfmctlError(f"{path}: row {i + 2}: column {col}: {values[i, k]:g} V is outside the limits "
-                              f"[{lo:g}, {hi:g}] V of axis {axis} ({bad.size} row(s) outside); nothing was sent")
-        step = getattr(amp, "max_step_V", None)
-        if step is not None:
-            start = amp.last_output.get(axis, values[0, k])
-            steps = np.abs(np.diff(np.concatenate([[start], values[:, k]])))
-            big = np.flatnonzero(steps > step)
-            if big.size:
-                i = int(big[0])
-                raise AfmctlError(f"{path}: row {i + 2}: column {col}: step of {steps[i]:g} V on axis {axis} "
-                                  f"exceeds --max-step {step:g} V; nothing was sent")
-
-
 def _stream(amp, loaded, args) -> None:
     """Send row i at ``times[i]`` [s] after the start (never earlier), then report the rate
     achieved and warn (stderr) when the schedule was not kept."""
     import sys
 
     from tqdm import tqdm
-    _check_file_limits(amp, loaded, args.file)
+    amp_checks.check_rows(amp, loaded, args.file)
     axes, values, _, times = loaded
     n = values.shape[0]
     t0 = time.perf_counter()
@@ -238,5 +263,6 @@ def _stream(amp, loaded, args) -> None:
     if elapsed > planned * (1 + STREAM_LATE_FRACTION) + STREAM_SLACK_S:
         wanted = f"--rate {args.rate:g} Hz" if args.rate else f"the t column of {args.file}"
         print(f"afmctl amp stream: warning: {wanted} was not kept: the link reached {n / elapsed:.1f} "
-              f"setpoints/s and the file took {elapsed:.3f} s instead of {planned:.3f} s", file=sys.stderr)
+              f"setpoints/s and the file took {elapsed:.3f} s instead of {planned:.3f} s; --rate "
+              f"{max(1, math.floor(0.9 * n / elapsed))} sends at a steady rate this link keeps", file=sys.stderr)
     print("final: " + _fmt(amp.get_voltages()))

@@ -14,7 +14,8 @@ log = logging.getLogger(__name__)
 WAVE_LOW_S, WAVE_HIGH_S = 0.1, 0.3
 
 
-def add_parser(actions) -> None:
+def add_parser(actions, add_max_step) -> None:
+    """The ``wave`` action; ``add_max_step(parser)`` adds ``afmctl amp``'s ``--max-step`` to it."""
     w = actions.add_parser(
         "wave", help="play a CSV of voltages on the amplifier's clock (drivers can, gcs, nv200)",
         description="Play the rows of VOLTS.csv (columns t,u with --axis, or t,ux,uy,uz [V]; the t column "
@@ -54,15 +55,11 @@ def _rows(amp, loaded, args):
     """The whole wave as rows x, y, z [V] (axes not in the file hold their present output)."""
     import numpy as np
 
-    from ..errors import AfmctlError
+    from .amp_checks import check_wrap
     axes, values, columns, _ = loaded
     step = getattr(amp, "max_step_V", None)
     if args.cycles > 1 and step is not None:
-        wrap = np.abs(values[0] - values[-1])
-        if np.any(wrap > step):
-            k = int(np.argmax(wrap))
-            raise AfmctlError(f"{args.file}: column {columns[k]}: the wrap from the last row to the first is "
-                              f"{wrap[k]:g} V, over --max-step {step:g} V; nothing was sent")
+        check_wrap(values[0].tolist(), values[-1].tolist(), columns, step, args.file)
     held = amp.last_output
     full = np.column_stack([values[:, axes.index(a)] if a in axes else np.full(len(values), held.get(a, 0.0))
                             for a in amp.axes])

@@ -72,8 +72,6 @@ def run(args: argparse.Namespace) -> int:
         print("afmctl demo: starting; the first run compiles numerical kernels (numba, cached for later "
               "runs), which can take a minute or two", file=sys.stderr, flush=True)
     ctx = run_demo(options, progress=not args.no_progress)
-    for text in ctx.messages:
-        print(text)
     print(format_table(ctx.metrics))
     print(f"wrote {len(ctx.files)} files to {options.out}")
     return 0

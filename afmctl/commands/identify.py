@@ -57,7 +57,8 @@ Model kinds (--model):
             preisach, bouc-wen) on the piezo voltage, then
             linear creep, then linear dynamics, identified jointly (Hammerstein):
             hysteresis and creep on every sample (preisach; other kinds on block means
-            at <= 2 kHz) less the 50 ms after each jump of the command, the dynamics
+            at <= 2 kHz) less the 50 ms after each jump of the command (preisach: and
+            less the fast parts when the slow rest covers the range), the dynamics
             from the record's fast parts, then the static stages again on the record
             through the dynamics' inverse while that helps; uniform samples needed
   auto      fit every candidate chain on the first 70 % of the data after the burn-in,

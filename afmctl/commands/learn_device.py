@@ -19,8 +19,9 @@ the CAN amplifier's; simulated ones with [simulation] enabled = true):
 
 plays the configured trajectory as a wave table (amplifier.output = "wave"), reads the
 scanner's measured motion back through the recorder, computes the next table, and repeats:
-a progress line per iteration (per axis the error over the central 80 % of every raster line
-but the first, in nm and in % of that axis's line, or of its span; the step size), until the error is at --noise-floor-pct, stops improving, a
+a progress line per iteration (per learned axis the error max / RMS in nm and in % of
+that axis's line, or of its step for a raster's slow axis, over the central 80 % of every
+raster line but the first, as afmctl run reports it; the step size), until the error is at --noise-floor-pct, stops improving, a
 guard stops it (error rising twice; a model whose phase is over 90 deg off) or N tables
 have played. The scanner creeps: each play carries the creep of the plays before it, and
 afmctl run later plays the learned table once, from rest. With a model whose chain has a
@@ -58,8 +59,8 @@ def add_device_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--out", dest="learned_out", metavar="LEARNED.afmwave", help="learned table to write")
     g.add_argument("--plot", dest="learned_plot", metavar="CONV.png", help="convergence plot (PNG)")
     g.add_argument("--noise-floor-pct", type=float, default=0.0, metavar="P",
-                   help="stop when the central error is at most P %% of the line (default 0: stop when it no "
-                        "longer improves)")
+                   help="stop when every learned axis's error over the central part of the lines is at most P %% "
+                        "of its line or step (default 0: stop when it no longer improves)")
     g.add_argument("--model-free", action="store_true",
                    help="learn without the configured model (frequency response from the iterations)")
     g.add_argument("--no-history-term", action="store_true",
@@ -87,19 +88,26 @@ def _check_args(args: argparse.Namespace) -> None:
 
 
 def progress_line(report: Any) -> str:
-    """One line per iteration: per axis the judged error in nm and % of its line (every line
-    but the first; of its span for an axis without lines), the whole table's worst, the next
-    step's size, the state."""
-    s = report.summary()
-    if s["max_pct"] is None:
+    """One line per iteration: each learned axis's error over the judged part (nm and % of
+    its line or step, :func:`afmctl.data.axis_errors.axis_errors`), the next step's size,
+    the state."""
+    if report.judged is None:
         return f"afmctl: learn {report.iteration:3d}: {report.state}: {report.detail}"
     step = f"; step {report.rho:.2f}" if report.rho is not None and report.state == "learning" else ""
     tail = f"; {report.state}: {report.detail}" if report.state != "learning" else ""
     history = f"; history term {report.history_nm:.1f} nm" if report.history_nm else ""
     if report.history_nm and report.history_offset_nm:
         history += f" ({report.history_offset_nm:+.1f} nm of it measured by replaying the first table)"
-    return (f"afmctl: learn {report.iteration:3d}: {report.per_axis()}; whole table max {s['max_pct']:.3f} % of "
-            f"the range{step}{history}{tail}")
+    return f"afmctl: learn {report.iteration:3d}: {report.judged.text()}{step}{history}{tail}"
+
+
+def part_line(report: Any) -> str | None:
+    """Once, before the first progress line: what the figures cover and how they are taken."""
+    if report.judged is None:
+        return None
+    return (f"afmctl: learn: errors per axis over {report.judged.part}, measured by the device's recorder"
+            + (" less the history term" if report.history_nm else "")
+            + "; % of each axis's line (the fast axis) or step (a slow axis's move per line)")
 
 
 def plot_convergence(reports: list[Any], path: str) -> None:
@@ -114,7 +122,7 @@ def plot_convergence(reports: list[Any], path: str) -> None:
         if all(v is not None for v in vals) and vals:
             ax.semilogy(its, vals, "o-", label=label)
     ax.set_xlabel("iteration (0: the model's table)")
-    ax.set_ylabel("tracking error [% of the range]")
+    ax.set_ylabel("worst axis: error [% of its span; central: of its line or step]")
     ax.set_title("afmctl learn: convergence")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
@@ -129,6 +137,7 @@ def run_device(args: argparse.Namespace) -> int:
     from ..config import load_config
     from ..control.learn_run import LearnOptions, LearnRun, settle_advice
     from ..control.learned_table import save_learned
+    from ..simulation.link import configured_amplifier
     from .run import _install_signals
     _check_args(args)
     config = load_config(args.config)
@@ -139,10 +148,15 @@ def run_device(args: argparse.Namespace) -> int:
     options = LearnOptions(iterations=args.iterations, noise_floor_pct=args.noise_floor_pct, settings=settings,
                            use_model=not args.model_free, history_term=not args.no_history_term)
     with contextlib.ExitStack() as stack:
-        amp = _open_amplifier(stack, config)
+        amp = configured_amplifier(stack, config)
         publish = _publisher(stack, config)
+        seen = {"part": False}
 
         def on_iteration(report: Any) -> None:
+            part = part_line(report)
+            if part is not None and not seen["part"]:
+                seen["part"] = True
+                print(part, file=sys.stderr, flush=True)
             print(progress_line(report), file=sys.stderr, flush=True)
             if publish is not None:
                 publish(report)
@@ -155,20 +169,10 @@ def run_device(args: argparse.Namespace) -> int:
     if args.learned_plot:
         plot_convergence(run.reports, args.learned_plot)
     best = min(run.reports, key=lambda r: r.metric_pct if r.metric_pct == r.metric_pct else math.inf)
-    print(f"afmctl: learned table {args.learned_out}: best iteration {best.iteration}, {best.per_axis()}; play it "
-          f"with [trajectory] kind = \"learned\"", file=sys.stderr)
+    figures = f": {best.judged.text()}" if best.judged is not None else ""
+    print(f"afmctl: learned table {args.learned_out}: best iteration {best.iteration}{figures}; play it with "
+          "[trajectory] kind = \"learned\" (afmctl run reports the same figures)", file=sys.stderr)
     return 1 if run.reports[-1].state == "fault" else 0
-
-
-def _open_amplifier(stack: contextlib.ExitStack, config: Any) -> Any:
-    if config.simulation.enabled:
-        from ..simulation.link import simulated_amplifier
-        amp, _scanner = stack.enter_context(simulated_amplifier(config))
-        return amp
-    from ..control.hardware import open_driver
-    amp = open_driver(config, config.amplifier.port)
-    stack.callback(amp.close)
-    return amp
 
 
 def _publisher(stack: contextlib.ExitStack, config: Any) -> Any:

@@ -18,6 +18,16 @@ Read a run log written by `afmctl run` and write into OUT:
   report_drift.png     drift estimate [nm] and temperature [°C] over time (if logged)
   report_summary.json  counts, duration, voltage ranges, states, error numbers
 
+Printed: the errors in % of the target range over the samples that track the trajectory
+(ramps left out), and the tracking error per axis in nm and in % of that axis's line (the
+fast axis of a raster) or step (its slow axis: the move per line) over the central 80 % of
+each line, or in % of the axis's range over the whole record when the target is no raster
+(as `afmctl run` prints it for a run on the simulator). The replay holds each logged voltage
+for one loop period from rest: for a device-timed run (output = "wave") the host's approach
+ramp and settle hold took longer than their rows' loop periods, and the replay reads the
+tip at the end of each period where a recorder reads it as the next sample starts, so there
+the figure `afmctl run` measured with the device's recorder is the one to go by.
+
 A log torn by a crash is read up to the last intact chunk.
 """
 
@@ -52,6 +62,12 @@ def run(args: argparse.Namespace) -> int:
     for name, e in errors.items():
         print(f"{name} ({QUANTITIES[name]}): max {e['max']:.3f} %, rms {e['rms']:.3f} % "
               f"of the {span:.6g} nm target range")
+    per_axis = summary.get("tracking_per_axis")
+    if per_axis:
+        from ..data.axis_errors import AxisError
+        print(f"{TRACKING_ERROR} per axis, over {per_axis['part']}:")
+        for a in per_axis["axes"].values():
+            print("  " + AxisError(a["axis"], a["max_nm"], a["rms_nm"], a["reference"], a["reference_nm"]).text())
     if TRACKING_ERROR not in errors:
         print(f"{TRACKING_ERROR}: not known (the run did not drive the simulator and the log holds no "
               "tip positions; --simulate estimates it with the simulated scanner)")

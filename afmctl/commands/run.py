@@ -113,7 +113,7 @@ def link_warning(config) -> str | None:
     return None
 
 
-def _summary(ctl, config, scanner) -> dict:
+def _summary(ctl, config, scanner, recorder=None) -> dict:
     from ..control.runlog import RunLogReader
     st = ctl.stats()
     out = {"state": st["state"], "samples": st["samples"], "ticks": st["ticks"], "rate_Hz": st["rate_Hz"],
@@ -125,17 +125,42 @@ def _summary(ctl, config, scanner) -> dict:
            "latency_samples": st["latency_samples"], "latency_s": st["latency_s"],
            "output": st["output"], "stream": st["stream"], "wave": st["wave"],
            "runlog": str(ctl.runlog_path) if ctl.runlog_path else None,
-           "runlog_error": ctl.runlog_error, "trajectory_error": ctl.trajectory_error}
-    if scanner is not None and ctl.runlog_path is not None and ctl.runlog_error is None:
-        from ..simulation.link import tracking_error
+           "runlog_error": ctl.runlog_error, "trajectory_error": ctl.trajectory_error,
+           "watchdog": ctl.watchdog_report()}
+    if (scanner is not None or recorder is not None) and ctl.runlog_path is not None and ctl.runlog_error is None:
         reader = RunLogReader(ctl.runlog_path)
         ev = reader.events()
+        sp = reader.setpoints()
         start = max([e["seq"] for e in ev if e.get("event") == "ramp-done"] or [0])
         ends = [e["seq"] for e in ev if e.get("event") in ("end", "stop", "estop")]
-        end = min(ends) if ends else len(reader.setpoints())
+        end = min(ends) if ends else len(sp)
         if end > start:
-            out["tracking"] = tracking_error(config, reader.setpoints(), (start, end))
+            out["tracking"] = replayed_tracking(config, sp, (start, end)) if scanner is not None else {}
+            if recorder is not None:
+                measured = recorder.errors()
+                out["tracking"]["recorded"] = measured.as_dict() if measured is not None else None
+                out["tracking"]["recorded_why_not"] = recorder.why_not
     return out
+
+
+def replayed_tracking(config, setpoints, seq_range: tuple[int, int]) -> dict:
+    """The tracking error of a simulated run: the voltages sent replayed through a fresh
+    simulated scanner (:func:`afmctl.simulation.link.replay_positions_nm`), over the setpoints
+    of ``seq_range`` (those that track the trajectory). ``axes``, ``max_abs_nm``, ``rms_nm``
+    over all of them, and ``judged``: per axis in nm and % of its line or step over the
+    central part of a raster's lines (:func:`afmctl.data.axis_errors.axis_errors`)."""
+    import numpy as np
+
+    from ..data.axis_errors import axis_errors
+    from ..simulation.link import replay_positions_nm
+    sel = (setpoints["seq"] >= seq_range[0]) & (setpoints["seq"] < seq_range[1])
+    pos, tgt = replay_positions_nm(config, setpoints)[sel], setpoints["target_nm"][sel]
+    axes = [a for a in "xyz" if a in config.scanner.axes]
+    idx = ["xyz".index(a) for a in axes]
+    err = pos - tgt
+    return {"axes": axes, "max_abs_nm": [float(np.abs(err[:, i]).max()) for i in idx],
+            "rms_nm": [float(np.sqrt(np.mean(err[:, i] ** 2))) for i in idx],
+            "judged": axis_errors(tgt, pos, "".join(axes)).as_dict()}
 
 
 def _check_seconds(seconds: float | None) -> None:
@@ -180,9 +205,18 @@ def _wait_for_run(ctl, args: argparse.Namespace, stops: dict) -> None:
             ctl.stop()
         if not args.quiet and now >= next_report:
             next_report = now + 2.0
-            s = ctl.stats()
-            print(f"afmctl: {s['state']:8s} samples {s['samples']:>9d}  p99 lateness "
-                  f"{s['lateness_p99_s'] * 1e6:7.1f} us  missed {s['missed_deadlines']}", file=sys.stderr)
+            print(_progress(ctl.stats()), file=sys.stderr)
+
+
+def _progress(s: dict) -> str:
+    """The progress line every 2 s: the host loop's lateness, or for a device-timed table
+    how much of it played."""
+    if s.get("wave"):
+        w = s["wave"]
+        return (f"afmctl: {s['state']:8s} samples {s['samples']:>9d}  table {w['played']} of {w['samples']} played "
+                "on the device's clock")
+    return (f"afmctl: {s['state']:8s} samples {s['samples']:>9d}  p99 lateness "
+            f"{s['lateness_p99_s'] * 1e6:7.1f} us  missed {s['missed_deadlines']}")
 
 
 def _serve(ctl, args: argparse.Namespace, stops: dict) -> None:
@@ -195,9 +229,7 @@ def _serve(ctl, args: argparse.Namespace, stops: dict) -> None:
         time.sleep(0.05)
         if not args.quiet and time.monotonic() >= next_report:
             next_report = time.monotonic() + 2.0
-            s = ctl.stats()
-            print(f"afmctl: {s['state']:8s} samples {s['samples']:>9d}  p99 lateness "
-                  f"{s['lateness_p99_s'] * 1e6:7.1f} us  missed {s['missed_deadlines']}", file=sys.stderr)
+            print(_progress(ctl.stats()), file=sys.stderr)
     if ctl.running:
         ctl.wait(30.0)
 
@@ -205,17 +237,22 @@ def _serve(ctl, args: argparse.Namespace, stops: dict) -> None:
 def _print_summary(summary: dict) -> None:
     print(f"state             {summary['state']}")
     print(f"samples           {summary['samples']} at {summary['rate_Hz']:g} Hz")
-    print(f"lateness          p50 {summary['lateness_p50_s'] * 1e6:.1f} us  p99 "
-          f"{summary['lateness_p99_s'] * 1e6:.1f} us  max {summary['lateness_max_s'] * 1e6:.1f} us")
-    print(f"missed deadlines  {summary['missed_deadlines']} (> half a period late); overruns {summary['overruns']}")
+    if summary.get("wave"):
+        _print_device_timing(summary)
+    else:
+        print(f"lateness          p50 {summary['lateness_p50_s'] * 1e6:.1f} us  p99 "
+              f"{summary['lateness_p99_s'] * 1e6:.1f} us  max {summary['lateness_max_s'] * 1e6:.1f} us")
+        print(f"missed deadlines  {summary['missed_deadlines']} (> half a period late); overruns {summary['overruns']}")
     print(f"errors            {summary['errors']} (faults {summary['faults']}, reconnects {summary['reconnects']}, "
           f"watchdog trips {summary['watchdog_trips']})")
+    if summary.get("watchdog"):
+        print(f"watchdog          {summary['watchdog']}")
     print(f"safety            slew-limited {summary['slew_limited']} samples, clamped {summary['clamped']}")
     if summary.get("stream"):
         st = summary["stream"]
         print(f"stream            {st['queued']} samples queued; device underruns {st['underruns']}, lowest FIFO "
-              f"level {st['lowest_level']} samples (marks {st['low_water']}..{st['high_water']}); lateness above "
-              "= the producer's wake-ups")
+              f"level {st['lowest_level']} samples (marks {st['low_water']}..{st['high_water']}); the host's lateness "
+              "is the producer's wake-ups")
     if summary.get("wave"):
         w = summary["wave"]
         print(f"wave              {w['played']} of {w['samples']} table samples played on the {w['player']}"
@@ -226,10 +263,46 @@ def _print_summary(summary: dict) -> None:
     if summary.get("last_error"):
         print(f"last error        {summary['last_error']}")
     if summary.get("tracking"):
-        t = summary["tracking"]
-        print("tracking error    max |e| " + ", ".join(f"{a} {v:.2f}" for a, v in zip(t["axes"], t["max_abs_nm"]))
-              + " nm;  rms " + ", ".join(f"{a} {v:.2f}" for a, v in zip(t["axes"], t["rms_nm"])) + " nm")
+        _print_tracking(summary["tracking"])
     print(f"run log           {summary['runlog']}")
+
+
+def _print_device_timing(summary: dict) -> None:
+    """A device-timed run (output = "wave"): the table played on the device's clock, which the
+    host's timing does not reach; the host only ticked the approach, settle and finish ramps
+    (a late tick there slows a ramp, it never moves the tip faster or off the table)."""
+    w = summary["wave"]
+    host = summary["samples"] - w["played"]
+    print(f"timing            device-timed: the table's {w['played']} samples played on the device's clock "
+          f"({w['player']}); the host's timing does not reach the tip")
+    print(f"host ramps        {host} ticks before and after the table (approach, settle hold, finish): lateness p99 "
+          f"{summary['lateness_p99_s'] * 1e6:.1f} us, {summary['missed_deadlines']} late by over half a period "
+          "(a late ramp tick slows the ramp; not a missed deadline of the scan)")
+
+
+def _print_tracking(t: dict) -> None:
+    """The tracking error: per axis over the judged part (nm and % of its line or step) as
+    the device's recorder measured it (a wave run on a device with one), else as the
+    simulated scanner replays the voltages sent; then the replay over the whole tracked
+    record in nm."""
+    from ..data.axis_errors import AxisError
+    if t.get("recorded"):
+        j, how = t["recorded"], "measured by the device's recorder during the play (as afmctl learn measures)"
+    elif t.get("judged"):
+        j, how = t["judged"], "the voltages sent replayed through a fresh simulated scanner"
+    else:
+        print(f"tracking error    not measured: {t.get('recorded_why_not')}")
+        return
+    print(f"tracking error    per axis over {j['part']}, {how}:")
+    for a in j["axes"].values():
+        print("                    " + AxisError(a["axis"], a["max_nm"], a["rms_nm"], a["reference"],
+                                                 a["reference_nm"]).text())
+    if "recorded" in t and not t["recorded"]:
+        print(f"                  (the device's recorder: {t.get('recorded_why_not')})")
+    if t.get("max_abs_nm") and not t.get("recorded"):
+        print("                  replayed, whole tracked record (turnarounds included): max |e| "
+              + ", ".join(f"{a} {v:.2f}" for a, v in zip(t["axes"], t["max_abs_nm"]))
+              + " nm;  rms " + ", ".join(f"{a} {v:.2f}" for a, v in zip(t["axes"], t["rms_nm"])) + " nm")
 
 
 def _exit_status(ctl, summary: dict) -> int:
@@ -254,6 +327,8 @@ def run(args: argparse.Namespace) -> int:
     from ..control import cpu_pinning
     from ..config import load_config
     from ..control.controller import Controller
+    from ..control.rate_check import mode_warnings
+    from ..control.run_recording import RunRecorder
     from ..errors import AfmctlError
 
     _check_seconds(args.seconds)
@@ -276,6 +351,10 @@ def run(args: argparse.Namespace) -> int:
             stack.callback(amp.close)
         ctl = Controller(config, amp)
         stack.callback(ctl.close)
+        recorder = None
+        if RunRecorder.available(config, amp) and not getattr(args, "serve", False):
+            recorder = RunRecorder(config, amp, ctl)     # the table's motion, as afmctl learn measures it
+            ctl.before_wave_start = recorder.hook
         if config.zenoh.enabled:   # in its own process: the loop's timing does not depend on it
             from ..zenoh_api.process import ZenohBridgeProcess
             bridge = ZenohBridgeProcess(ctl, config.zenoh, scanner_name=config.scanner.name)
@@ -297,6 +376,9 @@ def run(args: argparse.Namespace) -> int:
         ctl.start(config.trajectory, runlog_path=args.log)
         # always, --quiet included: which axes are compensated, by which model, from which file
         print(f"afmctl: compensation {ctl.pipeline.describe()}", file=sys.stderr)
+        simulated = scanner.config if scanner is not None else None     # the link's simulated scanner
+        for line in mode_warnings(config, list(getattr(ctl.pipeline, "models", [])), simulated):
+            print(f"afmctl: warning: {line}", file=sys.stderr)
         if config.amplifier.output == "wave":
             print("afmctl: wave: the whole trajectory is computed before it plays (as `afmctl compensate` "
                   "does) and played on the amplifier's clock; the output does not lag it", file=sys.stderr)
@@ -310,7 +392,7 @@ def run(args: argparse.Namespace) -> int:
                   f"{ctl.cpu_plan.why}; run log {ctl.runlog_path}", file=sys.stderr)
         _wait_for_run(ctl, args, stops)
         ctl.close()
-        summary = _summary(ctl, config, scanner)
+        summary = _summary(ctl, config, scanner, recorder)
     return _finish(args, summary, ctl)
 
 

@@ -83,6 +83,7 @@ from .safety import SafetyLayer
 log = logging.getLogger(__name__)
 
 _RING = RING_ROWS
+XYZ_AXES = ("x", "y", "z")
 #: drift measurements waiting for the loop thread (more are refused)
 MAX_PENDING_DRIFT_MEASUREMENTS = 64
 _END = END_OF_TRAJECTORY
@@ -189,11 +190,15 @@ class Controller:
         #: device was told to start ("start"), when the host saw the table end ("end") and
         #: when the finish ended ("finished")
         self.wave_times: dict[str, float] = {}
+        #: output = "wave": the table planned for the present run (set before the upload)
+        self.wave_table: Any = None
         self._drift_meas: collections.deque = collections.deque()
         self._ring = np.zeros((_RING, N_COLS))
         self._hist = loop_stats.new_histogram()
         self._whist = loop_stats.new_histogram()
         self._missed_log: collections.deque = collections.deque(maxlen=32)
+        #: run time [s] (ticks × period) of the watchdog's latest trips (:meth:`watchdog_report`)
+        self._watchdog_log: collections.deque = collections.deque(maxlen=4)
         self._reset_stats()
         self._T_C = float(config.compensation.temperature.T_C)
         self._T_file: tuple[np.ndarray, np.ndarray] | None = None
@@ -238,6 +243,28 @@ class Controller:
     def running(self) -> bool:
         """True while the loop thread (or its dispatcher) is alive."""
         return any(t is not None and t.is_alive() for t in (self._thread, self._dispatcher))
+
+    @property
+    def queue_running(self) -> bool:
+        """True while a queue-mode run (run-time segments: ``start(None)`` or
+        ``trajectory.kind = "queue"``) runs and has not been asked to stop: segments are
+        played as they arrive, and another start has nothing to do."""
+        return self.running and self._queue_mode and self._request is None
+
+    def watchdog_report(self) -> str | None:
+        """Why the watchdog tripped during the last run, one line for a summary (when, what
+        it saw, what it did); None when it did not trip."""
+        n = self._watchdog_trips
+        if not n:
+            return None
+        sa = self.config.safety
+        times = ", ".join(f"{t:.3f}" for t in self._watchdog_log)
+        when = f"at {times} s" if n <= len(self._watchdog_log) else f"the last at {times} s"
+        why = ("the queue ran empty (queue mode plays each segment as it arrives and waits for the next)"
+               if self._queue_mode else "the trajectory source fell behind the loop")
+        action = "held the output" if sa.on_stall == "hold" else "ramped the output to the safe value"
+        return (f"{n} trip{'' if n == 1 else 's'} ({when}): no trajectory sample for safety.watchdog_s = "
+                f"{sa.watchdog_s:g} s, {why}; the loop {action} (safety.on_stall) until the next sample")
 
     def add_sink(self, sink: Any) -> None:
         """Register an object with ``on_setpoints``/``on_drift``/``on_status`` (any subset)."""
@@ -369,9 +396,16 @@ class Controller:
         self.runlog_path = Path(runlog_path)
 
     def _warm_up(self) -> None:
-        """Run the chain once off the loop thread (compiles/loads numba kernels), then reset."""
+        """Run the chain once off the loop thread (compiles/loads numba kernels), then reset;
+        at the middle of each axis's voltage range by the linear calibration (a target the
+        models reach: at 0 nm a Preisach model whose 0 V gives 85 nm warned of a clamp for a
+        sample that is never sent)."""
+        mid = [0.0, 0.0, 0.0]
+        for i, k in enumerate(self.safety.index):
+            cal = self.config.scanner.axis_spec(XYZ_AXES[k])
+            mid[k] = cal.nm_per_V * (0.5 * (self.safety.lo[i] + self.safety.hi[i]) - cal.offset_V)
         try:
-            self.pipeline.step(0.0, 0.0, 0.0, self._T_C, (0.0, 0.0, 0.0))
+            self.pipeline.step(mid[0], mid[1], mid[2], self._T_C, (0.0, 0.0, 0.0))
         except Exception as err:  # a model that cannot take 0 nm still works from its range
             log.debug("warm-up step failed: %s", err)
         self.pipeline.reset()
@@ -459,6 +493,7 @@ class Controller:
         self._hist[:] = 0
         self._whist[:] = 0
         self._missed_log.clear()
+        self._watchdog_log.clear()
         self._late_max = 0.0
         self._missed = self._overruns = self._dropped = 0
         self._errors = self._faults = self._reconnects = self._watchdog_trips = 0

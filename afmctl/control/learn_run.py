@@ -60,6 +60,7 @@ import numpy as np
 from afmctl.compensators.learning import Learner, LearnSettings
 from afmctl.compensators.learning_history import creep_stages
 
+from ..data.axis_errors import ErrorReport, axis_errors
 from ..errors import AfmctlError
 from ..inputs.trajectories import build, collect
 from .learn_history import (HistoryTerms, PlayTimeline, history_offset_nm, settle_advice,  # noqa: F401 (re-exported)
@@ -116,8 +117,11 @@ class LearnOptions:
 @dataclass
 class IterationReport:
     """One played table: ``iteration`` (0: the model's table), per learned axis the error
-    figures of :func:`afmctl.compensators.learning_weights.error_figures` (% of the range),
-    ``metric_pct`` (the worst axis's central max, else max), the next step's ``rho``, the
+    figures of :func:`afmctl.compensators.learning_weights.error_figures` (the learning
+    law's own: % of the axis's span and of the lines it finds in that axis's target),
+    ``judged``: the errors a user checks (:func:`afmctl.data.axis_errors.axis_errors`: per
+    axis in nm and % of its line or step, over the central part of the raster's lines, as
+    ``afmctl run`` reports them), ``metric_pct`` (the worst axis's max % of ``judged``), the next step's ``rho``, the
     recording's ``lag_samples``, ``state`` (learning / converged / stopped / diverged /
     fault), ``detail``, ``history_nm``: the largest history term taken out of the
     recording [nm] (0 without a model), and ``history_offset_nm``: its offset as measured
@@ -132,22 +136,42 @@ class IterationReport:
     detail: str = ""
     history_nm: float = 0.0
     history_offset_nm: float = 0.0
-
-    def per_axis(self) -> str:
-        """Per axis its judged error in nm and in % of its line (of its span without lines):
-        e.g. ``x 2.4 nm (0.06 % of the 4000 nm line)``."""
-        parts = []
-        for axis, e in self.errors.items():
-            pct = axis_metric(e)
-            what = "line" if "central_max_pct" in e else "span"
-            parts.append(f"{axis} {pct * e.get('line_nm', 0.0) / 100:.3g} nm ({pct:.3g} % of the "
-                         f"{e.get('line_nm', 0.0):.4g} nm {what})")
-        return ", ".join(parts)
+    judged: ErrorReport | None = None
 
     def summary(self) -> dict[str, float | None]:
-        """The worst axis's figures, as :class:`afmctl.zenoh_api.messages.LearnMsg` takes them."""
+        """The figures of the worst axis (the largest max % of ``judged``), all from that
+        one axis, as :class:`afmctl.zenoh_api.messages.LearnMsg` takes them: ``max_pct`` /
+        ``rms_pct`` over the whole table in % of its span, ``central_*`` over the judged part
+        in % of its line or step."""
         keys = ("max_pct", "rms_pct", "central_max_pct", "central_rms_pct")
-        return {k: max((e[k] for e in self.errors.values() if k in e), default=None) for k in keys}
+        if not self.errors:
+            return dict.fromkeys(keys)
+        axis = self.worst_axis()
+        out: dict[str, float | None] = {k: self.errors[axis].get(k) for k in keys[:2]}
+        a = self.judged.axis(axis) if self.judged is not None else None
+        out["central_max_pct"] = a.max_pct if a is not None else None
+        out["central_rms_pct"] = a.rms_pct if a is not None else None
+        return out
+
+    def worst_axis(self) -> str:
+        """The learned axis with the largest max error in % (of ``judged``, else of the
+        learning law's figures)."""
+        def pct(axis: str) -> float:
+            a = self.judged.axis(axis) if self.judged is not None else None
+            if a is not None and a.max_pct is not None:
+                return a.max_pct
+            return self.errors[axis]["max_pct"]
+        return max(self.errors, key=pct)
+
+
+def judged_errors(target_nm: np.ndarray, measured_nm: dict[str, np.ndarray]) -> ErrorReport:
+    """The per-axis errors a user checks (:func:`afmctl.data.axis_errors.axis_errors`) of
+    the measured position [nm] per learned axis (``measured_nm``, the history term taken
+    out: the play from rest ``afmctl run`` makes) against the table's target (N, 3) [nm]."""
+    pos = np.array(target_nm, dtype=float)
+    for axis, y in measured_nm.items():
+        pos[:, "xyz".index(axis)] = y
+    return axis_errors(target_nm, pos, "".join(a for a in "xyz" if a in measured_nm))
 
 
 class LearnRun:
@@ -187,8 +211,8 @@ class LearnRun:
     def _check_config(self) -> None:
         cfg = self.config
         if cfg.amplifier.output != "wave":
-            raise AfmctlError("amplifier.output: afmctl learn plays each table on the amplifier's clock; "
-                              "set output = 'wave'")
+            raise AfmctlError(f"amplifier.output = '{cfg.amplifier.output}': afmctl learn plays each table on the "
+                              "amplifier's clock; set output = 'wave' (or AFMCTL_AMPLIFIER__OUTPUT=wave)")
         if cfg.trajectory.kind in ("queue", "learned"):
             raise AfmctlError(f"trajectory.kind = '{cfg.trajectory.kind}': afmctl learn needs a finite trajectory "
                               "to learn (raster, moves, indentation, text, spiral or file)")
@@ -332,12 +356,16 @@ class LearnRun:
             nxt.u_V[:, c] = res.u_next_V
             if res.stopped:
                 stops.append(f"{axis}: {res.reason}")
-        metric = max(axis_metric(e) for e in errors.values())
+        judged = judged_errors(table.target_nm, {a: measured[a] - terms[a] for a in learners})
+        metric = judged.worst_pct()
+        if metric != metric:      # no learned axis has a length to refer to: the law's own figure
+            metric = max(axis_metric(e) for e in errors.values())
         if self.best is None or metric < self.best[0]:
             self.best = (metric, table)
         report = IterationReport(k, errors, metric, float(np.median(rhos)), float(max(lags, key=abs)),
                                  history_nm=max((float(np.max(np.abs(d))) for d in terms.values()), default=0.0),
-                                 history_offset_nm=max(self.history.offsets.values(), key=abs, default=0.0))
+                                 history_offset_nm=max(self.history.offsets.values(), key=abs, default=0.0),
+                                 judged=judged)
         if metric <= self.options.noise_floor_pct:
             report.state, report.detail = "converged", f"at the noise floor ({metric:.3g} % <= " \
                                                       f"{self.options.noise_floor_pct:g} %)"

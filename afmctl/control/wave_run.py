@@ -130,7 +130,7 @@ class WaveMachine(LoopMachine):
         if targets is None or self.ctl._request is not None:
             return
         self.phase = Phase.PLAN
-        self.table = self._plan(targets)
+        self.table = self.ctl.wave_table = self._plan(targets)
         self.player.check(self.table)
         self.phase = Phase.UPLOAD
         if not self.player.prepare(self.table):

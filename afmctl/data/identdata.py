@@ -265,20 +265,12 @@ def _near_fast_parts(t_s: np.ndarray, u_V: np.ndarray, margin: int) -> np.ndarra
     there an amplifier's lag or a structural mode looks like a delay of many samples, which
     the dynamics stage fits itself (fractional, jointly with its poles; #24). A sensor's delay
     shows in the slow parts too."""
-    from afmctl.compensators.base import ModelError
-    from afmctl.compensators.dynamics_identify import dynamics_parts, uniform_dt
+    from afmctl.compensators.dynamics_identify import dynamics_parts, is_uniform, parts_mask
 
-    try:
-        uniform_dt(t_s)                  # the dynamics stage needs uniform samples too
-    except ModelError:
+    if not is_uniform(t_s):              # the dynamics stage needs uniform samples too
         return None
     parts = dynamics_parts(u_V, t_s)
-    if not parts:
-        return None
-    skip = np.zeros(u_V.size, dtype=bool)
-    for a, b in parts:
-        skip[a:min(u_V.size, b + margin)] = True
-    return skip
+    return parts_mask(u_V.size, parts, margin) if parts else None
 
 
 def _seconds(flag: str, text: str, hi: float) -> float:

@@ -242,6 +242,7 @@ def make_identify_step(kind: str) -> Step:
     (``OUT/models/scanner_<kind>.json``, loadable by ``afmctl run`` as
     ``[compensation] scanner_model``)."""
     def run(ctx: DemoContext) -> None:
+        from afmctl.compensators.fit_health import fit_problems
         from afmctl.compensators.models import save_model
         from afmctl.compensators.scanner_model import ScannerModel
         try:
@@ -258,6 +259,10 @@ def make_identify_step(kind: str) -> Step:
                                              static.axis(axis) if static is not None and kind.endswith("+dynamics")
                                              else None)
                 models[axis].inverse(1e-4).reset()   # can it be inverted at all?
+                problems = fit_problems(models[axis])
+                if problems:      # a failed fit is never used (compensators/fit_health.py)
+                    ctx.skipped[kind] = f"{axis} axis: the fit failed: {'; '.join(problems)}"
+                    return
             except NotImplementedError:
                 ctx.skipped[kind] = "identify() not implemented yet"
                 return
@@ -552,6 +557,9 @@ def format_table(metrics: dict[str, Any]) -> str:
     if d:
         lines.append(f"drift correction: {d['compensator']} max error {d['max_error_pct_with_drift_correction']:.3f} % "
                      f"with, {d['max_error_pct_without_drift_correction']:.3f} % without")
+    c = metrics.get("coupling")
+    if c:
+        lines.append(f"cross-coupling estimated: x←y {c['x_from_y']:.4f}, y←x {c['y_from_x']:.4f}")
     for kind, why in metrics.get("skipped", {}).items():
         lines.append(f"skipped {kind}: {why}")
     if metrics.get("speed_ladder"):

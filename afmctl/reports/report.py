@@ -14,7 +14,9 @@ Run-log report (:func:`run_report`), from :class:`afmctl.control.runlog.RunLogRe
   samples that track the trajectory (start/stop ramps excluded), in % of the target range;
 * ``report_drift.png`` — drift estimate per axis and temperature over time;
 * ``report_summary.json`` — counts, duration, voltage ranges, states, and the same error
-  numbers.
+  numbers; with ``simulate``, ``tracking_per_axis``: the tracking error per axis in nm and in
+  % of that axis's line (or step) over the central 80 % of a raster's lines
+  (:func:`afmctl.data.axis_errors.axis_errors`, as ``afmctl run`` prints it).
 """
 from __future__ import annotations
 
@@ -326,8 +328,11 @@ def run_report(run: str | Path, out: str | Path, *, simulate: bool | None = None
     errors: dict[str, np.ndarray] = {
         DRIFT_CORRECTION: (sp["corrected_nm"] - sp["target_nm"])[sel][:, active] / span * 100.0}
     if simulate:
+        from ..data.axis_errors import axis_errors
         pos = _simulate(sp, reader.meta())
         errors[TRACKING_ERROR] = (pos - sp["target_nm"])[sel][:, active] / span * 100.0
+        summary["tracking_per_axis"] = axis_errors(sp["target_nm"][sel], pos[sel],
+                                                   "".join(AXES[i] for i in active)).as_dict()
     summary["error_samples"] = int(np.count_nonzero(sel))
     fig, ax = plt.subplots(figsize=(6.5, 4.0))
     plot_error_histograms(ax, {k: v for k, v in errors.items()}, "per-sample errors (all active axes)")

@@ -19,6 +19,10 @@ import numpy as np
 from ..errors import AfmctlError
 from afmctl.drivers.base import AmplifierInterface
 
+#: reply timeout [s] of the CAN driver to a simulated amplifier in this process (a device on
+#: a wire: the driver's 0.5 s default)
+SIMULATED_CAN_TIMEOUT_S = 2.0
+
 
 def load_scanner_config(path: Path | None):
     """A ScannerConfig from a JSON file, or the default scanner."""
@@ -61,10 +65,13 @@ def simulated_amplifier(config) -> Iterator[tuple[Any, Any]]:
                 raise AfmctlError(f"simulation.device: {err} (simulated {driver})") from None
             port = server.port
         from ..control.hardware import open_driver
-        if driver != "can" and "baudrate" not in config.amplifier.options:
-            # the driver paces its writes to the simulated link's rate, as to a real port's
-            config = config.model_copy(update={"amplifier": config.amplifier.model_copy(
-                update={"options": {**config.amplifier.options, "baudrate": config.simulation.baud}})})
+        # the simulated amplifier answers from a thread of this process: under load the loop's
+        # thread holds the interpreter for longer than a device on a wire would take to answer
+        # (0.5 s, the driver's default, went by at a 2 kHz loop); a serial driver paces its
+        # writes to the simulated link's rate, as to a real port's
+        default = {"timeout_s": SIMULATED_CAN_TIMEOUT_S} if driver == "can" else {"baudrate": config.simulation.baud}
+        config = config.model_copy(update={"amplifier": config.amplifier.model_copy(
+            update={"options": {**default, **config.amplifier.options}})})
         amp = open_driver(config, port)
         stack.callback(amp.close)
         yield amp, scanner

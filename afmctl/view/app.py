@@ -2,9 +2,11 @@
 
 ``GET /`` the page, ``GET /static/...`` its script and style (shipped in the package),
 ``GET /api/snapshot`` the current picture as JSON (for scripts), ``WS /ws`` the live feed:
-the server sends a JSON frame every ``1/frame_rate_Hz`` s holding only what that page has
-not seen (decimated rows, bounded by the server's rings), the image every
-``image_every`` frames."""
+the server sends a JSON frame holding only what that page has not seen (decimated rows,
+bounded by the server's rings), the image every ``image_every`` frames, and the next one
+when the page has answered the last with any text message, at most every
+``1/frame_rate_Hz`` s (flow control: a page that cannot keep up never falls behind, it
+gets fewer frames)."""
 from __future__ import annotations
 
 import asyncio
@@ -51,13 +53,17 @@ def make_app(feed: ViewFeed, *, frame_rate_Hz: float = 10.0, image_every: int = 
     async def live(ws: WebSocket) -> None:
         await ws.accept()
         cursors: dict[str, dict[str, int]] = {}
+        clock = asyncio.get_running_loop().time
         n = 0
         try:
             while True:
-                frame = build_frame(feed, cursors, n % image_every == 0)
-                await ws.send_json(frame)
+                t0 = clock()
+                await ws.send_json(build_frame(feed, cursors, n % image_every == 0))
                 n += 1
-                await asyncio.sleep(period_s)
+                # the next frame once the page took this one: a slow page gets fewer, larger
+                # frames instead of a queue that grows (its view would fall seconds behind)
+                await ws.receive_text()
+                await asyncio.sleep(max(0.0, period_s - (clock() - t0)))
         except (WebSocketDisconnect, RuntimeError, OSError):
             log.debug("page left")
 

@@ -81,8 +81,10 @@ class CommandQueryable:
         ctl = self.controller
         try:
             if req.cmd == "start":
-                self._start(req.args)
+                detail = self._start(req.args)
                 result: dict[str, Any] = {"state": state_name(ctl.state)}
+                if detail:
+                    result["detail"] = detail
             elif req.cmd == "stop":
                 ctl.stop()
                 result = {"state": state_name(ctl.state)}
@@ -104,10 +106,12 @@ class CommandQueryable:
         self._ledger.count("accepted")
         return CmdReply(seq=req.seq, cmd=req.cmd, ok=True, result=jsonable(result))
 
-    def _start(self, args: dict[str, Any]) -> None:
+    def _start(self, args: dict[str, Any]) -> str | None:
         """``start``: ``{}`` runs segments sent on ``trajectory`` as they come (queue mode);
         ``{"trajectory": {...}}`` queues that trajectory (segment, line or raster body) first;
-        ``{"configured": true}`` runs the trajectory of the service's configuration."""
+        ``{"configured": true}`` runs the trajectory of the service's configuration. A run
+        already in queue mode (``trajectory.kind = "queue"``, or an earlier ``start``) goes
+        on: the trajectory is queued and the reply says so (returned here)."""
         unknown = set(args) - {"trajectory", "configured"}
         if unknown:
             raise MessageError(f"field args: unknown {', '.join(sorted(unknown))}; allowed: trajectory, configured")
@@ -117,7 +121,7 @@ class CommandQueryable:
             if config is None or getattr(config, "trajectory", None) is None:
                 raise MessageError("field args.configured: this service has no configured trajectory")
             ctl.start(config.trajectory)
-            return
+            return None
         spec = args.get("trajectory")
         if spec is not None:
             if not isinstance(spec, dict):
@@ -127,7 +131,11 @@ class CommandQueryable:
             positions = msg.positions(self.settings.max_segment_samples)
             check_range(positions, self.position_range_nm)
             ctl.submit_segment(positions, msg.dt_s)
+        if getattr(ctl, "queue_running", False):
+            return ("already running in queue mode: segments sent on trajectory play as they arrive"
+                    + (" (this one queued)" if spec is not None else ""))
         ctl.start(None)
+        return None
 
     def _config_dump(self) -> dict[str, Any]:
         """The service's configuration as JSON (the zenoh password masked)."""

@@ -16,7 +16,7 @@ class. Between the two processes:
   dispatcher and the run log never wait for zenoh.
 * **calls in** — the child's bridge talks to a :class:`ControllerProxy` whose methods
   (``submit_segment``, ``set_temperature``, ``start``, ``stop``, ``estop``,
-  ``submit_drift_measurement``, ``stats``, ``state``) are forwarded over a second pipe and
+  ``submit_drift_measurement``, ``stats``, ``state``, ``queue_running``) are forwarded over a second pipe and
   run by a thread of this process on the real controller — the same calls the in-process
   bridge makes from its worker thread, off the loop thread. An error raised by the
   controller comes back with its message (one line naming the field and the range).
@@ -55,7 +55,7 @@ OUTBOX_BYTES = 2 * 1024 * 1024
 _FRAME = struct.Struct("!I")   # length of the pickled record that follows
 #: controller methods the child may call
 REMOTE_METHODS = frozenset({"submit_segment", "set_temperature", "start", "stop", "estop",
-                            "submit_drift_measurement", "stats", "state"})
+                            "submit_drift_measurement", "stats", "state", "queue_running"})
 _CLOSE = ("close", None)
 
 
@@ -185,6 +185,8 @@ class ZenohBridgeProcess:
                     raise AfmctlError(f"zenoh child: {method!r} is not a controller call it may make")
                 if method == "state":
                     result: Any = ctl.state.value
+                elif method == "queue_running":
+                    result = bool(ctl.queue_running)
                 else:
                     result = getattr(ctl, method)(*args)
                 reply: tuple = ("ok", result)
@@ -279,6 +281,10 @@ class ControllerProxy:
     @property
     def state(self) -> str:
         return self._call("state")
+
+    @property
+    def queue_running(self) -> bool:
+        return bool(self._call("queue_running"))
 
     def stats(self) -> dict[str, Any]:
         return self._call("stats")

@@ -39,6 +39,34 @@ function extent(arrays, pad) {
   return [lo - d, hi + d];
 }
 
+// A polyline into ctx's current path, points i = 0..n-1 at (sx(x(i)), sy(y(i))) [css px];
+// null or non-finite points lift the pen. Runs of points inside one pixel column become
+// at most four (first, lowest, highest, last: "M4"), which looks the same at that
+// resolution and keeps a 6000-row trace cheap to draw on a slow machine.
+function tracePath(c, n, x, y, sx, sy) {
+  let pen = false, col = NaN, m = 0;            // m: points held for the current column
+  let fx = 0, fy = 0, lx = 0, ly = 0, li = 0, hx = 0, hy = 0, hi = 0, ex = 0, ey = 0;
+  const to = (px, py) => { if (pen) { c.lineTo(px, py); } else { c.moveTo(px, py); pen = true; } };
+  const flush = () => {
+    if (m === 0) { return; }
+    to(fx, fy);                                 // first, then the extremes in their order, then last
+    if (li < hi) { to(lx, ly); to(hx, hy); } else if (hi < li) { to(hx, hy); to(lx, ly); }
+    if (m > 1) { to(ex, ey); }
+    m = 0;
+  };
+  for (let i = 0; i < n; i++) {
+    const xv = x(i), yv = y(i);
+    if (xv === null || yv === null || !isFinite(xv) || !isFinite(yv)) { flush(); pen = false; continue; }
+    const px = sx(xv), py = sy(yv), pc = Math.floor(px);
+    if (m > 0 && pc !== col) { flush(); }
+    if (m === 0) { col = pc; fx = lx = hx = ex = px; fy = ly = hy = ey = py; li = hi = i; m = 1; continue; }
+    if (py < ly) { lx = px; ly = py; li = i; }
+    if (py > hy) { hx = px; hy = py; hi = i; }
+    ex = px; ey = py; m++;
+  }
+  flush();
+}
+
 class Plot {
   // opts: title, xlabel, ylabel, equal (equal aspect), colorbar (height map)
   constructor(canvas, opts) {
@@ -105,12 +133,7 @@ class Plot {
     const c = this.ctx;
     c.strokeStyle = color; c.lineWidth = width || 1.5; c.setLineDash(dash || []);
     c.beginPath();
-    let pen = false;
-    for (let i = 0; i < xs.length; i++) {
-      const x = xs[i], y = ys[i];
-      if (x === null || y === null || !isFinite(x) || !isFinite(y)) { pen = false; continue; }
-      if (pen) { c.lineTo(this.sx(x), this.sy(y)); } else { c.moveTo(this.sx(x), this.sy(y)); pen = true; }
-    }
+    tracePath(c, xs.length, (i) => xs[i], (i) => ys[i], this.sx, this.sy);
     c.stroke(); c.setLineDash([]);
   }
 
@@ -171,10 +194,21 @@ function viridis(f) {
 function drawHeightMap(plot, img) {
   // img: {x_nm:[lo,hi], y_nm:[lo,hi], height_nm: rows×cols (null = no sample), h_range_nm}
   plot.frame(img.x_nm, img.y_nm);
+  if (plot.mapOf !== img) { plot.map = heightPixels(img); plot.mapOf = img; }   // once per new image
+  const c = plot.ctx, x0 = plot.sx(img.x_nm[0]), x1 = plot.sx(img.x_nm[1]);
+  const y0 = plot.sy(img.y_nm[1]), y1 = plot.sy(img.y_nm[0]);
+  c.imageSmoothingEnabled = false;
+  if (plot.map.width && plot.map.height) { c.drawImage(plot.map, x0, y0, x1 - x0, y1 - y0); }
+  drawColorbar(plot, img.h_range_nm[0], img.h_range_nm[1]);
+}
+
+// the image's pixels (viridis over h_range_nm; no sample: transparent), one per cell
+function heightPixels(img) {
   const rows = img.height_nm.length, cols = rows ? img.height_nm[0].length : 0;
   const [hlo, hhi] = img.h_range_nm, span = (hhi - hlo) || 1;
   const off = document.createElement("canvas");
   off.width = cols; off.height = rows;
+  if (!cols || !rows) { return off; }
   const oc = off.getContext("2d"), data = oc.createImageData(cols, rows);
   for (let r = 0; r < rows; r++) {
     for (let k = 0; k < cols; k++) {
@@ -185,19 +219,14 @@ function drawHeightMap(plot, img) {
     }
   }
   oc.putImageData(data, 0, 0);
-  const c = plot.ctx, x0 = plot.sx(img.x_nm[0]), x1 = plot.sx(img.x_nm[1]);
-  const y0 = plot.sy(img.y_nm[1]), y1 = plot.sy(img.y_nm[0]);
-  c.imageSmoothingEnabled = false;
-  c.drawImage(off, x0, y0, x1 - x0, y1 - y0);
-  drawColorbar(plot, hlo, hhi);
+  return off;
 }
 
 function drawColorbar(plot, lo, hi) {
   const c = plot.ctx, m = plot.margin, x = m.l + plot.pw + 12, w = 12, top = m.t, h = plot.ph;
-  for (let i = 0; i < h; i++) {
-    const rgb = viridis(1 - i / h);
-    c.fillStyle = `rgb(${rgb[0]},${rgb[1]},${rgb[2]})`; c.fillRect(x, top + i, w, 1.5);
-  }
+  const g = c.createLinearGradient(0, top + h, 0, top);
+  VIRIDIS.forEach((rgb, i) => g.addColorStop(i / (VIRIDIS.length - 1), `rgb(${rgb[0]},${rgb[1]},${rgb[2]})`));
+  c.fillStyle = g; c.fillRect(x, top, w, h);
   c.strokeStyle = "#5b6474"; c.strokeRect(x, top, w, h);
   c.fillStyle = "#1d2330"; c.font = "11px system-ui, 'DejaVu Sans', sans-serif";
   c.textAlign = "left"; c.textBaseline = "middle";

@@ -4,8 +4,9 @@
 
 const WINDOW_S = 5;        // seconds shown by the fast time plots (voltages, targets, error)
 const state = { scanners: {}, selected: null, historyS: 30, maxRows: 6000, frames: 0, dirty: true,
-  lastFrameMs: 0 };
-window.afmView = state;   // for tests and the curious: frame count, rows held per stream
+  lastFrameMs: 0, busyMs: { ingest: 0, render: 0 } };
+window.afmView = state;   // for tests and the curious: frame count, rows held per stream, time
+                          // spent taking frames and drawing [ms] (busyMs)
 
 function newScanner() {
   return { setpoints: [], tips: [], drift: [], status: null, counts: {}, tracking: {}, image: null,
@@ -86,7 +87,14 @@ function updateLab(names) {
     card.querySelector(".cstate").textContent = (s.status && s.status.state) || "no status";
     card.querySelector(".figs").textContent = `samples ${fmtN(st.samples, 9)} · p99 lateness ` +
       `${st.lateness_p99_s === undefined ? "–" : fmtN(st.lateness_p99_s * 1e6) + " µs"} · missed ${fmtN(st.missed_deadlines, 9)}`;
-    drawSpark(card.querySelector(".spark"), s);
+  }
+}
+
+// the cards' voltage sparklines: drawn with the plots, once per animation frame at most
+function drawSparks() {
+  for (const card of document.querySelectorAll("#lab .card")) {
+    const s = state.scanners[card.dataset.name];
+    if (s) { drawSpark(card.querySelector(".spark"), s); }
   }
 }
 
@@ -106,12 +114,10 @@ function drawSpark(canvas, s) {
   if (rows.length < 2) { return; }
   const t0 = rows[0][0], t1 = rows[rows.length - 1][0] || t0 + 1;
   const yr = extent([4, 5, 6].map((k) => col(rows, k)));
+  const sx = (t) => ((t - t0) / Math.max(t1 - t0, 1e-9)) * (w - 2) + 1, sy = (v) => h - 1 - ((v - yr[0]) / (yr[1] - yr[0])) * (h - 2);
   ["x", "y", "z"].forEach((a, i) => {
     ctx.strokeStyle = AXIS_COLORS[a]; ctx.lineWidth = dpr; ctx.beginPath();
-    rows.forEach((row, j) => {
-      const x = ((row[0] - t0) / Math.max(t1 - t0, 1e-9)) * (w - 2) + 1, y = h - 1 - ((row[4 + i] - yr[0]) / (yr[1] - yr[0])) * (h - 2);
-      if (j) { ctx.lineTo(x, y); } else { ctx.moveTo(x, y); }
-    });
+    tracePath(ctx, rows.length, (j) => rows[j][0], (j) => rows[j][4 + i], sx, sy);
     ctx.stroke();
   });
 }
@@ -294,17 +300,28 @@ function render() {
   requestAnimationFrame(render);
   if (!state.dirty || !state.selected) { return; }
   state.dirty = false;
+  const t0 = performance.now();
+  drawSparks();
   const s = state.scanners[state.selected], tr = timeRange(s, WINDOW_S), all = timeRange(s, state.historyS);
   drawVolts(s, tr); drawTargets(s, tr); drawXY(s); drawError(s, tr); drawDrift(s, all); drawLearn(s); drawImage(s);
   drawStats(s);
   document.getElementById("clock").textContent = `t = ${fmtN(tr[1], 6)} s · frames ${state.frames}`;
+  state.busyMs.render += performance.now() - t0;
 }
 
 function connect() {
   const link = document.getElementById("link");
   const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`);
   ws.onopen = () => { link.textContent = "live"; };
-  ws.onmessage = (ev) => ingest(JSON.parse(ev.data));
+  // each frame is answered once taken: the server sends the next only then (flow control)
+  // (also after a frame this page could not take: the feed never stalls on one bad frame)
+  ws.onmessage = (ev) => {
+    const t0 = performance.now();
+    try { ingest(JSON.parse(ev.data)); } finally {
+      state.busyMs.ingest += performance.now() - t0;
+      ws.send("next");
+    }
+  };
   ws.onclose = () => { link.textContent = "disconnected — retrying"; setTimeout(connect, 1000); };
 }
 
