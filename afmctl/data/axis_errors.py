@@ -4,7 +4,8 @@ report`` print.
 
 The part judged (:func:`judged_part`): when the target is a raster — one axis moves along
 at least two straight lines (:func:`afmctl.compensators.learning_weights.find_lines`) of
-one length that cover at least half the record — the central ``central_pct`` % of the
+one length that cover at least half the record between its first move and its last (a
+wave table's rests before and after do not count) — the central ``central_pct`` % of the
 raster lines the learning judges too
 (:func:`afmctl.compensators.learning_weights.judged_lines`: every line, a trace and its
 retrace, but the first, which the scanner starts from rest; the part an AFM images, the
@@ -105,6 +106,7 @@ def raster_lines(target_nm: np.ndarray, axes: str = AXES) -> tuple[str, list[Lin
     """The fast axis and its lines when ``target_nm`` (N, 3) is a raster (module docstring),
     else None. Only the columns of ``axes`` are looked at."""
     tgt = np.asarray(target_nm, dtype=float)
+    moving = moving_samples(tgt)
     best: tuple[str, list[Line]] | None = None
     for a in axes:
         found = find_lines(tgt[:, AXES.index(a)])
@@ -113,11 +115,21 @@ def raster_lines(target_nm: np.ndarray, axes: str = AXES) -> tuple[str, list[Lin
         lengths = np.array([np.ptp(tgt[ln.start:ln.stop, AXES.index(a)]) for ln in found])
         alike = np.abs(lengths - np.median(lengths)) <= LENGTH_TOL * np.median(lengths)
         covered = sum(ln.n for ln in found)
-        if covered < RASTER_SHARE * len(tgt) or np.mean(alike) < RASTER_ALIKE:
+        if covered < RASTER_SHARE * moving or np.mean(alike) < RASTER_ALIKE:
             continue
         if best is None or covered > sum(ln.n for ln in best[1]):
             best = (a, found)
     return best
+
+
+def moving_samples(target_nm: np.ndarray) -> int:
+    """How many samples of ``target_nm`` (N, 3) [nm] lie between its first move and its
+    last: the rests at its start and end (a wave table's padding) left out."""
+    tgt = np.asarray(target_nm, dtype=float)
+    if len(tgt) < 2:
+        return len(tgt)
+    changed = np.flatnonzero(np.any(np.diff(tgt, axis=0) != 0.0, axis=1))
+    return int(changed[-1] - changed[0] + 2) if changed.size else 0
 
 
 def judged_part(target_nm: np.ndarray, axes: str = AXES, central_pct: float = REPORT_CENTRAL_PCT
