@@ -168,7 +168,15 @@ def learning_weights(zone_weights: np.ndarray, lines: list[Line], judged: list[L
     the first line too left 0.18 % instead of 0.11 % at 100 lines/s); after an approach or a
     rest of at least a line's time the first line is learned like the others (the in-house
     benchmark's model-free law, learning from a linear calibration 92 % off on its first
-    line, stayed at 5 % on the second line without it and reached 0.04 % with it).
+    line, stayed at 5 % on the second line without it and reached 0.04 % with it), and
+    with it the last line's time of that rest, where the non-causal inverse acts ahead of
+    the first line; the rest before that (a wave table's padding, where the scanner creeps
+    after its approach) is not learned, nor what follows the last judged line by more than
+    a line's time. Learning there moved the table's first row, the approach's end, by up to
+    1.5 V from play to play (the creep after the approach then differs every play), and the
+    creep transient learned into the rest took the hysteresis inverse to a deeper reversal
+    just before the raster (on the simulated E-727 at 200 lines/s: the change in the rest
+    fell back to 0.14 V and jumped by 0.6 V within the first line).
     Where the weight falls to 0 it does so along a raised cosine over :func:`taper_samples`
     samples, inside the unjudged part: a hard edge would put the error's jump there into
     every frequency, and the scanner's inverse, large at high frequencies, answers it with
@@ -180,8 +188,14 @@ def learning_weights(zone_weights: np.ndarray, lines: list[Line], judged: list[L
     groups = raster_lines(lines)
     first = min(ln.start for ln in judged)
     spans = [(g[0].start, g[-1].stop) for g in groups if g[0] not in judged and g[0].start >= first]
-    if groups[0][0] not in judged and groups[0][0].start < groups[0][-1].stop - groups[0][0].start:
+    lead = groups[0][-1].stop - groups[0][0].start            # one raster line's time [samples]
+    if groups[0][0] not in judged and groups[0][0].start < lead:
         spans.insert(0, (0, first))
+    elif groups[0][0].start > lead:
+        spans.insert(0, (0, groups[0][0].start - lead))
+    last = max(ln.stop for ln in judged)
+    if w.size - last > lead:
+        spans.append((last + lead, w.size))
     width = taper_samples(w.size, lines)
     fall = 0.5 + 0.5 * np.cos(np.pi * np.arange(1, width + 1) / (width + 1))      # 1 → 0, ends excluded
     keep = np.ones(w.size)

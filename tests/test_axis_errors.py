@@ -43,6 +43,14 @@ def test_a_raster_is_judged_on_its_lines_central_part_per_axis_line_or_step(mode
     assert "x max 8 nm (0.2 %)" in x.text() and "of its 4000 nm line" in x.text()
 
 
+def test_a_raster_padded_with_long_rests_is_still_judged_on_its_lines():
+    tgt = _raster()                      # a wave table's padding: rests longer than the raster
+    pad = 3 * len(tgt)
+    padded = np.vstack([np.repeat(tgt[:1], pad, axis=0), tgt, np.repeat(tgt[-1:], pad, axis=0)])
+    r = axis_errors(padded, padded + np.array([8.0, 0.0, 0.0]))
+    assert "x is the fast axis" in r.part and r.axes[0].ref == "line" and r.axes[0].max_nm == pytest.approx(8.0)
+
+
 def test_a_trajectory_without_lines_is_judged_whole_in_percent_of_each_axis_range():
     tgt = collect(moves([(3000.0, 500.0, 0.0), (0.0, 2500.0, 0.0)], DT_S, dwell_s=0.01))
     assert raster_lines(tgt) is None

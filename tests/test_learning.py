@@ -235,6 +235,19 @@ def test_find_lines_and_weights_of_a_raster():
     assert np.all(error_weights(np.sin(np.linspace(0, 6, 500))) == 1.0)
 
 
+def test_the_rests_around_a_raster_are_learned_only_within_a_lines_time_of_it():
+    from afmctl.compensators.learning_weights import judged_lines, learning_weights, taper_samples
+    tgt = raster(lines=3)                # approach and rest 800 samples, lines of 500, rest 500
+    lines = find_lines(tgt)
+    judged, _ = judged_lines(lines)
+    w = learning_weights(error_weights(tgt, 80.0, lines=lines), lines, judged, 0.1)
+    first, last, lead = lines[0].start, lines[-1].stop, lines[1].stop - lines[0].start
+    edge = taper_samples(tgt.size, lines)   # the raised-cosine edge, inside the part not learned
+    assert first - lead > 100 and np.all(w[:first - lead - edge] == 0.0)   # the table's first rows: not learned
+    assert np.all(w[first - lead:first] > 0.0)      # a line's time before the first line: learned
+    assert np.all(w[last:last + lead] > 0.0) and np.all(w[last + lead + edge:] == 0.0)
+
+
 def test_lag_estimate_finds_a_shift_to_a_fraction_of_a_sample():
     t = np.arange(4000) * DT
     ref = np.sin(2 * np.pi * 37 * t) + 0.3 * np.sin(2 * np.pi * 210 * t)
