@@ -152,12 +152,16 @@ class TablePlayer:
         device, before the approach (step ``arm``); None when it played to the end, else ``(state, why)``."""
         if self._stop.is_set():
             return "stopped", "stopped before the play"
+        from afmctl.drivers.errors import AmplifierConnectionError, AmplifierTimeout
         source = LearnedSource(make_learned(self.config, table, self.spec), "the table being learned")
         ctl = Controller(self.config, self.amp)
         ctl.before_wave_start = lambda: self._set_step(Step.ARM, arm)
         self._ctl = ctl
         try:
-            ctl.start(source)
+            try:
+                ctl.start(source)
+            except (AmplifierTimeout, AmplifierConnectionError) as err:     # a link still down: reconnect, play again
+                return "fault", f"the play did not start: {err}"
             if self._stop.is_set():
                 ctl.stop()
             while not ctl.wait(0.05):

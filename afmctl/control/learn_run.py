@@ -325,6 +325,8 @@ class LearnRun:
         if not isinstance(got, dict):
             log.warning("learn: the first table's second play did not complete (%s); the model's history term is "
                         "used as it is", got[1])
+            if got[0] == "fault" and not self.player.stopping:
+                self.player.reconnect()
             return
         self.history.calibrate(got)
 
