@@ -36,6 +36,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from afmctl.compensators.learning_weights import judged_max_pct  # noqa: E402
 from afmctl.config import load_config  # noqa: E402
+from afmctl.errors import AfmctlError  # noqa: E402
 from afmctl.control.learn_run import play_recorded  # noqa: E402
 from afmctl.control.learned_table import LearnedSource  # noqa: E402
 from afmctl.simulation.link import simulated_amplifier  # noqa: E402
@@ -123,7 +124,10 @@ def one(driver: str, line_rate: int, model: str | None, iterations: int, work: P
     run = afmctl("run", "--config", str(d / "run.toml"), "--log", str(d / "run.afmlog"), "--quiet")
     row["run_exit"] = run.returncode
     if run.returncode == 0:
-        row["run_pct"] = played_error(d / "run.toml", d / "L.afmwave")
+        try:
+            row["run_pct"] = played_error(d / "run.toml", d / "L.afmwave")
+        except AfmctlError as err:            # a link fault of the check's own play: said in the row
+            row["run_exit"], row["error"] = 1, str(err)[:200]
     return row
 
 
