@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 from collections.abc import Callable
 
+from .stopping import wait_for_stop
 from ..simulation.service import SimService, TipPublisher, load_settings, scanner_name
 
 log = logging.getLogger(__name__)
@@ -216,7 +217,7 @@ def run(args) -> int:
             else:
                 print("zenoh: off (use --zenoh to publish the true tip position)", flush=True)
             print("stop with Ctrl-C or SIGTERM", flush=True)
-            stop.wait(args.duration)
+            wait_for_stop(stop, args.duration)
     finally:
         for s, h in old.items():
             signal.signal(s, h)
