@@ -266,7 +266,8 @@ def run_doc(doc: str, tmp_path: Path) -> list[tuple[Block, Path]]:
     for n, b in enumerate(blocks):
         (state / f"b{n}.sh").write_text(_ports(_shorten(b), ports), encoding="utf-8")
         lines += [f'cd "{work}"', f'echo {n} > "{state}/current"',
-                  f'source "{state}/b{n}.sh" > "{state}/b{n}.out" 2> "{state}/b{n}.err"']
+                  f'source "{state}/b{n}.sh" > "{state}/b{n}.out" 2> "{state}/b{n}.err"',
+                  "jobs > /dev/null"]     # bash forgets the ended jobs, as at an interactive prompt: %1 is free again
     lines.append(f'echo done > "{state}/current"')
     (state / "doc.sh").write_text("\n".join(lines) + "\n", encoding="utf-8")
     env = {k: v for k, v in os.environ.items() if not k.startswith("AFMCTL_")}

@@ -9,8 +9,6 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from .stopping import wait_for_stop
-
 HELP = "run a zenoh router for a lab of scanners (TLS, users, access per scanner)"
 
 DESCRIPTION = """\
@@ -104,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
                   + (f", linked to {', '.join(settings.connect)}" if settings.connect else "")
                   + f"; access control {acl}", flush=True)
             print("stop with Ctrl-C or SIGTERM", flush=True)
-            wait_for_stop(stop)
+            stop.wait()
     finally:
         for s, h in old.items():
             signal.signal(s, h)

@@ -17,7 +17,6 @@ from pathlib import Path
 from typing import Any
 from collections.abc import Callable
 
-from .stopping import wait_for_stop
 from ..simulation.service import SimService, TipPublisher, load_settings, scanner_name
 
 log = logging.getLogger(__name__)
@@ -217,7 +216,7 @@ def run(args) -> int:
             else:
                 print("zenoh: off (use --zenoh to publish the true tip position)", flush=True)
             print("stop with Ctrl-C or SIGTERM", flush=True)
-            wait_for_stop(stop, args.duration)
+            stop.wait(args.duration)
     finally:
         for s, h in old.items():
             signal.signal(s, h)
