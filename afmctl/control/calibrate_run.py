@@ -11,6 +11,9 @@ piece, the table on the device's clock, the device's recorder armed once the tab
 on it (it starts with the table). Between pieces the output *holds* its last voltage
 (the next piece starts there: no approach, no hold of its own), so the scanner's
 hysteresis memory runs on unbroken; :func:`calibrate_pieces.join` puts the holds back.
+On a device that reads its recorder while it records (the E-727) each piece is read back
+while it plays (:class:`LiveReadback`), so a hold lasts the upload, the start and the last
+chunk of the read-back rather than the whole read-back.
 
 Requests: :meth:`CalibrationRun.stop` (Ctrl-C, zenoh ``stop``) stops the piece playing at
 once (wave generator stopped / FIFO flushed, the output holds), then :func:`return_to_safe`
