@@ -250,8 +250,9 @@ class SimGCS(SimDevice):
                 f"# SAMPLE_TIME = {r.rate * r.servo_cycle_s:.9g}", f"# NDATA = {n}"]
         head += [f"# NAME{i} = {r.name(t)}" for i, t in enumerate(tables)]
         head.append("# END_HEADER")
-        cols = [r.values(t, first, n) for t in tables]
-        rows = [" ".join(f"{c[k]:.6f}" for c in cols) for k in range(n)]
+        fmt = " ".join(["%.6f"] * len(tables))
+        data = np.column_stack([r.values(t, first, n) for t in tables]) if tables else np.zeros((n, 0))
+        rows = [fmt % tuple(row) for row in data.tolist()]
         return (" \n".join(head + rows) + "\n").encode()
 
     def _wave_command(self, cmd: str, args: list[str]) -> bytes | None:
