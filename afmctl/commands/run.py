@@ -88,13 +88,11 @@ MAX_SECONDS = 1e7
 #: exit status (see HELP)
 EXIT_OK, EXIT_FAULT, EXIT_BAD_INPUT, EXIT_RUNLOG = 0, 1, 2, 3
 
-#: three-axis (one-axis for mdt694b/nv200) setpoints per second a link carries at 115200
-#: baud, streaming without waiting for replies (docs/PROTOCOLS.md)
-LINK_CEILING_PER_S = {"mdt693b": 380.0, "mdt694b": 770.0, "gcs": 600.0, "nv200": 960.0, "can": 7000.0}
 
 
 def link_warning(config) -> str | None:
     """A warning when loop.rate_Hz exceeds what the amplifier link carries."""
+    from ..control.path_delay import LINK_CEILING_PER_S
     driver = config.amplifier.driver
     ceiling = LINK_CEILING_PER_S.get(driver)
     if ceiling is None or str(config.amplifier.port or "").startswith("socket://"):
@@ -140,6 +138,39 @@ def _summary(ctl, config, scanner, recorder=None) -> dict:
                 measured = recorder.errors()
                 out["tracking"]["recorded"] = measured.as_dict() if measured is not None else None
                 out["tracking"]["recorded_why_not"] = recorder.why_not
+            out["tracking"]["lag"] = lag_summary(config, ctl, sp, (start, end), scanner, recorder)
+    return out
+
+
+def lag_summary(config, ctl, setpoints, seq_range: tuple[int, int], scanner=None, recorder=None) -> dict:
+    """The lag of the motion behind its target per axis (:func:`afmctl.data.lag.measure_lags`)
+    over the tracked setpoints of ``seq_range``: as the device's recorder measured it (a wave
+    run) and as the voltages replayed through a fresh simulated scanner give it; beside the
+    output path's delay known in advance and the ticks the loop advanced the setpoints by to
+    take it out, and for host-timed setpoints to a simulated amplifier in this process how
+    late each reached the simulated scanner (:func:`afmctl.simulation.link.arrival_delays_s`)."""
+    import numpy as np
+
+    from ..data.lag import measure_lags
+    from ..simulation.link import arrival_delays_s, replay_positions_nm
+    sel = (setpoints["seq"] >= seq_range[0]) & (setpoints["seq"] < seq_range[1])
+    tgt, dt = setpoints["target_nm"][sel], config.dt_s
+    axes = "".join(a for a in "xyz" if a in config.scanner.axes)
+    out: dict = {"path_delay": ctl.path_delay.as_dict(), "dt_s": dt}
+    rec = getattr(recorder, "recorded", None)
+    if rec is not None:
+        target, pos, rec_axes = rec
+        out["recorded"] = [g.as_dict() for g in measure_lags(target, pos, dt, rec_axes)]
+    if scanner is None:
+        return out
+    out["replayed"] = [g.as_dict() for g in measure_lags(tgt, replay_positions_nm(config, setpoints)[sel], dt, axes)]
+    deadlines = ctl.tick_deadlines_s(np.round(setpoints["t_s"] / dt))
+    if config.amplifier.output == "setpoints" and deadlines is not None and hasattr(scanner, "applied"):
+        late = arrival_delays_s(scanner, deadlines, setpoints["u_V"])[sel]
+        late = late[np.isfinite(late)]
+        if late.size:
+            out["arrival"] = {"median_s": float(np.median(late)), "p99_s": float(np.percentile(late, 99)),
+                              "max_s": float(late.max()), "matched": int(late.size), "sent": int(np.count_nonzero(sel))}
     return out
 
 
@@ -299,10 +330,49 @@ def _print_tracking(t: dict) -> None:
                                                  a["reference_nm"]).text())
     if "recorded" in t and not t["recorded"]:
         print(f"                  (the device's recorder: {t.get('recorded_why_not')})")
+    if t.get("lag"):
+        _print_lag(t["lag"])
     if t.get("max_abs_nm") and not t.get("recorded"):
         print("                  replayed, whole tracked record (turnarounds included): max |e| "
               + ", ".join(f"{a} {v:.2f}" for a, v in zip(t["axes"], t["max_abs_nm"]))
               + " nm;  rms " + ", ".join(f"{a} {v:.2f}" for a, v in zip(t["axes"], t["rms_nm"])) + " nm")
+
+
+#: the lag's sources, most direct first: (key in the summary's tracking.lag, in words)
+LAG_SOURCES = (("recorded", "the device's recorder"), ("replayed", "the voltages replayed"))
+
+
+def lag_lines(lag: dict) -> list[str]:
+    """Per axis: ``x: lag measured X ms (N samples) by ..., Y ms taken out (path: ...)``, from
+    the most direct measurement there is, the others beside it."""
+    from ..control.path_delay import PathDelay, describe
+    p = lag["path_delay"]
+    taken_ms = p["advance_samples"] * lag["dt_s"] * 1e3
+    lines = []
+    found = [(key, words, {g["axis"]: g for g in lag[key]}) for key, words in LAG_SOURCES if lag.get(key)]
+    for axis in (found[0][2] if found else {}):
+        key, words, first = found[0]
+        g = first[axis]
+        if g["lag_samples"] is None:
+            lines.append(f"{axis}: no lag measured ({g['why']})")
+            continue
+        others = "; ".join(f"{w}: {o[axis]['lag_ms']:.3g} ms" for _, w, o in found[1:]
+                           if o.get(axis, {}).get("lag_samples") is not None)
+        lines.append(f"{axis}: lag measured {g['lag_ms']:.3g} ms ({g['lag_samples']:.3g} samples) by {words}, "
+                     f"{taken_ms:.3g} ms taken out (path: {p['path']}); after it max {g['rest_max_nm']:.3g} nm / "
+                     f"RMS {g['rest_rms_nm']:.3g} nm" + (f" [{others}]" if others else ""))
+    lines.append("path delay: " + describe(PathDelay(p["delay_s"], p["advance_samples"], p["path"]), lag["dt_s"]))
+    if lag.get("arrival"):
+        a = lag["arrival"]
+        lines.append(f"arrival: the setpoints reached the simulated scanner {a['median_s'] * 1e3:.3g} ms (median), "
+                     f"{a['p99_s'] * 1e3:.3g} ms (p99) after their ticks' deadlines ({a['matched']} of {a['sent']} "
+                     "matched; host lateness and the in-process simulator's own backlog, which the replay leaves out)")
+    return lines
+
+
+def _print_lag(lag: dict) -> None:
+    for i, line in enumerate(lag_lines(lag)):
+        print(("lag               " if i == 0 else "                  ") + line)
 
 
 def _exit_status(ctl, summary: dict) -> int:
