@@ -300,9 +300,6 @@ class LearnRun:
 
     def _check_config(self) -> None:
         cfg = self.config
-        if cfg.amplifier.output != "wave":
-            raise AfmctlError(f"amplifier.output = '{cfg.amplifier.output}': afmctl learn plays each table on the "
-                              "amplifier's clock; set output = 'wave' (or AFMCTL_AMPLIFIER__OUTPUT=wave)")
         if cfg.trajectory.kind in ("queue", "learned"):
             raise AfmctlError(f"trajectory.kind = '{cfg.trajectory.kind}': afmctl learn needs a finite trajectory "
                               "to learn (raster, moves, indentation, text, spiral or file)")
@@ -310,6 +307,9 @@ class LearnRun:
             raise AfmctlError(f"amplifier.driver = '{cfg.amplifier.driver}' has no data recorder this driver "
                               "reads: record the motion with an external sensor and learn from the files with "
                               "'afmctl learn step'")
+        if cfg.amplifier.output != "wave":
+            raise AfmctlError(f"amplifier.output = '{cfg.amplifier.output}': afmctl learn plays each table on the "
+                              "amplifier's clock; set output = 'wave' (or AFMCTL_AMPLIFIER__OUTPUT=wave)")
 
     # ------------------------------------------------------------------ the first table
     def recorder_models(self) -> tuple:
