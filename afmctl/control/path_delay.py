@@ -62,7 +62,7 @@ def path_delay(config: Any) -> PathDelay:
         bitrate = float(amp.options.get("baudrate") or CAN_DEFAULT_BITRATE)
         delay = CAN_FRAME_BITS / bitrate
         return _paced(delay, config, f"host-timed setpoints, one CAN frame at {bitrate / 1e3:g} kbit/s")
-    if port.startswith("socket://"):
+    if port.startswith("socket://") and not config.simulation.enabled:     # simulated: a pty at simulation.baud
         return PathDelay(0.0, 0, f"host-timed {driver} setpoints over TCP (no transmission time known)")
     baud = float(amp.options.get("baudrate") or (config.simulation.baud if config.simulation.enabled else 115200))
     ceiling = LINK_CEILING_PER_S.get(driver)
