@@ -414,6 +414,8 @@ class LearnRun:
         if not isinstance(got, dict):
             log.warning("learn: the first table's second play did not complete (%s); the model's history term is "
                         "used as it is", got[1])
+            if got[0] == "fault":
+                self._reconnect()          # the next iteration plays on a link that answers
             return
         for axis, (y0, h0) in self._first_play.items():
             moved, term = got[axis] - y0, self._history_term(axis, 0, y0.shape) - h0
@@ -442,6 +444,11 @@ class LearnRun:
             return "fault", str(err)
 
     def _check(self, table: WaveTable) -> None:
+        capacity = self.amp.recorder_capacity(self.axes)
+        if len(table) > capacity:
+            raise AfmctlError(f"learn: the table's {len(table)} rows do not fit the {self.config.amplifier.driver} "
+                              f"recorder's {capacity} points per signal; nothing was played (shorten the trajectory "
+                              "or lower loop.rate_Hz)")
         start = table.u_V[0, ["xyz".index(a) for a in self.axes]]
         if not driven_steps_ok(table.u_V, self.axes, self.limits_V, self.max_step_V / (1.0 - SLEW_RESERVE), start):
             raise AfmctlError("learn: the next table breaks the limits or the slew limit; nothing was sent")
