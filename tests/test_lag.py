@@ -2,6 +2,8 @@
 in advance (afmctl/control/path_delay.py) and the loop advancing the setpoints by it."""
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -49,8 +51,16 @@ def test_path_delay_per_output_path(tmp_path):
     assert path_delay(wave).advance == 0 and "aligned" in path_delay(wave).path
 
 
-def _run(cfg, traj, log):
-    amp = RecordingAmplifier()
+class SerialRecordingAmplifier(RecordingAmplifier):
+    """A recording amplifier that describes its link as an MDT693B's 115200-baud serial line
+    (the transport's ``url`` and ``baudrate``, what path_delay reads)."""
+
+    name = "mdt693b"
+    transport = SimpleNamespace(url="/dev/ttyUSB0", baudrate=115200)
+
+
+def _run(cfg, traj, log, amp_class=RecordingAmplifier):
+    amp = amp_class()
     with Controller(cfg, amp) as ctl:
         ctl.start(traj, runlog_path=log)
         assert ctl.wait(20)
@@ -68,11 +78,12 @@ def test_the_loop_advances_the_setpoints_by_the_paths_ticks(tmp_path):
     s = 0.5 - 0.5 * np.cos(np.linspace(0.0, np.pi, 60))
     traj = np.column_stack([1000.0 + 2000.0 * s, np.full(60, 500.0), np.full(60, 40.0)])
     common = dict(loop={"rate_Hz": 250}, safety={"slew_V_per_s": 1e5, "ramp_V_per_s": 5000})
-    u0, sp0, ev0, _, lim0 = _run(make_config(tmp_path, amplifier={"driver": "can", "port": "virtual:lag0"}, **common),
-                           traj, tmp_path / "a.afmlog")
+    u0, sp0, ev0, _, lim0 = _run(make_config(tmp_path, amplifier={"driver": "mdt693b", "port": "/dev/null"}, **common),
+                                 traj, tmp_path / "a.afmlog")     # in memory: no link, nothing to advance
     u1, sp1, ev1, meta, lim1 = _run(make_config(tmp_path, amplifier={"driver": "mdt693b", "port": "/dev/null"}, **common),
-                              traj, tmp_path / "b.afmlog")
+                                    traj, tmp_path / "b.afmlog", SerialRecordingAmplifier)
     assert meta["path_delay"]["advance_samples"] == 1
+    assert RunLogReader(tmp_path / "a.afmlog").meta()["path_delay"]["advance_samples"] == 0
     a0, a1 = u0[ev0["ramp-done"]:ev0["end"]], u1[ev1["ramp-done"]:ev1["end"]]
     assert len(a1) == len(a0) + 1                      # one more output aims at the held start
     # the same outputs, one tick earlier against the targets logged (bit for bit, except

@@ -113,6 +113,7 @@ def link_warning(config) -> str | None:
 
 def _summary(ctl, config, scanner, recorder=None) -> dict:
     from ..control.runlog import RunLogReader
+    from ..simulation.link import replay_positions_nm
     st = ctl.stats()
     out = {"state": st["state"], "samples": st["samples"], "ticks": st["ticks"], "rate_Hz": st["rate_Hz"],
            "lateness_p50_s": st["lateness_p50_s"], "lateness_p99_s": st["lateness_p99_s"],
@@ -120,7 +121,7 @@ def _summary(ctl, config, scanner, recorder=None) -> dict:
            "overruns": st["overruns"], "errors": st["errors"], "faults": st["faults"],
            "reconnects": st["reconnects"], "watchdog_trips": st["watchdog_trips"],
            "slew_limited": st["slew_limited"], "clamped": st["clamped"], "last_error": st["last_error"],
-           "latency_samples": st["latency_samples"], "latency_s": st["latency_s"],
+           "latency_samples": st["latency_samples"], "latency_s": st["latency_s"], "path_delay": st["path_delay"],
            "output": st["output"], "stream": st["stream"], "wave": st["wave"],
            "runlog": str(ctl.runlog_path) if ctl.runlog_path else None,
            "runlog_error": ctl.runlog_error, "trajectory_error": ctl.trajectory_error,
@@ -133,26 +134,29 @@ def _summary(ctl, config, scanner, recorder=None) -> dict:
         ends = [e["seq"] for e in ev if e.get("event") in ("end", "stop", "estop")]
         end = min(ends) if ends else len(sp)
         if end > start:
-            out["tracking"] = replayed_tracking(config, sp, (start, end)) if scanner is not None else {}
+            replayed = replay_positions_nm(config, sp, ctl.path_delay.advance) if scanner is not None else None
+            out["tracking"] = replayed_tracking(config, sp, (start, end), replayed) if scanner is not None else {}
             if recorder is not None:
                 measured = recorder.errors()
                 out["tracking"]["recorded"] = measured.as_dict() if measured is not None else None
                 out["tracking"]["recorded_why_not"] = recorder.why_not
-            out["tracking"]["lag"] = lag_summary(config, ctl, sp, (start, end), scanner, recorder)
+            out["tracking"]["lag"] = lag_summary(config, ctl, sp, (start, end), scanner, recorder, replayed)
     return out
 
 
-def lag_summary(config, ctl, setpoints, seq_range: tuple[int, int], scanner=None, recorder=None) -> dict:
+def lag_summary(config, ctl, setpoints, seq_range: tuple[int, int], scanner=None, recorder=None,
+                replayed=None) -> dict:
     """The lag of the motion behind its target per axis (:func:`afmctl.data.lag.measure_lags`)
     over the tracked setpoints of ``seq_range``: as the device's recorder measured it (a wave
     run) and as the voltages replayed through a fresh simulated scanner give it; beside the
     output path's delay known in advance and the ticks the loop advanced the setpoints by to
     take it out, and for host-timed setpoints to a simulated amplifier in this process how
-    late each reached the simulated scanner (:func:`afmctl.simulation.link.arrival_delays_s`)."""
+    late each reached the simulated scanner (:func:`afmctl.simulation.link.arrival_delays_s`).
+    ``replayed``: the replayed positions (N, 3) [nm] of every setpoint, when there is a scanner."""
     import numpy as np
 
     from ..data.lag import measure_lags
-    from ..simulation.link import arrival_delays_s, replay_positions_nm
+    from ..simulation.link import arrival_delays_s
     sel = (setpoints["seq"] >= seq_range[0]) & (setpoints["seq"] < seq_range[1])
     tgt, dt = setpoints["target_nm"][sel], config.dt_s
     axes = "".join(a for a in "xyz" if a in config.scanner.axes)
@@ -161,9 +165,9 @@ def lag_summary(config, ctl, setpoints, seq_range: tuple[int, int], scanner=None
     if rec is not None:
         target, pos, rec_axes = rec
         out["recorded"] = [g.as_dict() for g in measure_lags(target, pos, dt, rec_axes)]
-    if scanner is None:
+    if scanner is None or replayed is None:
         return out
-    out["replayed"] = [g.as_dict() for g in measure_lags(tgt, replay_positions_nm(config, setpoints)[sel], dt, axes)]
+    out["replayed"] = [g.as_dict() for g in measure_lags(tgt, replayed[sel], dt, axes)]
     deadlines = ctl.tick_deadlines_s(np.round(setpoints["t_s"] / dt))
     if config.amplifier.output == "setpoints" and deadlines is not None and hasattr(scanner, "applied"):
         late = arrival_delays_s(scanner, deadlines, setpoints["u_V"])[sel]
@@ -174,18 +178,21 @@ def lag_summary(config, ctl, setpoints, seq_range: tuple[int, int], scanner=None
     return out
 
 
-def replayed_tracking(config, setpoints, seq_range: tuple[int, int]) -> dict:
+def replayed_tracking(config, setpoints, seq_range: tuple[int, int], replayed=None) -> dict:
     """The tracking error of a simulated run: the voltages sent replayed through a fresh
     simulated scanner (:func:`afmctl.simulation.link.replay_positions_nm`), over the setpoints
     of ``seq_range`` (those that track the trajectory). ``axes``, ``max_abs_nm``, ``rms_nm``
     over all of them, and ``judged``: per axis in nm and % of its line or step over the
-    central part of a raster's lines (:func:`afmctl.data.axis_errors.axis_errors`)."""
+    central part of a raster's lines (:func:`afmctl.data.axis_errors.axis_errors`).
+    ``replayed``: those positions already replayed (N, 3) [nm]."""
     import numpy as np
 
     from ..data.axis_errors import axis_errors
     from ..simulation.link import replay_positions_nm
     sel = (setpoints["seq"] >= seq_range[0]) & (setpoints["seq"] < seq_range[1])
-    pos, tgt = replay_positions_nm(config, setpoints)[sel], setpoints["target_nm"][sel]
+    if replayed is None:
+        replayed = replay_positions_nm(config, setpoints)
+    pos, tgt = replayed[sel], setpoints["target_nm"][sel]
     axes = [a for a in "xyz" if a in config.scanner.axes]
     idx = ["xyz".index(a) for a in axes]
     err = pos - tgt

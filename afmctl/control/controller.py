@@ -210,7 +210,7 @@ class Controller:
         self._done = threading.Event()
         #: the delay the output path adds, known in advance, and the ticks the loop advances
         #: the setpoints by to take it out (afmctl.control.path_delay)
-        self.path_delay = path_delay(config)
+        self.path_delay = path_delay(config, amplifier)
         #: the loop's clock: (tick, perf_counter time [s] of its deadline) at the start and at
         #: every re-base (an overrun, a resume); later ticks follow one period apart
         self.clock_bases: list[tuple[int, float]] = []

@@ -46,30 +46,37 @@ class PathDelay:
         return {"delay_s": self.delay_s, "advance_samples": self.advance, "path": self.path}
 
 
-def path_delay(config: Any) -> PathDelay:
-    """The known delay of the configured output path (module docstring)."""
-    amp = config.amplifier
-    driver, port = amp.driver, str(amp.port or "")
-    output = amp.output
-    if output == "wave":
-        return PathDelay(0.0, 0, f"{driver} wave table on the device's clock, aligned with the target")
-    if output == "stream":
-        return PathDelay(0.0, 0, f"{driver} stream on the device's clock (the FIFO's prefill delays the host's "
+def path_delay(config: Any, amp: Any = None) -> PathDelay:
+    """The known delay of the configured output path (module docstring), on the link of the
+    opened amplifier ``amp`` where given (its transport's URL and baud rate; an amplifier
+    without a transport, such as a test's in-memory one, has no link), else as the
+    configuration describes it."""
+    cfg = config.amplifier
+    if cfg.output == "wave":
+        return PathDelay(0.0, 0, f"{cfg.driver} wave table on the device's clock, aligned with the target")
+    if cfg.output == "stream":
+        return PathDelay(0.0, 0, f"{cfg.driver} stream on the device's clock (the FIFO's prefill delays the host's "
                                  "clock, not the samples)")
-    if driver == "can":
-        if port.startswith("virtual:") or config.simulation.enabled:
+    name = str(getattr(amp, "name", cfg.driver)) if amp is not None else cfg.driver
+    transport = getattr(amp, "transport", None) if amp is not None else None
+    if amp is not None and transport is None:
+        return PathDelay(0.0, 0, f"host-timed setpoints to an in-memory {name} amplifier (no link)")
+    url = str(getattr(transport, "url", None) or cfg.port or "")
+    if name == "can":
+        interface = getattr(transport, "interface", None) or url.split(":", 1)[0]
+        if interface == "virtual" or (transport is None and config.simulation.enabled):
             return PathDelay(0.0, 0, "host-timed setpoints on an in-process CAN bus (no wire)")
-        bitrate = float(amp.options.get("baudrate") or CAN_DEFAULT_BITRATE)
-        delay = CAN_FRAME_BITS / bitrate
-        return _paced(delay, config, f"host-timed setpoints, one CAN frame at {bitrate / 1e3:g} kbit/s")
-    if port.startswith("socket://") and not config.simulation.enabled:     # simulated: a pty at simulation.baud
-        return PathDelay(0.0, 0, f"host-timed {driver} setpoints over TCP (no transmission time known)")
-    baud = float(amp.options.get("baudrate") or (config.simulation.baud if config.simulation.enabled else 115200))
-    ceiling = LINK_CEILING_PER_S.get(driver)
+        bitrate = float(cfg.options.get("baudrate") or CAN_DEFAULT_BITRATE)
+        return _paced(CAN_FRAME_BITS / bitrate, config, f"host-timed setpoints, one CAN frame at {bitrate / 1e3:g} kbit/s")
+    if url.startswith("socket://") and not (transport is None and config.simulation.enabled):
+        return PathDelay(0.0, 0, f"host-timed {name} setpoints over TCP (no transmission time known)")
+    baud = float(getattr(transport, "baudrate", None) or cfg.options.get("baudrate")
+                 or (config.simulation.baud if config.simulation.enabled else 115200))
+    ceiling = LINK_CEILING_PER_S.get(name)
     if ceiling is None:
-        return PathDelay(0.0, 0, f"host-timed {driver} setpoints (no transmission time known)")
-    delay = 1.0 / (ceiling * baud / 115200.0)
-    return _paced(delay, config, f"host-timed {driver} setpoints at {baud:g} baud, one setpoint's bytes")
+        return PathDelay(0.0, 0, f"host-timed {name} setpoints (no transmission time known)")
+    return _paced(1.0 / (ceiling * baud / 115200.0), config,
+                  f"host-timed {name} setpoints at {baud:g} baud, one setpoint's bytes")
 
 
 def _paced(delay_s: float, config: Any, path: str) -> PathDelay:

@@ -190,13 +190,12 @@ def tracking_error(config, setpoints: np.ndarray, seq_range: tuple[int, int] | N
             "rms_nm": [float(np.sqrt(np.mean(err[:, i] ** 2))) for i in idx]}
 
 
-def replay_positions_nm(config, setpoints: np.ndarray) -> np.ndarray:
+def replay_positions_nm(config, setpoints: np.ndarray, delay_ticks: int = 0) -> np.ndarray:
     """The true tip position [nm] (N, 3) at the end of each loop period when the voltages
     sent (``setpoints["u_V"]``) are replayed through a fresh simulated scanner of the
-    configuration, each held for one loop period (see :func:`tracking_error`)."""
-    from ..control.path_delay import path_delay
-    return replay_voltages_nm(setpoints["u_V"], config.dt_s, config.simulation.scanner,
-                              delay_ticks=path_delay(config).advance)
+    configuration, each held for one loop period (see :func:`tracking_error`), reaching it
+    ``delay_ticks`` periods late (the output path's delay the loop advanced them by)."""
+    return replay_voltages_nm(setpoints["u_V"], config.dt_s, config.simulation.scanner, delay_ticks=delay_ticks)
 
 
 def replay_voltages_nm(u_V: np.ndarray, dt_s: float, scanner_file: Path | None = None,
