@@ -285,7 +285,10 @@ def _print_summary(summary: dict) -> None:
           f"watchdog trips {summary['watchdog_trips']})")
     if summary.get("watchdog"):
         print(f"watchdog          {summary['watchdog']}")
-    print(f"safety            slew-limited {summary['slew_limited']} samples, clamped {summary['clamped']}")
+    print(f"safety            slew-limited {summary['slew_limited']} samples, clamped {summary['clamped']}"
+          + ("; a late tick's catch-up (missed setpoints sent back to back) is held back by the slew limit: "
+             "loop.resync_periods = 2 restarts the schedule instead" if summary["slew_limited"] and summary["overruns"]
+             and summary.get("output") == "setpoints" else ""))
     if summary.get("stream"):
         st = summary["stream"]
         print(f"stream            {st['queued']} samples queued; device underruns {st['underruns']}, lowest FIFO "
