@@ -71,7 +71,8 @@ from afmctl.compensators.temperature import T_MAX_C, T_MIN_C
 from . import stats as loop_stats
 from ..errors import AfmctlError, error_line
 from . import cpu_pinning
-from .machine import END_OF_TRAJECTORY, N_COLS, RING_ROWS, LoopMachine, Mode, State  # noqa: F401 - Mode re-exported
+from .machine import (CLOCK_BASES_MAX, END_OF_TRAJECTORY, N_COLS, RING_ROWS, LoopMachine, Mode,  # noqa: F401
+                      State)
 from .dispatcher import Dispatcher, quiet_window_wait_s  # noqa: F401 - re-exported (older import path)
 from .path_delay import path_delay
 from .learned_table import LearnedSource
@@ -239,8 +240,8 @@ class Controller:
 
     def tick_deadlines_s(self, ticks: np.ndarray) -> np.ndarray | None:
         """The perf_counter time [s] of each tick's deadline (``clock_bases``), None before
-        the loop ticked."""
-        if not self.clock_bases:
+        the loop ticked or once it re-based more than CLOCK_BASES_MAX times."""
+        if not self.clock_bases or len(self.clock_bases) >= CLOCK_BASES_MAX:
             return None
         base_tick = np.array([b[0] for b in self.clock_bases], dtype=float)
         base_t = np.array([b[1] for b in self.clock_bases], dtype=float)

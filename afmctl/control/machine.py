@@ -54,6 +54,9 @@ C_SEQ, C_TICK = 0, 1
 C_TGT, C_COR, C_U, C_T, C_D, C_S = 2, 5, 8, 11, 12, 15
 N_COLS = 18
 NAN3 = (math.nan, math.nan, math.nan)
+#: most re-bases of the loop's clock kept (Controller.clock_bases); a run with more has no
+#: tick deadlines after them (the summary's arrival figure is then left out)
+CLOCK_BASES_MAX = 100_000
 
 
 class Mode(enum.Enum):
@@ -187,7 +190,8 @@ class LoopMachine:
         if late > self.resync_s:
             ctl._overruns += 1
             next_t = now
-            ctl.clock_bases.append((ctl._tick + 1, now))   # the tick about to run
+            if len(ctl.clock_bases) < CLOCK_BASES_MAX:
+                ctl.clock_bases.append((ctl._tick + 1, now))   # the tick about to run
         self.now_s = now
         self.next_t_s = next_t
         ctl._deadline_s = next_t
@@ -289,7 +293,8 @@ class LoopMachine:
         self.ctl._set_state(State.RUNNING, "resume", "reconnected; ramping from the read-back voltage")
         self.watchdog.feed()
         self.next_t_s = time.perf_counter()
-        self.ctl.clock_bases.append((self.ctl._tick + 1, self.next_t_s + self.period_s))
+        if len(self.ctl.clock_bases) < CLOCK_BASES_MAX:
+            self.ctl.clock_bases.append((self.ctl._tick + 1, self.next_t_s + self.period_s))
 
     # ------------------------------------------------------------------ SETTLE / FINISH
     def _tick_settle(self) -> bool:
