@@ -293,6 +293,8 @@ class LearnRun:
         #: per axis the history term's measured offset [nm] (step ``calibrate``)
         self.history_offsets: dict[str, float] = {}
         self._check_config()
+        #: the recorder's points per signal for the learned axes (asked before the first play)
+        self._capacity: int | None = None
         self.spec = config.trajectory.model_dump(mode="json")
         self.axes = [a for a in config.scanner.axes if a in amplifier.axes]
         self.limits_V = {a: config.limits(a) for a in self.axes}
@@ -444,7 +446,9 @@ class LearnRun:
             return "fault", str(err)
 
     def _check(self, table: WaveTable) -> None:
-        capacity = self.amp.recorder_capacity(self.axes)
+        if self._capacity is None:          # asked once, before the first play (a link may be down later)
+            self._capacity = int(self.amp.recorder_capacity(self.axes))
+        capacity = self._capacity
         if len(table) > capacity:
             raise AfmctlError(f"learn: the table's {len(table)} rows do not fit the {self.config.amplifier.driver} "
                               f"recorder's {capacity} points per signal; nothing was played (shorten the trajectory "
