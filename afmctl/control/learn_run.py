@@ -293,6 +293,8 @@ class LearnRun:
         #: per axis the history term's measured offset [nm] (step ``calibrate``)
         self.history_offsets: dict[str, float] = {}
         self._check_config()
+        #: the recorder's points per signal for the learned axes (asked before the first play)
+        self._capacity: int | None = None
         self.spec = config.trajectory.model_dump(mode="json")
         self.axes = [a for a in config.scanner.axes if a in amplifier.axes]
         self.limits_V = {a: config.limits(a) for a in self.axes}
@@ -300,9 +302,6 @@ class LearnRun:
 
     def _check_config(self) -> None:
         cfg = self.config
-        if cfg.amplifier.output != "wave":
-            raise AfmctlError(f"amplifier.output = '{cfg.amplifier.output}': afmctl learn plays each table on the "
-                              "amplifier's clock; set output = 'wave' (or AFMCTL_AMPLIFIER__OUTPUT=wave)")
         if cfg.trajectory.kind in ("queue", "learned"):
             raise AfmctlError(f"trajectory.kind = '{cfg.trajectory.kind}': afmctl learn needs a finite trajectory "
                               "to learn (raster, moves, indentation, text, spiral or file)")
@@ -310,6 +309,9 @@ class LearnRun:
             raise AfmctlError(f"amplifier.driver = '{cfg.amplifier.driver}' has no data recorder this driver "
                               "reads: record the motion with an external sensor and learn from the files with "
                               "'afmctl learn step'")
+        if cfg.amplifier.output != "wave":
+            raise AfmctlError(f"amplifier.output = '{cfg.amplifier.output}': afmctl learn plays each table on the "
+                              "amplifier's clock; set output = 'wave' (or AFMCTL_AMPLIFIER__OUTPUT=wave)")
 
     # ------------------------------------------------------------------ the first table
     def recorder_models(self) -> tuple:
@@ -414,6 +416,8 @@ class LearnRun:
         if not isinstance(got, dict):
             log.warning("learn: the first table's second play did not complete (%s); the model's history term is "
                         "used as it is", got[1])
+            if got[0] == "fault":
+                self._reconnect()          # the next iteration plays on a link that answers
             return
         for axis, (y0, h0) in self._first_play.items():
             moved, term = got[axis] - y0, self._history_term(axis, 0, y0.shape) - h0
@@ -442,6 +446,13 @@ class LearnRun:
             return "fault", str(err)
 
     def _check(self, table: WaveTable) -> None:
+        if self._capacity is None:          # asked once, before the first play (a link may be down later)
+            self._capacity = int(self.amp.recorder_capacity(self.axes))
+        capacity = self._capacity
+        if len(table) > capacity:
+            raise AfmctlError(f"learn: the table's {len(table)} rows do not fit the {self.config.amplifier.driver} "
+                              f"recorder's {capacity} points per signal; nothing was played (shorten the trajectory "
+                              "or lower loop.rate_Hz)")
         start = table.u_V[0, ["xyz".index(a) for a in self.axes]]
         if not driven_steps_ok(table.u_V, self.axes, self.limits_V, self.max_step_V / (1.0 - SLEW_RESERVE), start):
             raise AfmctlError("learn: the next table breaks the limits or the slew limit; nothing was sent")
