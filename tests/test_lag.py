@@ -39,7 +39,7 @@ def test_a_delayed_raster_gives_its_delay_to_a_fraction_of_a_sample(lag):
 
 
 def test_path_delay_per_output_path(tmp_path):
-    serial = make_config(tmp_path, amplifier={"driver": "mdt693b", "port": "/dev/ttyUSB0"}, loop={"rate_Hz": 250},
+    serial = make_config(tmp_path, amplifier={"driver": "mdt693b", "port": "/dev/ttyUSB0"}, loop={"rate_Hz": 500},
                          simulation={"enabled": False})
     p = path_delay(serial)
     assert p.delay_s == pytest.approx(1.0 / LINK_CEILING_PER_S["mdt693b"]) and p.advance == 1
@@ -72,12 +72,12 @@ def _run(cfg, traj, log, amp_class=RecordingAmplifier):
 
 
 def test_the_loop_advances_the_setpoints_by_the_paths_ticks(tmp_path):
-    """At 250 Hz a 115200-baud MDT693B setpoint takes 2.6 ms to arrive: the loop reads one
-    tick further ahead, each output aims at the next tick's target and is logged beside the
+    """At 500 Hz a 115200-baud MDT693B setpoint takes 2.6 ms, over one 2 ms tick, to arrive: the
+    loop reads one tick further ahead, each output aims at the next tick's target and is logged beside the
     target it reaches; the log's meta records the advance."""
     s = 0.5 - 0.5 * np.cos(np.linspace(0.0, np.pi, 60))
     traj = np.column_stack([1000.0 + 2000.0 * s, np.full(60, 500.0), np.full(60, 40.0)])
-    common = dict(loop={"rate_Hz": 250}, safety={"slew_V_per_s": 1e5, "ramp_V_per_s": 5000})
+    common = dict(loop={"rate_Hz": 500}, safety={"slew_V_per_s": 1e5, "ramp_V_per_s": 5000})
     u0, sp0, ev0, _, lim0 = _run(make_config(tmp_path, amplifier={"driver": "mdt693b", "port": "/dev/null"}, **common),
                                  traj, tmp_path / "a.afmlog")     # in memory: no link, nothing to advance
     u1, sp1, ev1, meta, lim1 = _run(make_config(tmp_path, amplifier={"driver": "mdt693b", "port": "/dev/null"}, **common),
