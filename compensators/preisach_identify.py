@@ -373,16 +373,12 @@ def _prefix_matrix(L: int) -> np.ndarray:
 def _features(u: np.ndarray, rows: np.ndarray, lo: float, hi: float, L: int, cap: int) -> np.ndarray:
     """Φ[r, cell]: d y(rows[r]) / d w[cell] (cells in np.tril_indices(L) order): the plain
     reference of the normal equations :func:`_normal_terms` accumulates (a dense corner
-    array and its two prefix sums)."""
+    array and its two prefix sums, :func:`_corner_prefix`, itself tested against the dense
+    :func:`_prefix_matrix`)."""
     rr, corner, value = _corner_terms(u, rows, lo, hi, L, cap)
     flat = np.zeros((rows.shape[0], (L + 1) ** 2))
     np.add.at(flat, (rr, corner), value)
-    N = flat.reshape(rows.shape[0], L + 1, L + 1)
-    # Φ[r, i, j] = Σ_{a ≥ i+1} Σ_{b ≤ j} N[r, a, b]
-    S = np.cumsum(N[:, ::-1, :], axis=1)[:, ::-1, :]
-    S = np.cumsum(S, axis=2)
-    ci = np.tril_indices(L)
-    return S[:, ci[0] + 1, ci[1]]
+    return _corner_prefix(flat, L)
 
 
 def _normal_terms(u: np.ndarray, rows: np.ndarray, yc: np.ndarray, lo: float, hi: float, L: int, cap: int,
@@ -406,10 +402,24 @@ def _normal_terms(u: np.ndarray, rows: np.ndarray, yc: np.ndarray, lo: float, hi
         G += (N.T @ N).toarray()
         g += N.T @ yc[s0:s0 + chunk]
         s += np.asarray(N.sum(axis=0)).ravel()
-    P = np.zeros((n_corner + ne, L * (L + 1) // 2 + ne))
-    P[:n_corner, :L * (L + 1) // 2] = _prefix_matrix(L)
-    P[n_corner:, L * (L + 1) // 2:] = np.eye(ne)
-    return P.T @ G @ P, P.T @ g, P.T @ s
+    # Pᵀ·G·P, Pᵀ·g, Pᵀ·s as prefix sums over the corners (O(L⁴), where the product with the
+    # dense P costs O(L⁶)); the extra regressors' rows and columns pass unchanged
+    c = slice(0, n_corner)
+    e = slice(n_corner, n_corner + ne)
+    Gc = _corner_prefix(_corner_prefix(G[c, c], L).T, L)
+    cross = _corner_prefix(G[e, c], L)
+    AtA = np.block([[Gc, cross.T], [cross, G[e, e]]])
+    return (AtA, np.r_[_corner_prefix(g[None, c], L)[0], g[e]], np.r_[_corner_prefix(s[None, c], L)[0], s[e]])
+
+
+def _corner_prefix(M: np.ndarray, L: int) -> np.ndarray:
+    """``M·P`` for rows over the (L+1)² corners (:func:`_prefix_matrix`) by two prefix sums:
+    Φ[·, (i, j)] = Σ_{a ≥ i+1} Σ_{b ≤ j} M[·, (a, b)]."""
+    S = M.reshape(M.shape[0], L + 1, L + 1)
+    S = np.cumsum(S[:, ::-1, :], axis=1)[:, ::-1, :]
+    S = np.cumsum(S, axis=2)
+    ci = np.tril_indices(L)
+    return S[:, ci[0] + 1, ci[1]]
 
 
 def _smoothness(L: int) -> np.ndarray:

@@ -240,3 +240,5 @@ def test_normal_equations_from_corner_terms_equal_the_dense_features():
     np.testing.assert_allclose(AtA, F.T @ F, rtol=0, atol=1e-10 * np.max(np.abs(AtA)))
     np.testing.assert_allclose(Atb, F.T @ yc, rtol=0, atol=1e-10 * np.max(np.abs(Atb)))
     np.testing.assert_allclose(Asum, F.sum(axis=0), rtol=0, atol=1e-10 * np.max(np.abs(Asum)))
+    M = rng.standard_normal((5, (L + 1) ** 2))          # the prefix sums are the product with P
+    np.testing.assert_allclose(pid._corner_prefix(M, L), M @ pid._prefix_matrix(L), rtol=0, atol=1e-12)
