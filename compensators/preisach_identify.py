@@ -399,7 +399,8 @@ def _normal_terms(u: np.ndarray, rows: np.ndarray, yc: np.ndarray, lo: float, hi
         N = sparse.csr_matrix((value, (rr, corner)), shape=(r.shape[0], n_corner))
         if ne:
             N = sparse.hstack([N, sparse.csr_matrix(cast(np.ndarray, extra)[r])], format="csr")
-        G += (N.T @ N).toarray()
+        NtN = (N.T @ N).tocoo()                 # entries unique: added in place, no dense copy
+        G[NtN.row, NtN.col] += NtN.data
         g += N.T @ yc[s0:s0 + chunk]
         s += np.asarray(N.sum(axis=0)).ravel()
     # Pᵀ·G·P, Pᵀ·g, Pᵀ·s as prefix sums over the corners (O(L⁴), where the product with the
