@@ -89,5 +89,5 @@ def _paced(delay_s: float, config: Any, path: str) -> PathDelay:
 def describe(p: PathDelay, dt_s: float) -> str:
     """``0.88 ms known in advance (path: ...), 0 ticks taken out``."""
     taken = (f"{p.advance} tick{'s' if p.advance != 1 else ''} = {p.advance * dt_s * 1e3:.3g} ms taken out"
-             if p.advance else "nothing taken out (under half a tick)" if p.delay_s > 0 else "nothing to take out")
+             if p.advance else "nothing taken out (under one tick)" if p.delay_s > 0 else "nothing to take out")
     return f"{p.delay_s * 1e3:.3g} ms known in advance ({p.path}); {taken}"
