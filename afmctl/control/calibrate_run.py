@@ -173,12 +173,9 @@ def device_capacity(amp: Any, axis: str, signals: tuple[str, ...]) -> int:
 #: stop or the controller's poll of the wave generator waits for it
 LIVE_CHUNK = 8192
 #: read a piece's recording while it plays (:class:`LiveReadback`) on a device that
-#: ``reads_while_recording``. Off: on the simulated E-727 a long ``DRR?`` reply during the
-#: play holds its server, which also hands the wave's points to the scanner; under load the
-#: simulator's clock ran past points not yet handed over, and the recorded piezo voltage
-#: held still for ~26 samples (12.9 V off the command; the README tour's check, 1 run in 3
-#: at load 12). Until the simulator plays its tables from its own clock, read after the play.
-READ_WHILE_PLAYING = False
+#: ``reads_while_recording`` (the simulated E-727 plays its tables from the simulator's
+#: clock thread, so a long ``DRR?`` reply holding its server no longer stalls the table)
+READ_WHILE_PLAYING = True
 
 
 class LiveReadback:
