@@ -478,6 +478,12 @@ class Controller:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    def lateness_histogram(self) -> np.ndarray:
+        """A copy of the run's lateness histogram (counts per bin of
+        :mod:`afmctl.control.stats`: 0.5 µs bins below 2 ms, 100 µs above), for pooling
+        several runs before reading a quantile (benchmarks/lab_router.py)."""
+        return self._hist.copy()
+
     def stats(self) -> dict[str, Any]:
         """Loop statistics: lateness p50/p99/max [s] (histogram of every tick of the run:
         0.5 µs bins below 2 ms, 100 µs above), work per tick p50/p99 [s], missed deadlines,
