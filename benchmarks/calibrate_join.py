@@ -106,7 +106,7 @@ name = "bench"
 output = "wave"
 slew_V_per_s = {SLEW_V_PER_S!r}
 [amplifier.options]
-timeout_s = 2.0
+timeout_s = 5.0
 {options}[loop]
 rate_Hz = {DEVICES[device]["rate_Hz"]!r}
 [safety]
@@ -299,7 +299,8 @@ def report(args, cal: dict, prov: dict, chosen: dict, errs: dict, ident_s: float
         "",
         f"Time: `afmctl calibrate` {cal['wall_s']:.1f} s in all for {exc_s:.1f} s of excitation "
         f"({100 * (cal['wall_s'] / exc_s - 1):+.0f} %); on the device {device_s:.1f} s for "
-        f"{exc_s + val_s:.1f} s of excitation and validation ({100 * (device_s / (exc_s + val_s) - 1):+.0f} %); "
+        f"{exc_s + val_s:.1f} s of excitation and validation ({100 * (device_s / (exc_s + val_s) - 1):+.0f} %), "
+        f"the rest (identification, validation, files) {cal['wall_s'] - device_s:.1f} s; "
         f"`afmctl identify` on the continuous recording {ident_s:.1f} s.",
         "",
         f"Models: calibrate `{_structure(chosen['cal'])}`, continuous `{_structure(chosen['continuous'])}`. "

@@ -69,6 +69,13 @@ JOINT_PREISACH_LEVELS = 64
 #: highest sample rate the hysteresis and creep stages are fitted at [Hz] (block means;
 #: not for :data:`FULL_RATE_KINDS`)
 STATIC_RATE_HZ = 2000.0
+#: a long record's block-mean static record keeps at most this many means: its blocks grow
+#: (the rate falls below STATIC_RATE_HZ) ...
+STATIC_MAX_SAMPLES = 50_000
+#: ... down to this rate [Hz] at the lowest (the creep stage's fastest lag, 10 ms, still spans
+#: five means). Calibrating the E-727 (0.79 M rows at 10 kHz): bouc-wen's two candidates were
+#: a fifth of ``auto``'s time at 2 kHz (158,000 means, each of ~2000 residuals a pass over them)
+STATIC_MIN_RATE_HZ = 500.0
 #: hysteresis kinds whose static fit takes the record at its own rate. The
 #: Preisach memory of a block mean is not the mean of the memories: a fast chirp or fast
 #: triangles averaged to 2 kHz misstate the minor loops. Measured on the user-style records of
@@ -464,9 +471,11 @@ def record_for_static(t: np.ndarray, u: np.ndarray, y: np.ndarray, k0: int, dt: 
     :data:`STATIC_RATE_HZ` becomes block means of ``m`` samples (``m`` the whole number that
     brings the rate to at most that; what a sensor averaging over ``m·dt`` reports): hysteresis
     and creep need no more (the fastest lag is 10 ms), the averaging takes the structural
-    modes' ringing out, and a 50 kHz recording fits ~25 times faster. Returns ``t, u, y,
-    fit_from_index, dt`` of that record."""
+    modes' ringing out, and a 50 kHz recording fits ~25 times faster. A long record gets
+    longer blocks, at most :data:`STATIC_MAX_SAMPLES` means but never below
+    :data:`STATIC_MIN_RATE_HZ`. Returns ``t, u, y, fit_from_index, dt`` of that record."""
     m = int(1.0 / (dt * STATIC_RATE_HZ) + 1e-9)
+    m = max(m, min(math.ceil(u.size / STATIC_MAX_SAMPLES), int(1.0 / (dt * STATIC_MIN_RATE_HZ) + 1e-9)))
     n = (u.size // m) * m if m > 1 else 0
     if kind in FULL_RATE_KINDS or m <= 1 or n // m < 64:
         return t, u, y, k0, dt

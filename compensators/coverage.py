@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import _coverage_kernels as K
+
 #: a record needs a hold of at least this long [s] after a step for a creep stage to be tried
 MIN_HOLD_S = 0.1
 #: holds of this long [s] identify the slower lags too (what ``afmctl excite --kind creep`` records)
@@ -29,21 +31,13 @@ GOOD_HOLD_S = 1.0
 MIN_INTERIOR_REVERSALS = 3
 
 
-def _reversals(u_V: np.ndarray, tol: float) -> np.ndarray:
-    """Indices of the input's turning points, ignoring wiggles smaller than ``tol`` [V]."""
-    idx: list[int] = []
-    k_ext, direction = 0, 0
-    u = np.asarray(u_V, dtype=float).tolist()
-    for k in range(1, len(u)):
-        if direction == 0:
-            if abs(u[k] - u[0]) > tol:
-                direction, k_ext = (1 if u[k] > u[0] else -1), k
-        elif (u[k] - u[k_ext]) * direction > 0:
-            k_ext = k
-        elif (u[k_ext] - u[k]) * direction > tol:
-            idx.append(k_ext)
-            direction, k_ext = -direction, k
-    return np.array(idx, dtype=np.int64)
+def _reversals(u_V: np.ndarray, tol: float, use_numba: bool = True) -> np.ndarray:
+    """Indices of the input's turning points, ignoring wiggles smaller than ``tol`` [V]
+    (:func:`._coverage_kernels.reversals_py`; ``use_numba=False`` runs that reference)."""
+    u = np.ascontiguousarray(u_V, dtype=float)
+    out = np.empty(u.size, dtype=np.int64)
+    kernel = K.reversals_nb if use_numba else K.reversals_py
+    return out[:kernel(u, float(tol), out)].copy()
 
 
 def turning_points(u_V: np.ndarray, tol_fraction: float = 0.01) -> np.ndarray:
@@ -55,23 +49,26 @@ def interior_reversals(u_V: np.ndarray) -> int:
     """How many of the input's reversals lie inside its range (more than 10 % of the span from
     either end): the minor loops."""
     u = np.asarray(u_V, dtype=float)
+    return _interior(u, turning_points(u))
+
+
+def _interior(u: np.ndarray, tp: np.ndarray) -> int:
+    """How many of the turning points ``tp`` of ``u`` lie more than 10 % of the span inside."""
     span = float(np.ptp(u))
     lo, hi = float(np.min(u)), float(np.max(u))
-    return int(sum(1 for k in turning_points(u) if lo + 0.1 * span < u[k] < hi - 0.1 * span))
+    at = u[tp]
+    return int(np.count_nonzero((at > lo + 0.1 * span) & (at < hi - 0.1 * span)))
 
 
-def longest_hold_s(t_s: np.ndarray, u_V: np.ndarray, tol: float) -> float:
-    """Longest time [s] the input stays within ``tol`` [V] after it first moved."""
-    moved = np.flatnonzero(np.abs(u_V - u_V[0]) > tol)
+def longest_hold_s(t_s: np.ndarray, u_V: np.ndarray, tol: float, use_numba: bool = True) -> float:
+    """Longest time [s] the input stays within ``tol`` [V] after it first moved
+    (:func:`._coverage_kernels.longest_hold_py`; ``use_numba=False`` runs that reference)."""
+    u = np.ascontiguousarray(u_V, dtype=float)
+    moved = np.flatnonzero(np.abs(u - u[0]) > tol)
     if moved.size == 0:
         return 0.0
-    best, k0 = 0.0, int(moved[0])
-    for k in range(k0 + 1, u_V.size):
-        if abs(u_V[k] - u_V[k0]) > tol:
-            k0 = k
-        else:
-            best = max(best, float(t_s[k] - t_s[k0]))
-    return best
+    kernel = K.longest_hold_nb if use_numba else K.longest_hold_py
+    return float(kernel(np.ascontiguousarray(t_s, dtype=float), u, float(tol), int(moved[0])))
 
 
 def large_fast_part(t_s: np.ndarray, u_V: np.ndarray) -> bool:
@@ -100,7 +97,7 @@ class Coverage:
         tp = turning_points(u)
         half = np.diff(t[tp]) if tp.size > 2 else np.array([])
         several = bool(half.size >= 2 and float(np.max(half)) >= 3.0 * float(np.min(half)))
-        return cls(interior_reversals(u), longest_hold_s(t, u, 0.005 * float(np.ptp(u))), several,
+        return cls(_interior(u, tp), longest_hold_s(t, u, 0.005 * float(np.ptp(u))), several,
                    several and large_fast_part(t, u))
 
     @property

@@ -325,8 +325,13 @@ def _project_nonneg(G: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------ regularised NNLS
-def _features(u: np.ndarray, rows: np.ndarray, lo: float, hi: float, L: int, cap: int) -> np.ndarray:
-    """Φ[r, cell]: d y(rows[r]) / d w[cell] (cells in np.tril_indices(L) order)."""
+def _corner_terms(u: np.ndarray, rows: np.ndarray, lo: float, hi: float, L: int,
+                  cap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The memory of each row as grid-corner terms ``(row, corner, value)``: corner
+    ``a·(L+1) + b`` of the (L+1)² grid nodes, each memory pair spread bilinearly over the four
+    nodes around it (eq. 7's interpolation) with its sign, the antisymmetric extension
+    E(v_a, v_b) = −E(v_b, v_a) folding nodes above the diagonal below it. A row's output is
+    ``Σ value · Σ_{cells (i, j): i < a, j ≥ b} w[i, j]`` (:func:`_prefix_matrix`)."""
     from . import _preisach_kernels as k
     R = rows.shape[0]
     plo = np.zeros((R, cap))
@@ -344,15 +349,75 @@ def _features(u: np.ndarray, rows: np.ndarray, lo: float, hi: float, L: int, cap
     z = (b - lo) * inv_du
     j = np.minimum(z.astype(np.int64), L - 1)
     fb = z - j
-    N = np.zeros((R, L + 1, L + 1))
+    out_r, out_c, out_v = [], [], []
     for di, dj, wt in ((0, 0, (1 - fa) * (1 - fb)), (1, 0, fa * (1 - fb)), (0, 1, (1 - fa) * fb), (1, 1, fa * fb)):
         ia, jb = i + di, j + dj
-        upper = jb > ia  # antisymmetric extension: E(v_a, v_b) = −E(v_b, v_a)
-        na = np.where(upper, jb, ia)
-        nb = np.where(upper, ia, jb)
-        np.add.at(N, (rr, na, nb), np.where(upper, -1.0, 1.0) * sg * wt)
-    # Φ[r, i, j] = Σ_{a ≥ i+1} Σ_{b ≤ j} N[r, a, b]
-    S = np.cumsum(N[:, ::-1, :], axis=1)[:, ::-1, :]
+        upper = jb > ia
+        out_r.append(rr)
+        out_c.append(np.where(upper, jb, ia) * (L + 1) + np.where(upper, ia, jb))
+        out_v.append(np.where(upper, -1.0, 1.0) * sg * wt)
+    return np.concatenate(out_r), np.concatenate(out_c), np.concatenate(out_v)
+
+
+def _prefix_matrix(L: int) -> np.ndarray:
+    """P[corner, cell] = 1 where corner ``a·(L+1) + b`` reaches cell ``(i, j)`` (cells in
+    ``np.tril_indices(L)`` order): ``a ≥ i + 1`` and ``b ≤ j``, so that Φ = N·P for the
+    corner terms N of :func:`_corner_terms`."""
+    ci = np.tril_indices(L)
+    a = np.arange(L + 1)[:, None, None]
+    b = np.arange(L + 1)[None, :, None]
+    reach = (a >= ci[0][None, None, :] + 1) & (b <= ci[1][None, None, :])
+    return reach.reshape((L + 1) ** 2, ci[0].size).astype(float)
+
+
+def _features(u: np.ndarray, rows: np.ndarray, lo: float, hi: float, L: int, cap: int) -> np.ndarray:
+    """Φ[r, cell]: d y(rows[r]) / d w[cell] (cells in np.tril_indices(L) order): the plain
+    reference of the normal equations :func:`_normal_terms` accumulates (a dense corner
+    array and its two prefix sums, :func:`_corner_prefix`, itself tested against the dense
+    :func:`_prefix_matrix`)."""
+    rr, corner, value = _corner_terms(u, rows, lo, hi, L, cap)
+    flat = np.zeros((rows.shape[0], (L + 1) ** 2))
+    np.add.at(flat, (rr, corner), value)
+    return _corner_prefix(flat, L)
+
+
+def _normal_terms(u: np.ndarray, rows: np.ndarray, yc: np.ndarray, lo: float, hi: float, L: int, cap: int,
+                  extra: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(AᵀA, Aᵀyc, Σ_rows A)`` of the regressors ``A = [Φ | extra[rows]]`` (:func:`_features`)
+    without forming Φ: with Φ = N·P for the sparse corner terms N (a few per memory pair),
+    ΦᵀΦ = Pᵀ(NᵀN)P is accumulated on the (L+1)² corners. Chunks keep memory bounded."""
+    from scipy import sparse
+    n_corner = (L + 1) ** 2
+    ne = 0 if extra is None else extra.shape[1]
+    G = np.zeros((n_corner + ne, n_corner + ne))
+    g = np.zeros(n_corner + ne)
+    s = np.zeros(n_corner + ne)
+    chunk = 20000
+    for s0 in range(0, rows.shape[0], chunk):
+        r = rows[s0:s0 + chunk]
+        rr, corner, value = _corner_terms(u, r, lo, hi, L, cap)
+        N = sparse.csr_matrix((value, (rr, corner)), shape=(r.shape[0], n_corner))
+        if ne:
+            N = sparse.hstack([N, sparse.csr_matrix(cast(np.ndarray, extra)[r])], format="csr")
+        NtN = (N.T @ N).tocoo()                 # entries unique: added in place, no dense copy
+        G[NtN.row, NtN.col] += NtN.data
+        g += N.T @ yc[s0:s0 + chunk]
+        s += np.asarray(N.sum(axis=0)).ravel()
+    # Pᵀ·G·P, Pᵀ·g, Pᵀ·s as prefix sums over the corners (O(L⁴), where the product with the
+    # dense P costs O(L⁶)); the extra regressors' rows and columns pass unchanged
+    c = slice(0, n_corner)
+    e = slice(n_corner, n_corner + ne)
+    Gc = _corner_prefix(_corner_prefix(G[c, c], L).T, L)
+    cross = _corner_prefix(G[e, c], L)
+    AtA = np.block([[Gc, cross.T], [cross, G[e, e]]])
+    return (AtA, np.r_[_corner_prefix(g[None, c], L)[0], g[e]], np.r_[_corner_prefix(s[None, c], L)[0], s[e]])
+
+
+def _corner_prefix(M: np.ndarray, L: int) -> np.ndarray:
+    """``M·P`` for rows over the (L+1)² corners (:func:`_prefix_matrix`) by two prefix sums:
+    Φ[·, (i, j)] = Σ_{a ≥ i+1} Σ_{b ≤ j} M[·, (a, b)]."""
+    S = M.reshape(M.shape[0], L + 1, L + 1)
+    S = np.cumsum(S[:, ::-1, :], axis=1)[:, ::-1, :]
     S = np.cumsum(S, axis=2)
     ci = np.tril_indices(L)
     return S[:, ci[0] + 1, ci[1]]
@@ -408,20 +473,9 @@ def _nnls_fit(u: np.ndarray, y: np.ndarray, lo: float, hi: float, L: int, cap: i
     n_cells = L * (L + 1) // 2
     ne = 0 if extra is None else extra.shape[1]
     nc = n_cells + ne
-    AtA = np.zeros((nc, nc))
-    Atb = np.zeros(nc)
-    Asum = np.zeros(nc)
     ysel = y[rows]
     ymean = float(np.mean(ysel))
-    chunk = max(200, int(4e6 // ((L + 1) ** 2)))
-    for s0 in range(0, rows.shape[0], chunk):
-        r = rows[s0:s0 + chunk]
-        F = _features(u, r, lo, hi, L, cap)
-        if ne:
-            F = np.hstack([F, cast(np.ndarray, extra)[r]])
-        AtA += F.T @ F
-        Atb += F.T @ (ysel[s0:s0 + chunk] - ymean)
-        Asum += F.sum(axis=0)
+    AtA, Atb, Asum = _normal_terms(u, rows, ysel - ymean, lo, hi, L, cap, extra)
     m = rows.shape[0]
     mean_f = Asum / m
     # centre (y0 is free): A_c = A − 1·mean_f; Σ(y − ȳ) = 0 so A_cᵀ(y − ȳ) = Aᵀ(y − ȳ)

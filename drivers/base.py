@@ -297,6 +297,8 @@ class Amplifier(AmplifierInterface):
     # ---- recorder hooks (a backend with a data recorder sets has_recorder and fills these) ----
     #: the device has a data recorder this driver drives (see :meth:`configure_recorder`)
     has_recorder: bool = False
+    #: the device reads back points already recorded while it still records (:meth:`read_recorded`)
+    reads_while_recording: bool = False
     #: the recording armed last (:meth:`configure_recorder`), None before or after it is dropped
     _recorder_setup: RecorderSetup | None = None
 
@@ -311,6 +313,11 @@ class Amplifier(AmplifierInterface):
     def _configure_recorder(self, setup: RecorderSetup) -> RecorderSetup:
         """Arm the recorder to start with the next wave start; returns the setup with the
         backend's bookkeeping in ``extra``."""
+        raise NotImplementedError
+
+    def _read_points(self, setup: RecorderSetup, first: int, n: int) -> Recording:
+        """Points ``first`` .. ``first + n - 1`` (0-based, all recorded) of the armed
+        recording, also while it goes on (a backend that sets ``reads_while_recording``)."""
         raise NotImplementedError
 
     def _recorded_points(self, setup: RecorderSetup) -> int:
@@ -587,6 +594,25 @@ class Amplifier(AmplifierInterface):
             rec = self._io(self._read_recording, setup, stop)
         if len(rec) != setup.points:
             raise ProtocolError(f"{self.name}: the recording read back has {len(rec)} points, {setup.points} were armed")
+        return rec
+
+    def read_recorded(self, first: int, n: int) -> Recording:
+        """Points ``first`` .. ``first + n - 1`` (0-based) of the armed recording, already
+        recorded (:meth:`recorded_points`) — on a device that :attr:`reads_while_recording`
+        also while the recording goes on, so that a long recording is read back while it is
+        taken; its ``t_s`` from the wave start as in :meth:`read_recording`. Parts join with
+        :func:`~afmctl.drivers.recording.joined_recording`."""
+        setup = self._armed_setup()
+        if not self.reads_while_recording:
+            raise AmplifierError(f"{self.name}: the recorder is read back once it is full (read_recording)")
+        if not (0 <= first and 1 <= n and first + n <= setup.points):
+            raise AmplifierError(f"{self.name}: points {first}..{first + n - 1} lie outside the armed "
+                                 f"{setup.points}")
+        with self._lock:
+            self._guard()
+            rec = self._io(self._read_points, setup, first, n)
+        if len(rec) != n:
+            raise ProtocolError(f"{self.name}: {len(rec)} points came back, {n} were asked")
         return rec
 
     def _armed_setup(self) -> RecorderSetup:

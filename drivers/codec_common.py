@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Sequence
+
+import numpy as np
 
 from .errors import LimitError, ProtocolError
 
@@ -41,6 +44,26 @@ def format_inside(value_V: float, lo_V: float, hi_V: float, decimals: int, *, st
         if text in ("", "-", "-0"):
             text = "0"
     return text
+
+
+def format_all_inside(values_V: Sequence[float] | np.ndarray, lo_V: float, hi_V: float, decimals: int, *,
+                      strip: bool = False) -> list[str]:
+    """:func:`format_inside` of every value (the same texts), formatted in one pass: only the
+    values whose plain rounding lands outside ``[lo_V, hi_V]`` or on zero (or that are not
+    finite) go through :func:`format_inside` one by one."""
+    vals = np.asarray(values_V, dtype=np.float64).ravel()
+    texts = ["%.*f" % (decimals, v) for v in vals.tolist()]
+    if not texts:
+        return texts
+    sent = np.array(texts, dtype=np.float64)
+    slow = ~np.isfinite(vals) | ~(sent >= lo_V) | ~(sent <= hi_V) | (sent == 0.0)
+    for k in np.flatnonzero(slow).tolist():
+        texts[k] = format_inside(float(vals[k]), lo_V, hi_V, decimals, strip=strip)
+    if strip and decimals > 0:
+        fast = np.flatnonzero(~slow).tolist()
+        for k in fast:
+            texts[k] = texts[k].rstrip("0").rstrip(".")
+    return texts
 
 
 def parse_number(token: bytes, where: str, data: bytes) -> float:

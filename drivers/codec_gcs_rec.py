@@ -120,6 +120,19 @@ def parse_data(header: dict[str, str], lines: Sequence[bytes], columns: int) -> 
         raise ProtocolError(f"DRR? answer: {len(lines)} lines of DIM={dim}, header NDATA={ndata}; "
                             f"{columns} columns were asked")
     split = None if sep == 32 else chr(sep)
+    ok = False
+    if split is None:                   # all lines in one split (fast): as many numbers as asked, all finite
+        cells_all = b" ".join(lines).split()
+        if len(cells_all) == ndata * columns:
+            try:
+                out = np.array(cells_all, dtype=np.float64).reshape(ndata, columns)
+                ok = bool(np.all(np.isfinite(out)))
+            except ValueError:
+                ok = False
+        if ok:                          # each line holds `columns` numbers (not only the total)
+            ok = all(len(raw.split()) == columns for raw in lines)
+    if ok:
+        return out
     cells = [raw.decode("ascii", "replace").strip().split(split) for raw in lines]
     try:
         out = np.array(cells, dtype=np.float64).reshape(ndata, columns)   # all lines at once

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     import numpy as np
 
-from .codec_common import format_inside
+from .codec_common import format_all_inside
 from .codec_gcs import DECIMALS, encode, parse_items, reply_lines
 from .errors import ProtocolError
 
@@ -37,7 +37,7 @@ def encode_wav_pnt(table: int, values_V: Sequence[float] | np.ndarray, lo_V: flo
     """The ``WAV ... PNT`` lines that write ``values_V`` as table ``table``: the first line
     starts the table (``X``), the rest append (``&``) at their index. Every number as sent
     lies in ``[lo_V, hi_V]``; no line is longer than ``max_line`` bytes."""
-    texts = [format_inside(float(v), lo_V, hi_V, DECIMALS, strip=True) for v in values_V]
+    texts = format_all_inside(values_V, lo_V, hi_V, DECIMALS, strip=True)
     lines: list[bytes] = []
     k = 0
     while k < len(texts):

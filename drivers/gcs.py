@@ -272,6 +272,8 @@ class GCSAmplifier(SerialAmplifier):
         return self.wave_status()
 
     # ---- data recorder (the Amplifier template's configure_recorder / read_recording) ----
+    reads_while_recording = True
+
     def _recorder_clock_s(self) -> float:
         return self.servo_cycle_s()
 
@@ -328,6 +330,16 @@ class GCSAmplifier(SerialAmplifier):
             parts.append(data)
         data = np.concatenate(parts) if parts else np.zeros((0, len(tables)))
         return self._recording(setup, header, data)
+
+    def _read_points(self, setup: RecorderSetup, first: int, n: int) -> Recording:
+        """``DRR? <first + 1> <n> <tables>`` of points already recorded (the E-727 answers
+        while it records; ``DRL?`` says how far it is)."""
+        tables = sorted(cast("dict[Any, int]", setup.extra["tables"]).values())
+        header, data = self._read_part(tables, first + 1, n)
+        if len(data) != n:
+            raise ProtocolError(f"DRR? {first + 1} {n}: {len(data)} points came back")
+        rec = self._recording(setup, header, data)
+        return Recording(rec.t_s + first * setup.period_s, rec.y_nm, rec.u_V, rec.period_s, rec.source, rec.v_V)
 
     def _read_chunk(self, tables: int) -> int:
         """Points per ``DRR?`` (a power of two): about :data:`RECORD_CHUNK_S` of the link's

@@ -91,6 +91,23 @@ def check_points(points: int, divider: int, *, capacity: int, name: str) -> None
         raise ValueError(f"recorder divider {divider!r}: a whole number of clock ticks >= 1")
 
 
+def joined_recording(parts: Sequence[Recording]) -> Recording:
+    """Consecutive parts of one recording (read while it was taken:
+    :meth:`~afmctl.drivers.base.Amplifier.read_recorded`) as one, its ``t_s`` from the first
+    part's first point."""
+    if not parts:
+        raise ValueError("joined_recording: no parts")
+    first = parts[0]
+
+    def cat(name: str) -> dict[str, np.ndarray]:
+        return {a: np.concatenate([np.asarray(getattr(p, name)[a], dtype=np.float64) for p in parts])
+                for a in getattr(first, name)}
+
+    n = sum(len(p) for p in parts)
+    return Recording(float(first.t_s[0]) + time_axis(n, first.period_s) if n else time_axis(0, first.period_s),
+                     cat("y_nm"), cat("u_V"), first.period_s, first.source, cat("v_V"))
+
+
 def time_axis(n: int, period_s: float) -> np.ndarray:
     """``k * period_s`` for k < n [s]."""
     return np.arange(n, dtype=np.float64) * float(period_s)

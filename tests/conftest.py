@@ -50,7 +50,7 @@ def _scale_for_fuzzing(item) -> None:
 # are listed in SLOW_TESTS (or carry @pytest.mark.slow themselves).
 SLOW_FILES = frozenset({
     "test_demo.py", "test_drift_scenario.py", "test_examples.py", "test_fuzz_files.py", "test_hil.py",
-    "test_hil_live_tip.py", "test_readme_tour.py", "test_sim_cli.py", "test_sim_zenoh.py",
+    "test_hil_live_tip.py", "test_sim_cli.py", "test_sim_zenoh.py",
     "test_vendor_clients.py", "test_view_feed.py", "test_zenoh_bridge.py", "test_zenoh_config.py",
     "test_zenoh_e2e.py", "test_zenoh_process.py", "test_zenoh_run_process.py",
 })
@@ -62,6 +62,7 @@ SLOW_FILES = frozenset({
 # equals step), config, the safety layer, the loop in-process, CLI offline basics, architecture.
 # The figure for the fast set is in docs/ARCHITECTURE.md ("Working on afmctl").
 SLOW_TESTS = frozenset({
+    "test_lag.py::test_the_loop_advances_the_setpoints_by_the_paths_ticks",
     "test_wave_run.py::test_can_fifo_plays_the_table_on_its_clock_through_host_stalls",
     "test_wave_run.py::test_estop_flushes_the_fifo_and_ramps_within_the_slew_limit",
     "test_wave_run.py::test_gcs_wave_generator_plays_the_table_on_the_servo_clock",
@@ -169,7 +170,9 @@ SLOW_TESTS = frozenset({
 # one process): `make test` runs the suite on two workers with `--dist loadfile` (a file's
 # tests on one worker, so its module fixtures are built once), and starting these first keeps
 # one long file from running alone at the end while the other worker idles.
-LONG_FILES = ("test_unseen_plant.py", "test_readme_tour.py", "test_demo.py", "test_vendor_clients.py",  # 120+ 90 80 70
+# test_doc_blocks.py (the documents' shell blocks) is mostly waiting on simulated devices' clocks:
+# 8-9 min of wall time and under 3 min of CPU at load 12-18 (2026-11-28), so it starts first.
+LONG_FILES = ("test_doc_blocks.py", "test_unseen_plant.py", "test_demo.py", "test_vendor_clients.py",  # ? 120+ 80 70
               "test_calibrate.py", "test_soak.py",
               "test_view_live.py", "test_lab_router.py", "test_wave_run.py", "test_image_dynamics.py", "test_chain.py",  # 40 34 24 15
               "test_learn_device.py", "test_hil.py", "test_dynamics_sim.py", "test_dynamics_source.py",

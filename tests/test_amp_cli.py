@@ -165,6 +165,9 @@ def test_wave_refuses_bad_arguments_a_bad_wrap_and_other_drivers(mdt, tmp_path, 
         assert main(["amp", "--driver", "can", "--port", f"virtual:{channel}", "--max-step", "5", "wave",
                      "--file", path, "--rate-Hz", "1000", "--cycles", "2"]) == 2
         assert "the wrap from the last row to the first is 8 V" in capsys.readouterr().err
+        assert main(["amp", "--driver", "can", "--port", f"virtual:{channel}", "wave", "--file", path,
+                     "--rate-Hz", "1000", "--cycles", "2", "--max-step", "5"]) == 2     # after the action too
+        assert "the wrap from the last row to the first is 8 V" in capsys.readouterr().err
         assert sim.stream.played == 0 and sim.received == 0
     assert main(["amp", "--driver", "mdt693b", "--port", mdt.port, "wave", "--file", path, "--rate-Hz", "100"]) == 2
     assert "wave works with --driver can" in capsys.readouterr().err

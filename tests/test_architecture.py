@@ -16,6 +16,7 @@ Each check also runs on a synthetic tree in ``tmp_path`` to show that it can fai
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 import pytest
@@ -91,10 +92,21 @@ def _resolve_relative(module: str, is_package: bool, level: int, target: str | N
     return ".".join(parts + ([target] if target else []))
 
 
+def parsed(path: Path) -> ast.Module:
+    """The file's syntax tree, parsed once per content (the package's ~300 files are read by
+    several checks)."""
+    return _parse(str(path), path.read_text(encoding="utf-8"))
+
+
+@functools.lru_cache(maxsize=None)
+def _parse(filename: str, text: str) -> ast.Module:
+    return ast.parse(text, filename=filename)
+
+
 def imports_of(module: str, path: Path, known: set[str]) -> set[str]:
     """The modules of ``known`` that the file imports, anywhere in it (relative imports resolved;
     ``from pkg import name`` counts as an import of ``pkg.name`` when that is a module)."""
-    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    tree = parsed(path)
     is_package = path.name == "__init__.py"
     found: set[str] = set()
     for node in ast.walk(tree):
@@ -204,7 +216,7 @@ def long_functions(root: Path, folders: dict[str, str] = FOLDERS,
     (decorators and docstring included)."""
     found: dict[str, int] = {}
     for module, path in find_modules(root, folders).items():
-        tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+        tree = parsed(path)
 
         def walk(node: ast.AST, prefix: str) -> None:
             for child in ast.iter_child_nodes(node):

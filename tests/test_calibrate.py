@@ -4,7 +4,7 @@ virtual bus — ends the command with the output at the safe value and nothing p
 ``stop`` on zenoh does the same; a lost link exits 1 and keeps the partial recording; a device
 whose recorder cannot hold the shortest piece is refused in one line before anything moves.
 A whole calibration (a model with its provenance, the recording with the piezo voltage) is
-tests/test_readme_tour.py's instrument tour. Excitations are short (the full-size figures
+the README's instrument tour (tests/test_doc_blocks.py). Excitations are short (the full-size figures
 are benchmarks/calibrate_join.py)."""
 from __future__ import annotations
 

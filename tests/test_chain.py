@@ -401,3 +401,15 @@ def test_a_preisach_static_fit_sees_every_sample_other_kinds_block_means():
     m = int(1.0 / (dt * STATIC_RATE_HZ))
     assert dtd == pytest.approx(m * dt) and ud.size == u.size // m and k0d == 100 // m
     assert ud[0] == pytest.approx(np.mean(u[:m])) and yd[1] == pytest.approx(np.mean(y[m:2 * m]))
+
+
+def test_a_long_record_gets_longer_static_blocks_down_to_the_lowest_static_rate():
+    from afmctl.compensators.chain import STATIC_MAX_SAMPLES, STATIC_MIN_RATE_HZ, record_for_static
+
+    dt = 1e-4                                   # 10 kHz: 5-sample means at 2 kHz
+    for n, m in ((400_000, 8), (1_200_000, int(1.0 / (dt * STATIC_MIN_RATE_HZ)))):
+        u = np.linspace(0.0, 100.0, n)
+        td, ud, yd, k0d, dtd = record_for_static(np.arange(n) * dt, u, 2.0 * u, 1000, dt, "bouc-wen")
+        assert dtd == pytest.approx(m * dt) and ud.size == n // m and k0d == 1000 // m
+        assert ud[1] == pytest.approx(np.mean(u[m:2 * m]))
+        assert ud.size <= STATIC_MAX_SAMPLES or dtd == pytest.approx(1.0 / STATIC_MIN_RATE_HZ)

@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from afmctl.drivers import codec_can, codec_gcs, codec_mdt, codec_nv200
-from afmctl.drivers.codec_common import format_inside
+from afmctl.drivers.codec_common import format_all_inside, format_inside
 from afmctl.drivers.errors import LimitError, ProtocolError
 from afmctl.sim_backend.amplifiers.gcs import SimGCS
 from afmctl.sim_backend.amplifiers.mdt693b import SimMDT693B
@@ -26,6 +26,20 @@ limits = st.tuples(st.floats(-200, 200), st.floats(0, 200)).map(lambda t: (t[0],
 
 
 # ---------------- number formatting ----------------
+
+@settings(deadline=None, max_examples=50)
+@given(st.lists(any_float, min_size=0, max_size=20), limits, st.sampled_from([2, 3, 4]), st.booleans())
+def test_format_all_inside_gives_the_texts_format_inside_gives(values, lim, decimals, strip):
+    """The one-pass formatting of a wave table is the per-value one, limits and errors alike."""
+    lo, hi = lim
+    try:
+        want = [format_inside(v, lo, hi, decimals, strip=strip) for v in values]
+    except LimitError:
+        with pytest.raises(LimitError):
+            format_all_inside(values, lo, hi, decimals, strip=strip)
+        return
+    assert format_all_inside(values, lo, hi, decimals, strip=strip) == want
+
 
 @settings(deadline=None)
 @given(any_float, limits, st.sampled_from([2, 3, 4]))

@@ -73,3 +73,18 @@ def test_with_a_hold_every_candidate_is_tried():
     u = np.where((t > 1.0) & (t < 2.0), 140.0, 75.0 - 75.0 * np.cos(2 * np.pi * t))
     rows, keep = covered_candidates(t, u, ["pi", "pi+creep", "epi"])
     assert rows == [] and keep == ["pi", "pi+creep", "epi"]
+
+
+def test_the_compiled_loops_equal_their_plain_python_references():
+    """Turning points and the longest hold: the numba twins give what the references give,
+    on a record with wiggles under the tolerance, nested loops, steps and holds."""
+    from afmctl.compensators.coverage import _reversals
+    rng = np.random.default_rng(7)
+    t = np.arange(int(6 * FS)) / FS
+    u = 60 + 50 * np.sin(2 * np.pi * 0.7 * t) * np.abs(np.cos(2 * np.pi * 0.11 * t)) + 0.3 * rng.standard_normal(t.size)
+    u[3000:4200] = u[3000]                                       # a hold after a step
+    for tol in (0.0, 0.5, 2.0, 40.0):
+        fast, ref = _reversals(u, tol), _reversals(u, tol, use_numba=False)
+        assert fast.dtype == ref.dtype == np.int64 and np.array_equal(fast, ref)
+        assert longest_hold_s(t, u, tol) == longest_hold_s(t, u, tol, use_numba=False)
+    assert _reversals(u, 2.0).size > 4 and longest_hold_s(t, u, 0.5) >= 1200 / FS - 1 / FS

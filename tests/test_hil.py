@@ -124,6 +124,9 @@ def test_two_processes_afmctl_sim_and_afmctl_run_over_a_pty(tmp_path, pi_models)
     n_traj = 4 * 50 + 1
     ev = {e["event"]: e["seq"] for e in RunLogReader(log_path).events()}
     ev.setdefault("ramp-done", 0)      # within one slew step of the start: no ramp
+    # a 115200-baud setpoint takes 2.6 ms to arrive, less than the loop's period: the loop
+    # advances the setpoints by whole ticks within the delay (afmctl/control/path_delay.py), none here
+    assert summary["path_delay"]["advance_samples"] == 0
     assert ev["end"] - ev["ramp-done"] == n_traj
     # every setpoint reached the simulated amplifier, in order (2-decimal MDT format)
     got = np.genfromtxt(record, delimiter=",", names=True)

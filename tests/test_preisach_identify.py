@@ -221,3 +221,24 @@ def test_chain_fit_leaves_no_gap_that_makes_the_inverse_jump():
     target = np.linspace(0.1, 0.9, 4000) * float(np.ptp(y)) + float(np.min(y))
     steps = np.abs(np.diff(m.inverse(dt).block(target)))
     assert steps.max() <= 3.0 * np.median(steps)
+
+
+def test_normal_equations_from_corner_terms_equal_the_dense_features():
+    """The fast path (``ΦᵀΦ = Pᵀ(NᵀN)P`` on sparse corner terms) equals the plain reference
+    (the dense Φ from two prefix sums) on a random walk with nested reversals, extra
+    regressors included."""
+    from afmctl.compensators import preisach_identify as pid
+    rng = np.random.default_rng(1)
+    u = np.cumsum(rng.standard_normal(30_000))
+    u = 150.0 * (u - u.min()) / np.ptp(u)
+    rows = np.arange(100, u.size, 3, dtype=np.int64)
+    L, cap = 16, 64
+    extra = rng.standard_normal((u.size, 2))
+    F = np.hstack([pid._features(u, rows, 0.0, 150.0, L, cap), extra[rows]])
+    yc = rng.standard_normal(rows.size)
+    AtA, Atb, Asum = pid._normal_terms(u, rows, yc, 0.0, 150.0, L, cap, extra)
+    np.testing.assert_allclose(AtA, F.T @ F, rtol=0, atol=1e-10 * np.max(np.abs(AtA)))
+    np.testing.assert_allclose(Atb, F.T @ yc, rtol=0, atol=1e-10 * np.max(np.abs(Atb)))
+    np.testing.assert_allclose(Asum, F.sum(axis=0), rtol=0, atol=1e-10 * np.max(np.abs(Asum)))
+    M = rng.standard_normal((5, (L + 1) ** 2))          # the prefix sums are the product with P
+    np.testing.assert_allclose(pid._corner_prefix(M, L), M @ pid._prefix_matrix(L), rtol=0, atol=1e-12)

@@ -4,11 +4,14 @@ real ptys (GCS, NV200) and python-can's virtual bus (CAN); a device without a re
 says so."""
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
-from afmctl.drivers.errors import LimitError, RecorderUnavailable
-from afmctl.drivers.recording import align_to_table
+from afmctl.drivers.codec_gcs_rec import parse_data
+from afmctl.drivers.errors import AmplifierError, LimitError, ProtocolError, RecorderUnavailable
+from afmctl.drivers.recording import align_to_table, joined_recording
 from afmctl.drivers.registry import open_amplifier
 from afmctl.sim_backend.scanner import Scanner, default_scanner_config
 from afmctl.sim_backend.testing import serve_pty
@@ -58,6 +61,47 @@ def test_gcs_driver_records_position_and_voltage_aligned_with_the_wave():
     want = _offline_reference(table, samples_per_point=10)
     err = rec.y_nm["x"] - want
     assert np.ptp(want) > 2000.0 and np.abs(err).max() < 0.002 * np.ptp(want)   # a point off would be ~50 nm
+
+
+def test_gcs_recording_read_while_it_is_taken_equals_the_whole_read_after_it():
+    """read_recorded (DRR? of the points DRL? says are recorded, while the wave plays): the
+    parts joined are the recording read_recording reads once it is full."""
+    from afmctl.sim_backend.amplifiers import make_device
+    from afmctl.sim_backend.amplifiers.tcp_server import TcpServer
+    n, divider, chunk = 4000, 2, 1000
+    table = _sine(n, 20.0, 100.0)
+    with TcpServer(make_device("gcs", Scanner(default_scanner_config()))) as server:   # the E-727's TCP port
+        with open_amplifier("gcs", server.port, timeout_s=5.0) as amp:     # a loaded machine: a late reply
+            assert amp.reads_while_recording
+            amp.set_voltages({"x": float(table[0])})
+            amp.upload_wave("x", table)
+            amp.configure_recorder(["x"], points=n, divider=divider, signals=("y_nm", "u_V"))
+            amp.start_wave(divider=divider)
+            parts, got = [], 0
+            while got < n:
+                ready = min(amp.recorded_points(), n) - got
+                if ready > 0:
+                    parts.append(amp.read_recorded(got, min(ready, chunk)))
+                    got += len(parts[-1])
+                else:
+                    time.sleep(0.01)
+            whole = amp.read_recording(timeout_s=10)
+            with pytest.raises(AmplifierError, match="outside the armed 4000"):
+                amp.read_recorded(n - 10, 20)
+    live = joined_recording(parts)
+    assert len(parts) >= n // chunk and len(live) == n
+    np.testing.assert_allclose(live.t_s, whole.t_s)
+    np.testing.assert_array_equal(live.y_nm["x"], whole.y_nm["x"])
+    np.testing.assert_array_equal(live.u_V["x"], whole.u_V["x"])
+
+
+def test_gcs_array_lines_of_the_wrong_width_are_refused_even_when_the_count_adds_up():
+    head = {"NDATA": "2", "DIM": "3", "SEPARATOR": "32"}
+    assert parse_data(head, [b"1.5 2 3 ", b"4 5 -6.25"], 3).tolist() == [[1.5, 2, 3], [4, 5, -6.25]]
+    with pytest.raises(ProtocolError, match="line 1: 2 finite values expected 3"):
+        parse_data(head, [b"1 2 ", b"3 4 5 6"], 3)
+    with pytest.raises(ProtocolError, match="line 2 is not numbers"):
+        parse_data(head, [b"1 2 3 ", b"4 x 6"], 3)
 
 
 def test_mdt693b_has_no_recorder_and_says_how_to_measure_instead():

@@ -173,3 +173,32 @@ def test_sigusr1_prints_every_threads_stack_and_the_sim_keeps_running():
         _out, err = proc.communicate(timeout=30)
     assert proc.returncode == 0, err
     assert "Current thread" in err and "Thread 0x" in err, err
+
+
+def test_a_wave_table_plays_on_the_simulators_clock_with_no_host_polling():
+    """The device's wave generator is played by the simulator's clock thread, not only by
+    its server's polls: a server busy with a long reply (or, here, with no client at all)
+    must not leave the scanner running past points not yet handed to it (they would be
+    dropped, the recorded piezo voltage holding still: issue 38's ``READ_WHILE_PLAYING``)."""
+    import numpy as np
+
+    from afmctl.drivers import codec_gcs_wave as wcodec
+    from afmctl.simulation.service import SimService, load_settings
+    settings = load_settings(None)
+    settings.amplifier.protocol, settings.amplifier.tcp = "gcs", "127.0.0.1:0"
+    held: list[float] = []
+    service = SimService(settings, on_tick=lambda t, pos: held.append(service.scanner.held_voltage_V()[0]))
+    ramp = np.round(np.linspace(0.0, 60.0, 2000), 4)     # 2000 points × 10 servo cycles of 50 µs: 1 s
+    with no_leaks(), service:
+        service.device.feed(b"SVO 1 0 2 0 3 0\n")
+        for line in wcodec.encode_wav_pnt(1, ramp, 0, 120):
+            service.device.feed(line)
+        service.device.feed(wcodec.encode_start([1], 10, 1))
+        deadline = time.monotonic() + 10.0
+        while service.scanner.held_voltage_V()[0] < 60.0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        # nothing was sent to the device meanwhile: only the clock thread played the table
+        assert service.scanner.held_voltage_V()[0] == 60.0
+    during = [v for v in held if 0.0 < v < 60.0]
+    assert len(set(during)) >= 20, f"the ramp reached the scanner in {len(set(during))} steps"
+    assert during == sorted(during)

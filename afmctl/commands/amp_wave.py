@@ -39,6 +39,7 @@ def add_parser(actions, add_max_step) -> None:
                         "file's axes, as many points as the recorder holds) and write it as t,y,u (one "
                         "axis) or t,x,y,z,ux,uy,uz — the format afmctl reads an external sensor's motion "
                         "in; refused on a device without a recorder (mdt693b)")
+    add_max_step(w)
 
 
 def check_args(args) -> None:

@@ -140,7 +140,7 @@ def run_device(args: argparse.Namespace) -> int:
     from ..simulation.link import configured_amplifier
     from .run import _install_signals
     _check_args(args)
-    config = load_config(args.config)
+    config = as_wave(load_config(args.config))
     advice = settle_advice(config)
     if advice:
         print(f"afmctl: learn: {advice}", file=sys.stderr)
@@ -173,6 +173,22 @@ def run_device(args: argparse.Namespace) -> int:
     print(f"afmctl: learned table {args.learned_out}: best iteration {best.iteration}{figures}; play it with "
           "[trajectory] kind = \"learned\" (afmctl run reports the same figures)", file=sys.stderr)
     return 1 if run.reports[-1].state == "fault" else 0
+
+
+#: drivers whose device plays a table on its own clock and records the motion
+WAVE_DRIVERS = ("can", "gcs", "nv200")
+
+
+def as_wave(config: Any) -> Any:
+    """A configuration with host-timed output (``setpoints``, ``stream``) on a device that plays
+    tables on its own clock, as ``output = "wave"``: afmctl learn plays every table there and
+    measures it with the device's recorder (one line says so); other configurations as they are."""
+    if config.amplifier.output == "wave" or config.amplifier.driver not in WAVE_DRIVERS:
+        return config
+    print(f"afmctl: learn: amplifier.output = '{config.amplifier.output}': learning plays each table on the "
+          f"{config.amplifier.driver} amplifier's clock (output = 'wave') and measures it with its recorder; play "
+          "the learned table with output = 'wave' (AFMCTL_AMPLIFIER__OUTPUT=wave)", file=sys.stderr)
+    return config.model_copy(update={"amplifier": config.amplifier.model_copy(update={"output": "wave"})})
 
 
 def _publisher(stack: contextlib.ExitStack, config: Any) -> Any:

@@ -68,6 +68,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"{TRACKING_ERROR} per axis, over {per_axis['part']}:")
         for a in per_axis["axes"].values():
             print("  " + AxisError(a["axis"], a["max_nm"], a["rms_nm"], a["reference"], a["reference_nm"]).text())
+    if summary.get("lag"):
+        from .run import lag_lines
+        print("lag per axis, the voltages replayed:")
+        for line in lag_lines(summary["lag"]):
+            print("  " + line)
     if TRACKING_ERROR not in errors:
         print(f"{TRACKING_ERROR}: not known (the run did not drive the simulator and the log holds no "
               "tip positions; --simulate estimates it with the simulated scanner)")

@@ -88,13 +88,11 @@ MAX_SECONDS = 1e7
 #: exit status (see HELP)
 EXIT_OK, EXIT_FAULT, EXIT_BAD_INPUT, EXIT_RUNLOG = 0, 1, 2, 3
 
-#: three-axis (one-axis for mdt694b/nv200) setpoints per second a link carries at 115200
-#: baud, streaming without waiting for replies (docs/PROTOCOLS.md)
-LINK_CEILING_PER_S = {"mdt693b": 380.0, "mdt694b": 770.0, "gcs": 600.0, "nv200": 960.0, "can": 7000.0}
 
 
 def link_warning(config) -> str | None:
     """A warning when loop.rate_Hz exceeds what the amplifier link carries."""
+    from ..control.path_delay import LINK_CEILING_PER_S
     driver = config.amplifier.driver
     ceiling = LINK_CEILING_PER_S.get(driver)
     if ceiling is None or str(config.amplifier.port or "").startswith("socket://"):
@@ -115,6 +113,7 @@ def link_warning(config) -> str | None:
 
 def _summary(ctl, config, scanner, recorder=None) -> dict:
     from ..control.runlog import RunLogReader
+    from ..simulation.link import replay_positions_nm
     st = ctl.stats()
     out = {"state": st["state"], "samples": st["samples"], "ticks": st["ticks"], "rate_Hz": st["rate_Hz"],
            "lateness_p50_s": st["lateness_p50_s"], "lateness_p99_s": st["lateness_p99_s"],
@@ -122,7 +121,7 @@ def _summary(ctl, config, scanner, recorder=None) -> dict:
            "overruns": st["overruns"], "errors": st["errors"], "faults": st["faults"],
            "reconnects": st["reconnects"], "watchdog_trips": st["watchdog_trips"],
            "slew_limited": st["slew_limited"], "clamped": st["clamped"], "last_error": st["last_error"],
-           "latency_samples": st["latency_samples"], "latency_s": st["latency_s"],
+           "latency_samples": st["latency_samples"], "latency_s": st["latency_s"], "path_delay": st["path_delay"],
            "output": st["output"], "stream": st["stream"], "wave": st["wave"],
            "runlog": str(ctl.runlog_path) if ctl.runlog_path else None,
            "runlog_error": ctl.runlog_error, "trajectory_error": ctl.trajectory_error,
@@ -135,26 +134,65 @@ def _summary(ctl, config, scanner, recorder=None) -> dict:
         ends = [e["seq"] for e in ev if e.get("event") in ("end", "stop", "estop")]
         end = min(ends) if ends else len(sp)
         if end > start:
-            out["tracking"] = replayed_tracking(config, sp, (start, end)) if scanner is not None else {}
+            replayed = replay_positions_nm(config, sp, ctl.path_delay.advance) if scanner is not None else None
+            out["tracking"] = replayed_tracking(config, sp, (start, end), replayed) if scanner is not None else {}
             if recorder is not None:
                 measured = recorder.errors()
                 out["tracking"]["recorded"] = measured.as_dict() if measured is not None else None
                 out["tracking"]["recorded_why_not"] = recorder.why_not
+            out["tracking"]["lag"] = lag_summary(config, ctl, sp, (start, end), scanner, recorder, replayed)
     return out
 
 
-def replayed_tracking(config, setpoints, seq_range: tuple[int, int]) -> dict:
+def lag_summary(config, ctl, setpoints, seq_range: tuple[int, int], scanner=None, recorder=None,
+                replayed=None) -> dict:
+    """The lag of the motion behind its target per axis (:func:`afmctl.data.lag.measure_lags`)
+    over the tracked setpoints of ``seq_range``: as the device's recorder measured it (a wave
+    run) and as the voltages replayed through a fresh simulated scanner give it; beside the
+    output path's delay known in advance and the ticks the loop advanced the setpoints by to
+    take it out, and for host-timed setpoints to a simulated amplifier in this process how
+    late each reached the simulated scanner (:func:`afmctl.simulation.link.arrival_delays_s`).
+    ``replayed``: the replayed positions (N, 3) [nm] of every setpoint, when there is a scanner."""
+    import numpy as np
+
+    from ..data.lag import measure_lags
+    from ..simulation.link import arrival_delays_s
+    sel = (setpoints["seq"] >= seq_range[0]) & (setpoints["seq"] < seq_range[1])
+    tgt, dt = setpoints["target_nm"][sel], config.dt_s
+    axes = "".join(a for a in "xyz" if a in config.scanner.axes)
+    out: dict = {"path_delay": ctl.path_delay.as_dict(), "dt_s": dt}
+    rec = getattr(recorder, "recorded", None)
+    if rec is not None:
+        target, pos, rec_axes = rec
+        out["recorded"] = [g.as_dict() for g in measure_lags(target, pos, dt, rec_axes)]
+    if scanner is None or replayed is None:
+        return out
+    out["replayed"] = [g.as_dict() for g in measure_lags(tgt, replayed[sel], dt, axes)]
+    deadlines = ctl.tick_deadlines_s(np.round(setpoints["t_s"] / dt))
+    if config.amplifier.output == "setpoints" and deadlines is not None and hasattr(scanner, "applied"):
+        late = arrival_delays_s(scanner, deadlines, setpoints["u_V"])[sel]
+        late = late[np.isfinite(late)]
+        if late.size:
+            out["arrival"] = {"median_s": float(np.median(late)), "p99_s": float(np.percentile(late, 99)),
+                              "max_s": float(late.max()), "matched": int(late.size), "sent": int(np.count_nonzero(sel))}
+    return out
+
+
+def replayed_tracking(config, setpoints, seq_range: tuple[int, int], replayed=None) -> dict:
     """The tracking error of a simulated run: the voltages sent replayed through a fresh
     simulated scanner (:func:`afmctl.simulation.link.replay_positions_nm`), over the setpoints
     of ``seq_range`` (those that track the trajectory). ``axes``, ``max_abs_nm``, ``rms_nm``
     over all of them, and ``judged``: per axis in nm and % of its line or step over the
-    central part of a raster's lines (:func:`afmctl.data.axis_errors.axis_errors`)."""
+    central part of a raster's lines (:func:`afmctl.data.axis_errors.axis_errors`).
+    ``replayed``: those positions already replayed (N, 3) [nm]."""
     import numpy as np
 
     from ..data.axis_errors import axis_errors
     from ..simulation.link import replay_positions_nm
     sel = (setpoints["seq"] >= seq_range[0]) & (setpoints["seq"] < seq_range[1])
-    pos, tgt = replay_positions_nm(config, setpoints)[sel], setpoints["target_nm"][sel]
+    if replayed is None:
+        replayed = replay_positions_nm(config, setpoints)
+    pos, tgt = replayed[sel], setpoints["target_nm"][sel]
     axes = [a for a in "xyz" if a in config.scanner.axes]
     idx = ["xyz".index(a) for a in axes]
     err = pos - tgt
@@ -247,7 +285,10 @@ def _print_summary(summary: dict) -> None:
           f"watchdog trips {summary['watchdog_trips']})")
     if summary.get("watchdog"):
         print(f"watchdog          {summary['watchdog']}")
-    print(f"safety            slew-limited {summary['slew_limited']} samples, clamped {summary['clamped']}")
+    print(f"safety            slew-limited {summary['slew_limited']} samples, clamped {summary['clamped']}"
+          + ("; a late tick's catch-up (missed setpoints sent back to back) is held back by the slew limit: "
+             "loop.resync_periods = 2 restarts the schedule instead" if summary["slew_limited"] and summary["overruns"]
+             and summary.get("output") == "setpoints" else ""))
     if summary.get("stream"):
         st = summary["stream"]
         print(f"stream            {st['queued']} samples queued; device underruns {st['underruns']}, lowest FIFO "
@@ -299,10 +340,49 @@ def _print_tracking(t: dict) -> None:
                                                  a["reference_nm"]).text())
     if "recorded" in t and not t["recorded"]:
         print(f"                  (the device's recorder: {t.get('recorded_why_not')})")
+    if t.get("lag"):
+        _print_lag(t["lag"])
     if t.get("max_abs_nm") and not t.get("recorded"):
         print("                  replayed, whole tracked record (turnarounds included): max |e| "
               + ", ".join(f"{a} {v:.2f}" for a, v in zip(t["axes"], t["max_abs_nm"]))
               + " nm;  rms " + ", ".join(f"{a} {v:.2f}" for a, v in zip(t["axes"], t["rms_nm"])) + " nm")
+
+
+#: the lag's sources, most direct first: (key in the summary's tracking.lag, in words)
+LAG_SOURCES = (("recorded", "the device's recorder"), ("replayed", "the voltages replayed"))
+
+
+def lag_lines(lag: dict) -> list[str]:
+    """Per axis: ``x: lag measured X ms (N samples) by ..., Y ms taken out (path: ...)``, from
+    the most direct measurement there is, the others beside it."""
+    from ..control.path_delay import PathDelay, describe
+    p = lag["path_delay"]
+    taken_ms = p["advance_samples"] * lag["dt_s"] * 1e3
+    lines = []
+    found = [(key, words, {g["axis"]: g for g in lag[key]}) for key, words in LAG_SOURCES if lag.get(key)]
+    for axis in (found[0][2] if found else {}):
+        key, words, first = found[0]
+        g = first[axis]
+        if g["lag_samples"] is None:
+            lines.append(f"{axis}: no lag measured ({g['why']})")
+            continue
+        others = "; ".join(f"{w}: {o[axis]['lag_ms']:.3g} ms" for _, w, o in found[1:]
+                           if o.get(axis, {}).get("lag_samples") is not None)
+        lines.append(f"{axis}: lag measured {g['lag_ms']:.3g} ms ({g['lag_samples']:.3g} samples) by {words}, "
+                     f"{taken_ms:.3g} ms taken out (path: {p['path']}); after it max {g['rest_max_nm']:.3g} nm / "
+                     f"RMS {g['rest_rms_nm']:.3g} nm" + (f" [{others}]" if others else ""))
+    lines.append("path delay: " + describe(PathDelay(p["delay_s"], p["advance_samples"], p["path"]), lag["dt_s"]))
+    if lag.get("arrival"):
+        a = lag["arrival"]
+        lines.append(f"arrival: the setpoints reached the simulated scanner {a['median_s'] * 1e3:.3g} ms (median), "
+                     f"{a['p99_s'] * 1e3:.3g} ms (p99) after their ticks' deadlines ({a['matched']} of {a['sent']} "
+                     "matched; host lateness and the in-process simulator's own backlog, which the replay leaves out)")
+    return lines
+
+
+def _print_lag(lag: dict) -> None:
+    for i, line in enumerate(lag_lines(lag)):
+        print(("lag               " if i == 0 else "                  ") + line)
 
 
 def _exit_status(ctl, summary: dict) -> int:

@@ -148,11 +148,15 @@ def run(args: argparse.Namespace) -> int:
     except OSError as err:
         raise AfmctlError(f"--http {args.http}: cannot listen ({err.strerror or err})") from None
     # uvicorn re-raises the signal that stopped it once it has shut down; with these
-    # handlers in place that ends `serve` and the viewer exits 0
+    # handlers in place that ends `serve` and the viewer exits 0. A signal that comes before
+    # uvicorn takes the signals over (right after the address is printed) stops the server
+    # too: it was swallowed, and the viewer served on after a SIGTERM (docs/ZENOH.md's lab
+    # block, tests/test_doc_blocks.py)
     import signal
-    old = {s: signal.signal(s, lambda *_: None) for s in (signal.SIGTERM, signal.SIGINT)}
+    early = EarlyStop()
+    old = {s: signal.signal(s, early.on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
     try:
-        _serve(feed, sock, settings, args.scanner)
+        _serve(feed, sock, settings, args.scanner, early)
     finally:
         for s, h in old.items():
             signal.signal(s, h)
@@ -160,7 +164,26 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _serve(feed: Any, sock: Any, settings: Any, scanners: list[str] | None) -> None:
+class EarlyStop:
+    """Ctrl-C / SIGTERM before the server handles them: remembered, and passed on to the
+    server once it exists (``server.should_exit``, what uvicorn's own handler sets)."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self.server: Any = None
+
+    def on_signal(self, sig: int, frame: Any) -> None:
+        self.requested = True
+        if self.server is not None:
+            self.server.should_exit = True
+
+    def attach(self, server: Any) -> None:
+        self.server = server
+        if self.requested:
+            server.should_exit = True
+
+
+def _serve(feed: Any, sock: Any, settings: Any, scanners: list[str] | None, early: Any) -> None:
     from ..view.app import make_app, serve
     with sock, feed:
         h, p = sock.getsockname()[:2]
@@ -168,4 +191,4 @@ def _serve(feed: Any, sock: Any, settings: Any, scanners: list[str] | None) -> N
         print(f"afmctl view: http://{url_host}:{p}/", flush=True)
         print(f"watching {', '.join(scanners or ['every scanner'])} via "
               f"{', '.join(settings.connect)} (prefix {settings.prefix}); stop with Ctrl-C", flush=True)
-        serve(make_app(feed), sock)
+        serve(make_app(feed), sock, early)

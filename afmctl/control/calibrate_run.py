@@ -11,6 +11,9 @@ piece, the table on the device's clock, the device's recorder armed once the tab
 on it (it starts with the table). Between pieces the output *holds* its last voltage
 (the next piece starts there: no approach, no hold of its own), so the scanner's
 hysteresis memory runs on unbroken; :func:`calibrate_pieces.join` puts the holds back.
+On a device that reads its recorder while it records (the E-727) each piece is read back
+while it plays (:class:`LiveReadback`), so a hold lasts the upload, the start and the last
+chunk of the read-back rather than the whole read-back.
 
 Requests: :meth:`CalibrationRun.stop` (Ctrl-C, zenoh ``stop``) stops the piece playing at
 once (wave generator stopped / FIFO flushed, the output holds), then :func:`return_to_safe`
@@ -165,6 +168,74 @@ def device_capacity(amp: Any, axis: str, signals: tuple[str, ...]) -> int:
     return min(rec, table)
 
 
+#: points per read of a recording read back while it is taken (:class:`LiveReadback`): a
+#: ``DRR?`` of 8192 points of three tables takes 0.2–0.4 s on loopback TCP, the longest a
+#: stop or the controller's poll of the wave generator waits for it
+LIVE_CHUNK = 8192
+#: read a piece's recording while it plays (:class:`LiveReadback`) on a device that
+#: ``reads_while_recording`` (the simulated E-727 plays its tables from the simulator's
+#: clock thread, so a long ``DRR?`` reply holding its server no longer stalls the table)
+READ_WHILE_PLAYING = True
+
+
+class LiveReadback:
+    """A piece's recording read back while the table plays, on a device that
+    ``reads_while_recording`` (the E-727: ``DRR?`` answers with what ``DRL?`` says is
+    recorded): :meth:`step`, called while the piece plays, reads :data:`LIVE_CHUNK` points
+    once that many more are recorded; :meth:`rest` reads what remains once the table has
+    played. Reading overlaps the play, so a piece costs its play and the last chunk rather
+    than its play and a whole read-back. A link error while the table plays ends the live
+    reading (the controller's own poll meets the same link and ends the piece)."""
+
+    def __init__(self, amp: Any, points: int, chunk: int = LIVE_CHUNK) -> None:
+        self.amp, self.points, self.chunk = amp, int(points), int(chunk)
+        self.parts: list[Any] = []
+        self.got = 0
+        self.failed: Exception | None = None
+
+    def step(self, t_start: float | None, rate_Hz: float) -> None:
+        """Read one chunk if that many new points are recorded (never waits for them); the
+        device is asked (``DRL?``) only once the host clock since the table's start
+        ``t_start`` (``time.monotonic()``, None: not started) at ``rate_Hz`` says they are."""
+        from afmctl.drivers.errors import AmplifierError
+        if self.failed is not None or self.got >= self.points or t_start is None:
+            return
+        if (time.monotonic() - t_start) * rate_Hz < self.got + min(self.chunk, self.points - self.got):
+            return
+        try:
+            ready = min(self.amp.recorded_points(), self.points) - self.got
+            if ready >= min(self.chunk, self.points - self.got):
+                self._read(min(ready, self.chunk))
+        except AmplifierError as err:
+            self.failed = err
+
+    def _read(self, n: int) -> None:
+        self.parts.append(self.amp.read_recorded(self.got, n))
+        self.got += n
+
+    def rest(self, timeout_s: float, cancel: Callable[[], bool]) -> Any:
+        """The rest of the recording once recorded (at most ``timeout_s`` [s] of waiting),
+        in chunks (``cancel()`` asked between them: :class:`RecordingCancelled`), joined with
+        what :meth:`step` read."""
+        from afmctl.drivers.errors import AmplifierTimeout, RecordingCancelled
+        from afmctl.drivers.recording import joined_recording
+        if self.failed is not None:
+            raise self.failed
+        deadline = time.monotonic() + timeout_s
+        while self.got < self.points:
+            if cancel():
+                raise RecordingCancelled(f"{self.amp.name}: the read-back of the recording was cancelled")
+            ready = min(self.amp.recorded_points(), self.points) - self.got
+            if ready > 0:
+                self._read(min(ready, self.chunk))
+                continue
+            if time.monotonic() > deadline:
+                raise AmplifierTimeout(f"{self.amp.name}: the recording holds {self.got} of {self.points} points "
+                                       f"after {timeout_s:g} s")
+            time.sleep(0.02)
+        return joined_recording(self.parts)
+
+
 @dataclass
 class Progress:
     """Where a calibration is: ``what`` (``excite x``, ``validate x``), piece ``k`` of
@@ -256,12 +327,15 @@ class CalibrationRun:
         ctl = Controller(self._axis_config(axis), self.amp)
         ctl.before_wave_start = lambda: armed.append(self._arm(axis, signals, n))
         self._ctl = ctl
+        live = (LiveReadback(self.amp, n) if READ_WHILE_PLAYING and getattr(self.amp, "reads_while_recording", False)
+                else None)
         try:
             ctl.start(TableSource(table, settle, f"calibration piece at sample {start}"))
             if self._stop.is_set():
                 ctl.stop()
             while not ctl.wait(0.05):
-                pass
+                if live is not None and armed and not self._stop.is_set():
+                    live.step(ctl.wave_times.get("start"), self.config.loop.rate_Hz)   # read back while it plays
             stats = ctl.stats()
         finally:
             ctl.close()
@@ -275,7 +349,7 @@ class CalibrationRun:
                                    f"{stats.get('last_error') or 'see the log'})")
         if played != n or not armed:
             raise CalibrationStopped(f"afmctl calibrate: stopped during a piece ({played} of {n} samples played)")
-        return self._read(axis, table, start, float(ctl.wave_times.get("start", time.monotonic())))
+        return self._read(axis, table, start, float(ctl.wave_times.get("start", time.monotonic())), live)
 
     def _arm(self, axis: str, signals: tuple[str, ...], points: int) -> Any:
         clock = self.amp.recorder_clock_s()
@@ -288,12 +362,16 @@ class CalibrationRun:
                                      int(points / (1.0 - STREAM_SLACK)) + 1))
         return self.amp.configure_recorder([axis], points=points, divider=divider, signals=signals)
 
-    def _read(self, axis: str, table: WaveTable, start: int, t_start: float) -> PieceRecord:
+    def _read(self, axis: str, table: WaveTable, start: int, t_start: float,
+              live: "LiveReadback | None" = None) -> PieceRecord:
         from afmctl.drivers.errors import AmplifierConnectionError, AmplifierTimeout, RecordingCancelled
         from afmctl.drivers.recording import RecordingMismatch, align_to_table
         u = table.u_V[:, "xyz".index(axis)]
         try:
-            rec = self.amp.read_recording(timeout_s=self.record_timeout_s, cancel=self._stop.is_set)
+            if live is not None:
+                rec = live.rest(self.record_timeout_s, self._stop.is_set)
+            else:
+                rec = self.amp.read_recording(timeout_s=self.record_timeout_s, cancel=self._stop.is_set)
         except RecordingCancelled:
             raise CalibrationStopped("afmctl calibrate: stopped while the recording was read back") from None
         except (AmplifierTimeout, AmplifierConnectionError) as err:

@@ -71,8 +71,10 @@ from afmctl.compensators.temperature import T_MAX_C, T_MIN_C
 from . import stats as loop_stats
 from ..errors import AfmctlError, error_line
 from . import cpu_pinning
-from .machine import END_OF_TRAJECTORY, N_COLS, RING_ROWS, LoopMachine, Mode, State  # noqa: F401 - Mode re-exported
+from .machine import (CLOCK_BASES_MAX, END_OF_TRAJECTORY, N_COLS, RING_ROWS, LoopMachine, Mode,  # noqa: F401
+                      State)
 from .dispatcher import Dispatcher, quiet_window_wait_s  # noqa: F401 - re-exported (older import path)
+from .path_delay import path_delay
 from .learned_table import LearnedSource
 from .reconnect import enter_fault
 from .run_inputs import (MAX_SEGMENT_SAMPLES, as_block as _as_block, check_drift_measurement,  # noqa: F401
@@ -207,6 +209,12 @@ class Controller:
         #: why the run log failed (the run was stopped), or None
         self.runlog_error: str | None = None
         self._done = threading.Event()
+        #: the delay the output path adds, known in advance, and the ticks the loop advances
+        #: the setpoints by to take it out (afmctl.control.path_delay)
+        self.path_delay = path_delay(config, amplifier)
+        #: the loop's clock: (tick, perf_counter time [s] of its deadline) at the start and at
+        #: every re-base (an overrun, a resume); later ticks follow one period apart
+        self.clock_bases: list[tuple[int, float]] = []
         #: perf_counter time [s] of the deadline of the loop's latest tick (0: not running);
         #: written by the loop thread, read by the dispatcher to keep off the next deadline
         self._deadline_s = 0.0
@@ -229,6 +237,17 @@ class Controller:
         loop periods. A trajectory file is read ahead (its timeline is kept, the run takes
         this much longer); live setpoints (queue mode, zenoh) reach the output this late."""
         return self.latency_samples * self.dt_s
+
+    def tick_deadlines_s(self, ticks: np.ndarray) -> np.ndarray | None:
+        """The perf_counter time [s] of each tick's deadline (``clock_bases``), None before
+        the loop ticked or once it re-based more than CLOCK_BASES_MAX times."""
+        if not self.clock_bases or len(self.clock_bases) >= CLOCK_BASES_MAX:
+            return None
+        base_tick = np.array([b[0] for b in self.clock_bases], dtype=float)
+        base_t = np.array([b[1] for b in self.clock_bases], dtype=float)
+        ticks = np.asarray(ticks, dtype=float)
+        i = np.clip(np.searchsorted(base_tick, ticks, side="right") - 1, 0, len(base_t) - 1)
+        return base_t[i] + (ticks - base_tick[i]) * self.dt_s
 
     @property
     def state(self) -> State:
@@ -388,7 +407,7 @@ class Controller:
                 k += 1
         meta = {"scanner": self.config.scanner.name, "dt_s": self.dt_s, "rate_Hz": self.config.loop.rate_Hz,
                 "axes": list(self.config.scanner.axes), "driver": self.config.amplifier.driver,
-                "config": self.config.model_dump(mode="json")}
+                "path_delay": self.path_delay.as_dict(), "config": self.config.model_dump(mode="json")}
         prio = self.config.loop.realtime_priority
         self.runlog = RunLogWriter(runlog_path, meta, flush_interval_s=self.config.runlog.flush_interval_s,
                                    fsync=self.config.runlog.fsync,
@@ -459,6 +478,12 @@ class Controller:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    def lateness_histogram(self) -> np.ndarray:
+        """A copy of the run's lateness histogram (counts per bin of
+        :mod:`afmctl.control.stats`: 0.5 µs bins below 2 ms, 100 µs above), for pooling
+        several runs before reading a quantile (benchmarks/lab_router.py)."""
+        return self._hist.copy()
+
     def stats(self) -> dict[str, Any]:
         """Loop statistics: lateness p50/p99/max [s] (histogram of every tick of the run:
         0.5 µs bins below 2 ms, 100 µs above), work per tick p50/p99 [s], missed deadlines,
@@ -479,6 +504,7 @@ class Controller:
             "missed_recent": [(int(k), float(v)) for k, v in list(self._missed_log)[-8:]],
             "T_C": self._T_C, "runlog_error": self.runlog_error,
             "latency_samples": self.latency_samples, "latency_s": self.latency_s,
+            "path_delay": self.path_delay.as_dict(),
             "output": self.config.amplifier.output, "stream": self._stream_stats,
             "wave": self._wave_stats,
         }

@@ -192,6 +192,8 @@ class LearnRun:
         self._models: tuple | None = None
         self.history = HistoryTerms(None, self.options.history_term)
         self._check_config()
+        #: the recorder's points per signal for the learned axes (asked before the first play)
+        self._capacity: int | None = None
         self.spec = config.trajectory.model_dump(mode="json")
         self.axes = [a for a in config.scanner.axes if a in amplifier.axes]
         self.limits_V = {a: config.limits(a) for a in self.axes}
@@ -210,9 +212,6 @@ class LearnRun:
 
     def _check_config(self) -> None:
         cfg = self.config
-        if cfg.amplifier.output != "wave":
-            raise AfmctlError(f"amplifier.output = '{cfg.amplifier.output}': afmctl learn plays each table on the "
-                              "amplifier's clock; set output = 'wave' (or AFMCTL_AMPLIFIER__OUTPUT=wave)")
         if cfg.trajectory.kind in ("queue", "learned"):
             raise AfmctlError(f"trajectory.kind = '{cfg.trajectory.kind}': afmctl learn needs a finite trajectory "
                               "to learn (raster, moves, indentation, text, spiral or file)")
@@ -220,6 +219,9 @@ class LearnRun:
             raise AfmctlError(f"amplifier.driver = '{cfg.amplifier.driver}' has no data recorder this driver "
                               "reads: record the motion with an external sensor and learn from the files with "
                               "'afmctl learn step'")
+        if cfg.amplifier.output != "wave":
+            raise AfmctlError(f"amplifier.output = '{cfg.amplifier.output}': afmctl learn plays each table on the "
+                              "amplifier's clock; set output = 'wave' (or AFMCTL_AMPLIFIER__OUTPUT=wave)")
 
     # ------------------------------------------------------------------ the first table
     def recorder_models(self) -> tuple:
@@ -334,6 +336,13 @@ class LearnRun:
         self.history.played({a: table.u_V[:, "xyz".index(a)] for a in self.axes}, rows, times)
 
     def _check(self, table: WaveTable) -> None:
+        if self._capacity is None:          # asked once, before the first play (a link may be down later)
+            self._capacity = int(self.amp.recorder_capacity(self.axes))
+        capacity = self._capacity
+        if len(table) > capacity:
+            raise AfmctlError(f"learn: the table's {len(table)} rows do not fit the {self.config.amplifier.driver} "
+                              f"recorder's {capacity} points per signal; nothing was played (shorten the trajectory "
+                              "or lower loop.rate_Hz)")
         start = table.u_V[0, ["xyz".index(a) for a in self.axes]]
         if not driven_steps_ok(table.u_V, self.axes, self.limits_V, self.max_step_V / (1.0 - SLEW_RESERVE), start):
             raise AfmctlError("learn: the next table breaks the limits or the slew limit; nothing was sent")

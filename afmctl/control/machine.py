@@ -54,6 +54,9 @@ C_SEQ, C_TICK = 0, 1
 C_TGT, C_COR, C_U, C_T, C_D, C_S = 2, 5, 8, 11, 12, 15
 N_COLS = 18
 NAN3 = (math.nan, math.nan, math.nan)
+#: most re-bases of the loop's clock kept (Controller.clock_bases); a run with more has no
+#: tick deadlines after them (the summary's arrival figure is then left out)
+CLOCK_BASES_MAX = 100_000
 
 
 class Mode(enum.Enum):
@@ -114,8 +117,9 @@ class LoopMachine:
         self.T_C = 0.0
         self.spin_s = cfg.loop.spin_s
         self.resync_s = cfg.loop.resync_periods * self.period_s
-        # preview horizon (afmctl.control.preview): the pipeline's output lags its input by L samples
-        self.latency = int(getattr(pipe, "latency_samples", 0))
+        # preview horizon (afmctl.control.preview): the pipeline's output lags its input by L samples;
+        # plus the ticks the output path delays it by (afmctl.control.path_delay): read that much further
+        self.latency = int(getattr(pipe, "latency_samples", 0)) + ctl.path_delay.advance
         self.primed = False                 # the first sample was fed L extra times
         self.aims: collections.deque = collections.deque()  # (tgt, cor, d) of the last L inputs
         self.last_in = (0.0, 0.0, 0.0)      # the latest trajectory sample fed
@@ -130,6 +134,7 @@ class LoopMachine:
         ctl = self.ctl
         FAULT = State.FAULT
         self.next_t_s = self.now_s = time.perf_counter()
+        ctl.clock_bases = [(ctl._tick, self.now_s)]     # this tick's deadline on perf_counter
         self.watchdog.feed(self.now_s)
         while True:
             self._wait_for_deadline()
@@ -185,6 +190,8 @@ class LoopMachine:
         if late > self.resync_s:
             ctl._overruns += 1
             next_t = now
+            if len(ctl.clock_bases) < CLOCK_BASES_MAX:
+                ctl.clock_bases.append((ctl._tick + 1, now))   # the tick about to run
         self.now_s = now
         self.next_t_s = next_t
         ctl._deadline_s = next_t
@@ -286,6 +293,8 @@ class LoopMachine:
         self.ctl._set_state(State.RUNNING, "resume", "reconnected; ramping from the read-back voltage")
         self.watchdog.feed()
         self.next_t_s = time.perf_counter()
+        if len(self.ctl.clock_bases) < CLOCK_BASES_MAX:
+            self.ctl.clock_bases.append((self.ctl._tick + 1, self.next_t_s + self.period_s))
 
     # ------------------------------------------------------------------ SETTLE / FINISH
     def _tick_settle(self) -> bool:

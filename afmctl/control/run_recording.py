@@ -35,6 +35,9 @@ class RunRecorder:
         self.axes: list[str] = []
         self.setup: Any = None
         self.why_not: str | None = None
+        #: after :meth:`errors`: (the table's target (N, 3) [nm], the recorded position (N, 3)
+        #: [nm] — the target's own column on an axis not recorded — and the recorded axes)
+        self.recorded: tuple[np.ndarray, np.ndarray, str] | None = None
 
     @staticmethod
     def available(config: Any, amplifier: Any) -> bool:
@@ -80,5 +83,9 @@ class RunRecorder:
         except Exception as err:  # noqa: BLE001 - a mismatch, a timeout, a link fault: a summary, never a crash
             self.why_not = f"the recording was not usable: {str(err).removesuffix('; not learned from')}"
             return None
-        return judged_errors(table.target_nm, {a: np.asarray(rec.y_nm[a], dtype=float)
-                                               for a in self.axes if a in rec.y_nm})
+        measured = {a: np.asarray(rec.y_nm[a], dtype=float) for a in self.axes if a in rec.y_nm}
+        pos = np.array(table.target_nm, dtype=float)
+        for a, y in measured.items():
+            pos[:, "xyz".index(a)] = y
+        self.recorded = (table.target_nm, pos, "".join(measured))
+        return judged_errors(table.target_nm, measured)

@@ -333,6 +333,7 @@ def run_report(run: str | Path, out: str | Path, *, simulate: bool | None = None
         errors[TRACKING_ERROR] = (pos - sp["target_nm"])[sel][:, active] / span * 100.0
         summary["tracking_per_axis"] = axis_errors(sp["target_nm"][sel], pos[sel],
                                                    "".join(AXES[i] for i in active)).as_dict()
+        summary["lag"] = replayed_lag(sp, pos, sel, reader.meta(), "".join(AXES[i] for i in active))
     summary["error_samples"] = int(np.count_nonzero(sel))
     fig, ax = plt.subplots(figsize=(6.5, 4.0))
     plot_error_histograms(ax, {k: v for k, v in errors.items()}, "per-sample errors (all active axes)")
@@ -360,6 +361,17 @@ def run_report(run: str | Path, out: str | Path, *, simulate: bool | None = None
     spath.write_text(json.dumps(summary, indent=2, default=str) + "\n", encoding="utf-8")
     files.append(spath)
     return files, summary
+
+
+def replayed_lag(sp: np.ndarray, pos: np.ndarray, sel: np.ndarray, meta: dict[str, Any], axes: str) -> dict[str, Any]:
+    """The lag per axis of the replayed positions ``pos`` behind the logged target over the
+    tracked samples ``sel`` (:func:`afmctl.data.lag.measure_lags`), beside the output path's
+    delay the run knew and took out (the log's ``path_delay``; none in logs from before it)."""
+    from ..data.lag import measure_lags
+    dt = float(meta.get("dt_s") or np.median(np.diff(sp["t_s"])))
+    path = meta.get("path_delay") or {"delay_s": 0.0, "advance_samples": 0, "path": "not recorded in this log"}
+    return {"path_delay": path, "dt_s": dt,
+            "replayed": [g.as_dict() for g in measure_lags(sp["target_nm"][sel], pos[sel], dt, axes)]}
 
 
 def _tracking_samples(sp: np.ndarray, events: list[dict[str, Any]]) -> np.ndarray:
@@ -390,4 +402,5 @@ def _simulate(sp: np.ndarray, meta: dict[str, Any]) -> np.ndarray:
     if not np.isfinite(dt) or dt <= 0:
         raise AfmctlError("run log: setpoint times are not increasing; cannot simulate")
     path = ((meta.get("config") or {}).get("simulation") or {}).get("scanner")
-    return replay_voltages_nm(sp["u_V"], dt, Path(path) if path else None)
+    advance = int((meta.get("path_delay") or {}).get("advance_samples", 0))
+    return replay_voltages_nm(sp["u_V"], dt, Path(path) if path else None, delay_ticks=advance)

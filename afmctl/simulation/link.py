@@ -47,13 +47,69 @@ def load_scanner_config(path: Path | None):
         raise AfmctlError(format_validation_error(err, str(path), ScannerConfig)) from None
 
 
+class ScannerTap:
+    """The simulated scanner as a simulated amplifier's sink, keeping what reached it on the
+    host's clock: every output the amplifier applies as it takes a setpoint (``apply``), with
+    the ``time.perf_counter()`` [s] of that moment and the voltages [V] held from then on.
+    Everything else (device-timed ``play``, ``advance``, the sensor) goes straight to the
+    scanner. ``scanner``: the :class:`afmctl.sim_backend.scanner.Scanner`."""
+
+    def __init__(self, scanner: Any) -> None:
+        self.scanner = scanner
+        self._t: list[float] = []
+        self._v: list[np.ndarray] = []
+
+    def apply(self, volts: Any, t_s: float | None = None) -> None:
+        self.scanner.apply(volts, t_s)
+        self._t.append(time.perf_counter())
+        self._v.append(self.scanner.held_voltage_V())
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.scanner, name)
+
+    def applied(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(t_perf_s (M,), u_V (M, 3))``: when each output change reached the scanner and
+        the voltages held from then on."""
+        return np.asarray(self._t, dtype=float), np.asarray(self._v, dtype=float).reshape(-1, 3)
+
+
+#: setpoints looked ahead for the one an output change carries
+MATCH_AHEAD = 64
+#: most setpoints whose arrival :func:`arrival_delays_s` matches (the first of the run)
+MAX_MATCHED = 200_000
+
+
+def arrival_delays_s(tap: ScannerTap, deadlines_s: np.ndarray, u_V: np.ndarray, tol_V: float = 0.01) -> np.ndarray:
+    """How late [s] each setpoint reached the simulated scanner after its tick's deadline
+    (``deadlines_s`` on ``time.perf_counter``; ``u_V`` (N, 3) every voltage sent, from the
+    first): each output change the scanner took (``tap``, in order) is matched with the
+    setpoint nearest its voltages among the next :data:`MATCH_AHEAD` not yet matched, when
+    within ``tol_V`` [V] (the link's resolution; a setpoint that changed nothing at that
+    resolution has no change to match). NaN where a
+    setpoint was not matched; at most :data:`MAX_MATCHED` setpoints, NaN after."""
+    t_ev, u_ev = tap.applied()
+    u = np.asarray(u_V, dtype=float)
+    out = np.full(len(u), np.nan)
+    k, n = 0, min(len(u), MAX_MATCHED)
+    for m in range(len(t_ev)):
+        if k >= n:
+            break
+        dist = np.max(np.abs(u[k:k + MATCH_AHEAD] - u_ev[m]), axis=1)
+        best = int(np.argmin(dist))
+        if dist[best] <= tol_V:
+            out[k + best] = t_ev[m] - deadlines_s[k + best]
+            k += best + 1
+    return out
+
+
 @contextlib.contextmanager
-def simulated_amplifier(config) -> Iterator[tuple[Any, Any]]:
+def simulated_amplifier(config) -> Iterator[tuple[Any, ScannerTap]]:
     """Serve a simulated amplifier + scanner in this process; yields ``(amplifier,
-    scanner)`` with the real driver connected to it. Everything is closed on exit."""
+    scanner)`` with the real driver connected to it (the scanner as a :class:`ScannerTap`:
+    what reached it, when). Everything is closed on exit."""
     from afmctl.sim_backend import testing
     from afmctl.sim_backend.scanner import Scanner
-    scanner = Scanner(load_scanner_config(config.simulation.scanner))
+    scanner = ScannerTap(Scanner(load_scanner_config(config.simulation.scanner)))
     driver = config.amplifier.driver
     with contextlib.ExitStack() as stack:
         if driver == "can":
@@ -138,25 +194,32 @@ def tracking_error(config, setpoints: np.ndarray, seq_range: tuple[int, int] | N
             "rms_nm": [float(np.sqrt(np.mean(err[:, i] ** 2))) for i in idx]}
 
 
-def replay_positions_nm(config, setpoints: np.ndarray) -> np.ndarray:
+def replay_positions_nm(config, setpoints: np.ndarray, delay_ticks: int = 0) -> np.ndarray:
     """The true tip position [nm] (N, 3) at the end of each loop period when the voltages
     sent (``setpoints["u_V"]``) are replayed through a fresh simulated scanner of the
-    configuration, each held for one loop period (see :func:`tracking_error`)."""
-    return replay_voltages_nm(setpoints["u_V"], config.dt_s, config.simulation.scanner)
+    configuration, each held for one loop period (see :func:`tracking_error`), reaching it
+    ``delay_ticks`` periods late (the output path's delay the loop advanced them by)."""
+    return replay_voltages_nm(setpoints["u_V"], config.dt_s, config.simulation.scanner, delay_ticks=delay_ticks)
 
 
-def replay_voltages_nm(u_V: np.ndarray, dt_s: float, scanner_file: Path | None = None) -> np.ndarray:
+def replay_voltages_nm(u_V: np.ndarray, dt_s: float, scanner_file: Path | None = None,
+                       delay_ticks: int = 0) -> np.ndarray:
     """The true tip position [nm] (N, 3) at the end of each period ``dt_s`` [s] when each
     row of ``u_V`` [V] (N, 3) is held for one period on a fresh simulated scanner (the
     ``scanner_file`` JSON, else the default scanner), simulated at the scanner's own time
-    step so that the ringing of its resonance after each step is in the result."""
+    step so that the ringing of its resonance after each step is in the result.
+    ``delay_ticks``: each row reaches the scanner that many periods late (the output path's
+    delay the loop advanced the setpoints by, :mod:`afmctl.control.path_delay`)."""
     from afmctl.sim_backend.scanner import Scanner
     scanner = Scanner(load_scanner_config(scanner_file))
     fine = scanner.config.dt_s
     sub = max(1, round(dt_s / fine))
     if not math.isclose(sub * fine, dt_s, rel_tol=1e-9):
         fine = dt_s / sub                 # the period is not a multiple of the scanner's step
-    u = np.repeat(np.asarray(u_V, dtype=np.float64), sub, axis=0)
+    u = np.asarray(u_V, dtype=np.float64)
+    if delay_ticks > 0 and len(u):
+        u = np.vstack([np.repeat(u[:1], delay_ticks, axis=0), u])[:len(u)]
+    u = np.repeat(u, sub, axis=0)
     return scanner.run(u, fine)[sub - 1::sub]
 
 

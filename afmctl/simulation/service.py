@@ -28,7 +28,8 @@ log = logging.getLogger(__name__)
 #: how often a ``--record`` file is flushed while the simulator runs [s]
 RECORD_FLUSH_S = 0.5
 #: how far the simulator's clock loop keeps the scanner behind the wall clock when the
-#: device plays samples on its own clock (handed over on the server's polls) [s]
+#: device plays samples on its own clock (handed over on its polls: the server's and the
+#: clock loop's own) [s]
 DEVICE_CLOCK_LAG_S = 0.25
 
 
@@ -158,12 +159,18 @@ class SimService:
         tick = self.settings.sim.tick_s
         advance = getattr(self.scanner, "advance", None)
         # a device with its own clock (a wave generator) hands its samples to the scanner
-        # when the server polls it: the scanner stays behind by DEVICE_CLOCK_LAG_S here, so
-        # that those samples are never in its past (they would be dropped: the table unplayed)
-        lag = DEVICE_CLOCK_LAG_S if hasattr(self.device, "poll") else 0.0
+        # when polled: this thread polls it on every tick, under the device's lock, before
+        # it moves the scanner (a server busy with a long reply does not poll, and a sample
+        # handed over after the scanner passed its time would be dropped: the table
+        # unplayed). The scanner also stays DEVICE_CLOCK_LAG_S behind here, so that a
+        # server's poll between the two is never in its past either.
+        poll = getattr(self.device, "poll", None)
+        lag = DEVICE_CLOCK_LAG_S if poll is not None else 0.0
         next_flush = self.clock() + RECORD_FLUSH_S
         while not self._stop.wait(tick):
             t = self.clock()
+            if poll is not None:
+                poll()
             if advance is not None:
                 advance(t - lag)
             if self.recorder is not None and t >= next_flush:

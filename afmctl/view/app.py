@@ -86,8 +86,12 @@ def bind(host: str, port: int) -> socket.socket:
     return sock
 
 
-def serve(app: Starlette, sock: socket.socket) -> None:
-    """Serve ``app`` on ``sock`` until Ctrl-C / SIGTERM (uvicorn handles both)."""
+def serve(app: Starlette, sock: socket.socket, early: Any = None) -> None:
+    """Serve ``app`` on ``sock`` until Ctrl-C / SIGTERM (uvicorn handles both while it runs;
+    ``early.attach(server)`` hands it a stop that came before)."""
     import uvicorn
     config = uvicorn.Config(app, log_level="warning", ws="websockets-sansio", lifespan="off")
-    uvicorn.Server(config).run(sockets=[sock])
+    server = uvicorn.Server(config)
+    if early is not None:
+        early.attach(server)
+    server.run(sockets=[sock])

@@ -114,7 +114,11 @@ def elapsed_clock() -> Callable[[], float]:
 
 
 class SimDevice:
-    """Base of the sans-I/O simulated serial amplifiers: ``feed(bytes) -> reply bytes``."""
+    """Base of the sans-I/O simulated serial amplifiers: ``feed(bytes) -> reply bytes``.
+
+    :attr:`lock` (re-entrant) is held by :meth:`feed` and by a device clock's ``poll``: the
+    server's thread and the simulator's clock thread (:class:`afmctl.simulation.service.SimService`)
+    may both play a wave generator's due points, never at the same time."""
 
     protocol = ""
     #: axis names driven by the device
@@ -133,6 +137,8 @@ class SimDevice:
         self._inject: object | None = None
         self._rx = bytearray()
         self._pair_end: int | None = None
+        #: held while a command or a poll changes the device (:class:`SimDevice`)
+        self.lock = threading.RLock()
 
     #: the load is advanced on polls in steps of at least this [s] (a step costs a fixed
     #: overhead: many small ones would cost more than the simulation itself)
@@ -184,6 +190,11 @@ class SimDevice:
         (a trailing CR stripped) goes to :meth:`reply`, an empty one to
         :meth:`empty_line`. Where both CR and LF end a line, the pairs CR LF and LF CR
         are one line end (also when split across two reads)."""
+        with self.lock:
+            return self._feed_lines(data)
+
+    def _feed_lines(self, data: bytes) -> bytes:
+        """:meth:`feed` with :attr:`lock` held."""
         self._rx += data
         out = bytearray()
         while True:

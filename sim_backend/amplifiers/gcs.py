@@ -89,25 +89,27 @@ class SimGCS(SimDevice):
     def feed(self, data: bytes) -> bytes:
         """Lines as :meth:`SimDevice.feed`; the byte 0x09 (``#9``) between lines is a
         command on its own, answered at once with the running generators as hex."""
-        out = bytearray()
-        while (i := data.find(bytes((_RUNNING_BYTE,)))) >= 0:
-            out += super().feed(data[:i])
-            self.poll()
-            out += f"{self.wave.running_mask():X}\n".encode()
-            data = data[i + 1:]
-        return bytes(out + super().feed(data))
+        with self.lock:
+            out = bytearray()
+            while (i := data.find(bytes((_RUNNING_BYTE,)))) >= 0:
+                out += super().feed(data[:i])
+                self.poll()
+                out += f"{self.wave.running_mask():X}\n".encode()
+                data = data[i + 1:]
+            return bytes(out + super().feed(data))
 
     def poll(self, now_s: float | None = None) -> None:
         """Play the wave points that fell due by now (or ``now_s``; the servers call this when
-        idle), then bring the load up to now. The points go as one block: the outputs
+        idle, the simulator's clock thread on every tick), then bring the load up to now. The points go as one block: the outputs
         computed for all of them at once, the recorder told in one call, the sink handed the
         changes in one ``sink.play(t_s, rows_V)`` where it has one (the simulated scanner
         simulates a block in one call) else one ``apply`` per change. A call per point costs
         more than the 50 µs servo cycle on a loaded host, and a simulator that falls behind
         its own clock never answers again."""
-        now = self.now() if now_s is None else now_s
-        self._play_due(now)
-        self.advance_load(now)
+        with self.lock:
+            now = self.now() if now_s is None else now_s
+            self._play_due(now)
+            self.advance_load(now)
 
     def _play_due(self, now_s: float) -> None:
         """The wave points due by ``now_s`` as one block (:meth:`poll`)."""
@@ -250,8 +252,9 @@ class SimGCS(SimDevice):
                 f"# SAMPLE_TIME = {r.rate * r.servo_cycle_s:.9g}", f"# NDATA = {n}"]
         head += [f"# NAME{i} = {r.name(t)}" for i, t in enumerate(tables)]
         head.append("# END_HEADER")
-        cols = [r.values(t, first, n) for t in tables]
-        rows = [" ".join(f"{c[k]:.6f}" for c in cols) for k in range(n)]
+        fmt = " ".join(["%.6f"] * len(tables))
+        data = np.column_stack([r.values(t, first, n) for t in tables]) if tables else np.zeros((n, 0))
+        rows = [fmt % tuple(row) for row in data.tolist()]
         return (" \n".join(head + rows) + "\n").encode()
 
     def _wave_command(self, cmd: str, args: list[str]) -> bytes | None:

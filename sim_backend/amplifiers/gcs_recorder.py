@@ -225,6 +225,8 @@ class DataRecorder:
             return tab.capture.v_V[first:first + n, self.channels.index(tab.source)].copy()
         if tab.option in (7, 14):
             return volts.copy()
+        if tab.option == 2 and tab.capture is not None:     # the position sensor: no model needed
+            return tab.capture.y_nm[first:first + n, self.channels.index(tab.source)] / 1000.0
         commanded = np.array([self.model_um(tab.source, float(v)) for v in volts])
         if tab.option == 1:
             return commanded

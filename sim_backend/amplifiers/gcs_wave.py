@@ -124,6 +124,11 @@ class WaveGenerator:
 
     def _store(self, table: int, mode: str, seg: list[float]) -> None:
         old = self.tables[table]
+        if mode == "&":                  # appended in place (a long table comes in many lines)
+            if len(old) + len(seg) > self.max_points:
+                raise WaveError(17)
+            old.extend(seg)
+            return
         if mode == "X":
             new = list(seg)
         elif mode == "&":

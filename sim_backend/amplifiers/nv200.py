@@ -128,10 +128,11 @@ class SimNV200(SimDevice):
 
     def poll(self) -> None:
         """Play the waveform samples that fell due by now and bring the load up to now (the
-        servers call this when idle)."""
-        now = self.now()
-        self._play_due(now)
-        self.advance_load(now)
+        servers call this when idle, the simulator's clock thread on every tick)."""
+        with self.lock:
+            now = self.now()
+            self._play_due(now)
+            self.advance_load(now)
 
     def _play_due(self, now_s: float) -> None:
         """The waveform samples due by ``now_s`` as one block: the outputs for all of them at

@@ -1,0 +1,122 @@
+"""Where the device time of ``afmctl calibrate`` goes (issue 38), on the simulated E-727 over
+TCP (``afmctl sim --protocol gcs --tcp``, its own process), the excitation and configuration
+of ``benchmarks/calibrate_join.py`` (axis x, 0–120 V, 10 kHz, the full excitation):
+
+the device part of :class:`afmctl.api.calibrate.Calibration` (open, excite, validate, back
+to the safe value — the identification is not run), each step's wall time summed over the
+pieces: the tables' play (start to the host seeing the generator stopped), the upload, the
+recorder read-back after the play and while it plays, the start, the settle hold, ...
+
+    .venv/bin/python benchmarks/calibrate_time.py [--reps N]
+
+Prints the figures (medians over ``--reps``); docs/BENCHMARKS.md quotes them.
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import functools
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import calibrate_join as cj  # noqa: E402  (benchmarks/calibrate_join.py)
+from afmctl.api.calibrate import Calibration  # noqa: E402
+from afmctl.control import calibrate_run as cr  # noqa: E402
+from afmctl.control import wave_run as wr  # noqa: E402
+from afmctl.control.wave_players import TablePlayer  # noqa: E402
+from afmctl.drivers.gcs import GCSAmplifier  # noqa: E402
+
+#: what is timed: (class, method, label)
+STEPS = [(TablePlayer, "play", "play (start → generator seen stopped)"),
+         (GCSAmplifier, "upload_wave", "upload (WAV)"),
+         (GCSAmplifier, "start_wave", "start (WSL/WGC/WTR/WOS?/WGO)"),
+         (GCSAmplifier, "configure_recorder", "arm the recorder"),
+         (cr.CalibrationRun, "_read", "read-back after the play"),
+         (wr.WaveMachine, "_approach", "approach and settle hold"),
+         (wr.WaveMachine, "_collect", "collect the table"),
+         (GCSAmplifier, "read_recorded", "read-back while it plays (overlapped)")]
+
+
+class _DeviceDone(Exception):
+    pass
+
+
+class DeviceOnly(Calibration):
+    """The device part only: stops where the recordings would be written."""
+
+    def _write_recordings(self, joined):   # noqa: D102
+        self.joined = joined
+        raise _DeviceDone
+
+
+def timed(totals: dict, counts: dict) -> None:
+    for cls, name, label in STEPS:
+        if not hasattr(cls, name):
+            continue
+        f = getattr(cls, name)
+
+        @functools.wraps(f)
+        def g(*a, _f=f, _label=label, **k):
+            t0 = time.perf_counter()
+            try:
+                return _f(*a, **k)
+            finally:
+                totals[_label] += time.perf_counter() - t0
+                counts[_label] += 1
+        setattr(cls, name, g)
+
+
+def one_run(work: Path, totals: dict, counts: dict) -> dict:
+    port = cj.free_port()
+    sim = cj.start_sim(work, port)
+    try:
+        before = dict(totals)
+        cal = DeviceOnly(str(cj.cal_toml(work, "gcs-tcp", port)), work / "cal.json", axes=["x"], kind="pi",
+                         report_dir=work / "rep")
+        t0 = time.monotonic()
+        try:
+            cal.run()
+        except _DeviceDone:
+            pass
+        device_s = time.monotonic() - t0
+    finally:
+        cj.stop_sim(sim)
+    rec, val, _ = cal.joined["x"]
+    rate = float(cal.config.loop.rate_Hz)
+    played = (int(rec.measured.sum()) + int(val.measured.sum())) / rate
+    return {"device_s": device_s, "played_s": played, "joined_rows": len(rec.t_s),
+            "steps": {k: totals[k] - before.get(k, 0.0) for k in totals}}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--reps", type=int, default=1)
+    args = ap.parse_args()
+    totals: dict = collections.defaultdict(float)
+    counts: dict = collections.Counter()
+    timed(totals, counts)
+    runs = []
+    for _ in range(args.reps):
+        with tempfile.TemporaryDirectory(prefix="calibrate-time-") as d:
+            runs.append(one_run(Path(d), totals, counts))
+        r = runs[-1]
+        print(f"device {r['device_s']:.1f} s for {r['played_s']:.1f} s of excitation and validation "
+              f"({100 * (r['device_s'] / r['played_s'] - 1):+.0f} %), joined recording {r['joined_rows']:,} rows; "
+              f"load {os.getloadavg()[0]:.1f}", flush=True)
+    med = statistics.median
+    print(f"median of {len(runs)}: device {med(r['device_s'] for r in runs):.1f} s for "
+          f"{med(r['played_s'] for r in runs):.1f} s, joined {med(r['joined_rows'] for r in runs):,.0f} rows")
+    for label in sorted(runs[0]["steps"], key=lambda k: -runs[0]["steps"][k]):
+        print(f"  {med(r['steps'].get(label, 0.0) for r in runs):7.2f} s  {label}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
