@@ -15,7 +15,8 @@ through the command line as a user with an external sensor runs it:
 4. iterations: the table replayed noise-free through a fresh plant (the true x position),
    then ``afmctl learn step --target --sent --measured [--model] --out --limits 0 150
    --slew-V-per-s S --state``; the error of every table: max over the central 80 % of
-   each line, % of the line.
+   each judged line (every raster line but the first, which starts from rest), % of the
+   line.
 
     .venv/bin/python benchmarks/learning.py [--plants default stiff ...] [--rates 50 100]
         [--work DIR] [--no-write] [--figure]
@@ -38,7 +39,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from afmctl.compensators.dynamics_limits import rate_limit  # noqa: E402
-from afmctl.compensators.learning_weights import error_figures  # noqa: E402
+from afmctl.compensators.learning_weights import judged_max_pct  # noqa: E402
 from afmctl.compensators.models import load_model, save_model  # noqa: E402
 from afmctl.data.datafiles import read_csv, write_csv  # noqa: E402
 from afmctl.sim_backend.scanner import default_scanner_config  # noqa: E402
@@ -141,8 +142,9 @@ def first_table(start: str, model: Path, calib: tuple[float, float], target: Pat
 
 def iterate(cfg, target: Path, sent: Path, model: Path | None, iterations: int, slew: float, work: Path
             ) -> tuple[list[float], str]:
-    """Play, measure, learn; the central max error [% of the line] of every table played
-    and the last status line."""
+    """Play, measure, learn; the judged error of every table played (max over the central
+    80 % of every raster line but the first, % of the line: what ``learn step`` judges and
+    prints) and the last status line."""
     tgt = read_csv(target, ("t", "y"))
     state = work / "state.json"
     state.unlink(missing_ok=True)
@@ -150,7 +152,7 @@ def iterate(cfg, target: Path, sent: Path, model: Path | None, iterations: int, 
     for k in range(iterations + 1):
         u = read_csv(sent, ("t", "u"))["u"]
         y = play_x(cfg, u, DT_S)
-        errs.append(error_figures(y, tgt["y"])["central_max_pct"])
+        errs.append(judged_max_pct(y, tgt["y"]))
         if k == iterations:
             break
         meas, nxt = work / "meas.csv", work / f"u{k + 1}.csv"
@@ -163,7 +165,7 @@ def iterate(cfg, target: Path, sent: Path, model: Path | None, iterations: int, 
         sent = nxt
         if "stopped" in status:
             u = read_csv(sent, ("t", "u"))["u"]
-            errs.append(error_figures(play_x(cfg, u, DT_S), tgt["y"])["central_max_pct"])
+            errs.append(judged_max_pct(play_x(cfg, u, DT_S), tgt["y"]))
             break
     return errs, status.split(":", 1)[1].strip() if status else ""
 
@@ -218,6 +220,30 @@ def figure(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+def shared_plants(work: Path, names: list[str]) -> list[str]:
+    """The reference scanners of ``../shared/plants`` (zoo.py) through their own
+    ``check.py`` learn loop (``afmctl learn step --state`` per iteration, with and without
+    the chain): one line per plant and mode, max % of the line at 50 | 100 lines/s, the
+    first table and the last three. A plant's chain is ``WORK/<plant>/model.json``
+    (``check.py --only speed --keep WORK`` identifies it), else identified here."""
+    plants_dir = ROOT.parent / "shared" / "plants"
+    sys.path.insert(0, str(plants_dir))
+    import check  # type: ignore[import-not-found]  # noqa: E402  (../shared/plants/check.py)
+
+    lines = []
+    for name in names:
+        d = work / name
+        d.mkdir(parents=True, exist_ok=True)
+        if not (d / "model.json").exists():
+            check.speed(name, str(d))
+        for mode, its in (("chain", 10), ("none", 20)):
+            traces = check.learn(name, str(d), mode, its)
+            lines.append(f"| {name} | {mode} ({its}) | " + " | ".join(
+                " → ".join(f"{m:.2f}" for m in (tr[0], *tr[-3:])) for tr in traces) + " |")
+            print(lines[-1], flush=True)
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--plants", nargs="+", choices=["default", *sorted(PLANTS)], default=["default", "stiff", "soft"])
@@ -227,7 +253,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-write", action="store_true")
     ap.add_argument("--figure", action="store_true")
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--shared", nargs="*", metavar="PLANT",
+                    help="instead: the reference scanners of ../shared/plants (amp-first two-modes lumpy-noisy) "
+                         "through their check.py learn loop; print only")
     args = ap.parse_args(argv)
+    if args.shared is not None:
+        shared_plants(args.work, args.shared or ["amp-first", "two-modes", "lumpy-noisy"])
+        return 0
     args.work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     rows = []

@@ -12,7 +12,9 @@ voltages ``u_{k+1}`` (:meth:`Learner.step` → :class:`LearnResult`):
    (a plant's own delay is what the learning must compensate, so this is not the default);
 2. *weighting* — the error ``e_k = y_d − y_k`` counts where accuracy matters
    (:func:`~afmctl.compensators.learning_weights.error_weights`: the central part of
-   each raster line);
+   each raster line) and is judged
+   (:func:`~afmctl.compensators.learning_weights.learning_weights`: nothing before the
+   first judged line, no line between judged ones that is not judged itself);
 3. *the law* — model-based (the identified chain as the learning filter) or model-free
    (the frequency response estimated from the iteration itself), equation (1) of
    :mod:`~afmctl.compensators.learning_laws`;
@@ -23,7 +25,8 @@ voltages ``u_{k+1}`` (:meth:`Learner.step` → :class:`LearnResult`):
 5. *guards* — the **divergence guard**: when the weighted error has risen on
    ``max_rises`` (2) iterations in a row, learning stops and the best table sent so far
    is returned; a table that did not beat the best is not learned from: the next one is
-   learned from the best table with half the step (a quarter after two such, …); the
+   learned from the best table with half the step (a quarter after two such, …; each
+   better table gives one halving back); the
    **convergence check**: when the model's measured phase error
    exceeds 90° at learned harmonics that hold more than ``stall_share`` of the
    remaining weighted error, and the last table did not beat the best, the model-based
@@ -48,8 +51,10 @@ from .base import ModelError
 from .dynamics_limits import rate_limit
 from .learning_laws import Increment, model_based_increment, model_free_increment, periodic_run
 from .learning_spectra import Grid, estimate_lag_samples
-from .learning_weights import (REPORT_CENTRAL_PCT, error_figures, error_weights, find_lines, lines_mask,
-                               rounded_reference)
+from .learning_floor import Floor, name_floor
+from .learning_noise import NO_NOISE, Noise, estimate_noise, noise_gain
+from .learning_weights import (REPORT_CENTRAL_PCT, error_figures, error_weights, find_lines, judged_lines,
+                               learning_weights, line_span_nm, lines_mask, raster_lines, rounded_reference)
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +63,9 @@ LAWS = ("model", "model-free")
 #: sizes its steps from it; the model-free estimate of a hysteretic plant's response is
 #: rougher (benchmarks/learning.py: ρ = 1 oscillates, 0.7 converges in about 8 steps)
 DEFAULT_STEP = {"model": 1.0, "model-free": 0.7}
+#: a rise of the judged error counts (towards the divergence guard) when it exceeds this
+#: share of the noise's σ [% of the line]: the noise left in the figure scatters it
+NOISE_TOLERANCE = 0.5
 
 
 @dataclass(frozen=True)
@@ -90,6 +98,7 @@ class LearnSettings:
     stall_share: float = 0.5
     align: bool = False
     turnaround_weight: float = 1.0
+    judge_lines: tuple[int, ...] | None = None
 
     def check(self) -> None:
         """:class:`ModelError` naming the first setting out of its range."""
@@ -114,7 +123,8 @@ class LearnState:
     ``history`` (one dict of error figures per step, of the table that was *sent*),
     ``best_u_V``/``best_metric_pct``/``best_iteration`` (the sent table with the least
     weighted error), ``rises`` (iterations of rising error in a row), ``misses``
-    (iterations in a row that did not beat the best: each halves the step), ``stopped`` and
+    (iterations in a row that did not beat the best), ``halvings`` (how often the step is
+    halved: one more per miss, one fewer per better table), ``stopped`` and
     ``reason``, ``target_digest`` (which target it belongs to), and the last iteration's
     table and recording ``previous_u_V``/``previous_y_nm`` (for the secant estimate of
     the model's error), ``best_y_nm`` (the best table's recording), and the model's error
@@ -128,6 +138,7 @@ class LearnState:
     best_iteration: int = -1
     rises: int = 0
     misses: int = 0
+    halvings: int = 0
     stopped: bool = False
     reason: str = ""
     previous_u_V: list[float] | None = None
@@ -136,6 +147,28 @@ class LearnState:
     ratio_bins: list[int] = field(default_factory=list)
     ratio_re: list[float] = field(default_factory=list)
     ratio_im: list[float] = field(default_factory=list)
+    noise_nm: float | None = None
+    noise_f_Hz: list[float] = field(default_factory=list)
+    noise_psd_nm2: list[float] = field(default_factory=list)
+    noise_source: str = ""
+    floor: str = ""
+
+    def noise(self) -> Noise | None:
+        """The least noise measured so far (None before the first)."""
+        if self.noise_nm is None:
+            return None
+        return Noise(self.noise_nm, np.asarray(self.noise_f_Hz or [0.0]), np.asarray(self.noise_psd_nm2 or [0.0]),
+                     self.noise_source)
+
+    def keep_noise(self, noise: Noise) -> Noise:
+        """``noise``, or the smaller one measured before (deterministic differences between
+        the lines only ever add to an estimate); kept."""
+        old = self.noise()
+        if old is not None and old.sigma_nm <= noise.sigma_nm:
+            return old
+        self.noise_nm, self.noise_source = float(noise.sigma_nm), noise.source
+        self.noise_f_Hz, self.noise_psd_nm2 = noise.f_Hz.tolist(), noise.psd_nm2.tolist()
+        return noise
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -153,19 +186,25 @@ class LearnState:
                         best_u_V=None if best is None else [float(v) for v in best],
                         best_metric_pct=math.inf if d.get("best_metric_pct") is None else float(d["best_metric_pct"]),
                         best_iteration=int(d.get("best_iteration", -1)), rises=int(d.get("rises", 0)),
-                        misses=int(d.get("misses", 0)),
+                        misses=int(d.get("misses", 0)), halvings=int(d.get("halvings", d.get("misses", 0))),
                         stopped=bool(d.get("stopped", False)), reason=str(d.get("reason", "")),
                         previous_u_V=None if prev_u is None else [float(v) for v in prev_u],
                         previous_y_nm=None if prev_y is None else [float(v) for v in prev_y],
                         best_y_nm=None if best_y is None else [float(v) for v in best_y],
                         ratio_bins=[int(v) for v in d.get("ratio_bins", [])],
                         ratio_re=[float(v) for v in d.get("ratio_re", [])],
-                        ratio_im=[float(v) for v in d.get("ratio_im", [])])
+                        ratio_im=[float(v) for v in d.get("ratio_im", [])],
+                        noise_nm=None if d.get("noise_nm") is None else float(d["noise_nm"]),
+                        noise_f_Hz=[float(v) for v in d.get("noise_f_Hz", [])],
+                        noise_psd_nm2=[float(v) for v in d.get("noise_psd_nm2", [])],
+                        noise_source=str(d.get("noise_source", "")), floor=str(d.get("floor", "")))
             if not len(state.ratio_bins) == len(state.ratio_re) == len(state.ratio_im):
                 raise ValueError("ratio_bins, ratio_re and ratio_im differ in length")
+            if len(state.noise_f_Hz) != len(state.noise_psd_nm2):
+                raise ValueError("noise_f_Hz and noise_psd_nm2 differ in length")
         except (KeyError, TypeError, ValueError, AttributeError) as err:
             raise ModelError(f"learning state: {err!r} is missing or malformed; delete the state file to start afresh") from None
-        for name in ("best_u_V", "previous_u_V", "previous_y_nm", "best_y_nm", "ratio_re", "ratio_im"):
+        for name in ("best_u_V", "previous_u_V", "previous_y_nm", "best_y_nm", "ratio_re", "ratio_im", "noise_psd_nm2"):
             v = getattr(state, name)
             if v is not None and not np.all(np.isfinite(v)):
                 raise ModelError(f"learning state: {name} holds non-finite values; delete the state file")
@@ -182,7 +221,9 @@ class LearnResult:
     samples, the median step size over learned bins ``rho_median``, the Q cut-off
     ``q_cutoff_Hz``, the largest measured phase error at a learned harmonic
     ``phase_error_deg`` at ``phase_error_f_Hz``, ``stopped``/``reason``,
-    ``best_iteration`` and ``law``."""
+    ``best_iteration`` and ``law``; ``floor``: what a stop stands on (range / slew / noise /
+    line rate / learning, :mod:`~afmctl.compensators.learning_floor`), ``noise_nm``: the
+    recording's noise σ [nm] (not counted as error), ``judged``: which lines are judged."""
 
     u_next_V: np.ndarray
     iteration: int
@@ -202,6 +243,9 @@ class LearnResult:
     stopped: bool
     reason: str
     best_iteration: int
+    floor: str = ""
+    noise_nm: float = 0.0
+    judged: str = ""
 
 
 def target_digest(target_nm: np.ndarray, dt_s: float) -> str:
@@ -228,12 +272,19 @@ class Learner:
         self.settings = settings or LearnSettings()
         self.settings.check()
         self.lines = find_lines(self.target_nm)
+        try:
+            judged, self.judged_text = judged_lines(self.lines, self.settings.judge_lines)
+        except ValueError as err:
+            raise ModelError(str(err)) from None
+        self.judged_ramps = judged
+        self.judged_groups = raster_lines(judged)
         w = error_weights(self.target_nm, self.settings.central_pct, self.settings.lines_only, self.lines)
         self.reference_nm = rounded_reference(self.target_nm, w, self.lines)
-        self.weights = np.where(w > 0, 1.0, self.settings.turnaround_weight if self.lines else 0.0)
+        self.weights = learning_weights(w, self.lines, judged, self.settings.turnaround_weight)
         #: where the guards judge the error: the central 80 % of each line of a raster (what an AFM
         #: images, and what the error report calls central), else the weighted parts
-        self.judged = lines_mask(self.target_nm.size, self.lines, REPORT_CENTRAL_PCT) > 0 if self.lines else w > 0
+        self.judged = lines_mask(self.target_nm.size, judged, REPORT_CENTRAL_PCT) > 0 if self.lines else w > 0
+        self.line_nm = line_span_nm(self.target_nm, self.lines) if self.lines else (float(np.ptp(self.target_nm)) or 1.0)
         self.grid = Grid.for_record(self.target_nm.size, self.dt_s, self.settings.periodic)
         self.digest = target_digest(self.target_nm, self.dt_s)
         if state is not None and state.target_digest != self.digest:
@@ -269,22 +320,27 @@ class Learner:
         aligned = bool(s.align and round(lag) != 0)
         if aligned:
             y = _shift(y, -int(round(lag)), s.periodic)
-        errors = error_figures(y, self.target_nm, self.lines)
+        errors = error_figures(y, self.target_nm, self.lines, self.judged_ramps)
         e = self.reference_nm - y
-        metric = _weighted_max_pct(e, self.judged, self.target_nm, self.lines)
+        noise = self.state.keep_noise(estimate_noise(y - ref + self.target_nm if self.model is not None else y,
+                                                     self.target_nm, self.judged_groups, self.dt_s, e))
+        metric = self._judged_pct(e, noise)
+        errors.update(noise_nm=noise.sigma_nm, judged_clean_max_pct=metric)
         previous = self._previous()
         stop_reason = self._record(u, y, errors, metric)
         base = self._base(u, y)
-        werr = (self.reference_nm - base[1]) * self.weights
-        inc = self._increment(base, werr, (u, y) + previous if previous else None)
+        werr = self._without_noise((self.reference_nm - base[1]) * self.weights, noise)
+        inc = self._increment(base, werr, (u, y) + previous if previous else None, noise, (u, y))
         self._remember(inc)
         phase_deg, phase_f, stalled = self._phase_check(inc, werr)
         if not stop_reason and stalled and self.state.misses > 0:
             stop_reason = (f"the model's phase error is {phase_deg:.0f}° (over {s.phase_limit_deg:g}°) at "
                            f"{phase_f:.4g} Hz, and most of the remaining error lies where it is: the model-based law "
                            "cannot converge there (re-identify the model, or learn without --model)")
-        if stop_reason:
-            self.state.stopped, self.state.reason = True, self.state.reason or stop_reason
+        if stop_reason and not self.state.stopped:
+            floor = self._floor(noise, inc, werr)
+            self.state.stopped, self.state.floor = True, floor.kind
+            self.state.reason = f"{stop_reason}; the floor: {floor.phrase}"
         best = np.asarray(self.state.best_u_V, dtype=float) if self.state.stopped else base[0] + inc.du_V
         nxt, clipped, limited = self._within_limits(best)    # a user's first table may be beyond them
         du = nxt - u
@@ -292,20 +348,63 @@ class Learner:
         return LearnResult(nxt, self.state.iteration, self.law, errors, metric, float(lag), aligned,
                            float(np.max(np.abs(du))), float(np.sqrt(np.mean(du * du))), clipped, limited,
                            float(np.median(inc.rho[band])) if np.any(band) else 0.0, inc.q_cutoff_Hz,
-                           phase_deg, phase_f, self.state.stopped, self.state.reason, self.state.best_iteration)
+                           phase_deg, phase_f, self.state.stopped, self.state.reason, self.state.best_iteration,
+                           self.state.floor, noise.sigma_nm, self.judged_text)
+
+    def _floor(self, noise: Noise, inc: Increment, werr: np.ndarray) -> Floor:
+        """What the best table's remaining error stands on (:mod:`~afmctl.compensators.learning_floor`)."""
+        st, s = self.state, self.settings
+        best_u = np.asarray(st.best_u_V, dtype=float)
+        best_y = np.asarray(st.best_y_nm if st.best_y_nm is not None else st.previous_y_nm, dtype=float)
+        power = np.abs(self.grid.spectrum(werr)) ** 2
+        f = self.grid.f_Hz
+        total = float(np.sum(power[f > 0]))
+        high = float(np.sum(power[f > inc.q_cutoff_Hz])) / total if total > 0 else 0.0
+        step = (s.slew_V_per_s or math.inf) * self.dt_s
+        return name_floor(best_u, self.target_nm - best_y, self.judged, noise.sigma_nm, self.line_nm, s.u_min_V,
+                          s.u_max_V, step, high, inc.q_cutoff_Hz)
+
+    def floor(self) -> Floor | None:
+        """What the best table so far stands on (:mod:`~afmctl.compensators.learning_floor`),
+        for a caller that stops learning by its own rule; None before the first step."""
+        st = self.state
+        last = getattr(self, "_last", None)
+        if st.best_u_V is None or last is None:
+            return st.floor and Floor(st.floor, st.reason) or None
+        noise = st.noise() or NO_NOISE
+        best_y = np.asarray(st.best_y_nm if st.best_y_nm is not None else st.previous_y_nm, dtype=float)
+        return self._floor(noise, last, self._without_noise((self.reference_nm - best_y) * self.weights, noise))
 
     def _stopped_result(self, u: np.ndarray, y: np.ndarray) -> LearnResult:
         """After a stop: the best table again, nothing learned, nothing recorded."""
         st = self.state
         best = self._within_limits(np.asarray(st.best_u_V if st.best_u_V is not None else u, dtype=float))[0]
-        errors = error_figures(y, self.target_nm, self.lines)
-        metric = _weighted_max_pct(self.reference_nm - y, self.judged, self.target_nm, self.lines)
+        errors = error_figures(y, self.target_nm, self.lines, self.judged_ramps)
+        e = self.reference_nm - y
+        metric = self._judged_pct(e, st.noise() or estimate_noise(y, self.target_nm, self.judged_groups, self.dt_s, e))
         du = best - u
         return LearnResult(best, st.iteration, self.law, errors, metric, 0.0, False, float(np.max(np.abs(du))),
                            float(np.sqrt(np.mean(du * du))), 0, 0, 0.0, math.nan, 0.0, 0.0, True, st.reason,
-                           st.best_iteration)
+                           st.best_iteration, st.floor, st.noise_nm or 0.0, self.judged_text)
 
     # ------------------------------------------------------------------ parts of a step
+    def _without_noise(self, e: np.ndarray, noise: Noise) -> np.ndarray:
+        """``e`` [nm] less what stands no higher than the noise (spectral subtraction,
+        :func:`~afmctl.compensators.learning_noise.noise_gain`)."""
+        if noise is NO_NOISE or noise.sigma_nm <= 0:
+            return e
+        spec = self.grid.spectrum(e)
+        n_w = float(np.count_nonzero(e))
+        return self.grid.apply(noise_gain(spec, n_w * noise.at(self.grid.f_Hz)), e)
+
+    def _judged_pct(self, e: np.ndarray, noise: Noise) -> float:
+        """The largest error [% of the line] over the judged parts, its noise left out."""
+        sel = self.judged
+        if not np.any(sel):
+            return 0.0
+        clean = self._without_noise(np.where(sel, e, 0.0), noise)
+        return float(100.0 * np.max(np.abs(clean[sel])) / self.line_nm)
+
     def _samples(self, name: str, x: np.ndarray) -> np.ndarray:
         a = np.ascontiguousarray(x, dtype=np.float64).ravel()
         if a.size != self.target_nm.size:
@@ -337,16 +436,19 @@ class Learner:
         prev = st.history[-1]["weighted_max_pct"] if st.history else math.inf
         st.history.append({**errors, "weighted_max_pct": metric})
         st.iteration += 1
-        st.misses = st.misses + 1 if metric >= st.best_metric_pct else 0
+        better = metric < st.best_metric_pct
+        st.misses = 0 if better else st.misses + 1
+        st.halvings = max(0, st.halvings - 1) if better else st.halvings + 1
         if metric < st.best_metric_pct:
             st.best_metric_pct, st.best_u_V, st.best_iteration = metric, u.tolist(), st.iteration - 1
             st.best_y_nm = y.tolist()
-        st.rises = st.rises + 1 if metric > prev * (1 + 1e-6) else 0
+        tol = NOISE_TOLERANCE * 100.0 * (st.noise_nm or 0.0) / self.line_nm
+        st.rises = st.rises + 1 if metric > prev * (1 + 1e-6) + tol else 0
         if st.rises >= self.settings.max_rises:
             return (f"the weighted error rose {st.rises} times in a row (to {metric:.3g} %): diverging; "
                     f"keeping the best table (iteration {st.best_iteration}, {st.best_metric_pct:.3g} %)")
         if st.misses >= self.settings.max_misses:
-            return (f"no better table in {st.misses} iterations (steps down to 1/{2 ** st.misses}): the floor is "
+            return (f"no better table in {st.misses} iterations (steps down to 1/{2 ** st.halvings}): the floor is "
                     f"reached; keeping the best table (iteration {st.best_iteration}, {st.best_metric_pct:.3g} %)")
         return ""
 
@@ -362,13 +464,16 @@ class Learner:
         return u, y
 
     def _increment(self, base: tuple[np.ndarray, np.ndarray], werr: np.ndarray,
-                   secant: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None) -> Increment:
+                   secant: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None, noise: Noise,
+                   play: tuple[np.ndarray, np.ndarray]) -> Increment:
         s = self.settings
-        rho = (s.rho_max if s.rho_max is not None else DEFAULT_STEP[self.law]) * 0.5 ** self.state.misses
+        full = s.rho_max if s.rho_max is not None else DEFAULT_STEP[self.law]
+        rho = full * 0.5 ** self.state.halvings
+        psd = noise.at(self.grid.f_Hz) if noise.sigma_nm > 0 else None
         if self.model is None:
-            return model_free_increment(self.grid, base, werr, rho, s.q_cutoff_Hz, secant)
+            return model_free_increment(self.grid, base, werr, rho, s.q_cutoff_Hz, secant, self._known(), psd)
         return model_based_increment(self.grid, self.model, self.dt_s, base, werr, rho, s.q_cutoff_Hz, secant,
-                                     self._known())
+                                     self._known(), psd, play, full)
 
     def _known(self) -> tuple[np.ndarray, np.ndarray] | None:
         st = self.state
@@ -384,8 +489,6 @@ class Learner:
     def _remember(self, inc: Increment) -> None:
         """Keep the model's measured error for the next iterations (model-based law)."""
         self._last = inc
-        if self.model is None:
-            return
         idx = np.flatnonzero(inc.reliable)
         self.state.ratio_bins = idx.tolist()
         self.state.ratio_re = inc.ratio.real[idx].tolist()

@@ -23,9 +23,13 @@ zero-phase Q-filter and ``ρ`` the step size. With the true response ``G = Ĝ·R
       R(ω) = Δy(jω) / Δŷ(jω),   Δy = y_k − y_{k−1},  Δŷ = Ĝ(u_k) − Ĝ(u_{k−1})           (2)
 
   (:func:`~afmctl.compensators.learning_spectra.smoothed_ratio`, on the bins the change
-  excites; 1 elsewhere and on the first iteration), and the step size is the one that
-  minimises ``|1 − ρR|`` for a real ρ, ``ρ = cos θ / |R|`` (clipped to ``[0, ρ_max]``;
-  0 where ``|θ| ≥ 90°``: such a bin is not learned).
+  excites; averaged with the one kept where a bin is measured again, :func:`averaged`),
+  and past the model's band the play's own ``Y/Ŷ``. Inside the band the model stands
+  unless two measurements agree that its own step would not converge
+  (:func:`trusted_ratio`); every measurement may size a bin's real step down to the one
+  that minimises ``|1 − ρR|``, ``ρ = cos θ / |R|`` (clipped to ``[0, ρ_max]``; 0 where
+  ``|θ| ≥ 90°``: such a bin is not learned until its ``R`` is trusted); a trusted ``R``
+  corrects the model from 30° of phase error on (:func:`corrected_step`).
 * :func:`model_free_increment` — no model: ``Ĝ_k = Y_k / U_k`` from this iteration's own
   sent voltages and measured motion (Kim & Zou, "Model-less inversion-based iterative
   control", IEEE/ASME Trans. Mechatronics 2013; here the smoothed H1 ratio of the
@@ -37,7 +41,7 @@ zero-phase Q-filter and ``ρ`` the step size. With the true response ``G = Ĝ·R
   — the response to a *change*, which is what the learning relies on: the harmonics that
   hysteresis adds to ``Y_k`` are no response of a linear system to ``U_k`` at that
   frequency, but to a small change they respond nearly linearly (the local slope of the
-  branch). The DC gain comes from a straight-line fit of the motion on the voltages (the
+  branch); a bin measured again is averaged with the one kept. The DC gain comes from a straight-line fit of the motion on the voltages (the
   linear calibration); bins above the highest excited one are not learned.
 """
 from __future__ import annotations
@@ -69,6 +73,8 @@ class Increment:
     reliable: np.ndarray
     q_cutoff_Hz: float
     prediction_nm: np.ndarray
+    #: the model's error the step was computed with (``ratio`` where it is trusted, else 1; None: ``ratio``)
+    applied: np.ndarray | None = None
 
 
 def periodic_run(op_factory, x: np.ndarray, periodic: bool, periods: int = 3) -> np.ndarray:
@@ -89,61 +95,160 @@ def step_size(ratio: np.ndarray, rho_max: float) -> np.ndarray:
 def model_based_increment(grid: Grid, chain, dt_s: float, base: tuple[np.ndarray, np.ndarray], werr_nm: np.ndarray,
                           rho_max: float, q_cutoff_Hz: float | None,
                           secant: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
-                          known: tuple[np.ndarray, np.ndarray] | None = None) -> Increment:
+                          known: tuple[np.ndarray, np.ndarray] | None = None,
+                          noise_psd_nm2: np.ndarray | None = None,
+                          play: tuple[np.ndarray, np.ndarray] | None = None,
+                          full_step: float | None = None) -> Increment:
     """Law (1) with the chain ``chain`` (a :class:`~afmctl.compensators.chain.ChainModel`
     or any static hysteresis model: ``forward``/``inverse`` u [V] ↔ y [nm]) as ``Ĝ``,
     applied to the table ``base = (u [V], y [nm])`` with its weighted error ``werr_nm``.
     ``secant = (u_a, y_a, u_b, y_b)``: two tables and their recordings, from which the
     model's error ``R`` is measured (2) where their difference excites a bin; ``known =
-    (R, mask)``: what earlier iterations measured (kept where not measured anew). Bins
-    never measured take ``R = 1`` (the model trusted). The returned ``ratio`` and
-    ``reliable`` are the updated knowledge."""
+    (R, mask)``: what earlier iterations measured; ``play = (u, y)``: this play, whose own
+    response ``Y/Ŷ`` measures ``R`` for a model without a dynamics stage (which claims no
+    band: all of it); ``noise_psd_nm2``: the recording's
+    noise per bin [nm²] (a bin is measured only where it stands above it); ``full_step``:
+    the law's step before the guard halved it (None: ``rho_max``).
+
+    What the step relies on is :func:`trusted_ratio`'s: the model inside its band unless
+    repeated measurements say its own step would not converge, past it repeated secants
+    (and a static model's play). One play's ``Y/Ŷ = 1 + E/Ŷ`` takes every error at a bin
+    for the response's; past the band of a model with a dynamics stage the error there is
+    mostly what is not the response (the hysteresis model's misfit at the line's
+    harmonics, the creep after the approach), and learning on it took the simulated E-727
+    at 200 lines/s from 8.7 % to 2.7–3.2 % of the line in the first step (5 runs; without
+    it 1.1–1.5 %, main's law 1.7 %). Bins past the band that nothing measured are not
+    learned: the Q-filter's cut-off is where the measurement stops knowing the response,
+    or the model's band if that is higher. The returned ``ratio`` and ``reliable`` are the knowledge to keep (every
+    measurement, trusted or not); ``applied`` the error the step was computed with."""
     dyn = getattr(chain, "dynamics", None)
     static_fwd, static_inv = _static_ops(chain, dt_s)
     periodic = grid.periodic
+    f = grid.f_Hz
 
     def predict(u: np.ndarray) -> np.ndarray:
         return _predict(dyn, periodic_run(static_fwd, u, periodic), dt_s, periodic)
 
     if dyn is not None:
-        d_hat = dyn.discrete(dt_s).frequency_response(grid.f_Hz)
-        cutoff = dyn.inverse_bandwidth_Hz(dt_s) if q_cutoff_Hz is None else q_cutoff_Hz
+        d_hat = dyn.discrete(dt_s).frequency_response(f)
+        band = float(dyn.inverse_bandwidth_Hz(dt_s))
     else:
-        d_hat = np.ones(grid.f_Hz.size, dtype=complex)
-        cutoff = 0.45 / dt_s if q_cutoff_Hz is None else q_cutoff_Hz
-    ratio = np.ones(grid.f_Hz.size, dtype=complex)
-    reliable = np.zeros(grid.f_Hz.size, dtype=bool)
+        d_hat = np.ones(f.size, dtype=complex)
+        band = 0.0                                   # a static model claims no band of its own
+    past = f > band
+    noise = None if noise_psd_nm2 is None else grid.diff_noise(noise_psd_nm2)
+    ratio = np.ones(f.size, dtype=complex)
+    reliable = np.zeros(f.size, dtype=bool)
+    repeated = np.zeros(f.size, dtype=bool)
     if known is not None:
         ratio[known[1]], reliable = known[0][known[1]], known[1].copy()
     if secant is not None:
         u_a, y_a, u_b, y_b = secant
         r, rel = smoothed_ratio(grid.diff_spectrum(y_a - y_b), grid.diff_spectrum(predict(u_a) - predict(u_b)),
-                                grid.f_Hz, threshold=SECANT_RELIABLE)
-        ratio[rel], reliable = r[rel], reliable | rel
-    rho = step_size(ratio, rho_max)
-    step = corrected_step(rho, ratio, reliable, rho_max)
-    filt = zero_phase_q(grid.f_Hz, cutoff) * step * _regularised_inverse(d_hat)
+                                f, threshold=SECANT_RELIABLE, noise_power=None if noise is None else 2 * noise)
+        again = rel & reliable
+        repeated[again] = repeats(r[again], ratio[again])
+        ratio[rel], reliable = averaged(ratio, reliable, r, rel), reliable | rel
+    played = np.zeros(f.size, dtype=bool)
+    if play is not None and dyn is None:
+        r, rel = smoothed_ratio(grid.diff_spectrum(play[1]), grid.diff_spectrum(predict(play[0])), f,
+                                threshold=SECANT_RELIABLE, noise_power=noise)
+        played = rel & past
+        ratio[played], reliable = r[played], reliable | played
+    trusted = trusted_ratio(ratio, reliable, repeated, played, past, rho_max if full_step is None else full_step)
+    top = float(f[np.flatnonzero(trusted & past)[-1]]) if np.any(trusted & past) else 0.0
+    cutoff = max(band, top) if q_cutoff_Hz is None else q_cutoff_Hz
+    if cutoff <= 0:
+        cutoff = 0.45 / dt_s
+    applied = _fill_between(np.where(trusted, ratio, 1.0 + 0j), trusted, f, band)
+    learned = (f <= max(band, top)) if q_cutoff_Hz is None else np.ones(f.size, dtype=bool)
+    # every measurement may size a bin's real step down (cos θ/|R|: at 90° and beyond, not learned), a trusted
+    # one also corrects the model (corrected_step)
+    measured = _fill_between(np.where(reliable, ratio, 1.0 + 0j), reliable, f, band)
+    rho = step_size(applied, rho_max)
+    rho = np.where(trusted, rho, np.minimum(rho, step_size(measured, rho_max)))
+    step = corrected_step(rho, applied, trusted, rho_max) * learned
+    filt = zero_phase_q(f, cutoff) * step * _regularised_inverse(d_hat)
     x = periodic_run(static_fwd, base[0], periodic)
-    dx = grid.apply(filt, werr_nm)
+    dx = grid.apply(filt, werr_nm, smooth_ends=True)
     du = periodic_run(static_inv, x + dx, periodic) - periodic_run(static_inv, x, periodic)
-    return Increment(du, np.abs(step), ratio, reliable, float(cutoff), _predict(dyn, x, dt_s, periodic))
+    return Increment(du, np.abs(step), ratio, reliable, float(cutoff), _predict(dyn, x, dt_s, periodic), applied)
 
 
-#: share of ``ρ_max`` the corrected step takes where the model's phase error is 90° or more
-CORRECTED_STEP = 0.5
+def trusted_ratio(ratio: np.ndarray, reliable: np.ndarray, repeated: np.ndarray, played: np.ndarray,
+                  past: np.ndarray, full_step: float) -> np.ndarray:
+    """The bins whose measured model error ``ratio`` the step relies on. Past the model's
+    band (``past``): those this play measured (``played``), or where a secant repeated an
+    earlier measurement (``repeated``, :func:`repeats`). Inside it: only where the model's
+    own full step ``ρ`` (``full_step``, before any halving by the guard) would not converge
+    on the measurement (``|1 − ρ R| ≥ 1``: a phase error of 60° or more at ``|R| = 1``) and
+    the measurement repeated; elsewhere the model stands. A hysteretic scanner's response
+    to a small change of the table is no fixed linear response, and its secants scatter
+    where the model's own step converges anyway: on the in-house 300 Hz plant a secant at
+    7 Hz, 119° off and repeated, turned 0.075 % into 0.12 % where the model's step went on
+    to 0.07 %; a model whose mode is 30 % off fails by |R| ≈ 8 at its resonance, and there
+    the repeated secants carry the learning."""
+    fails = np.abs(1.0 - full_step * ratio) >= 1.0
+    return reliable & (played | (repeated & (past | fails)))
 
 
-def corrected_step(rho: np.ndarray, ratio: np.ndarray, reliable: np.ndarray, rho_max: float) -> np.ndarray:
-    """The step per bin: the real ``ρ`` of :func:`step_size`, except where the measured
-    model error ``R`` turns the phase by 90° or more — no real step converges there — and
-    ``R`` was measured: there the model corrected by it, ``Ĝ·R``, is the filter (the secant
-    method per bin, Li & Bechhoefer), with the complex step ``CORRECTED_STEP·ρ_max / R``.
+def _fill_between(ratio: np.ndarray, reliable: np.ndarray, f_Hz: np.ndarray, band_Hz: float) -> np.ndarray:
+    """``R`` on the bins not measured: 1 (the model) inside its band, interpolated between
+    the measured bins past it."""
+    out = ratio.copy()
+    past = (f_Hz > band_Hz) & ~reliable
+    if np.any(past) and np.any(reliable):
+        out[past] = interpolate_unreliable(ratio, reliable, fill=1.0)[past]
+    return out
+
+
+#: share of ``ρ_max`` the corrected step takes where the measured phase error is
+#: :data:`CORRECT_FROM_DEG` or more
+CORRECTED_STEP = 0.8
+#: the largest step per bin, a multiple of ``ρ_max``
+MAX_STEP = 2.0
+#: from this measured phase error [°] on, a trusted measurement corrects the model (the real
+#: step ``cos θ/|R|`` shrinks the error by only ``|sin θ|`` per iteration: 0.5 at 30°)
+CORRECT_FROM_DEG = 30.0
+
+
+def corrected_step(rho: np.ndarray, ratio: np.ndarray, trusted: np.ndarray, rho_max: float) -> np.ndarray:
+    """The step per bin: the real ``ρ`` of :func:`step_size`, except where the trusted
+    measured model error ``R`` turns the phase by :data:`CORRECT_FROM_DEG` or more (beyond
+    90° no real step converges, from 30° on it is slow): there the model corrected by it,
+    ``Ĝ·R``, is the filter (the secant method per bin, Li & Bechhoefer), with the complex
+    step ``CORRECTED_STEP·ρ_max / R``, at most :data:`MAX_STEP`·ρ_max in magnitude.
     A model whose phase is that wrong where most of the error lies is still stopped by the
     convergence check (:mod:`afmctl.compensators.learning`)."""
     step = rho.astype(complex)
-    fix = reliable & (np.abs(np.angle(ratio)) >= 0.5 * math.pi) & (np.abs(ratio) > 1e-12)
+    fix = trusted & (np.abs(np.angle(ratio)) >= np.radians(CORRECT_FROM_DEG)) & (np.abs(ratio) > 1e-12)
     step[fix] = CORRECTED_STEP * rho_max / ratio[fix]
+    big = np.abs(step) > MAX_STEP * rho_max                  # a response measured far smaller than the model's
+    step[big] *= MAX_STEP * rho_max / np.abs(step[big])
     return step
+
+
+def repeats(r_new: np.ndarray, r_old: np.ndarray) -> np.ndarray:
+    """Per bin, whether two measurements of the model's error agree: the corrected step of
+    one (:func:`corrected_step`, ``CORRECTED_STEP / R_old``) also converges on the other,
+    ``|1 − CORRECTED_STEP · R_new / R_old| < 1``. A hysteretic scanner's response to a
+    small change of the table is no fixed linear response: its secants scatter from one
+    iteration to the next (on the in-house plant their phase at one bin went 96°, 71°,
+    83°, 180° over four), and a correction built on one of them pulls the table off."""
+    old = np.where(np.abs(r_old) > 1e-12, r_old, 1e-12)
+    return np.abs(1.0 - CORRECTED_STEP * np.asarray(r_new) / old) < 1.0
+
+
+def averaged(old: np.ndarray, known: np.ndarray, new: np.ndarray, measured: np.ndarray) -> np.ndarray:
+    """The response on the bins ``measured`` anew: the new measurement ``new``, averaged
+    with the one kept (``old``) where there was one (``known``) — each play is a
+    measurement, and the mean of two scatters less than either (a hysteretic scanner's
+    secants scatter from play to play: the model-free law without the mean ended on the
+    two-modes reference scanner at 0.58 % of the line at 100 lines/s, with it at 0.33 %)."""
+    out = np.asarray(new, dtype=complex)[measured].copy()
+    both = known[measured]
+    out[both] = 0.5 * (out[both] + np.asarray(old)[measured][both])
+    return out
 
 
 def _predict(dyn, x: np.ndarray, dt_s: float, periodic: bool) -> np.ndarray:
@@ -156,20 +261,32 @@ def _predict(dyn, x: np.ndarray, dt_s: float, periodic: bool) -> np.ndarray:
 
 def model_free_increment(grid: Grid, base: tuple[np.ndarray, np.ndarray], werr_nm: np.ndarray, rho_max: float,
                          q_cutoff_Hz: float | None,
-                         secant: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None) -> Increment:
+                         secant: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+                         known: tuple[np.ndarray, np.ndarray] | None = None,
+                         noise_psd_nm2: np.ndarray | None = None) -> Increment:
     """Law (1) with ``Ĝ_k`` estimated from the iterations themselves (module docstring),
     applied to the table ``base = (u [V], y [nm])``: the secant (3) between the two
     tables and recordings of ``secant = (u_a, y_a, u_b, y_b)`` where their difference
-    excites a bin, else the base's own ``Y/U``; the DC gain from the linear calibration."""
+    excites a bin above the noise (``noise_psd_nm2`` [nm²] per bin), else what earlier
+    secants measured (``known = (Ĝ, mask)``), else the base's own ``Y/U``; the DC gain
+    from the linear calibration. The returned ``ratio``/``reliable`` are the secants'
+    knowledge (to keep); the Q-filter's cut-off is where no measurement knows ``Ĝ``
+    (or where it has rolled off)."""
     f = grid.f_Hz
     sent_V, measured_nm = base
-    g, reliable = smoothed_ratio(grid.diff_spectrum(measured_nm), grid.diff_spectrum(sent_V), f)
+    noise = None if noise_psd_nm2 is None else grid.diff_noise(noise_psd_nm2)
+    g, reliable = smoothed_ratio(grid.diff_spectrum(measured_nm), grid.diff_spectrum(sent_V), f, noise_power=noise)
+    measured = np.zeros(f.size, dtype=bool)
+    g_known = np.ones(f.size, dtype=complex)
+    if known is not None:
+        g_known[known[1]], measured = known[0][known[1]], known[1].copy()
     if secant is not None:
         u_a, y_a, u_b, y_b = secant
         g_sec, rel_sec = smoothed_ratio(grid.diff_spectrum(y_a - y_b), grid.diff_spectrum(u_a - u_b), f,
-                                        threshold=SECANT_RELIABLE)
-        g = np.where(rel_sec, g_sec, g)
-        reliable = reliable | rel_sec
+                                        threshold=SECANT_RELIABLE, noise_power=None if noise is None else 2 * noise)
+        g_known[rel_sec], measured = averaged(g_known, measured, g_sec, rel_sec), measured | rel_sec
+    g = np.where(measured, g_known, g)
+    reliable = reliable | measured
     gain, offset = calibration(sent_V, measured_nm)
     g[0], reliable[0] = gain, True
     top = float(f[np.flatnonzero(reliable)[-1]])
@@ -177,9 +294,8 @@ def model_free_increment(grid: Grid, base: tuple[np.ndarray, np.ndarray], werr_n
     cutoff = min(top, roll_off_Hz(f, g, reliable)) if q_cutoff_Hz is None else min(q_cutoff_Hz, top)
     q = zero_phase_q(f, cutoff) * (f <= top)
     rho = np.full(f.size, float(rho_max))
-    du = grid.apply(q * rho * _regularised_inverse(g), werr_nm)
-    ratio = np.ones(f.size, dtype=complex)
-    return Increment(du, rho, ratio, reliable, cutoff, gain * np.asarray(sent_V) + offset)
+    du = grid.apply(q * rho * _regularised_inverse(g), werr_nm, smooth_ends=True)
+    return Increment(du, rho, g_known, measured, cutoff, gain * np.asarray(sent_V) + offset)
 
 
 def roll_off_Hz(f_Hz: np.ndarray, g: np.ndarray, reliable: np.ndarray) -> float:

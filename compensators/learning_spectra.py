@@ -31,6 +31,9 @@ from scipy import fft as sfft
 
 #: a bin is reliable when its windowed excitation is at least this fraction of the peak
 RELIABLE_FRACTION = 1e-5
+#: a measured bin's window holds at least this many times the noise's power (the noise's
+#: amplitude a quarter of the measured one's at most)
+MIN_SNR = 16.0
 #: half-width of the smoothing window, a fraction of the frequency
 REL_WIDTH = 0.03
 
@@ -65,19 +68,48 @@ class Grid:
         d = x - np.roll(x, 1) if self.periodic else np.diff(x, prepend=x[0])
         return self.spectrum(d)
 
-    def apply(self, response: np.ndarray, x: np.ndarray) -> np.ndarray:
+    def diff_noise(self, noise_psd_nm2: np.ndarray, plays: int = 1) -> np.ndarray:
+        """The expected ``|N(f)|²`` of :meth:`diff_spectrum` of the noise of ``plays``
+        recordings (summed), each of ``n`` samples with the power ``noise_psd_nm2`` per
+        sample at each bin's frequency."""
+        w = 2.0 * np.sin(np.pi * self.f_Hz * self.dt_s)
+        return plays * self.n * np.asarray(noise_psd_nm2, dtype=float) * w * w
+
+    def apply(self, response: np.ndarray, x: np.ndarray, smooth_ends: bool = False) -> np.ndarray:
         """``x`` filtered by the frequency response ``response`` (one value per bin): the
-        first ``n`` samples of the inverse FFT of ``response · X``."""
-        return sfft.irfft(response * self.spectrum(x), self.n_fft)[: self.n]
+        first ``n`` samples of the inverse FFT of ``response · X``. ``smooth_ends``: a
+        record that is not periodic continues into its padding along raised cosines, from
+        its last value down to 0 and from 0 up to its first (:meth:`padded`), instead of
+        jumping to 0: a jump holds every frequency, and a filter that amplifies high ones
+        (a scanner's inverse) would answer it with a spike at the record's ends."""
+        xx = self.padded(x) if smooth_ends and not self.periodic else np.asarray(x, dtype=float)
+        return sfft.irfft(response * self.spectrum(xx), self.n_fft)[: self.n]
+
+    def padded(self, x: np.ndarray) -> np.ndarray:
+        """``x`` on the whole grid (``n_fft`` samples): the record, then half the padding
+        falling from its last value to 0 and half rising from 0 to its first value (the
+        padding wraps around to the record's start), each along a raised cosine."""
+        x = np.asarray(x, dtype=float)
+        out = np.zeros(self.n_fft)
+        out[: self.n] = x
+        k = (self.n_fft - self.n) // 2
+        if k > 0 and x.size:
+            fall = 0.5 + 0.5 * np.cos(np.pi * np.arange(1, k + 1) / (k + 1))
+            out[self.n: self.n + k] = x[-1] * fall
+            out[self.n_fft - k:] = x[0] * fall[::-1]
+        return out
 
 
 def smoothed_ratio(num: np.ndarray, den: np.ndarray, f_Hz: np.ndarray, rel_width: float = REL_WIDTH,
-                   min_bins: int = 2, threshold: float = RELIABLE_FRACTION) -> tuple[np.ndarray, np.ndarray]:
+                   min_bins: int = 2, threshold: float = RELIABLE_FRACTION,
+                   noise_power: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``(ratio, reliable)``: ``Σ num·den* / Σ |den|²`` over the bins within
     ``max(min_bins, rel_width · k)`` of bin ``k`` (wider at high frequency, like a
     fractional-octave smoother), and whether the window's ``Σ |den|²`` is at least
-    ``threshold`` (default :data:`RELIABLE_FRACTION`) of its largest value. Unreliable
-    bins hold 0."""
+    ``threshold`` (default :data:`RELIABLE_FRACTION`) of its largest value and, with
+    ``noise_power`` (the noise's expected ``|N(f)|²`` in ``num``, per bin), the window's
+    ``Σ |num|²`` at least :data:`MIN_SNR` times the noise's: a measurement, not noise.
+    Unreliable bins hold 0."""
     k = np.arange(f_Hz.size)
     half = np.maximum(min_bins, np.floor(rel_width * k)).astype(int)
     lo = np.clip(k - half, 0, f_Hz.size)
@@ -86,6 +118,10 @@ def smoothed_ratio(num: np.ndarray, den: np.ndarray, f_Hz: np.ndarray, rel_width
     power = np.concatenate([[0.0], np.cumsum(np.abs(den) ** 2)])
     p = power[hi] - power[lo]
     reliable = p >= threshold * float(np.max(p)) if p.size and np.max(p) > 0 else np.zeros(p.size, bool)
+    if noise_power is not None:
+        out = np.concatenate([[0.0], np.cumsum(np.abs(num) ** 2)])
+        noise = np.concatenate([[0.0], np.cumsum(noise_power)])
+        reliable &= (out[hi] - out[lo]) >= MIN_SNR * (noise[hi] - noise[lo])
     ratio = np.zeros(f_Hz.size, dtype=complex)
     ratio[reliable] = (cross[hi] - cross[lo])[reliable] / p[reliable]
     return ratio, reliable

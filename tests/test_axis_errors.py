@@ -33,7 +33,7 @@ def test_a_raster_is_judged_on_its_lines_central_part_per_axis_line_or_step(mode
     pos[corner, 0] += 500.0
     r = axis_errors(tgt, pos)
     x, y, z = r.axes
-    assert "central 80 % of each of the" in r.part and "x is the fast axis" in r.part
+    assert "central 80 % of lines 2.." in r.part and "x is the fast axis" in r.part
     assert (x.ref, x.ref_nm) == ("line", pytest.approx(4000.0, rel=0.01))
     assert x.max_nm == pytest.approx(8.0) and x.max_pct == pytest.approx(0.2, rel=0.01)    # the corner left out
     assert (y.ref, y.ref_nm) == ("step", pytest.approx(800.0 / 9, rel=0.01))
@@ -41,6 +41,14 @@ def test_a_raster_is_judged_on_its_lines_central_part_per_axis_line_or_step(mode
     assert z.ref is None and z.max_pct is None and "holds" in z.text()
     assert r.worst_pct() == pytest.approx(50.0, rel=0.01)
     assert "x max 8 nm (0.2 %)" in x.text() and "of its 4000 nm line" in x.text()
+
+
+def test_a_raster_padded_with_long_rests_is_still_judged_on_its_lines():
+    tgt = _raster()                      # a wave table's padding: rests longer than the raster
+    pad = 3 * len(tgt)
+    padded = np.vstack([np.repeat(tgt[:1], pad, axis=0), tgt, np.repeat(tgt[-1:], pad, axis=0)])
+    r = axis_errors(padded, padded + np.array([8.0, 0.0, 0.0]))
+    assert "x is the fast axis" in r.part and r.axes[0].ref == "line" and r.axes[0].max_nm == pytest.approx(8.0)
 
 
 def test_a_trajectory_without_lines_is_judged_whole_in_percent_of_each_axis_range():

@@ -138,7 +138,8 @@ def test_sim_wave_gcs_example(tmp_path, monkeypatch, capsys):
     assert "wave generator" in s["wave"]["player"] and s["slew_limited"] == 0
     # the device's recorder measured the play: per axis, over the lines' central part, in nm and %
     rec = s["tracking"]["recorded"]
-    assert rec["part"] == "the central 80 % of each of the 20 lines (x is the fast axis)", s["tracking"]
+    assert rec["part"] == ("the central 80 % of lines 2..10 of 10 (every line but the first, which starts from rest); "
+                           "x is the fast axis"), s["tracking"]
     x, y = rec["axes"]["x"], rec["axes"]["y"]
     assert (x["reference"], y["reference"]) == ("line", "step") and "z" not in rec["axes"]     # z holds
     assert 5.0 < x["max_pct"] < 60.0 and x["max_nm"] == pytest.approx(x["max_pct"] * 40.0)    # no model: ~23 %

@@ -17,7 +17,7 @@ from afmctl.compensators.chain import ChainModel
 from afmctl.compensators.dynamics import LinearDynamicsModel
 from afmctl.compensators.learning import Learner, LearnSettings, LearnState
 from afmctl.compensators.learning_spectra import Grid, estimate_lag_samples
-from afmctl.compensators.learning_weights import error_figures, error_weights, find_lines
+from afmctl.compensators.learning_weights import error_figures, error_weights, find_lines, judged_max_pct
 from afmctl.compensators.pi import PIModel
 from afmctl.data.datafiles import read_csv, write_csv
 from plants import triangle
@@ -82,7 +82,8 @@ def make_chain(plant: Plant) -> ChainModel:
 
 
 def central_max(y: np.ndarray, target: np.ndarray) -> float:
-    return error_figures(y, target)["central_max_pct"]
+    """Max over the central 80 % of the judged lines (every line but the first), % of the line."""
+    return judged_max_pct(y, target)
 
 
 def learn(plant, learner: Learner, u: np.ndarray, iterations: int) -> tuple[list[float], list]:
@@ -102,12 +103,12 @@ def test_model_based_learning_converges_within_limits(plant, chain):
     s = LearnSettings(u_min_V=0.0, u_max_V=150.0, slew_V_per_s=SLEW)
     u0 = chain.inverse_within_limits(tgt, DT, 0.0, 150.0, SLEW).u_V
     errs, results = learn(plant, Learner(tgt, DT, chain, s), u0, 5)
-    assert errs[-1] < 0.3 * errs[0] and errs[-1] < 0.3, errs
+    assert min(errs[:-1]) < 0.3 and errs[-1] < 0.3 * errs[0], errs      # a stop keeps the best table
     for r in results:
         u = r.u_next_V
         assert u.min() >= 0.0 and u.max() <= 150.0
         assert np.max(np.abs(np.diff(u))) <= SLEW * DT * (1 + 1e-9)
-        assert not r.stopped and r.law == "model"
+        assert r.law == "model" and "every line but the first" in r.judged
 
 
 def test_model_free_learning_converges_from_a_linear_calibration(plant):
@@ -141,22 +142,39 @@ def test_turnarounds_the_scanner_cannot_follow_do_not_pull_the_learning(chain):
     assert quiet.du_max_V < 1e-6 < 0.1 < loud.du_max_V
 
 
-def test_phase_error_over_90_degrees_stops_and_keeps_the_best_table(plant, chain):
-    """A model whose delay is 3/8 of a line period too long (135° at the line rate)."""
+@pytest.mark.parametrize("share", [None, 0.0])
+def test_phase_error_over_90_degrees_is_corrected_or_stops_with_the_best_table(monkeypatch, plant, chain, share):
+    """A model whose delay is 3/8 of a line period too long (135° at the line rate, 180°
+    at harmonics): where two plays agree that the model's own step would not converge, the
+    measured error corrects it and learning goes on (measured 16.8 → 0.13 % in 10 steps);
+    with the correction off (share 0) no step converges there: the error stays at 3.7–4.2 %
+    from the second play on, and a guard stops learning (measured: "no better table in 4
+    iterations" after 9 plays), names its floor and keeps the best table sent."""
+    from afmctl.compensators import learning_laws
+    if share is not None:
+        monkeypatch.setattr(learning_laws, "CORRECTED_STEP", share)
     tgt = raster()
     bad = chain.model_copy(update={"dynamics": chain.dynamics.model_copy(update={"delay_s": 2e-4 + 0.375 / LINE_RATE})})
     s = LearnSettings(u_min_V=0.0, u_max_V=150.0, slew_V_per_s=SLEW)
     learner = Learner(tgt, DT, bad, s)
-    u0 = chain.inverse_within_limits(tgt, DT, 0.0, 150.0, SLEW).u_V
-    u, sent = u0, []
-    for _ in range(6):
+    u = chain.inverse_within_limits(tgt, DT, 0.0, 150.0, SLEW).u_V
+    sent, errs = [], []
+    for _ in range(12):
         sent.append(u)
-        res = learner.step(u, plant.run(u))
+        y = plant.run(u)
+        errs.append(central_max(y, tgt))
+        res = learner.step(u, y)
         if res.stopped:
             break
         u = res.u_next_V
-    assert res.stopped and ("phase error" in res.reason or "rose" in res.reason), res.reason
-    assert np.array_equal(res.u_next_V, sent[res.best_iteration])
+    assert res.phase_error_deg > 90.0
+    if share is None:
+        assert not res.stopped and min(errs) < 0.02 * errs[0], errs
+    else:
+        assert res.stopped and min(errs) > 0.2 * errs[0], errs
+        assert any(w in res.reason for w in ("phase error", "rose 2 times", "no better table")), res.reason
+        assert "the floor: " in res.reason
+        assert np.array_equal(res.u_next_V, sent[res.best_iteration])
 
 
 def test_divergence_guard_stops_after_two_rises_and_returns_the_best_table():
@@ -217,6 +235,19 @@ def test_find_lines_and_weights_of_a_raster():
     assert np.all(error_weights(np.sin(np.linspace(0, 6, 500))) == 1.0)
 
 
+def test_the_rests_around_a_raster_are_learned_only_within_a_lines_time_of_it():
+    from afmctl.compensators.learning_weights import judged_lines, learning_weights, taper_samples
+    tgt = raster(lines=3)                # approach and rest 800 samples, lines of 500, rest 500
+    lines = find_lines(tgt)
+    judged, _ = judged_lines(lines)
+    w = learning_weights(error_weights(tgt, 80.0, lines=lines), lines, judged, 0.1)
+    first, last, lead = lines[0].start, lines[-1].stop, lines[1].stop - lines[0].start
+    edge = taper_samples(tgt.size, lines)   # the raised-cosine edge, inside the part not learned
+    assert first - lead > 100 and np.all(w[:first - lead - edge] == 0.0)   # the table's first rows: not learned
+    assert np.all(w[first - lead:first] > 0.0)      # a line's time before the first line: learned
+    assert np.all(w[last:last + lead] > 0.0) and np.all(w[last + lead + edge:] == 0.0)
+
+
 def test_lag_estimate_finds_a_shift_to_a_fraction_of_a_sample():
     t = np.arange(4000) * DT
     ref = np.sin(2 * np.pi * 37 * t) + 0.3 * np.sin(2 * np.pi * 210 * t)
@@ -238,7 +269,8 @@ def test_a_trigger_offset_is_estimated_reported_and_with_align_removed(plant, ch
     assert fixed.aligned and fixed.lag_samples == pytest.approx(reported.lag_samples)
     k = int(round(fixed.lag_samples))
     back = np.concatenate([late[k:], np.full(k, late[-1])])    # what the learner learned from
-    assert fixed.errors == pytest.approx(error_figures(back, tgt))
+    ref = error_figures(back, tgt)
+    assert {k: fixed.errors[k] for k in ref} == pytest.approx(ref)
 
 
 def test_grid_filters_like_linear_and_circular_convolution():
@@ -363,11 +395,12 @@ def test_a_mode_30_percent_off_still_converges(monkeypatch, share, converges):
     u0 = wrong.inverse_within_limits(tgt, DT, 0.0, 150.0, SLEW).u_V
     errs, results = learn(plant, Learner(tgt, DT, wrong, s), u0, 16)
     assert max(r.phase_error_deg for r in results) > 90.0
-    if converges:      # measured 2.20 → 0.71 % (still learning); the law as it was stops at 1.66 %
+    if converges:      # measured 2.20 → 0.02-0.04 % (still learning); the law as it was stops at 2.2 %
         assert min(errs) < 0.4 * errs[0] and not results[-1].stopped, errs
     else:
         assert min(errs) > 0.5 * errs[0] and results[-1].stopped, errs       # a guard stops it …
-        assert "phase error" in results[-1].reason or "rose 2 times" in results[-1].reason    # … and says why
+        assert any(w in results[-1].reason for w in ("phase error", "rose 2 times", "no better table"))  # … says why
+        assert "the floor: " in results[-1].reason
 
 
 def test_the_weighted_share_defaults_to_the_judged_share():
@@ -378,3 +411,25 @@ def test_the_weighted_share_defaults_to_the_judged_share():
     from afmctl.commands.learn_defaults import CENTRAL_PCT
     from afmctl.compensators.learning_weights import REPORT_CENTRAL_PCT
     assert LearnSettings().central_pct == CENTRAL_PCT == REPORT_CENTRAL_PCT
+
+
+def test_the_state_helps_learning_and_never_hurts(plant, chain):
+    """``--state`` keeps what the plays measured (the model's error per harmonic, the noise,
+    the best table): learning with it is at least as good as learning without it, call by
+    call from files as a user runs it (issue #37: with the state the guard used to make it
+    worse)."""
+    tgt = raster()
+    s = LearnSettings(u_min_V=0.0, u_max_V=150.0, slew_V_per_s=SLEW)
+    u0 = chain.inverse_within_limits(tgt, DT, 0.0, 150.0, SLEW).u_V
+    out = {}
+    for keep in (False, True):
+        u, state, errs = u0, None, []
+        for _ in range(5):
+            y = plant.run(u)
+            errs.append(central_max(y, tgt))
+            learner = Learner(tgt, DT, chain, s, LearnState.from_dict(state) if state else None)
+            u = learner.step(u, y).u_next_V
+            state = learner.state.to_dict() if keep else None
+        errs.append(central_max(plant.run(u), tgt))
+        out[keep] = errs
+    assert min(out[True]) <= min(out[False]) * 1.05 and out[True][-1] <= out[False][-1] * 1.05, out

@@ -10,6 +10,7 @@ import argparse
 import logging
 from collections.abc import Callable
 
+from ..errors import AfmctlError
 from .learn_defaults import CENTRAL_PCT
 
 log = logging.getLogger(__name__)
@@ -55,15 +56,19 @@ Output:
                           writes the best table) needs it. Use one state file per target.
 
 The law (docs/LEARNING.md):  u_next = u + Q·ρ·Ĝ⁻¹·(W·e),  e = target − measured,
-per frequency (per harmonic for a periodic table). W weights the central part of each
-raster line (found in the target), so the turnarounds the amplifier cannot follow do not
-pull the learning off. ρ is chosen per harmonic from the model's measured error: where
-the model's phase is more than 90° off, a harmonic is not learned, and when most of the
-remaining error lies there, learning stops and says why.
+per frequency (per harmonic for a periodic table). W weights the central part of the
+judged raster lines (found in the target): by default every line but the first, which
+the scanner starts from rest (--judge-lines names others); the turnarounds the amplifier
+cannot follow do not pull the learning off. Each play measures the scanner's response at
+the harmonics it excites: where the model is off, the measured response corrects it, and
+the Q-filter reaches as high as the plays measured the response above the sensor's noise
+(estimated from the repeating lines, and not counted as error). A stop names its floor:
+the range, the slew limit, the noise, or what the line rate permits.
 
-Printed: the sent table's error (max / RMS % of the span over the whole file, and over the
-central 80 % of each line in % of the line for a raster), the recording's lag behind the
-prediction, the step size, what changed, and whether learning stopped.
+Printed: the sent table's error (max / RMS % of the span over the whole file, over the
+central 80 % of each line, and over the judged lines in % and nm of the line), the
+sensor's noise, the recording's lag behind the prediction, the step size and Q cut-off,
+what changed, and whether learning stopped and on which floor.
 
 Example (iterate: play NEXT.csv, record, repeat with --sent NEXT.csv):
   afmctl compensate --model chain.json --target line.csv --out u0.csv --slew-V-per-s 1e4 --clip
@@ -112,6 +117,10 @@ def register_step(sub: argparse._SubParsersAction) -> None:
                    help="weighted central share of each raster line [%%] (default 80: the part the error is judged "
                         "on and an AFM images; the rest of each line is the turnaround, rounded; 100: no weighting)")
     p.add_argument("--lines-only", action="store_true", help="weight only the lines' central parts (rests count 0)")
+    p.add_argument("--judge-lines", metavar="LIST",
+                   help="raster lines (1-based; trace and retrace make one) the error is judged and learned on, "
+                        "e.g. 2-6 or 1,3,5-8 (default: every line but the first, which starts from rest; all of a "
+                        "one-line target)")
     p.add_argument("--periodic", action="store_true",
                    help="the table plays cyclically and was recorded in steady state (learning per harmonic)")
     p.add_argument("--align", action="store_true",
@@ -131,7 +140,13 @@ def run_step(args: argparse.Namespace) -> int:
 
     inputs = load_inputs(args)
     settings, source = settings_from_args(args, inputs.model)
-    learner = Learner(inputs.target_nm, inputs.dt_s, inputs.model, settings, load_state(args.state))
+    from afmctl.compensators.base import ModelError
+    try:
+        learner = Learner(inputs.target_nm, inputs.dt_s, inputs.model, settings, load_state(args.state))
+    except ModelError as err:
+        if "judged line" in str(err):
+            raise AfmctlError(f"--judge-lines: {err}") from None
+        raise
     if learner.state.stopped:
         print(f"status           : already stopped ({learner.state.reason}); writing the best table again")
     res = learner.step(inputs.sent_V, inputs.measured_nm)
@@ -163,11 +178,20 @@ def _print_result(res, settings, source: str, inputs, args) -> None:
     if "central_max_pct" in e:
         print(f"error (lines)    : max {e['central_max_pct']:.3g} % / RMS {e['central_rms_pct']:.3g} % of the line "
               "(central 80 % of each line)")
+    if "judged_max_pct" in e:
+        line = e["line_nm"]
+        print(f"judged           : {res.judged}")
+        print(f"error (judged)   : max {e['judged_max_pct']:.3g} % ({e['judged_max_pct'] * line / 100:.4g} nm) / RMS "
+              f"{e['judged_rms_pct']:.3g} % of the {line:.5g} nm line; without the noise max "
+              f"{res.weighted_max_pct:.3g} %")
+    if res.noise_nm > 0:
+        print(f"sensor noise     : σ {res.noise_nm:.3g} nm (not counted as error)")
     lag_us = res.lag_samples * inputs.dt_s * 1e6
     print(f"recording lag    : {res.lag_samples:+.2f} samples ({lag_us:+.4g} µs) behind the "
           f"{'prediction' if res.law == 'model' else 'target'}" + ("; shifted back (--align)" if res.aligned else ""))
     if math.isfinite(res.q_cutoff_Hz):
-        print(f"learning         : step size ρ median {res.rho_median:.3g}, Q-filter cut-off {res.q_cutoff_Hz:.4g} Hz"
+        print(f"learning         : step size ρ median {res.rho_median:.3g}, Q-filter cut-off {res.q_cutoff_Hz:.4g} Hz "
+              "(where the plays measured the response)"
               + (f", largest phase error {res.phase_error_deg:.0f}° at {res.phase_error_f_Hz:.4g} Hz"
                  if res.law == "model" else ""))
     print(f"changed          : max {res.du_max_V:.4g} V, RMS {res.du_rms_V:.4g} V; {res.clipped} samples clipped, "

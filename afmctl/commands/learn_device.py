@@ -20,8 +20,8 @@ the CAN amplifier's; simulated ones with [simulation] enabled = true):
 plays the configured trajectory as a wave table (amplifier.output = "wave"), reads the
 scanner's measured motion back through the recorder, computes the next table, and repeats:
 a progress line per iteration (per learned axis the error max / RMS in nm and in % of
-that axis's line, or of its step for a raster's slow axis, over the central 80 % of each
-line, as afmctl run reports it; the step size), until the error is at --noise-floor-pct, stops improving, a
+that axis's line, or of its step for a raster's slow axis, over the central 80 % of every
+raster line but the first, as afmctl run reports it; the step size), until the error is at --noise-floor-pct, stops improving, a
 guard stops it (error rising twice; a model whose phase is over 90 deg off) or N tables
 have played. The scanner creeps: each play carries the creep of the plays before it, and
 afmctl run later plays the learned table once, from rest. With a model whose chain has a

@@ -17,6 +17,7 @@ nm.
 """
 from __future__ import annotations
 
+import logging
 import time
 from typing import Any
 
@@ -25,6 +26,8 @@ import numpy as np
 from afmctl.compensators.learning_history import VoltageHistory, history_term_nm
 
 from ..config import LEARN_SETTLE_S
+
+log = logging.getLogger(__name__)
 
 
 class PlayTimeline:
@@ -93,3 +96,86 @@ class PlayTimeline:
         for h in self.now.values():
             h.hold(t_s - self.t_last_s)
         self.t_last_s = t_s
+
+
+def history_offset_nm(moved_nm: np.ndarray, term_nm: np.ndarray) -> float:
+    """The offset of a history term [nm]: the mean of what the scanner moved between two
+    plays of one table (``moved_nm``: the second recording less the first [nm]) less what
+    the model's history term says moved (``term_nm``: its change between the plays [nm])."""
+    return float(np.mean(np.asarray(moved_nm, dtype=float) - np.asarray(term_nm, dtype=float)))
+
+
+def settle_advice(config: Any) -> str | None:
+    """One line when ``amplifier.settle_s`` is set shorter than
+    :data:`~afmctl.config.LEARN_SETTLE_S` (a short hold leaves the approach's creep moving
+    the scanner during the table, differently from play to play: the hold is host-timed)."""
+    settle = config.amplifier.settle_s
+    if settle is None or settle >= LEARN_SETTLE_S:
+        return None
+    return (f"amplifier.settle_s = {settle:g} s: the creep after each approach ramp still moves the scanner while the "
+            f"table plays, a little differently every play; for plays that repeat to the sensor's noise (and "
+            f"'afmctl run' repeating the learned error) hold {LEARN_SETTLE_S:g} s or more (the default when unset)")
+
+
+def with_learning_hold(config: Any) -> Any:
+    """``config``, or a copy of it holding :data:`~afmctl.config.LEARN_SETTLE_S` before each
+    play when ``amplifier.settle_s`` is unset (the learned table records the hold, and
+    ``afmctl run`` plays it with the same one)."""
+    if config.amplifier.settle_s is not None:
+        return config
+    config = config.model_copy(deep=True)
+    config.amplifier.settle_s = LEARN_SETTLE_S
+    return config
+
+
+class HistoryTerms:
+    """What each play's history adds to its recording, per learned axis (the ``learn`` and
+    ``calibrate`` steps of :mod:`afmctl.control.learn_run`): the model's history term from
+    :class:`PlayTimeline` (None: no axis with a creep stage), plus its *offset* measured by
+    playing the first table twice (:meth:`calibrate`; without a model's creep stage the
+    offset is the whole term). ``enabled`` False: no terms (learning from the recordings
+    as they are)."""
+
+    def __init__(self, timeline: PlayTimeline | None, enabled: bool = True) -> None:
+        self.timeline = timeline
+        self.enabled = enabled
+        self._terms: dict[str, np.ndarray] = {}
+        self._first_play: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        #: per axis the history term's measured offset [nm] (step ``calibrate``)
+        self.offsets: dict[str, float] = {}
+
+    def played(self, u_V: dict[str, np.ndarray], rows: int, times: dict[str, float]) -> None:
+        """A play (``rows`` of each column played; ``times``: the controller's ``wave_times``)
+        into the voltage history; its term per axis."""
+        self._terms = {}
+        if self.timeline is None:
+            return
+        if not {"approach", "settle", "start"} <= set(times):   # nothing played: the outputs held (or ramped back)
+            self.timeline.rested(time.monotonic())
+            return
+        self._terms = self.timeline.played({a: u_V[a] for a in self.timeline.now}, times, rows)
+
+    def term(self, axis: str, k: int, shape: tuple[int, ...]) -> np.ndarray:
+        """The history term [nm] of axis ``axis`` in iteration ``k``: the model's, offset as
+        measured from the second play on (the first play is the one ``afmctl run``
+        repeats from rest)."""
+        offset = self.offsets.get(axis, 0.0) if k >= 1 else 0.0
+        return np.broadcast_to(self._terms.get(axis, 0.0), shape) + offset
+
+    def first_play(self, measured: dict[str, np.ndarray], terms: dict[str, np.ndarray]) -> None:
+        """Keep the first play's recordings and terms (for :meth:`calibrate`)."""
+        if self.enabled:
+            self._first_play = {a: (measured[a].copy(), terms[a]) for a in terms}
+
+    @property
+    def wants_calibration(self) -> bool:
+        return bool(self._first_play)
+
+    def calibrate(self, again: dict[str, np.ndarray]) -> None:
+        """The offsets from ``again`` (the first table's second play, per axis)."""
+        for axis, (y0, h0) in self._first_play.items():
+            moved, term = again[axis] - y0, self.term(axis, 0, y0.shape) - h0
+            self.offsets[axis] = history_offset_nm(moved, term)
+            log.info("learn: axis %s: the first table moved %.1f nm between its two plays where the model's history "
+                     "term says %.1f nm: the term is offset by %+.1f nm", axis, float(np.mean(moved)),
+                     float(np.mean(term)), self.offsets[axis])

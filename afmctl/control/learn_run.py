@@ -40,14 +40,17 @@ Learning ends when the error over the central part of each line is at the noise 
 (``noise_floor_pct``), after ``iterations``, when a learner's guard stops it (error rising
 twice, or a model whose phase is more than 90° off where the error lies), or on a stop.
 The result is the best table *measured*, as a :class:`LearnedTable` that ``afmctl run``
-plays (``[trajectory] kind = "learned"``). Units: nm, V, s; errors in % of the scan range.
+plays (``[trajectory] kind = "learned"``). Units: nm, V, s; errors in % of each axis's line
+(or of its span when its target has no lines) and in nm.
+
+One job per class: :class:`LearnRun` iterates and decides (learners, stop rules, the best
+table); :class:`~afmctl.control.learn_play.TablePlayer` plays a table and reads the
+recording back (steps check, arm, play, read); :class:`~afmctl.control.learn_history.HistoryTerms`
+keeps what each play's history adds to its recording (step calibrate).
 """
 from __future__ import annotations
 
-import enum
 import logging
-import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -57,13 +60,14 @@ import numpy as np
 from afmctl.compensators.learning import Learner, LearnSettings
 from afmctl.compensators.learning_history import creep_stages
 
-from ..config import LEARN_SETTLE_S
 from ..data.axis_errors import ErrorReport, axis_errors
 from ..errors import AfmctlError
 from ..inputs.trajectories import build, collect
-from .controller import Controller, State
-from .learn_history import PlayTimeline
-from .learned_table import LearnedSource, LearnedTable, make_learned
+from .learn_history import (HistoryTerms, PlayTimeline, history_offset_nm, settle_advice,  # noqa: F401 (re-exported)
+                            with_learning_hold)
+from .learn_play import (OUTPUT_TOL_V, RecordingRefused, Step, TablePlayer, arm_recorder,  # noqa: F401
+                         play_recorded, read_aligned, read_at_sample_start)
+from .learned_table import LearnedTable, make_learned
 from .pipeline import axis_models, build_pipeline
 from .wave_plan import WaveTable, driven_steps_ok, plan_table, table_capacity
 
@@ -71,8 +75,6 @@ log = logging.getLogger(__name__)
 
 #: a recording lagging the prediction by more than this share of the table is refused
 MAX_LAG_SHARE = 0.25
-#: recorded output voltages must equal the table within this [V] (the devices' resolution)
-OUTPUT_TOL_V = 0.01
 #: planned tables keep this share of the slew limit in reserve (the players' own checks
 #: round to the device's resolution)
 SLEW_RESERVE = 0.02
@@ -83,18 +85,13 @@ MIN_SPAN_NM = 1.0
 STALL_IMPROVEMENT = 0.03
 
 
-class Step(enum.Enum):
-    """Where an iteration is (module docstring)."""
-    CHECK = "check"
-    ARM = "arm"
-    PLAY = "play"
-    READ = "read"
-    LEARN = "learn"
-    CALIBRATE = "calibrate"
-
-
-class RecordingRefused(AfmctlError):
-    """A recording that does not match the table it was taken with (length, trigger)."""
+def axis_metric(errors: dict[str, float]) -> float:
+    """An axis's figure [%]: max over its judged lines, else over the central part of each
+    line, else over the whole table."""
+    for key in ("judged_max_pct", "central_max_pct", "max_pct"):
+        if key in errors:
+            return float(errors[key])
+    return float("nan")
 
 
 @dataclass(frozen=True)
@@ -167,17 +164,6 @@ class IterationReport:
         return max(self.errors, key=pct)
 
 
-def arm_recorder(amp: Any, config: Any, points: int, axes: list[str]) -> Any:
-    """Arm ``amp``'s data recorder for ``points`` points of the measured position and the
-    output of ``axes``, one per table row (the recorder's divider = the loop period)."""
-    clock = amp.recorder_clock_s()
-    divider = max(1, round(config.dt_s / clock))
-    if abs(divider * clock - config.dt_s) > 1e-9 * config.dt_s + 1e-12:
-        raise AfmctlError(f"loop.rate_Hz: {config.loop.rate_Hz:g} Hz is not a whole number of the "
-                          f"recorder's {clock:g} s ticks")
-    return amp.configure_recorder(axes, points=points, divider=divider, signals=("y_nm", "u_V"))
-
-
 def judged_errors(target_nm: np.ndarray, measured_nm: dict[str, np.ndarray]) -> ErrorReport:
     """The per-axis errors a user checks (:func:`afmctl.data.axis_errors.axis_errors`) of
     the measured position [nm] per learned axis (``measured_nm``, the history term taken
@@ -188,92 +174,12 @@ def judged_errors(target_nm: np.ndarray, measured_nm: dict[str, np.ndarray]) -> 
     return axis_errors(target_nm, pos, "".join(a for a in "xyz" if a in measured_nm))
 
 
-def history_offset_nm(moved_nm: np.ndarray, term_nm: np.ndarray) -> float:
-    """The offset of a history term [nm]: the mean of what the scanner moved between two
-    plays of one table (``moved_nm``: the second recording less the first [nm]) less what
-    the model's history term says moved (``term_nm``: its change between the plays [nm])."""
-    return float(np.mean(np.asarray(moved_nm, dtype=float) - np.asarray(term_nm, dtype=float)))
-
-
-def settle_advice(config: Any) -> str | None:
-    """One line when ``amplifier.settle_s`` is set shorter than
-    :data:`~afmctl.config.LEARN_SETTLE_S` (a short hold leaves the approach's creep moving
-    the scanner during the table, differently from play to play: the hold is host-timed)."""
-    settle = config.amplifier.settle_s
-    if settle is None or settle >= LEARN_SETTLE_S:
-        return None
-    return (f"amplifier.settle_s = {settle:g} s: the creep after each approach ramp still moves the scanner while the "
-            f"table plays, a little differently every play; for plays that repeat to the sensor's noise (and "
-            f"'afmctl run' repeating the learned error) hold {LEARN_SETTLE_S:g} s or more (the default when unset)")
-
-
-def with_learning_hold(config: Any) -> Any:
-    """``config``, or a copy of it holding :data:`~afmctl.config.LEARN_SETTLE_S` before each
-    play when ``amplifier.settle_s`` is unset (the learned table records the hold, and
-    ``afmctl run`` plays it with the same one)."""
-    if config.amplifier.settle_s is not None:
-        return config
-    config = config.model_copy(deep=True)
-    config.amplifier.settle_s = LEARN_SETTLE_S
-    return config
-
-
-def read_at_sample_start(model: Any) -> Any:
-    """``model`` as a device's data recorder sees the scanner: it reads each position as the
-    next sample starts (the response to the samples before it; PI's and the NV200's
-    recorders, the simulated devices'), where a model identified on positions read at the
-    end of each hold (``afmctl sim`` records, the simulated scanner's) leads by up to a
-    sample (its dynamics' ``lead_samples``), which the learning filter must not assume."""
-    dyn = getattr(model, "dynamics", None)
-    if dyn is None or not dyn.lead_samples:
-        return model
-    return model.model_copy(update={"dynamics": dyn.model_copy(update={"lead_samples": 0.0})})
-
-
-def read_aligned(amp: Any, table: WaveTable, setup: Any, timeout_s: float) -> dict[str, np.ndarray]:
-    """The measured position [nm] per recorded axis, one point per table row; a recording
-    whose length or recorded output voltages do not match the table (a trigger offset) is
-    refused (:func:`afmctl.drivers.recording.align_to_table`)."""
-    from afmctl.drivers.recording import RecordingMismatch, align_to_table
-    rec = amp.read_recording(timeout_s=timeout_s)
-    tables: dict[str, Any] = {a: table.u_V[:, "xyz".index(a)] for a in setup.axes}
-    try:
-        rec = align_to_table(rec, tables, tol_V=OUTPUT_TOL_V)
-    except RecordingMismatch as err:
-        raise RecordingRefused(f"learn: {err}") from None
-    missing = [a for a in setup.axes if a not in rec.y_nm]
-    if missing:
-        raise RecordingRefused(f"learn: the recording has no measured position of axis {missing[0]}; "
-                               "not learned from")
-    return {a: np.asarray(rec.y_nm[a], dtype=float) for a in setup.axes}
-
-
-def play_recorded(config: Any, amp: Any, source: LearnedSource, axes: list[str],
-                  timeout_s: float = 30.0) -> dict[str, np.ndarray]:
-    """Play a learned table as ``afmctl run`` does (``config``: a run configuration with
-    ``output = "wave"``) and record it with the device's recorder: the measured position
-    [nm] per axis of ``axes``, one point per table row — how a learned table is checked
-    after learning (the same sensor, the same protocol)."""
-    table = source.learned.table
-    armed: list[Any] = []
-    ctl = Controller(config, amp)
-    ctl.before_wave_start = lambda: armed.append(arm_recorder(amp, config, len(table), axes))
-    try:
-        ctl.start(source)
-        while not ctl.wait(0.05):
-            pass
-    finally:
-        ctl.close()
-    if ctl.state is not State.STOPPED or not armed:
-        raise AfmctlError(f"the learned table did not play to the end ({ctl.state.value}: "
-                          f"{ctl.trajectory_error or ctl.stats().get('last_error')})")
-    return read_aligned(amp, table, armed[0], timeout_s)
-
-
 class LearnRun:
-    """Learning on one open amplifier (module docstring). ``config``: the run's
-    configuration (``amplifier.output = "wave"``, a finite trajectory); ``amplifier``: open,
-    with a data recorder; ``on_iteration``: called with each :class:`IterationReport`."""
+    """Learning on one open amplifier (module docstring): iterations, learners and stop
+    rules; the plays go through a :class:`TablePlayer`, the history terms through
+    :class:`HistoryTerms`. ``config``: the run's configuration (``amplifier.output =
+    "wave"``, a finite trajectory); ``amplifier``: open, with a data recorder;
+    ``on_iteration``: called with each :class:`IterationReport`."""
 
     def __init__(self, config: Any, amplifier: Any, options: LearnOptions | None = None,
                  on_iteration: Callable[[IterationReport], None] | None = None) -> None:
@@ -283,15 +189,8 @@ class LearnRun:
         self.on_iteration = on_iteration
         self.reports: list[IterationReport] = []
         self.best: tuple[float, WaveTable] | None = None
-        self.step = Step.CHECK
-        self._ctl: Controller | None = None
-        self._stop = threading.Event()
-        self.timeline: PlayTimeline | None = None
-        self._terms: dict[str, np.ndarray] = {}
         self._models: tuple | None = None
-        self._first_play: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-        #: per axis the history term's measured offset [nm] (step ``calibrate``)
-        self.history_offsets: dict[str, float] = {}
+        self.history = HistoryTerms(None, self.options.history_term)
         self._check_config()
         #: the recorder's points per signal for the learned axes (asked before the first play)
         self._capacity: int | None = None
@@ -299,6 +198,17 @@ class LearnRun:
         self.axes = [a for a in config.scanner.axes if a in amplifier.axes]
         self.limits_V = {a: config.limits(a) for a in self.axes}
         self.max_step_V = (1.0 - SLEW_RESERVE) * config.slew_V_per_s() * config.dt_s
+        self.player = TablePlayer(self.config, amplifier, self.spec, self._played, self.options.record_timeout_s)
+
+    @property
+    def step(self) -> Step:
+        """Where the iteration is (module docstring)."""
+        return self.player.step
+
+    @property
+    def history_offsets(self) -> dict[str, float]:
+        """Per axis the history term's measured offset [nm] (step ``calibrate``)."""
+        return self.history.offsets
 
     def _check_config(self) -> None:
         cfg = self.config
@@ -351,7 +261,8 @@ class LearnRun:
         with_model = {a: models["xyz".index(a)][0] for a in out if creep_stages(models["xyz".index(a)][0])}
         if self.options.history_term and with_model:
             peak = {a: float(np.max(table.u_V[:, "xyz".index(a)])) for a in with_model}
-            self.timeline = PlayTimeline(self.config, with_model, self._present_output(list(with_model)), peak)
+            self.history.timeline = PlayTimeline(self.config, with_model, self._present_output(list(with_model)),
+                                                 peak)
         return out
 
     def _present_output(self, axes: list[str]) -> dict[str, float]:
@@ -389,19 +300,19 @@ class LearnRun:
         """Steps check → play (arm) → read → learn of iteration ``k`` (module docstring). A
         link fault during the play or the read-back reconnects and plays the table again,
         at most ``link_retries`` times."""
-        self.step = Step.CHECK
+        self.player.step = Step.CHECK
         self._check(table)
         ended = ("fault", "no play")
         for attempt in range(self.options.link_retries + 1):
-            got = self._play_and_read(table, list(learners))
+            got = self.player.play_and_read(table, list(learners))
             if isinstance(got, dict):
-                self.step = Step.LEARN
+                self.player.step = Step.LEARN
                 return self._learn(k, table, learners, got)
             ended = got
-            if got[0] != "fault" or attempt == self.options.link_retries or self._stop.is_set():
+            if got[0] != "fault" or attempt == self.options.link_retries or self.player.stopping:
                 break
             log.warning("learn: iteration %d: %s; reconnecting and playing the table again", k, got[1])
-            self._reconnect()
+            self.player.reconnect()
         return IterationReport(k, {}, float("nan"), state=ended[0], detail=ended[1]), None
 
     def calibrate(self, table: WaveTable, axes: list[str]) -> None:
@@ -409,41 +320,20 @@ class LearnRun:
         measure each axis's history term's offset (without a model's creep stage, the
         whole term: what the history moved). A play that does not complete (a fault, a
         stop) leaves the terms as the model gives them."""
-        if not self._first_play:
+        if not self.history.wants_calibration:
             return
-        self.step = Step.CALIBRATE
-        got = self._play_and_read(table, axes)
+        self.player.step = Step.CALIBRATE
+        got = self.player.play_and_read(table, axes)
         if not isinstance(got, dict):
             log.warning("learn: the first table's second play did not complete (%s); the model's history term is "
                         "used as it is", got[1])
-            if got[0] == "fault":
-                self._reconnect()          # the next iteration plays on a link that answers
+            if got[0] == "fault" and not self.player.stopping:
+                self.player.reconnect()
             return
-        for axis, (y0, h0) in self._first_play.items():
-            moved, term = got[axis] - y0, self._history_term(axis, 0, y0.shape) - h0
-            self.history_offsets[axis] = history_offset_nm(moved, term)
-            log.info("learn: axis %s: the first table moved %.1f nm between its two plays where the model's history "
-                     "term says %.1f nm: the term is offset by %+.1f nm", axis, float(np.mean(moved)),
-                     float(np.mean(term)), self.history_offsets[axis])
+        self.history.calibrate(got)
 
-    def _play_and_read(self, table: WaveTable, axes: list[str]) -> dict[str, np.ndarray] | tuple[str, str]:
-        """The measured motion per axis, or ``(state, why)`` when the play or the read-back
-        did not complete."""
-        from afmctl.drivers.errors import AmplifierConnectionError, AmplifierTimeout
-        self.step = Step.PLAY
-        armed: list[Any] = []
-        ended = self._play(table, lambda: armed.append(self._arm(table, axes)))
-        if ended is not None:
-            return ended
-        if not armed:
-            raise AfmctlError("learn: the play ended without arming the recorder")
-        self.step = Step.READ
-        try:
-            return self._read(table, armed[0])
-        except (AmplifierTimeout, AmplifierConnectionError) as err:
-            return "fault", f"reading the recording failed: {err}"
-        except RecordingRefused as err:       # not learned from: the table plays again
-            return "fault", str(err)
+    def _played(self, table: WaveTable, rows: int, times: dict[str, float]) -> None:
+        self.history.played({a: table.u_V[:, "xyz".index(a)] for a in self.axes}, rows, times)
 
     def _check(self, table: WaveTable) -> None:
         if self._capacity is None:          # asked once, before the first play (a link may be down later)
@@ -457,74 +347,14 @@ class LearnRun:
         if not driven_steps_ok(table.u_V, self.axes, self.limits_V, self.max_step_V / (1.0 - SLEW_RESERVE), start):
             raise AfmctlError("learn: the next table breaks the limits or the slew limit; nothing was sent")
 
-    def _arm(self, table: WaveTable, axes: list[str]) -> Any:
-        return arm_recorder(self.amp, self.config, len(table), axes)
-
-    def _play(self, table: WaveTable, arm: Callable[[], None]) -> tuple[str, str] | None:
-        """Play ``table`` as a run plays a learned table, ``arm`` called once it is on the
-        device, before the approach (step ``arm``); None when it played to the end, else ``(state, why)``."""
-        if self._stop.is_set():
-            return "stopped", "stopped before the play"
-        source = LearnedSource(make_learned(self.config, table, self.spec), "the table being learned")
-        ctl = Controller(self.config, self.amp)
-        ctl.before_wave_start = lambda: self._set_step(Step.ARM, arm)
-        self._ctl = ctl
-        try:
-            ctl.start(source)
-            if self._stop.is_set():
-                ctl.stop()
-            while not ctl.wait(0.05):
-                pass
-            stats = ctl.stats()
-        finally:
-            ctl.close()
-            self._ctl = None
-        wave = stats.get("wave") or {}
-        self._advance_timeline(table, int(wave.get("played", 0)), dict(ctl.wave_times))
-        if ctl.trajectory_error is not None:
-            raise AfmctlError(f"learn: the table cannot be played: {ctl.trajectory_error}")
-        if ctl.state is not State.STOPPED:
-            return "fault", f"the play ended in {ctl.state.value}: {stats.get('last_error') or 'see the log'}"
-        if wave.get("played") != len(table):
-            return "stopped", f"stopped during the play ({wave.get('played', 0)} of {len(table)} samples)"
-        return None
-
-    def _set_step(self, step: Step, then: Callable[[], None]) -> None:
-        self.step = step
-        then()
-        self.step = Step.PLAY
-
-    def _advance_timeline(self, table: WaveTable, played: int, times: dict[str, float]) -> None:
-        """The play (``played`` rows; ``times``: the controller's ``wave_times``) into the
-        learn run's voltage history; its history term per axis."""
-        self._terms = {}
-        if self.timeline is None:
-            return
-        if not {"approach", "settle", "start"} <= set(times):   # nothing played: the outputs held (or ramped back)
-            self.timeline.rested(time.monotonic())
-            return
-        cols = {a: table.u_V[:, "xyz".index(a)] for a in self.timeline.now}
-        self._terms = self.timeline.played(cols, times, played)
-
-    def _reconnect(self) -> None:
-        """After a link fault: reconnect (the driver reads the output back; the next play's
-        approach ramps from there)."""
-        try:
-            self.amp.reconnect()
-        except Exception as err:  # noqa: BLE001 - the next play reports the link's state
-            log.warning("learn: reconnect failed: %s", err)
-
-    def _read(self, table: WaveTable, setup: Any) -> dict[str, np.ndarray]:
-        return read_aligned(self.amp, table, setup, self.options.record_timeout_s)
-
     def _learn(self, k: int, table: WaveTable, learners: dict[str, Learner], measured: dict[str, np.ndarray]
                ) -> tuple[IterationReport, WaveTable | None]:
         nxt = WaveTable(table.target_nm, table.corrected_nm, table.drift_nm, table.u_V.copy(), table.T_C, table.pad,
                         list(table.report))
         errors, rhos, lags, stops = {}, [], [], []
-        terms = {a: self._history_term(a, k, measured[a].shape) for a in learners}
-        if k == 0 and self.options.history_term:
-            self._first_play = {a: (measured[a].copy(), terms[a]) for a in learners}
+        terms = {a: self.history.term(a, k, measured[a].shape) for a in learners}
+        if k == 0:
+            self.history.first_play(measured, terms)
         for axis, learner in learners.items():
             c = "xyz".index(axis)
             res = learner.step(table.u_V[:, c], measured[axis] - terms[axis])
@@ -540,31 +370,27 @@ class LearnRun:
         judged = judged_errors(table.target_nm, {a: measured[a] - terms[a] for a in learners})
         metric = judged.worst_pct()
         if metric != metric:      # no learned axis has a length to refer to: the law's own figure
-            metric = max(e.get("central_max_pct", e["max_pct"]) for e in errors.values())
+            metric = max(axis_metric(e) for e in errors.values())
         if self.best is None or metric < self.best[0]:
             self.best = (metric, table)
         report = IterationReport(k, errors, metric, float(np.median(rhos)), float(max(lags, key=abs)),
                                  history_nm=max((float(np.max(np.abs(d))) for d in terms.values()), default=0.0),
-                                 history_offset_nm=max(self.history_offsets.values(), key=abs, default=0.0),
+                                 history_offset_nm=max(self.history.offsets.values(), key=abs, default=0.0),
                                  judged=judged)
         if metric <= self.options.noise_floor_pct:
             report.state, report.detail = "converged", f"at the noise floor ({metric:.3g} % <= " \
                                                       f"{self.options.noise_floor_pct:g} %)"
             return report, None
         if self.options.noise_floor_pct <= 0.0 and self._stalled(metric):
-            report.state, report.detail = "converged", "no further improvement in two iterations (noise floor)"
+            floors = [(a, learner.floor()) for a, learner in learners.items()]
+            named = "; ".join(f"{a}: {fl.phrase}" for a, fl in floors if fl is not None)
+            report.state, report.detail = "converged", ("no further improvement in two iterations; the floor: "
+                                                        + (named or "not named (no step learned)"))
             return report, None
         if stops:
             report.state, report.detail = "diverged", "; ".join(stops) + "; the best table is kept"
             return report, None
         return report, nxt
-
-    def _history_term(self, axis: str, k: int, shape: tuple[int, ...]) -> np.ndarray:
-        """The history term [nm] of axis ``axis`` in iteration ``k``: the model's, offset as
-        measured from the second play on (the first play is the one ``afmctl run``
-        repeats from rest)."""
-        offset = self.history_offsets.get(axis, 0.0) if k >= 1 else 0.0
-        return np.broadcast_to(self._terms.get(axis, 0.0), shape) + offset
 
     def _stalled(self, metric: float) -> bool:
         m = [r.metric_pct for r in self.reports[-2:]] + [metric]
@@ -574,15 +400,9 @@ class LearnRun:
     def stop(self) -> None:
         """End learning: the table playing (if any) stops as a run stops; the best table so
         far is the result."""
-        self._stop.set()
-        ctl = self._ctl
-        if ctl is not None:
-            ctl.stop()
+        self.player.stop()
 
     def estop(self) -> None:
         """Emergency stop: the device stops at once (FIFO flushed / generator stopped) and the
         output ramps to the safe value at the slew limit; learning ends."""
-        self._stop.set()
-        ctl = self._ctl
-        if ctl is not None:
-            ctl.estop()
+        self.player.estop()

@@ -4,9 +4,12 @@ report`` print.
 
 The part judged (:func:`judged_part`): when the target is a raster — one axis moves along
 at least two straight lines (:func:`afmctl.compensators.learning_weights.find_lines`) of
-one length that cover at least half the record — the central ``central_pct`` % of each of
-those lines (the part an AFM images; the turnarounds the amplifier cannot follow are left
-out); otherwise the whole record given.
+one length that cover at least half the record between its first move and its last (a
+wave table's rests before and after do not count) — the central ``central_pct`` % of the
+raster lines the learning judges too
+(:func:`afmctl.compensators.learning_weights.judged_lines`: every line, a trace and its
+retrace, but the first, which the scanner starts from rest; the part an AFM images, the
+turnarounds the amplifier cannot follow left out); otherwise the whole record given.
 
 Each axis's percentages refer to (:func:`reference_nm`):
 
@@ -25,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from afmctl.compensators.learning_weights import REPORT_CENTRAL_PCT, Line, find_lines, lines_mask
+from afmctl.compensators.learning_weights import REPORT_CENTRAL_PCT, Line, find_lines, judged_lines, lines_mask
 
 #: an axis moving less than this [nm] peak to peak (over the record, or over one line for
 #: a step) holds: its error is given in nm only
@@ -103,6 +106,7 @@ def raster_lines(target_nm: np.ndarray, axes: str = AXES) -> tuple[str, list[Lin
     """The fast axis and its lines when ``target_nm`` (N, 3) is a raster (module docstring),
     else None. Only the columns of ``axes`` are looked at."""
     tgt = np.asarray(target_nm, dtype=float)
+    moving = moving_samples(tgt)
     best: tuple[str, list[Line]] | None = None
     for a in axes:
         found = find_lines(tgt[:, AXES.index(a)])
@@ -111,11 +115,21 @@ def raster_lines(target_nm: np.ndarray, axes: str = AXES) -> tuple[str, list[Lin
         lengths = np.array([np.ptp(tgt[ln.start:ln.stop, AXES.index(a)]) for ln in found])
         alike = np.abs(lengths - np.median(lengths)) <= LENGTH_TOL * np.median(lengths)
         covered = sum(ln.n for ln in found)
-        if covered < RASTER_SHARE * len(tgt) or np.mean(alike) < RASTER_ALIKE:
+        if covered < RASTER_SHARE * moving or np.mean(alike) < RASTER_ALIKE:
             continue
         if best is None or covered > sum(ln.n for ln in best[1]):
             best = (a, found)
     return best
+
+
+def moving_samples(target_nm: np.ndarray) -> int:
+    """How many samples of ``target_nm`` (N, 3) [nm] lie between its first move and its
+    last: the rests at its start and end (a wave table's padding) left out."""
+    tgt = np.asarray(target_nm, dtype=float)
+    if len(tgt) < 2:
+        return len(tgt)
+    changed = np.flatnonzero(np.any(np.diff(tgt, axis=0) != 0.0, axis=1))
+    return int(changed[-1] - changed[0] + 2) if changed.size else 0
 
 
 def judged_part(target_nm: np.ndarray, axes: str = AXES, central_pct: float = REPORT_CENTRAL_PCT
@@ -127,8 +141,9 @@ def judged_part(target_nm: np.ndarray, axes: str = AXES, central_pct: float = RE
     if raster is None:
         return np.ones(n, bool), f"the whole record ({n} samples)", None
     fast, lines = raster
-    mask = lines_mask(n, lines, central_pct) > 0
-    return mask, f"the central {central_pct:g} % of each of the {len(lines)} lines ({fast} is the fast axis)", raster
+    judged, which = judged_lines(lines)
+    mask = lines_mask(n, judged, central_pct) > 0
+    return mask, f"the central {central_pct:g} % of {which}; {fast} is the fast axis", raster
 
 
 def reference_nm(target: np.ndarray, axis: str, raster: tuple[str, list[Line]] | None) -> tuple[str | None, float | None]:

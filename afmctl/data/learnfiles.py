@@ -93,7 +93,26 @@ def settings_from_args(args: argparse.Namespace, model: Any):
     lo, hi, source = _limits(args.limits, model)
     return LearnSettings(rho_max=args.step_size, q_cutoff_Hz=args.q_cutoff_Hz, central_pct=args.central_pct,
                          lines_only=args.lines_only, periodic=args.periodic, u_min_V=lo, u_max_V=hi,
-                         slew_V_per_s=args.slew_V_per_s, align=args.align), source
+                         slew_V_per_s=args.slew_V_per_s, align=args.align,
+                         judge_lines=parse_judged_lines(getattr(args, "judge_lines", None))), source
+
+
+def parse_judged_lines(text: str | None) -> tuple[int, ...] | None:
+    """``--judge-lines`` (e.g. ``2-6`` or ``1,3,5-8``: raster lines, 1-based) as line numbers;
+    None when not given. A bad list is one :class:`AfmctlError` line."""
+    if text is None:
+        return None
+    out: list[int] = []
+    try:
+        for part in text.split(","):
+            a, _, b = part.strip().partition("-")
+            lo, hi = int(a), int(b) if b else int(a)
+            if lo < 1 or hi < lo or hi - lo > 100_000:
+                raise ValueError
+            out.extend(range(lo, hi + 1))
+    except ValueError:
+        raise AfmctlError(f"--judge-lines: {text!r}; allowed raster line numbers from 1, e.g. 2-6 or 1,3,5-8") from None
+    return tuple(out)
 
 
 def _limits(given, model) -> tuple[float, float, str]:

@@ -19,9 +19,13 @@ import numpy as np
 from ..errors import AfmctlError
 from afmctl.drivers.base import AmplifierInterface
 
-#: reply timeout [s] of the CAN driver to a simulated amplifier in this process (a device on
-#: a wire: the driver's 0.5 s default)
-SIMULATED_CAN_TIMEOUT_S = 2.0
+#: reply (and write) timeout [s] of the driver to a simulated amplifier in this process, of
+#: every driver: the simulated device reads and answers from a thread of this process, which a
+#: loaded host (or the loop's own thread) can keep from running for longer than a device on a
+#: wire takes to answer (the drivers' 0.5 s default, kept for real devices: the CAN amplifier
+#: went silent at a 2 kHz loop, the GCS and NV200 links' writes timed out between plays of
+#: afmctl learn at load 7 on two cores). A configured ``amplifier.options.timeout_s`` wins.
+SIMULATED_LINK_TIMEOUT_S = 2.0
 
 
 def load_scanner_config(path: Path | None):
@@ -121,11 +125,11 @@ def simulated_amplifier(config) -> Iterator[tuple[Any, ScannerTap]]:
                 raise AfmctlError(f"simulation.device: {err} (simulated {driver})") from None
             port = server.port
         from ..control.hardware import open_driver
-        # the simulated amplifier answers from a thread of this process: under load the loop's
-        # thread holds the interpreter for longer than a device on a wire would take to answer
-        # (0.5 s, the driver's default, went by at a 2 kHz loop); a serial driver paces its
-        # writes to the simulated link's rate, as to a real port's
-        default = {"timeout_s": SIMULATED_CAN_TIMEOUT_S} if driver == "can" else {"baudrate": config.simulation.baud}
+        # the simulated amplifier answers from a thread of this process (SIMULATED_LINK_TIMEOUT_S);
+        # a serial driver paces its writes to the simulated link's rate, as to a real port's
+        default: dict[str, Any] = {"timeout_s": SIMULATED_LINK_TIMEOUT_S}
+        if driver != "can":
+            default["baudrate"] = config.simulation.baud
         config = config.model_copy(update={"amplifier": config.amplifier.model_copy(
             update={"options": {**default, **config.amplifier.options}})})
         amp = open_driver(config, port)
