@@ -176,6 +176,9 @@ class Scanner:
             self._pos = self._compose(np.array([[self.axes[a].y_nm for a in AXES]]), np.zeros((1, 3)))[0]
             self.sensor = PositionSensor([self.config.axis(a).sensor for a in AXES], self.config.seed)
             self._captures: list[SensorCapture] = []
+            #: output changes handed to :meth:`play` for a time more than a sample before the
+            #: simulated time (a wave point the amplifier handed over too late: not simulated)
+            self.late_changes = 0
 
     def _compose(self, disp: np.ndarray, drift: np.ndarray) -> np.ndarray:
         """Coupling then drift, row by row in a fixed order of operations (not ``disp @ C.T``,
@@ -370,6 +373,7 @@ class Scanner:
             dt = self.config.dt_s
             counts = []
             t0, done = self.time_s, 0                   # the clock counts samples, not sums of n·dt
+            self.late_changes += int(np.count_nonzero(t < t0 - dt))
             for t_k in t.tolist():                      # whole samples before each change, as advance()
                 n = max(whole_samples(t_k - (t0 + done * dt), dt), 0)
                 counts.append(n)

@@ -155,6 +155,22 @@ class SimDevice:
             self._load_t = now_s
             advance(now_s)
 
+    def play_due(self, now_s: float | None = None) -> None:
+        """Hand the load what the device's own clock (a wave generator) played by now (or
+        ``now_s`` [s]), under :attr:`lock`, without advancing the load otherwise (the
+        simulator's clock thread calls this when :meth:`next_due_s` says the server has not)."""
+        with self.lock:
+            self._play_due(self.now() if now_s is None else now_s)
+
+    def next_due_s(self) -> float | None:
+        """When the device's own clock plays its next point [s]; None when it plays nothing
+        (read without the lock: a tick late at worst)."""
+        wave = getattr(self, "wave", None)
+        return None if wave is None else wave.next_due_s()
+
+    def _play_due(self, now_s: float) -> None:
+        """The points a device clock played by ``now_s`` [s] (none without a wave generator)."""
+
     def inject_error(self, code: object = None) -> None:
         """Make the next command fail with a device error (protocol-specific ``code``)."""
         self._inject = code if code is not None else True

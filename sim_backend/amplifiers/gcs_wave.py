@@ -230,6 +230,7 @@ class WaveGenerator:
         return sum(1 << (gid - 1) for gid, g in self.gens.items() if g.mode)
 
     def next_due_s(self) -> float | None:
+        """When the next point not yet played falls due [s] (None: no generator runs)."""
         due = [self.point_time_s(g, g.k) for g in self.gens.values() if g.mode]
         return min(due) if due else None
 

@@ -128,7 +128,7 @@ class SimNV200(SimDevice):
 
     def poll(self) -> None:
         """Play the waveform samples that fell due by now and bring the load up to now (the
-        servers call this when idle, the simulator's clock thread on every tick)."""
+        servers call this when idle; the simulator's clock thread calls :meth:`play_due`)."""
         with self.lock:
             now = self.now()
             self._play_due(now)

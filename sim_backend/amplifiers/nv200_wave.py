@@ -79,6 +79,10 @@ class WaveBuffer:
             self.apply(vk, tk)
         return len(t)
 
+    def next_due_s(self) -> float | None:
+        """When the next sample not yet played falls due [s] (None: the generator is idle)."""
+        return self.sample_time_s(self.k) if self.params["grun"] else None
+
     def take_due(self, now_s: float) -> tuple[np.ndarray, np.ndarray]:
         """Every sample due at or before ``now_s`` as arrays (times [s], buffer values [%]),
         the generator moved past them (what :meth:`run_until` applies one by one)."""
