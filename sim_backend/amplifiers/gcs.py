@@ -100,12 +100,12 @@ class SimGCS(SimDevice):
 
     def poll(self, now_s: float | None = None) -> None:
         """Play the wave points that fell due by now (or ``now_s``; the servers call this when
-        idle), then bring the load up to now (the simulator's clock thread calls :meth:`play_due`). The points go as one block: the outputs
-        computed for all of them at once, the recorder told in one call, the sink handed the
-        changes in one ``sink.play(t_s, rows_V)`` where it has one (the simulated scanner
-        simulates a block in one call) else one ``apply`` per change. A call per point costs
-        more than the 50 µs servo cycle on a loaded host, and a simulator that falls behind
-        its own clock never answers again."""
+        idle; the simulator's clock thread calls :meth:`play_due`), then bring the load up to
+        now. The points go as one block: the outputs computed for all of them at once, the
+        recorder told in one call, the sink handed the changes in one ``sink.play(t_s, rows_V)``
+        where it has one (the simulated scanner simulates a block in one call) else one
+        ``apply`` per change. A call per point costs more than the 50 µs servo cycle on a
+        loaded host, and a simulator that falls behind its own clock never answers again."""
         with self.lock:
             now = self.now() if now_s is None else now_s
             self._play_due(now)
