@@ -53,7 +53,7 @@ from .learning_laws import Increment, model_based_increment, model_free_incremen
 from .learning_spectra import Grid, estimate_lag_samples
 from .learning_floor import Floor, name_floor
 from .learning_noise import NO_NOISE, Noise, estimate_noise, noise_gain
-from .learning_weights import (REPORT_CENTRAL_PCT, error_figures, error_weights, find_lines, judged_lines,
+from .learning_weights import (REPORT_CENTRAL_PCT, Line, error_figures, error_weights, find_lines, judged_lines,
                                learning_weights, line_span_nm, lines_mask, raster_lines, rounded_reference)
 
 log = logging.getLogger(__name__)
@@ -258,10 +258,17 @@ def target_digest(target_nm: np.ndarray, dt_s: float) -> str:
 class Learner:
     """Learns the voltages of one target ``target_nm`` [nm] sampled at ``dt_s`` [s]
     (module docstring). ``model``: a chain (or static hysteresis) model, u [V] → y [nm];
-    None: the model-free law. ``state``: continue from a saved :class:`LearnState`."""
+    None: the model-free law. ``state``: continue from a saved :class:`LearnState`.
+    ``lines``: the raster's lines (:func:`~afmctl.compensators.learning_weights.find_lines`
+    of its fast axis's target) when this target is a slow axis of it: its error is then
+    weighted and judged where the raster images, as ``afmctl run`` judges it, not on its
+    own ramps (a trace-retrace raster's slow axis ramps during the retraces: on its own
+    lines, the simulated E-727's y learned its ramps and left the traces 600 nm off); None:
+    the lines found in ``target_nm``."""
 
     def __init__(self, target_nm: np.ndarray, dt_s: float, model: Any = None,
-                 settings: LearnSettings | None = None, state: LearnState | None = None) -> None:
+                 settings: LearnSettings | None = None, state: LearnState | None = None,
+                 lines: list[Line] | None = None) -> None:
         self.target_nm = np.ascontiguousarray(target_nm, dtype=np.float64).ravel()
         if self.target_nm.size < 8 or not np.all(np.isfinite(self.target_nm)):
             raise ModelError("target: need at least 8 finite samples [nm]")
@@ -271,7 +278,7 @@ class Learner:
         self.model = model
         self.settings = settings or LearnSettings()
         self.settings.check()
-        self.lines = find_lines(self.target_nm)
+        self.lines = find_lines(self.target_nm) if lines is None else list(lines)
         try:
             judged, self.judged_text = judged_lines(self.lines, self.settings.judge_lines)
         except ValueError as err:
@@ -297,6 +304,12 @@ class Learner:
             if v is not None and len(v) != self.target_nm.size:
                 raise ModelError(f"learning state: {name} has another length than the target")
         self.state = state or LearnState(self.digest)
+
+    @property
+    def diverging(self) -> bool:
+        """The divergence guard stopped learning (the error rose ``max_rises`` times in a
+        row), not the floor or the convergence check."""
+        return self.state.stopped and self.state.rises >= self.settings.max_rises
 
     @property
     def law(self) -> str:
@@ -525,18 +538,6 @@ class Learner:
             out, _, extra = rate_limit(out, s.u_min_V, s.u_max_V, step, u_start_V=float(out[-1]))
             limited += extra
         return out, clipped // 2, limited
-
-
-def _weighted_max_pct(e: np.ndarray, w: np.ndarray, target: np.ndarray, lines: list) -> float:
-    """Largest |error| where the weight is positive, % of the line length for a raster
-    (else of the target's span)."""
-    span = _line_span(target, lines) if lines else float(np.ptp(target)) or 1.0
-    sel = w > 0
-    return float(100.0 * np.max(np.abs(e[sel])) / span) if np.any(sel) else 0.0
-
-
-def _line_span(target: np.ndarray, lines: list) -> float:
-    return float(np.median([np.ptp(target[ln.start:ln.stop]) for ln in lines])) or 1.0
 
 
 def _shift(y: np.ndarray, k: int, periodic: bool) -> np.ndarray:

@@ -254,9 +254,17 @@ def error_figures(y_nm: np.ndarray, target_nm: np.ndarray, lines: list[Line] | N
     return out
 
 
+#: a target moving less than this [nm] over a line holds there (a slow axis during a trace)
+HOLD_NM = 1.0
+
+
 def line_span_nm(target_nm: np.ndarray, lines: list[Line]) -> float:
-    """The length of the raster's lines [nm]: the median of their spans (1 without lines)."""
-    return float(np.median([np.ptp(target_nm[ln.start:ln.stop]) for ln in lines])) if lines else 1.0
+    """The length of the raster's lines [nm] along ``target_nm``: the median of its spans
+    over the lines on which it moves (for a slow axis judged on the fast axis's lines, its
+    step per line); 1 without lines or movement."""
+    spans = np.array([np.ptp(target_nm[ln.start:ln.stop]) for ln in lines])
+    moving = spans[spans >= HOLD_NM]
+    return float(np.median(moving)) if moving.size else 1.0
 
 
 def judged_max_pct(y_nm: np.ndarray, target_nm: np.ndarray, named: tuple[int, ...] | None = None) -> float:

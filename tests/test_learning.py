@@ -433,3 +433,28 @@ def test_the_state_helps_learning_and_never_hurts(plant, chain):
         errs.append(central_max(plant.run(u), tgt))
         out[keep] = errs
     assert min(out[True]) <= min(out[False]) * 1.05 and out[True][-1] <= out[False][-1] * 1.05, out
+
+
+def _trace_retrace(lines: int = 5, n_line: int = 200, width_nm: float = 4000.0, step_nm: float = 90.0):
+    """A trace-retrace raster (x, y) [nm]: x rises over the trace and falls over the retrace,
+    y holds during each trace and ramps one step during its retrace."""
+    trace = np.linspace(0.0, width_nm, n_line, endpoint=False)
+    x = np.concatenate([np.concatenate([trace, width_nm - trace]) for _ in range(lines)] + [[0.0]])
+    y = np.concatenate([np.concatenate([np.full(n_line, k * step_nm), k * step_nm + step_nm * trace / width_nm])
+                        for k in range(lines)] + [[lines * step_nm]])
+    return x, y
+
+
+def test_a_slow_axis_given_the_raster_lines_learns_and_is_judged_where_the_raster_images():
+    x, y = _trace_retrace()
+    n_line = 200
+    own = Learner(y, 1e-4)                                   # its own lines: the ramps of the retraces
+    raster = Learner(y, 1e-4, lines=find_lines(x))           # the fast axis's lines
+    second_trace = slice(2 * n_line + 30, 3 * n_line - 30)   # line 2's trace, where y holds
+    assert np.all(own.weights[second_trace] == 0.0) and not np.any(own.judged[second_trace])
+    assert np.all(raster.weights[second_trace] > 0.0) and np.all(raster.judged[second_trace])
+    assert raster.line_nm == pytest.approx(90.0) and own.line_nm == pytest.approx(90.0)   # % of its step
+    # learning y from a constant offset on the judged lines: the raster-lined learner removes it there
+    sent = y / 80.0
+    res = raster.step(sent, y + 50.0)
+    assert np.all(res.u_next_V[second_trace] < sent[second_trace] - 0.3)

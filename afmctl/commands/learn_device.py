@@ -21,9 +21,10 @@ plays the configured trajectory as a wave table (amplifier.output = "wave"), rea
 scanner's measured motion back through the recorder, computes the next table, and repeats:
 a progress line per iteration (per learned axis the error max / RMS in nm and in % of
 that axis's line, or of its step for a raster's slow axis, over the central 80 % of every
-raster line but the first, as afmctl run reports it; the step size), until the error is at --noise-floor-pct, stops improving, a
-guard stops it (error rising twice; a model whose phase is over 90 deg off) or N tables
-have played. The scanner creeps: each play carries the creep of the plays before it, and
+raster line but the first, as afmctl run reports it; the step size). Each axis learns on
+its own until its error is at --noise-floor-pct, stops improving, or a guard stops it
+(error rising twice; a model whose phase is over 90 deg off); it then plays its best
+column, and learning ends when every axis has, or N tables have played. The scanner creeps: each play carries the creep of the plays before it, and
 afmctl run later plays the learned table once, from rest. With a model whose chain has a
 creep stage, each recording is first freed of what that creep history adds (the "history
 term", in nm on the progress line), so the learned table is right for that play from rest;
@@ -35,7 +36,7 @@ holds 2 s first (a shorter hold makes plays repeat less well; afmctl learn says 
 the learned table records its hold, which afmctl run then keeps.
 Every table is checked (limits, slew, device capacity) before it is sent;
 Ctrl-C stops (the best table so far is written), a second Ctrl-C is an emergency stop.
-The best measured table is written to --out; play it with
+The table made of each axis's best measured column is written to --out; play it with
 
   [trajectory]
   kind = "learned"
@@ -67,8 +68,9 @@ def add_device_arguments(p: argparse.ArgumentParser) -> None:
                    help="learn from the recordings as they are (default: with a model that has a creep stage, "
                         "take out the creep the earlier plays left, so the table is right for afmctl run's "
                         "play from rest)")
-    g.add_argument("--rho", type=float, default=1.0, metavar="RHO",
-                   help="largest step size, 0 < RHO <= 2 (default 1: a full inverse step)")
+    g.add_argument("--rho", type=float, default=None, metavar="RHO",
+                   help="largest step size, 0 < RHO <= 2 (default: the law's, 1 (a full inverse step) with a "
+                        "model, 0.7 with --model-free or no model)")
     g.add_argument("--central-pct", dest="device_central_pct", type=float, default=CENTRAL_PCT, metavar="P",
                    help="weighted central share of each raster line [%%] (default 80: the part the error is judged on)")
 
@@ -81,7 +83,7 @@ def _check_args(args: argparse.Namespace) -> None:
         raise AfmctlError(f"--iterations {args.iterations}: allowed 1..{MAX_ITERATIONS}")
     if not (math.isfinite(args.noise_floor_pct) and 0.0 <= args.noise_floor_pct <= 100.0):
         raise AfmctlError(f"--noise-floor-pct {args.noise_floor_pct:g}: allowed 0..100 %")
-    if not (math.isfinite(args.rho) and 0.0 < args.rho <= 2.0):
+    if args.rho is not None and not (math.isfinite(args.rho) and 0.0 < args.rho <= 2.0):
         raise AfmctlError(f"--rho {args.rho:g}: allowed 0 < RHO <= 2")
     if not (math.isfinite(args.device_central_pct) and 0.0 < args.device_central_pct <= 100.0):
         raise AfmctlError(f"--central-pct {args.device_central_pct:g}: allowed 0 < P <= 100 %")
@@ -94,7 +96,8 @@ def progress_line(report: Any) -> str:
     if report.judged is None:
         return f"afmctl: learn {report.iteration:3d}: {report.state}: {report.detail}"
     step = f"; step {report.rho:.2f}" if report.rho is not None and report.state == "learning" else ""
-    tail = f"; {report.state}: {report.detail}" if report.state != "learning" else ""
+    tail = (f"; {report.state}: {report.detail}" if report.state != "learning"
+            else f"; {report.detail}" if report.detail else "")
     history = f"; history term {report.history_nm:.1f} nm" if report.history_nm else ""
     if report.history_nm and report.history_offset_nm:
         history += f" ({report.history_offset_nm:+.1f} nm of it measured by replaying the first table)"
@@ -168,10 +171,8 @@ def run_device(args: argparse.Namespace) -> int:
     save_learned(args.learned_out, learned)
     if args.learned_plot:
         plot_convergence(run.reports, args.learned_plot)
-    best = min(run.reports, key=lambda r: r.metric_pct if r.metric_pct == r.metric_pct else math.inf)
-    figures = f": {best.judged.text()}" if best.judged is not None else ""
-    print(f"afmctl: learned table {args.learned_out}: best iteration {best.iteration}{figures}; play it with "
-          "[trajectory] kind = \"learned\" (afmctl run reports the same figures)", file=sys.stderr)
+    print(f"afmctl: learned table {args.learned_out}, each axis's best play: {run.book.best_text()}; play it "
+          "with [trajectory] kind = \"learned\" (afmctl run reports the same figures)", file=sys.stderr)
     return 1 if run.reports[-1].state == "fault" else 0
 
 

@@ -36,17 +36,22 @@ One iteration (:meth:`LearnRun.iterate`), in named steps:
    demo's model it is 6 nm on the CAN amplifier (which left the learned table 0.4 % of a
    1 µm line off when ``afmctl run`` played it from rest) and under 1 nm on the E-727.
 
-Learning ends when the error over the central part of each line is at the noise floor
-(``noise_floor_pct``), after ``iterations``, when a learner's guard stops it (error rising
-twice, or a model whose phase is more than 90° off where the error lies), or on a stop.
-The result is the best table *measured*, as a :class:`LearnedTable` that ``afmctl run``
-plays (``[trajectory] kind = "learned"``). Units: nm, V, s; errors in % of each axis's line
-(or of its span when its target has no lines) and in nm.
+Each axis is learned and judged on its own (:mod:`afmctl.control.learn_axes`): an axis
+finishes — it plays its best column from then on — when its error over the judged part is
+at the noise floor (``noise_floor_pct``), when it stopped improving, or when its learner's
+guard stops it (error rising twice, or a model whose phase is more than 90° off where the
+error lies). A raster's slow axis is weighted and judged on the raster's lines, as
+``afmctl run`` judges it. Learning ends when every axis has finished, after
+``iterations``, or on a stop. The result is made of each axis's best column *measured*,
+as a :class:`LearnedTable` that ``afmctl run`` plays (``[trajectory] kind = "learned"``).
+Units: nm, V, s; errors in nm and in % of each axis's line or step (or of its span when its
+target has no lines).
 
-One job per class: :class:`LearnRun` iterates and decides (learners, stop rules, the best
-table); :class:`~afmctl.control.learn_play.TablePlayer` plays a table and reads the
-recording back (steps check, arm, play, read); :class:`~afmctl.control.learn_history.HistoryTerms`
-keeps what each play's history adds to its recording (step calibrate).
+One job per class: :class:`LearnRun` iterates and decides (learners, stop rules);
+:class:`~afmctl.control.learn_axes.AxisBook` keeps each axis's figures and best column;
+:class:`~afmctl.control.learn_play.TablePlayer` plays a table and reads the recording back
+(steps check, arm, play, read); :class:`~afmctl.control.learn_history.HistoryTerms` keeps
+what each play's history adds to its recording (step calibrate).
 """
 from __future__ import annotations
 
@@ -60,9 +65,10 @@ import numpy as np
 from afmctl.compensators.learning import Learner, LearnSettings
 from afmctl.compensators.learning_history import creep_stages
 
-from ..data.axis_errors import ErrorReport, axis_errors
+from ..data.axis_errors import ErrorReport, axis_errors, raster_lines
 from ..errors import AfmctlError
 from ..inputs.trajectories import build, collect
+from .learn_axes import AxisBook
 from .learn_history import (HistoryTerms, PlayTimeline, history_offset_nm, settle_advice,  # noqa: F401 (re-exported)
                             with_learning_hold)
 from .learn_play import (OUTPUT_TOL_V, RecordingRefused, Step, TablePlayer, arm_recorder,  # noqa: F401
@@ -80,9 +86,6 @@ MAX_LAG_SHARE = 0.25
 SLEW_RESERVE = 0.02
 #: a target axis moving less than this [nm] peak to peak is not learned (it holds)
 MIN_SPAN_NM = 1.0
-#: without a noise floor: relative improvement below which two iterations in a row mean
-#: the error is at the noise floor
-STALL_IMPROVEMENT = 0.03
 
 
 def axis_metric(errors: dict[str, float]) -> float:
@@ -188,7 +191,9 @@ class LearnRun:
         self.options = options or LearnOptions()
         self.on_iteration = on_iteration
         self.reports: list[IterationReport] = []
-        self.best: tuple[float, WaveTable] | None = None
+        #: a table played to the end (the learned table is made from it and each axis's best column)
+        self.best: WaveTable | None = None
+        self.book = AxisBook([])
         self._models: tuple | None = None
         self.history = HistoryTerms(None, self.options.history_term)
         self._check_config()
@@ -247,6 +252,7 @@ class LearnRun:
     def learners(self, table: WaveTable) -> dict[str, Learner]:
         """One learner per axis whose target moves, its limits from the configuration."""
         models = self.recorder_models()[0] if self.options.use_model else [(None, None)] * 3
+        raster = raster_lines(table.target_nm, "".join(self.axes))
         out: dict[str, Learner] = {}
         for axis in self.axes:
             k = "xyz".index(axis)
@@ -255,9 +261,11 @@ class LearnRun:
             lo, hi = self.limits_V[axis]
             settings = LearnSettings(**{**self.options.settings.__dict__, "u_min_V": lo, "u_max_V": hi,
                                         "slew_V_per_s": self.max_step_V / self.config.dt_s})
-            out[axis] = Learner(table.target_nm[:, k], self.config.dt_s, models[k][0], settings)
+            out[axis] = Learner(table.target_nm[:, k], self.config.dt_s, models[k][0], settings,
+                                lines=raster[1] if raster is not None else None)
         if not out:
             raise AfmctlError("trajectory: no driven axis moves; nothing to learn")
+        self.book = AxisBook(list(out))
         with_model = {a: models["xyz".index(a)][0] for a in out if creep_stages(models["xyz".index(a)][0])}
         if self.options.history_term and with_model:
             peak = {a: float(np.max(table.u_V[:, "xyz".index(a)])) for a in with_model}
@@ -293,7 +301,7 @@ class LearnRun:
             raise AfmctlError("learn: no table was played to the end; nothing learned")
         history = [{"iteration": r.iteration, "metric_pct": r.metric_pct, "state": r.state, **r.summary()}
                    for r in self.reports]
-        return make_learned(self.config, self.best[1], self.spec, history)
+        return make_learned(self.config, self.book.best_table(self.best), self.spec, history)
 
     def iterate(self, k: int, table: WaveTable, learners: dict[str, Learner]
                 ) -> tuple[IterationReport, WaveTable | None]:
@@ -351,10 +359,15 @@ class LearnRun:
                ) -> tuple[IterationReport, WaveTable | None]:
         nxt = WaveTable(table.target_nm, table.corrected_nm, table.drift_nm, table.u_V.copy(), table.T_C, table.pad,
                         list(table.report))
-        errors, rhos, lags, stops = {}, [], [], []
         terms = {a: self.history.term(a, k, measured[a].shape) for a in learners}
         if k == 0:
             self.history.first_play(measured, terms)
+        judged = judged_errors(table.target_nm, {a: measured[a] - terms[a] for a in learners})
+        self.book.record(k, table, judged)
+        if self.best is None:
+            self.best = table
+        errors, rhos, lags = {}, [], []
+        learning = self.book.learning()
         for axis, learner in learners.items():
             c = "xyz".index(axis)
             res = learner.step(table.u_V[:, c], measured[axis] - terms[axis])
@@ -362,39 +375,47 @@ class LearnRun:
                 raise RecordingRefused(f"learn: the recording of axis {axis} lags the table by "
                                        f"{res.lag_samples:.0f} samples (trigger?); not learned from")
             errors[axis] = res.errors
-            rhos.append(res.rho_median)
             lags.append(res.lag_samples)
-            nxt.u_V[:, c] = res.u_next_V
-            if res.stopped:
-                stops.append(f"{axis}: {res.reason}")
-        judged = judged_errors(table.target_nm, {a: measured[a] - terms[a] for a in learners})
+            if axis in learning:
+                rhos.append(res.rho_median)
+                nxt.u_V[:, c] = res.u_next_V
+                if res.stopped:
+                    self.book.finish(axis, res.reason, diverged=learner.diverging)
         metric = judged.worst_pct()
         if metric != metric:      # no learned axis has a length to refer to: the law's own figure
             metric = max(axis_metric(e) for e in errors.values())
-        if self.best is None or metric < self.best[0]:
-            self.best = (metric, table)
-        report = IterationReport(k, errors, metric, float(np.median(rhos)), float(max(lags, key=abs)),
+        report = IterationReport(k, errors, metric, float(np.median(rhos)) if rhos else None,
+                                 float(max(lags, key=abs)),
                                  history_nm=max((float(np.max(np.abs(d))) for d in terms.values()), default=0.0),
                                  history_offset_nm=max(self.history.offsets.values(), key=abs, default=0.0),
                                  judged=judged)
-        if metric <= self.options.noise_floor_pct:
-            report.state, report.detail = "converged", f"at the noise floor ({metric:.3g} % <= " \
-                                                      f"{self.options.noise_floor_pct:g} %)"
+        self._finish_axes(judged, learners, learning)
+        finished = [a for a in learning if self.book.axes[a].done]
+        for axis in self.book.axes:
+            if self.book.axes[axis].done:
+                nxt.u_V[:, "xyz".index(axis)] = self.book.best_column(axis)
+        if self.book.all_done():
+            report.state = "diverged" if self.book.any_diverged() else "converged"
+            report.detail = self.book.done_text()
             return report, None
-        if self.options.noise_floor_pct <= 0.0 and self._stalled(metric):
-            floors = [(a, learner.floor()) for a, learner in learners.items()]
-            named = "; ".join(f"{a}: {fl.phrase}" for a, fl in floors if fl is not None)
-            report.state, report.detail = "converged", ("no further improvement in two iterations; the floor: "
-                                                        + (named or "not named (no step learned)"))
-            return report, None
-        if stops:
-            report.state, report.detail = "diverged", "; ".join(stops) + "; the best table is kept"
-            return report, None
+        report.detail = self.book.done_text(finished)
         return report, nxt
 
-    def _stalled(self, metric: float) -> bool:
-        m = [r.metric_pct for r in self.reports[-2:]] + [metric]
-        return len(m) == 3 and all(m[i + 1] > (1.0 - STALL_IMPROVEMENT) * m[i] for i in (0, 1))
+    def _finish_axes(self, judged: ErrorReport, learners: dict[str, Learner], learning: list[str]) -> None:
+        """Each axis that still learns finishes (keeps its best column) when its error is
+        at ``noise_floor_pct`` or, without one, stopped improving (:class:`AxisBook`)."""
+        floor_pct = self.options.noise_floor_pct
+        for axis in learning:
+            progress = self.book.axes[axis]
+            if progress.done:
+                continue
+            pct = judged.axis(axis).max_pct
+            if floor_pct > 0.0 and pct is not None and pct <= floor_pct:
+                self.book.finish(axis, f"at the noise floor ({pct:.3g} % <= {floor_pct:g} %)")
+            elif floor_pct <= 0.0 and progress.stalled():
+                floor = learners[axis].floor()
+                self.book.finish(axis, "no further improvement in two iterations; the floor: "
+                                 + (floor.phrase if floor is not None else "not named (no step learned)"))
 
     # ------------------------------------------------------------------ requests
     def stop(self) -> None:
