@@ -453,6 +453,8 @@ def test_a_slow_axis_given_the_raster_lines_learns_and_is_judged_where_the_raste
     second_trace = slice(2 * n_line + 30, 3 * n_line - 30)   # line 2's trace, where y holds
     assert np.all(own.weights[second_trace] == 0.0) and not np.any(own.judged[second_trace])
     assert np.all(raster.weights[second_trace] > 0.0) and np.all(raster.judged[second_trace])
+    first_trace = slice(30, n_line - 30)                     # learned (near DC), not judged
+    assert np.all(raster.weights[first_trace] > 0.0) and not np.any(raster.judged[first_trace])
     assert raster.line_nm == pytest.approx(90.0) and own.line_nm == pytest.approx(90.0)   # % of its step
     # learning y from a constant offset on the judged lines: the raster-lined learner removes it there
     sent = y / 80.0
