@@ -7,7 +7,8 @@
    with the nonlinear distortion showing as lost coherence).
 2. Keep the bins the input excites (power above 1e-6 of its peak) whose coherence is at
    least ``min_coherence``, between ``f_min_Hz`` and ``f_max_Hz``.
-3. Fit, with :func:`scipy.optimize.least_squares` on the complex log error
+3. Fit, with :func:`scipy.optimize.least_squares` (analytic Jacobian,
+   :func:`log_response_jacobian`) on the complex log error
    ``√coh·log(G(f)/Ĝ(f))`` (log-magnitude and phase difference, no unwrapping), the
    structure
 
@@ -32,7 +33,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -333,6 +334,28 @@ def model_response(x: np.ndarray, f_Hz: np.ndarray, n_modes: int, n_lags: int) -
     return g
 
 
+def log_response_jacobian(x: np.ndarray, f_Hz: np.ndarray, n_modes: int, n_lags: int) -> np.ndarray:
+    """``∂ log G(j2πf) / ∂x`` of :func:`model_response`, complex, shape ``(f_Hz.size, x.size)``.
+
+    ``log G = x₀ − sτ + Σ_i [2 log ω_i − log(s² + 2ζ_iω_i s + ω_i²)] + Σ_j [log p_j − log(s + p_j)]``
+    with ``ω_i = 2π e^{x}`` (so ``∂ω/∂x = ω``): per mode ``∂/∂ log f = 2 − 2ω(ζs + ω)/D`` and
+    ``∂/∂ζ = −2ωs/D`` (``D`` its denominator), per lag ``∂/∂ log f = s/(s + p)``, and
+    ``∂/∂τ = −s``. The branch of the log does not matter: it is constant between jumps."""
+    _, fm, zeta, fl, _ = _unpack(x, n_modes, n_lags)
+    s = 2j * math.pi * np.asarray(f_Hz, dtype=float)
+    J = np.empty((s.size, x.size), dtype=complex)
+    J[:, 0] = 1.0
+    for i, (f0, z) in enumerate(zip(fm, zeta)):
+        w = 2 * math.pi * f0
+        D = s * s + 2 * z * w * s + w * w
+        J[:, 1 + i] = 2.0 - 2.0 * w * (z * s + w) / D
+        J[:, 1 + n_modes + i] = -2.0 * w * s / D
+    for j, f0 in enumerate(fl):
+        J[:, 1 + 2 * n_modes + j] = s / (s + 2 * math.pi * f0)
+    J[:, -1] = -s
+    return J
+
+
 def _initial(frf: FRF, n_modes: int, n_lags: int, lag_Hz: float, dt_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     from scipy.signal import find_peaks
 
@@ -389,14 +412,20 @@ def grown_starts(x: np.ndarray, frf: FRF, n_modes: int, n_lags: int) -> list[np.
             for f, z in zip(f_new, zeta_new)]
 
 
+#: how :func:`fit_frf` gets the residual's Jacobian: analytic, or scipy's finite differences
+Jacobian = Literal["analytic", "2-point", "3-point"]
+
+
 def fit_frf(frf: FRF, n_modes: int, n_lags: int, dt_s: float,
-            grow_from: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+            grow_from: np.ndarray | None = None, jac: Jacobian = "analytic") -> tuple[np.ndarray, float]:
     """Least-squares fit of the structure to ``frf``; returns the best parameter vector and
     its RMS complex log error (≈ relative error). Started from a few lags and the response's
     peaks, and (``grow_from``: the parameters of the fit with one mode less) from that fit
     with one mode added (:func:`grown_starts`); the best end wins. A best start that spends :data:`MAX_NFEV`
     evaluations is continued once; one that still has not converged is recorded in
-    ``frf.unconverged_modes``."""
+    ``frf.unconverged_modes``. ``jac``: "analytic" (:func:`log_response_jacobian`) or a
+    finite-difference scheme of :func:`scipy.optimize.least_squares` ("2-point", the fit's
+    Jacobian before the analytic one; benchmarks/dynamics_fit.py compares them)."""
     from scipy.optimize import least_squares
 
     w = np.sqrt(frf.coherence)
@@ -405,6 +434,11 @@ def fit_frf(frf: FRF, n_modes: int, n_lags: int, dt_s: float,
         r = w * np.log(model_response(x, frf.f_Hz, n_modes, n_lags) / frf.G)
         return np.concatenate([r.real, r.imag])
 
+    def analytic(x: np.ndarray) -> np.ndarray:
+        J = w[:, None] * log_response_jacobian(x, frf.f_Hz, n_modes, n_lags)
+        return np.concatenate([J.real, J.imag])
+
+    jacobian: Any = analytic if jac == "analytic" else jac
     f_hi = float(frf.f_Hz[-1])
     _, lb, ub = _initial(frf, n_modes, n_lags, f_hi, dt_s)
     starts = [_initial(frf, n_modes, n_lags, lag_Hz, dt_s)[0]
@@ -414,12 +448,12 @@ def fit_frf(frf: FRF, n_modes: int, n_lags: int, dt_s: float,
     best = None
     for x0 in starts:
         x0 = np.clip(x0, lb + 1e-12, ub - 1e-12)
-        sol = least_squares(resid, x0, bounds=(lb, ub), x_scale="jac", max_nfev=MAX_NFEV)
+        sol = least_squares(resid, x0, jac=jacobian, bounds=(lb, ub), x_scale="jac", max_nfev=MAX_NFEV)
         if best is None or sol.cost < best.cost:
             best = sol
     assert best is not None  # the loop above runs at least once
     if best.status == 0:                       # the budget spent: go on from there, once
-        more = least_squares(resid, best.x, bounds=(lb, ub), x_scale="jac", max_nfev=MAX_NFEV)
+        more = least_squares(resid, best.x, jac=jacobian, bounds=(lb, ub), x_scale="jac", max_nfev=MAX_NFEV)
         best = more if more.cost <= best.cost else best
         if more.status == 0:
             frf.unconverged_modes.add(n_modes)
@@ -451,17 +485,17 @@ def unresolved_modes(x: np.ndarray, frf: FRF, n_modes: int, n_lags: int) -> list
     return out
 
 
-def fit_mode_count(frf: FRF, n_lags: int, dt_s: float) -> tuple[int, np.ndarray, float]:
+def fit_mode_count(frf: FRF, n_lags: int, dt_s: float, jac: Jacobian = "analytic") -> tuple[int, np.ndarray, float]:
     """Fit 0, 1, … :data:`MAX_AUTO_MODES` structural modes, each fit grown from the one
     before (:func:`grown_starts`); keep adding one while it lowers the RMS log error below
     :data:`MODE_GAIN` times the previous and the record resolves it (:func:`unresolved_modes`:
     a mode beyond the measured band, or one whose peak the record does not show, is a guess
     that rings in the inverse). Returns the count, its parameters, its RMS; each count tried
-    leaves one clause in ``frf.trials`` (why it was kept or not)."""
-    n, (x, rms) = 0, fit_frf(frf, 0, n_lags, dt_s)
+    leaves one clause in ``frf.trials`` (why it was kept or not). ``jac``: as :func:`fit_frf`."""
+    n, (x, rms) = 0, fit_frf(frf, 0, n_lags, dt_s, jac=jac)
     frf.trials.append(_trial_text(frf, 0, rms))
     while n < MAX_AUTO_MODES:
-        x2, rms2 = fit_frf(frf, n + 1, n_lags, dt_s, grow_from=x)
+        x2, rms2 = fit_frf(frf, n + 1, n_lags, dt_s, grow_from=x, jac=jac)
         unresolved = unresolved_modes(x2, frf, n + 1, n_lags)
         why = (f"not kept: not below {MODE_GAIN:g} × {rms:.3g} (one mode fewer)" if not rms2 < MODE_GAIN * rms
                else f"not kept: {unresolved[0].removeprefix('dynamics: ')}" if unresolved else "")
