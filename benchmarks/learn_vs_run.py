@@ -12,10 +12,9 @@ Per example and model, two commands, as a user runs them:
    axis, measured by the device's recorder.
 
 ``e727_tcp`` and ``nv200_tcp`` run against ``afmctl sim --tcp`` on a free loopback port
-(``AFMCTL_AMPLIFIER__PORT``); ``afmctl run`` plays on a fresh one, a scanner at rest, as the
-table was learned for (the simulator that served the learning still creeps from its plays:
-on e727_tcp with the chain, 10.8 nm where the fresh one gave 0.8 nm). The in-process
-simulators start fresh with every command. Every driver waits up to 5 s for a reply
+(``AFMCTL_AMPLIFIER__PORT``), and ``afmctl run`` plays on the simulator that served the
+learning, as a user runs it right after on a device (``--fresh-run``: on a fresh one, a
+scanner at rest). The in-process simulators start fresh with every command. Every driver waits up to 5 s for a reply
 (``AFMCTL_AMPLIFIER__OPTIONS``): a loaded machine's simulators answer late. The
 configurations run in a scratch folder.
 
@@ -104,7 +103,7 @@ def one(example: str, model: Path | None, args: argparse.Namespace, work: Path) 
         best_line = next((ln for ln in out.splitlines() if "afmctl: learned table" in ln), "")
         rc_run, out_run = -1, ""
         if rc == 0 and table.exists():
-            if sim is not None:                 # a scanner at rest (module docstring)
+            if sim is not None and args.fresh_run:      # a scanner at rest (module docstring)
                 _stop(sim)
                 sim = _serve(example, env, work)
             played = learned_copy(cfg, table, work / f"{tag}_learned.toml")
@@ -169,6 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--examples", nargs="+", default=["sim_wave_gcs", "sim_inprocess", "e727_tcp"])
     p.add_argument("--iterations", type=int, default=10)
     p.add_argument("--work", help="scratch folder (default: a temporary one, removed)")
+    p.add_argument("--fresh-run", action="store_true", help="TCP examples: afmctl run on a fresh simulator")
     args = p.parse_args(argv)
     model = Path(args.model).resolve()
     if not model.exists():

@@ -122,7 +122,7 @@ def model_based_increment(grid: Grid, chain, dt_s: float, base: tuple[np.ndarray
     or the model's band if that is higher. The returned ``ratio`` and ``reliable`` are the knowledge to keep (every
     measurement, trusted or not); ``applied`` the error the step was computed with."""
     dyn = getattr(chain, "dynamics", None)
-    static_fwd, static_inv = _static_ops(chain, dt_s)
+    static_fwd, static_inv = static_ops(chain, dt_s)
     periodic = grid.periodic
     f = grid.f_Hz
 
@@ -330,7 +330,7 @@ def _regularised_inverse(g: np.ndarray) -> np.ndarray:
     return np.conj(g) / (np.abs(g) ** 2 + lam * lam)
 
 
-def _static_ops(chain, dt_s: float):
+def static_ops(chain, dt_s: float):
     """Factories of the static part's forward (V → nm) and inverse (nm → V) operators."""
     if hasattr(chain, "static_inverse"):
         return (lambda: chain.static_forward(dt_s)), (lambda: chain.static_inverse(dt_s))

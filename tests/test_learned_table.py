@@ -179,3 +179,33 @@ def test_afmctl_run_refuses_a_learned_table_it_cannot_play(tmp_path, driver, out
     assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
     errors = [ln for ln in res.stderr.strip().splitlines() if ln.startswith("afmctl: error:")]
     assert len(errors) == 1 and message in errors[0], res.stderr
+
+
+def test_what_the_learnings_plays_leave_is_kept_and_taken_out_for_the_time_passed(tmp_path, chain_file):
+    from afmctl.compensators.learning_laws import static_ops
+    from afmctl.compensators.models import load_model
+    from afmctl.control.learned_after import HistoryAfter, corrected_for_history
+
+    cfg = cfg_for(tmp_path, "unused", compensation={"x": {"model": str(chain_file)}})
+    _, table = learned_file(tmp_path, cfg)
+    n = len(table)
+    term = np.zeros((3, n, 3))
+    term[:, :, 0] = np.array([12.0, 6.0, 2.0])[:, None]          # x: 12 nm right after, 6 nm 10 s later, 2 at 30 s
+    after = HistoryAfter((0.0, 10.0, 30.0), term, 1000.0)
+    np.testing.assert_allclose(after.at(5.0)[:, 0], 9.0)          # between the kept delays: linear
+    np.testing.assert_allclose(after.at(99.0)[:, 0], 2.0)         # after the last: the last
+    path = save_learned(tmp_path / "a.afmwave", make_learned(cfg, table, SPEC.model_dump(mode="json"), [], after))
+    back = load_learned(path).after
+    assert back is not None and back.delays_s == after.delays_s and back.ended_unix_s == 1000.0
+    np.testing.assert_array_equal(back.term_nm, term)
+
+    cfg.simulation.enabled = False                                # a device that kept its state
+    played = corrected_for_history(table, after, cfg, now_unix_s=1005.0)
+    forward = static_ops(load_model(chain_file), cfg.dt_s)[0]
+    moved = forward().block(played.u_V[:, 0].copy()) - forward().block(table.u_V[:, 0].copy())
+    assert np.max(np.abs(moved + 9.0)) < 0.5, moved                # the static part lands 9 nm lower
+    np.testing.assert_array_equal(played.u_V[:, 1:], table.u_V[:, 1:])
+    assert "ended 5 s ago" in played.report[-1] and "taken out" in played.report[-1]
+    # an in-process simulator starts at rest with every command: nothing to take out
+    cfg.simulation.enabled = True
+    assert corrected_for_history(table, after, cfg, now_unix_s=1005.0) is table

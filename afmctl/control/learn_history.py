@@ -78,6 +78,34 @@ class PlayTimeline:
             self.t_last_s = times.get("end", times["start"] + rows * self.dt_s) + finish_s
         return terms
 
+    def after(self, u_V: dict[str, np.ndarray], delays_s: tuple[float, ...]) -> dict[str, np.ndarray]:
+        """Per axis the history term [nm] ``(len(delays_s), N)`` of a play of its column
+        ``u_V[axis]`` that starts each delay [s] after the last play ended (the output held
+        meanwhile; the approach ramp at the nominal rate and the settle hold, as ``afmctl
+        run`` plays it), against the play from rest: what the learning's own plays still
+        add when ``afmctl run`` plays the learned table that long after, on a device that
+        kept its state."""
+        out: dict[str, np.ndarray] = {}
+        for axis, u in u_V.items():
+            h = self.now[axis].copy()
+            reference = self.rest[axis].copy()
+            reference.ramp(float(u[0]), self.rate_V_per_s)
+            reference.hold(self.settle_s)
+            rows, waited = [], 0.0
+            for delay in delays_s:
+                h.hold(delay - waited)
+                waited = delay
+                play = h.copy()
+                play.ramp(float(u[0]), self.rate_V_per_s)
+                play.hold(self.settle_s)
+                rows.append(history_term_nm(play, reference, u))
+            out[axis] = np.array(rows)
+        return out
+
+    def ended_unix_s(self) -> float:
+        """When the last play ended (its finish ramp), on the wall clock [s since the epoch]."""
+        return time.time() - (time.monotonic() - self.t_last_s)
+
     def _finish(self, h: VoltageHistory, axis: str, times: dict[str, float], played_s: float) -> None:
         """After the last row (``played_s`` [s] after the start): held until the host saw
         the end (``end``), then the finish ramp to the safe value until ``finished`` (at the

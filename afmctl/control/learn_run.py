@@ -73,6 +73,7 @@ from .learn_history import (HistoryTerms, PlayTimeline, history_offset_nm, settl
                             with_learning_hold)
 from .learn_play import (OUTPUT_TOL_V, RecordingRefused, Step, TablePlayer, arm_recorder,  # noqa: F401
                          play_recorded, read_aligned, read_at_sample_start)
+from .learned_after import AFTER_S, HistoryAfter, history_after
 from .learned_table import LearnedTable, make_learned
 from .pipeline import axis_models, build_pipeline
 from .wave_plan import WaveTable, driven_steps_ok, plan_table, table_capacity
@@ -301,7 +302,17 @@ class LearnRun:
             raise AfmctlError("learn: no table was played to the end; nothing learned")
         history = [{"iteration": r.iteration, "metric_pct": r.metric_pct, "state": r.state, **r.summary()}
                    for r in self.reports]
-        return make_learned(self.config, self.book.best_table(self.best), self.spec, history)
+        best = self.book.best_table(self.best)
+        return make_learned(self.config, best, self.spec, history, self._after(best))
+
+    def _after(self, best: WaveTable) -> HistoryAfter | None:
+        """What the plays leave after them for a play of ``best``
+        (:mod:`afmctl.control.learned_after`), with a model's creep stage."""
+        timeline = self.history.timeline
+        if timeline is None or not self.history.enabled:
+            return None
+        columns = {a: best.u_V[:, "xyz".index(a)] for a in timeline.now}
+        return history_after(timeline.after(columns, AFTER_S), len(best), timeline.ended_unix_s())
 
     def iterate(self, k: int, table: WaveTable, learners: dict[str, Learner]
                 ) -> tuple[IterationReport, WaveTable | None]:

@@ -12,8 +12,10 @@ thing that differs. ``[trajectory] kind = "learned"`` plays such a file through
 ``afmctl run`` (``amplifier.output = "wave"``).
 
 The file is a NumPy ``.npz`` archive (no pickles): arrays ``target_nm``, ``corrected_nm``,
-``drift_nm``, ``u_V`` (N, 3) and ``T_C`` (N,), and ``meta_json`` (the fingerprint, ``pad``
-rows and the learning history as JSON text).
+``drift_nm``, ``u_V`` (N, 3) and ``T_C`` (N,), ``meta_json`` (the fingerprint, ``pad``
+rows and the learning history as JSON text) and, learned with a creep model,
+``history_after_nm`` (D, N, 3) with ``history_after_s`` and ``ended_unix_s`` in the meta
+(:mod:`afmctl.control.learned_after`).
 """
 from __future__ import annotations
 
@@ -28,11 +30,14 @@ import numpy as np
 
 from ..config import DEFAULT_SETTLE_S
 from ..errors import AfmctlError
+from .learned_after import HistoryAfter, corrected_for_history
 from .wave_plan import WaveTable
 
 #: file format version written into ``meta_json``
 FORMAT = 1
 _ARRAYS = ("target_nm", "corrected_nm", "drift_nm", "u_V", "T_C")
+#: the optional array of :class:`HistoryAfter`'s terms (D, N, 3) [nm]
+AFTER_ARRAY = "history_after_nm"
 
 
 def _sha256_file(path: Path) -> str:
@@ -82,21 +87,26 @@ def fingerprint(config: Any, trajectory: dict[str, Any]) -> dict[str, Any]:
 @dataclass
 class LearnedTable:
     """A learned table, its fingerprint and its learning history (one dict per iteration:
-    ``iteration``, ``max_pct``, ``rms_pct`` of the scan range, ...)."""
+    ``iteration``, ``max_pct``, ``rms_pct`` of the scan range, ...), and ``after``: what
+    the learning's plays still add to a play after them
+    (:mod:`afmctl.control.learned_after`)."""
 
     table: WaveTable
     learned_for: dict[str, Any]
     target_sha256: str
     history: list[dict[str, Any]] = field(default_factory=list)
+    #: the history term the learning's plays leave after them (a model with a creep stage)
+    after: HistoryAfter | None = None
 
     def trajectory_spec(self) -> dict[str, Any]:
         return dict(self.learned_for["trajectory"])
 
 
 def make_learned(config: Any, table: WaveTable, trajectory: dict[str, Any],
-                 history: list[dict[str, Any]] | None = None) -> LearnedTable:
+                 history: list[dict[str, Any]] | None = None, after: HistoryAfter | None = None) -> LearnedTable:
     """``table`` as learned for ``config`` and the ``trajectory`` spec (a dict) it plays."""
-    return LearnedTable(table, fingerprint(config, trajectory), target_hash(table.target_nm), list(history or []))
+    return LearnedTable(table, fingerprint(config, trajectory), target_hash(table.target_nm), list(history or []),
+                        after)
 
 
 def save_learned(path: str | Path, learned: LearnedTable) -> Path:
@@ -106,10 +116,15 @@ def save_learned(path: str | Path, learned: LearnedTable) -> Path:
     t = learned.table
     meta = {"format": FORMAT, "pad": int(t.pad), "learned_for": learned.learned_for,
             "target_sha256": learned.target_sha256, "history": learned.history, "report": list(t.report)}
+    if learned.after is not None:
+        meta["history_after_s"] = list(learned.after.delays_s)
+        meta["ended_unix_s"] = learned.after.ended_unix_s
     tmp = path.with_name(path.name + ".part")
     try:
         # Any: numpy's stubs would match **arrays against savez's allow_pickle: bool
         arrays: dict[str, Any] = {name: np.asarray(getattr(t, name), dtype=np.float64) for name in _ARRAYS}
+        if learned.after is not None:
+            arrays[AFTER_ARRAY] = np.asarray(learned.after.term_nm, dtype=np.float64)
         with open(tmp, "wb") as fh:
             np.savez(fh, meta_json=np.array(json.dumps(meta)), **arrays)
         tmp.replace(path)
@@ -125,6 +140,7 @@ def load_learned(path: str | Path) -> LearnedTable:
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {name: np.array(z[name], dtype=np.float64) for name in _ARRAYS}
+            after_nm = np.array(z[AFTER_ARRAY], dtype=np.float64) if AFTER_ARRAY in z.files else None
             meta = json.loads(str(z["meta_json"]))
     except FileNotFoundError:
         raise AfmctlError(f"{path}: no such learned table (write one with afmctl learn)") from None
@@ -142,7 +158,25 @@ def load_learned(path: str | Path) -> LearnedTable:
         raise AfmctlError(f"{path}: pad {pad} rows does not fit a table of {n} rows")
     table = WaveTable(arrays["target_nm"], arrays["corrected_nm"], arrays["drift_nm"], arrays["u_V"],
                       arrays["T_C"], pad, list(meta.get("report", [])))
-    return LearnedTable(table, dict(meta["learned_for"]), str(meta["target_sha256"]), list(meta.get("history", [])))
+    return LearnedTable(table, dict(meta["learned_for"]), str(meta["target_sha256"]), list(meta.get("history", [])),
+                        _after(path, after_nm, meta, n))
+
+
+def _after(path: Path, term_nm: np.ndarray | None, meta: dict[str, Any], n: int) -> HistoryAfter | None:
+    """The file's :class:`HistoryAfter` (None when it keeps none); one line naming the file
+    when it is malformed."""
+    if term_nm is None:
+        return None
+    try:
+        delays = tuple(float(d) for d in meta["history_after_s"])
+        ended = float(meta["ended_unix_s"])
+    except (KeyError, TypeError, ValueError):
+        raise AfmctlError(f"{path}: {AFTER_ARRAY} without history_after_s and ended_unix_s in its meta") from None
+    ok = (term_nm.shape == (len(delays), n, 3) and len(delays) >= 1 and np.all(np.isfinite(term_nm))
+          and all(b > a for a, b in zip(delays, delays[1:])) and np.isfinite(ended))
+    if not ok:
+        raise AfmctlError(f"{path}: {AFTER_ARRAY} must be finite, (delays, N, 3) with rising delays")
+    return HistoryAfter(delays, term_nm, ended)
 
 
 def learned_settle_s(learned: LearnedTable) -> float:
@@ -229,4 +263,4 @@ class LearnedSource:
         except AfmctlError as err:
             raise AfmctlError(f"{self.path}: its trajectory cannot be regenerated: {err}") from None
         check_matches(self.path, learned, now, padded(regenerated, learned.table.pad))
-        return learned.table
+        return corrected_for_history(learned.table, learned.after, config)

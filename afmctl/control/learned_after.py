@@ -1,0 +1,96 @@
+"""What the learning's own plays still add when ``afmctl run`` plays a learned table on the
+device that learned it.
+
+A learned table is learned for a play from rest (:mod:`afmctl.control.learn_history`: each
+recording is freed of its history term). A device keeps its state between commands: right
+after ``afmctl learn`` the scanner still creeps from the learning's plays, and a run then
+lands off by what they left (the README tour on the simulated E-727: 1.1 nm learned,
+11.4 nm played right after, with a history term of 17.7 nm at the last play; on a fresh
+simulator, at rest, the same table played 0.8 nm). With a model that has a creep stage,
+``afmctl learn`` keeps in the table the history term a play would meet at a few delays
+after its last play (:data:`AFTER_S`, :class:`HistoryAfter`), and ``afmctl run`` takes out
+the one for the time that has passed (:func:`corrected_for_history`), through the model's
+static part: ``u' = u + S⁻¹(S(u) − Δy) − S⁻¹(S(u))``, as the learning law changes a table.
+It assumes that nothing else has played on the device since the learning ended (the
+report line says so); an in-process simulator starts at rest with every command, so there
+nothing is taken out. Units: V, nm, s.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .wave_plan import WaveTable
+
+#: delays after the learning's last play [s] at which the history term is kept; later the
+#: last one holds (the demo's creep lags have time constants up to about a minute)
+AFTER_S = (0.0, 2.0, 5.0, 10.0, 20.0, 40.0, 80.0, 160.0, 320.0)
+#: a history term whose largest value is below this [nm] is left alone
+NEGLIGIBLE_NM = 0.05
+
+
+@dataclass(frozen=True)
+class HistoryAfter:
+    """The history term [nm] ``term_nm`` (D, N, 3) of a play of the learned table that
+    starts ``delays_s[d]`` after the learning's last play ended at ``ended_unix_s`` (wall
+    clock, s since the epoch)."""
+
+    delays_s: tuple[float, ...]
+    term_nm: np.ndarray
+    ended_unix_s: float
+
+    def at(self, elapsed_s: float) -> np.ndarray:
+        """The term (N, 3) [nm] ``elapsed_s`` after the last play: linear between the kept
+        delays, the first before them, the last after them."""
+        d = np.asarray(self.delays_s, dtype=float)
+        t = min(max(float(elapsed_s), d[0]), d[-1])
+        k = int(np.clip(np.searchsorted(d, t, side="right") - 1, 0, d.size - 2)) if d.size > 1 else 0
+        if d.size == 1:
+            return np.array(self.term_nm[0])
+        w = (t - d[k]) / (d[k + 1] - d[k])
+        return (1.0 - w) * self.term_nm[k] + w * self.term_nm[k + 1]
+
+
+def history_after(terms: dict[str, np.ndarray], rows: int, ended_unix_s: float,
+                  delays_s: tuple[float, ...] = AFTER_S) -> HistoryAfter | None:
+    """The :class:`HistoryAfter` of per-axis terms (D, N) [nm]; None without any."""
+    if not terms:
+        return None
+    out = np.zeros((len(delays_s), rows, 3))
+    for axis, term in terms.items():
+        out[:, :, "xyz".index(axis)] = term
+    return HistoryAfter(tuple(float(d) for d in delays_s), out, float(ended_unix_s))
+
+
+def corrected_for_history(table: WaveTable, after: HistoryAfter | None, config: Any,
+                          now_unix_s: float | None = None) -> WaveTable:
+    """``table`` with the history term of the learning's plays taken out for a play
+    starting now (module docstring), one report line per corrected axis; ``table`` itself
+    when there is nothing to take out (no term kept, an in-process simulator, a term below
+    :data:`NEGLIGIBLE_NM`)."""
+    if after is None or config.simulation.enabled:
+        return table
+    from afmctl.compensators.learning_laws import static_ops
+
+    from .pipeline import axis_models
+    elapsed = max(0.0, (time.time() if now_unix_s is None else now_unix_s) - after.ended_unix_s)
+    term = after.at(elapsed)
+    models = axis_models(config)[0]
+    u = table.u_V.copy()
+    report = list(table.report)
+    for k, axis in enumerate("xyz"):
+        model = models[k][0]
+        if model is None or float(np.max(np.abs(term[:, k]))) < NEGLIGIBLE_NM:
+            continue
+        forward, inverse = static_ops(model, config.dt_s)
+        x = forward().block(np.ascontiguousarray(u[:, k]))
+        u[:, k] = u[:, k] + inverse().block(np.ascontiguousarray(x - term[:, k])) - inverse().block(x)
+        report.append(f"{axis}: the learning's plays ended {elapsed:.0f} s ago and still creep: their history term "
+                      f"{float(np.mean(term[:, k])):+.1f} nm (mean; the model's) is taken out, assuming nothing else "
+                      "played since")
+    if report == table.report:
+        return table
+    return WaveTable(table.target_nm, table.corrected_nm, table.drift_nm, u, table.T_C, table.pad, report)
