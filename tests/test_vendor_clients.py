@@ -103,10 +103,12 @@ def test_pipython_wave_generator_plays_on_the_simulated_servo_clock():
             assert pi.qWAV([1, 2], [1, 1]) == {1: {1: 100.0}, 2: {1: 250.0}}
             assert server.device.wave.tables[2] == pytest.approx(points)
             pi.WSL([1, 2], [1, 2])
-            pi.WGC([1, 2], [2, 1])
+            # generator 1 runs 20 cycles (0.5 s): still running when the client asks, however loaded
+            # the machine; generator 2 one cycle of 250 points (0.125 s)
+            pi.WGC([1, 2], [20, 1])
             pi.WTR([1, 2], [5, 10], [0, 0])
             pi.TWC()
-            assert pi.qWSL([1, 2]) == {1: 1, 2: 2} and pi.qWGC([1, 2]) == {1: 2, 2: 1}
+            assert pi.qWSL([1, 2]) == {1: 1, 2: 2} and pi.qWGC([1, 2]) == {1: 20, 2: 1}
             assert pi.qWTR([1, 2]) == {1: [5, 0], 2: [10, 0]}
             before = len(server.sink.history)
             pi.WGO([1, 2], [1, 1])
@@ -119,7 +121,8 @@ def test_pipython_wave_generator_plays_on_the_simulated_servo_clock():
     t0 = min(t)
     # every output change lies on the 50 us servo grid (both generators start on one tick)
     assert all(abs(ti / 50e-6 - round(ti / 50e-6)) < 1e-6 for ti in t)
-    assert max(t) - t0 == pytest.approx(249 * 10 * 50e-6, abs=1e-9)
+    ty = [h[0] for h, g in zip(played[1:], played) if h[1]["y"] != g[1]["y"]]       # generator 2's changes
+    assert max(ty) - t0 == pytest.approx(249 * 10 * 50e-6, abs=1e-9)
     xs = [h[1]["x"] for h in played]
     assert min(xs) == 10.0 and max(xs) == 50.0
 
