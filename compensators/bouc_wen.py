@@ -41,6 +41,7 @@ import numpy as np
 from numba import njit
 from pydantic import Field, model_validator
 
+from ._bouc_wen_kernels import bw_sens_nb, substeps_nb, substeps_py
 from .base import ModelError, StreamingOperator, check_finite
 from .errortext import plain_repr
 from .input_checks import block_samples, finite_sample, number_option
@@ -151,18 +152,7 @@ def _advance(h, u_from, u_to, A, beta, gamma, n, du_sub):
     du = u_to - u_from
     if du == 0.0:
         return h
-    sgn = 1.0 if du > 0.0 else -1.0
-    ratio = abs(du) / du_sub
-    if ratio > _MAX_SUB:
-        # a huge move: integrate only its last _MAX_SUB sub-steps (10⁵ stiffness lengths);
-        # h has converged to its branch long before, and RK4 stays inside its stability region
-        m = _MAX_SUB
-        dx = sgn * du_sub
-    else:
-        m = int(math.ceil(ratio))
-        if m < 1:
-            m = 1
-        dx = du / m
+    sgn, m, dx = substeps_nb(du, du_sub, _MAX_SUB)  # a huge move: only its last _MAX_SUB sub-steps
     for _ in range(m):
         k1 = _rhs(h, sgn, A, beta, gamma, n)
         k2 = _rhs(h + 0.5 * dx * k1, sgn, A, beta, gamma, n)
@@ -273,13 +263,7 @@ class ReferenceBoucWen:
         du = u_to - u_from
         if du == 0.0:
             return h
-        sgn = 1.0 if du > 0.0 else -1.0
-        ratio = abs(du) / self.du_sub
-        if ratio > _MAX_SUB:
-            m, dx = _MAX_SUB, sgn * self.du_sub
-        else:
-            m = max(int(math.ceil(ratio)), 1)
-            dx = du / m
+        sgn, m, dx = substeps_py(du, self.du_sub, _MAX_SUB)
         for _ in range(m):
             k1 = self.rhs(h, sgn)
             k2 = self.rhs(h + 0.5 * dx * k1, sgn)
@@ -380,10 +364,14 @@ class BoucWenInverse(_BWBase):
 
 # ------------------------------------------------------------------------ identification
 def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n: float | None = None, max_rows: int = 20000,
-              u0_V: float | None = None, fit_from_index: int = 0) -> BoucWenModel:
+              u0_V: float | None = None, fit_from_index: int = 0, jacobian: str = "sensitivities") -> BoucWenModel:
     """Nonlinear least squares over p = [log d, log(A/d), log h_sat, c, (n), offset/ŷ] with
     β + γ = A/h_sat^n and γ = c·β; bounds keep the fit inside the admissible, reasonably
-    non-stiff region (h_sat ≥ 0.5 % of the output range, −0.8 ≤ c ≤ 1, 1 ≤ n ≤ 4)."""
+    non-stiff region (h_sat ≥ 0.5 % of the output range, −0.8 ≤ c ≤ 1, 1 ≤ n ≤ 4).
+
+    ``jacobian``: "sensitivities" (default: from the simulation's forward sensitivities, one
+    pass per iteration) or "2-point" (finite differences, one simulation per parameter: the
+    slower reference the sensitivities are checked against)."""
     from scipy.optimize import least_squares
     u = check_finite("u_V", u_V).reshape(-1)
     y = check_finite("y_nm", y_nm).reshape(-1)
@@ -399,6 +387,8 @@ def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n: float | None = None, 
         raise ModelError(f"n: must be a number in 1..10, got {plain_repr(n)}")
     if isinstance(max_rows, bool) or not isinstance(max_rows, (int, np.integer)) or max_rows < 20:
         raise ModelError(f"max_rows: must be an integer >= 20, got {plain_repr(max_rows)}")
+    if jacobian not in ("sensitivities", "2-point"):
+        raise ModelError(f"jacobian: must be 'sensitivities' or '2-point', got {plain_repr(jacobian)}")
     u0 = float(u[0]) if u0_V is None else number_option("u0_V", u0_V)
     u = np.ascontiguousarray(u)
     k0 = number_option("fit_from_index", fit_from_index, lo=0, hi=u.shape[0] - 20, integer=True)
@@ -408,26 +398,8 @@ def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n: float | None = None, 
     d0 = max(abs(float(slope)), 1e-12)
     yscale = max(float(np.ptp(y)), 1e-12)
     nfix = None if n is None else float(n)
-
-    def unpack(p: np.ndarray) -> tuple[float, float, float, float, float, float]:
-        d = math.exp(p[0])
-        A = d * math.exp(p[1])
-        hs = math.exp(p[2])
-        c = p[3]
-        nn = nfix if nfix is not None else p[4]
-        bg = A / hs ** nn
-        beta = bg / (1.0 + c)
-        return d, A, beta, beta * c, nn, p[-1] * yscale
-
-    def resid(p: np.ndarray) -> np.ndarray:
-        d, A, beta, gamma, nn, off = unpack(p)
-        hm = (A / (beta + gamma)) ** (1.0 / nn)
-        k = nn * (beta + abs(gamma)) * hm ** (nn - 1.0)
-        du_sub = _SUB / max(k, 1e-300)
-        if not math.isfinite(du_sub) or travel / du_sub > 2e7:
-            return np.full(sel.shape[0], 10.0)  # far too stiff to be a piezo loop: reject
-        y_m = bw_forward_block(u, np.array([0.0, u0]), np.array([d, A, beta, gamma, nn, off, du_sub]))
-        return (y_m[sel] - y[sel]) / yscale
+    prob = _BWProblem(u, y, sel, u0, travel, yscale, nfix, jacobian == "sensitivities")
+    jac: Any = prob.jac if prob.sensitivities else "2-point"
 
     best = None
     n_starts = [nfix] if nfix is not None else [1.0, 2.0]
@@ -450,14 +422,14 @@ def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n: float | None = None, 
         ub.append(np.inf)
         p0 = np.clip(np.array(p0), np.array(lb) + 1e-9, np.array(ub) - 1e-9)
         try:
-            r = least_squares(resid, p0, bounds=(lb, ub), x_scale="jac", max_nfev=300)
+            r = least_squares(prob.resid, p0, jac=jac, bounds=(lb, ub), x_scale="jac", max_nfev=300)
         except (ValueError, FloatingPointError, OverflowError):
             continue
         if best is None or r.cost < best.cost:
             best = r
     if best is None:
         raise ModelError("data: Bouc–Wen least squares failed for every start; check that u_V and y_nm form hysteresis loops")
-    d, A, beta, gamma, nn, off = unpack(best.x)
+    d, A, beta, gamma, nn, off = prob.unpack(best.x)
     try:
         model = cls(d_nm_per_V=d, A_nm_per_V=A, beta=beta, gamma=gamma, n=nn, offset_nm=off, u0_V=u0)
     except ValueError as err:
@@ -467,6 +439,73 @@ def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n: float | None = None, 
     model.fit_residual_nm = float(np.sqrt(np.mean(res * res)))
     log.info("identify bouc-wen: %s", model.summary().replace("\n", "; "))
     return model
+
+
+class _BWProblem:
+    """The least-squares problem of :func:`_identify`: residuals over the rows ``sel`` (the model
+    simulated on every sample) and, if ``sensitivities``, their Jacobian from the forward
+    sensitivities of the simulation (:mod:`afmctl.compensators._bouc_wen_kernels`), computed in
+    the same pass as the residuals and kept for the Jacobian call at the same point (else the
+    residuals alone, from the forward operator's kernel, for a finite-difference Jacobian).
+
+    Search vector ``p = [log d, log(A/d), log h_sat, c, (n), offset/ŷ]`` with
+    ``β + γ = A/h_sat^n`` and ``γ = c·β``; residuals in units of the output range ŷ."""
+
+    def __init__(self, u: np.ndarray, y: np.ndarray, sel: np.ndarray, u0: float, travel: float,
+                 yscale: float, nfix: float | None, sensitivities: bool = True) -> None:
+        self.u, self.sel, self.u0, self.travel, self.yscale, self.nfix = u, sel, u0, travel, yscale, nfix
+        self.sensitivities = sensitivities
+        self.u_sel, self.y_sel = u[sel], y[sel]
+        self._h = np.empty(sel.shape[0])
+        self._s = np.empty((sel.shape[0], 4))
+        self._x: np.ndarray | None = None
+        self._jac: np.ndarray | None = None
+
+    def unpack(self, p: np.ndarray) -> tuple[float, float, float, float, float, float]:
+        """(d, A, β, γ, n, offset [nm]) of the search vector ``p``."""
+        d = math.exp(p[0])
+        A = d * math.exp(p[1])
+        hs = math.exp(p[2])
+        c = p[3]
+        nn = self.nfix if self.nfix is not None else p[4]
+        bg = A / hs ** nn
+        beta = bg / (1.0 + c)
+        return d, A, beta, beta * c, nn, p[-1] * self.yscale
+
+    def resid(self, p: np.ndarray) -> np.ndarray:
+        """Model minus data on the rows ``sel`` [output ranges]; also computes the Jacobian
+        (if ``sensitivities``)."""
+        d, A, beta, gamma, nn, off = self.unpack(p)
+        self._x = np.array(p, dtype=float)
+        hm = (A / (beta + gamma)) ** (1.0 / nn)
+        k = nn * (beta + abs(gamma)) * hm ** (nn - 1.0)
+        du_sub = _SUB / max(k, 1e-300)
+        if not math.isfinite(du_sub) or self.travel / du_sub > 2e7:
+            self._jac = np.zeros((self.sel.shape[0], len(p)))
+            return np.full(self.sel.shape[0], 10.0)  # far too stiff to be a piezo loop: reject
+        if not self.sensitivities:
+            y_full = bw_forward_block(self.u, np.array([0.0, self.u0]),
+                                      np.array([d, A, beta, gamma, nn, off, du_sub]))
+            return (y_full[self.sel] - self.y_sel) / self.yscale
+        h, s = self._h, self._s
+        bw_sens_nb(self.u, 0.0, self.u0, A, beta, gamma, nn, du_sub, _MAX_SUB, self.sel, self.nfix is None, h, s)
+        y_m = d * self.u_sel - h + off  # the forward operator's output, bit for bit
+        # chain rule from dh/d(A, β, γ, n) to p (the output y = d·u − h + offset)
+        bg_part = beta * s[:, 1] + gamma * s[:, 2]
+        common = A * s[:, 0] + bg_part
+        cols = [d * self.u_sel - common, -common, nn * bg_part, beta / (1.0 + p[3]) * (s[:, 1] - s[:, 2])]
+        if self.nfix is None:
+            cols.append(p[2] * bg_part - s[:, 3])  # p[2] = log h_sat
+        cols.append(np.full(h.shape[0], self.yscale))
+        self._jac = np.stack(cols, axis=1) / self.yscale
+        return (y_m - self.y_sel) / self.yscale
+
+    def jac(self, p: np.ndarray) -> np.ndarray:
+        """d resid / d p at ``p`` (from the residual pass at the same point)."""
+        if self._x is None or not np.array_equal(self._x, p):
+            self.resid(p)
+        assert self._jac is not None
+        return self._jac
 
 
 #: names of the Bouc–Wen search parameters (:func:`_identify`); n on its bounds 1 or 4 is an

@@ -1,5 +1,5 @@
 """Bouc–Wen (eq. 20): rate independence, block == step, kernel == reference, exact
-inverse, identification of synthetic data, and bad input."""
+inverse, identification of synthetic data (its Jacobian from forward sensitivities), and bad input."""
 from __future__ import annotations
 
 import numpy as np
@@ -8,7 +8,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from afmctl.compensators.base import ModelError
-from afmctl.compensators.bouc_wen import BoucWenModel, ReferenceBoucWen, reference_forward
+from afmctl.compensators._bouc_wen_kernels import bw_sens_nb, bw_sens_py
+from afmctl.compensators.bouc_wen import BoucWenModel, ReferenceBoucWen, _BWProblem, reference_forward
 from afmctl.compensators.models import model_from_dict
 
 TRUE = dict(d_nm_per_V=100.0, A_nm_per_V=30.0, beta=0.004, gamma=0.0015, n=1.2)
@@ -127,3 +128,71 @@ def test_non_invertible_model_and_bad_data(model):
 def test_forward_of_inverse_is_identity_on_random_targets(model, y):
     u = model.inverse().block(y)
     assert np.max(np.abs(model.forward().block(u) - y)) <= 1e-9 * 16000.0
+
+
+# ------------------------------------------------------------------ the fit's sensitivities
+def _sens(kernel, model, u, rows, want_n=True, du_sub=None, **patch):
+    p = dict(A=model.A_nm_per_V, beta=model.beta, gamma=model.gamma, n=model.n)
+    p.update(patch)
+    h, s = np.empty(rows.size), np.empty((rows.size, 4))
+    kernel(u, 0.0, float(u[0]), p["A"], p["beta"], p["gamma"], p["n"], du_sub or model.du_sub_V(), 1000000,
+           rows, want_n, h, s)
+    return h, s
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_sensitivity_kernel_equals_reference_forward_and_differences(model, seed):
+    """numba == plain Python (1e-12 relative); its h is the forward operator's bit for bit;
+    dh/d(A, β, γ, n) equal central differences of h (the sub-step held fixed)."""
+    rng = np.random.default_rng(seed)
+    u = np.r_[0.0, np.cumsum(rng.normal(0.0, 6.0, 400))]
+    rows = np.unique(rng.integers(0, u.size, 120))
+    h, s = _sens(bw_sens_nb, model, u, rows)
+    h_py, s_py = _sens(bw_sens_py, model, u, rows)
+    assert np.allclose(h, h_py, rtol=1e-12, atol=0) and np.allclose(s, s_py, rtol=1e-12, atol=1e-300)
+    y = model.model_copy(update={"u0_V": float(u[0])}).forward().block(u)
+    assert np.array_equal(model.d_nm_per_V * u[rows] - h + model.offset_nm, y[rows])
+    for i, name in enumerate(("A", "beta", "gamma", "n")):
+        e = 1e-6 * getattr(model, {"A": "A_nm_per_V"}.get(name, name))
+        hp, _ = _sens(bw_sens_nb, model, u, rows, du_sub=model.du_sub_V(), **{name: _p(model, name) + e})
+        hm, _ = _sens(bw_sens_nb, model, u, rows, du_sub=model.du_sub_V(), **{name: _p(model, name) - e})
+        fd = (hp - hm) / (2 * e)
+        assert np.max(np.abs(fd - s[:, i])) <= 1e-6 * np.max(np.abs(s[:, i])), name
+    _, s_no_n = _sens(bw_sens_nb, model, u, rows, want_n=False)
+    assert np.array_equal(s_no_n[:, :3], s[:, :3]) and not s_no_n[:, 3].any()
+
+
+def _p(model, name):
+    return model.A_nm_per_V if name == "A" else getattr(model, name)
+
+
+@pytest.mark.parametrize("nfix", [None, 1.2])
+def test_fit_jacobian_equals_differences_of_residuals(model, nfix):
+    """The least-squares Jacobian (chain rule from the sensitivities) equals central differences
+    of the residuals, on an input whose moves take one sub-step each (no sub-step count changes)."""
+    u = 60.0 + 50.0 * np.sin(np.linspace(0.0, 9.0, 2000)) * np.linspace(1.0, 0.3, 2000)
+    assert np.max(np.abs(np.diff(u))) < 0.5 * model.du_sub_V()
+    y = model.forward().block(u) + np.random.default_rng(3).normal(0.0, 20.0, u.size)
+    sel = np.arange(100, u.size, 7)
+    prob = _BWProblem(u, y, sel, float(u[0]), float(np.sum(np.abs(np.diff(u)))), float(np.ptp(y)), nfix)
+    x = np.array([np.log(90.0), np.log(0.25), np.log(0.08 * np.ptp(y)), 0.2] + ([] if nfix else [1.4]) + [0.01])
+    r = prob.resid(x)
+    J = prob.jac(x).copy()
+    ref = _BWProblem(u, y, sel, float(u[0]), float(np.sum(np.abs(np.diff(u)))), float(np.ptp(y)), nfix, False)
+    assert np.array_equal(r, ref.resid(x))  # the same residuals as the forward operator's
+    for i in range(x.size):
+        e = np.zeros(x.size)
+        e[i] = 1e-6
+        fd = (prob.resid(x + e) - prob.resid(x - e)) / 2e-6
+        assert np.max(np.abs(fd - J[:, i])) <= 1e-6 * np.max(np.abs(J[:, i])) + 1e-12, i
+
+
+def test_sensitivity_and_two_point_fits_agree(model):
+    u = _excitation()
+    y = model.forward().block(u) + np.random.default_rng(0).normal(0, 5.0, u.size)
+    a = BoucWenModel.identify(None, u, y)
+    b = BoucWenModel.identify(None, u, y, jacobian="2-point")
+    for name in ("d_nm_per_V", "A_nm_per_V", "beta", "gamma", "n", "offset_nm", "fit_residual_nm"):
+        assert getattr(a, name) == pytest.approx(getattr(b, name), rel=1e-6, abs=1e-6), name  # to the fit's precision
+    with pytest.raises(ModelError, match="jacobian"):
+        BoucWenModel.identify(None, u, y, jacobian="3-point")

@@ -108,7 +108,8 @@ Options:
                       prior=pi|none (nnls: what the data do not determine — e.g. the inside
                       of the plane after full-range cycles — takes a PI-like density fitted
                       on the same data), prior_weight (1e-4)
-                    bouc-wen: n (fix the exponent), max_rows (20000), u0_V
+                    bouc-wen: n (fix the exponent), max_rows (20000), u0_V, jacobian
+                      (sensitivities; 2-point: finite differences, slower)
                     dynamics: n_modes (auto: 1-3 as the response shows), n_lags (1), segment=auto|all, nperseg,
                       f_min_Hz, f_max_Hz, min_coherence (0.9)
                     e.g. --param min_slope_fraction=1e-3 --param 'thresholds=[0,10,20,30]'
