@@ -193,7 +193,8 @@ def test_what_the_learnings_plays_leave_is_kept_and_taken_out_for_the_time_passe
     term[:, :, 0] = np.array([12.0, 6.0, 2.0])[:, None]          # x: 12 nm right after, 6 nm 10 s later, 2 at 30 s
     after = HistoryAfter((0.0, 10.0, 30.0), term, 1000.0)
     np.testing.assert_allclose(after.at(5.0)[:, 0], 9.0)          # between the kept delays: linear
-    np.testing.assert_allclose(after.at(99.0)[:, 0], 2.0)         # after the last: the last
+    np.testing.assert_allclose(after.at(30.0)[:, 0], 2.0)
+    assert not np.any(after.at(31.0))                             # after the last: rested
     path = save_learned(tmp_path / "a.afmwave", make_learned(cfg, table, SPEC.model_dump(mode="json"), [], after))
     back = load_learned(path).after
     assert back is not None and back.delays_s == after.delays_s and back.ended_unix_s == 1000.0

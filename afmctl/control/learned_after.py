@@ -25,9 +25,10 @@ import numpy as np
 
 from .wave_plan import WaveTable
 
-#: delays after the learning's last play [s] at which the history term is kept; later the
-#: last one holds (the demo's creep lags have time constants up to about a minute)
-AFTER_S = (0.0, 2.0, 5.0, 10.0, 20.0, 40.0, 80.0, 160.0, 320.0)
+#: delays after the learning's last play [s] at which the history term is kept; after the
+#: last the scanner counts as rested (the history term's own reference rests 600 s:
+#: :data:`afmctl.compensators.learning_history.SETTLE_S`), and nothing is taken out
+AFTER_S = (0.0, 2.0, 5.0, 10.0, 20.0, 40.0, 80.0, 160.0, 320.0, 640.0)
 #: a history term whose largest value is below this [nm] is left alone
 NEGLIGIBLE_NM = 0.05
 
@@ -44,9 +45,11 @@ class HistoryAfter:
 
     def at(self, elapsed_s: float) -> np.ndarray:
         """The term (N, 3) [nm] ``elapsed_s`` after the last play: linear between the kept
-        delays, the first before them, the last after them."""
+        delays, the first before them; zero after the last (rested, :data:`AFTER_S`)."""
         d = np.asarray(self.delays_s, dtype=float)
-        t = min(max(float(elapsed_s), d[0]), d[-1])
+        if float(elapsed_s) > d[-1]:
+            return np.zeros(self.term_nm.shape[1:])
+        t = max(float(elapsed_s), d[0])
         k = int(np.clip(np.searchsorted(d, t, side="right") - 1, 0, d.size - 2)) if d.size > 1 else 0
         if d.size == 1:
             return np.array(self.term_nm[0])
