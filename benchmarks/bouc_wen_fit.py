@@ -15,7 +15,6 @@ simulated scanner (benchmarks/speed_ladder.py ``record``).
 """
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
 import tempfile
@@ -26,6 +25,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from afmctl.api.identify import prepare  # noqa: E402
+import fit_recording  # noqa: E402
 from afmctl.compensators.bouc_wen import BoucWenModel  # noqa: E402
 from afmctl.data.identdata import delayed  # noqa: E402
 
@@ -34,14 +34,9 @@ FIELDS = ("d_nm_per_V", "A_nm_per_V", "beta", "gamma", "n", "offset_nm", "fit_re
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--recording", type=Path, help="CSV with columns t,u,y (default: simulate one)")
-    ap.add_argument("--reps", type=int, default=3, help="repetitions per Jacobian (median)")
-    args = ap.parse_args(argv)
+    args = fit_recording.parse_args(__doc__.split("\n\n")[0], argv)
     with tempfile.TemporaryDirectory() as tmp:
-        if args.recording is None:
-            import speed_ladder as sl
-            args.recording = sl.record("all", 50_000, Path(tmp))
+        fit_recording.recording(args, Path(tmp))
         c, _ = prepare("bouc-wen", args.recording)
     t, u, y = c.t_s, delayed(c.t_s, c.u_V, c.delay_s), c.y_nm
     print(f"recording {args.recording}: {u.size} rows, fit from row {c.fit_from}")

@@ -15,7 +15,6 @@ simulated scanner (benchmarks/speed_ladder.py ``record``).
 """
 from __future__ import annotations
 
-import argparse
 import copy
 import statistics
 import sys
@@ -30,6 +29,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import afmctl.compensators.dynamics_identify as di  # noqa: E402
+import fit_recording  # noqa: E402
 from afmctl.api.identify import prepare  # noqa: E402
 
 JACOBIANS: tuple[di.Jacobian, ...] = ("2-point", "analytic")
@@ -62,14 +62,9 @@ def found(x: np.ndarray, n_modes: int, n_lags: int, rms: float) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--recording", type=Path, help="CSV with columns t,u,y (default: simulate one)")
-    ap.add_argument("--reps", type=int, default=3, help="repetitions per Jacobian (median)")
-    args = ap.parse_args(argv)
+    args = fit_recording.parse_args(__doc__.split("\n\n")[0], argv)
     with tempfile.TemporaryDirectory() as tmp:
-        if args.recording is None:
-            import speed_ladder as sl
-            args.recording = sl.record("all", 50_000, Path(tmp))
+        fit_recording.recording(args, Path(tmp))
         frf, n_lags, dt = fitted_frf(args.recording)
     print(f"recording {args.recording}: {frf.f_Hz.size} bins {frf.f_Hz[0]:.4g}–{frf.f_Hz[-1]:.4g} Hz, "
           f"{n_lags} lag(s), {1 / dt:g} Hz samples")
