@@ -47,7 +47,9 @@ as a :class:`LearnedTable` that ``afmctl run`` plays (``[trajectory] kind = "lea
 Units: nm, V, s; errors in nm and in % of each axis's line or step (or of its span when its
 target has no lines).
 
-One job per class: :class:`LearnRun` iterates and decides (learners, stop rules);
+One job per class: :class:`LearnRun` iterates and decides (stop rules, the learned table);
+:class:`~afmctl.control.learn_setup.LearnSetup` holds what it starts from (the configuration
+checked, the models, the first table, the learners);
 :class:`~afmctl.control.learn_axes.AxisBook` keeps each axis's figures and best column;
 :class:`~afmctl.control.learn_play.TablePlayer` plays a table and reads the recording back
 (steps check, arm, play, read); :class:`~afmctl.control.learn_history.HistoryTerms` keeps
@@ -65,28 +67,22 @@ import numpy as np
 from afmctl.compensators.learning import Learner, LearnSettings
 from afmctl.compensators.learning_history import creep_stages
 
-from ..data.axis_errors import ErrorReport, axis_errors, raster_lines
+from ..data.axis_errors import ErrorReport, axis_errors
 from ..errors import AfmctlError
-from ..inputs.trajectories import build, collect
 from .learn_axes import AxisBook
 from .learn_history import (HistoryTerms, PlayTimeline, history_offset_nm, settle_advice,  # noqa: F401 (re-exported)
                             with_learning_hold)
 from .learn_play import (OUTPUT_TOL_V, RecordingRefused, Step, TablePlayer, arm_recorder,  # noqa: F401
                          play_recorded, read_aligned, read_at_sample_start)
+from .learn_setup import MIN_SPAN_NM, SLEW_RESERVE, LearnSetup  # noqa: F401 (re-exported)
 from .learned_after import AFTER_S, HistoryAfter, history_after
 from .learned_table import LearnedTable, make_learned
-from .pipeline import axis_models, build_pipeline
-from .wave_plan import WaveTable, driven_steps_ok, plan_table, table_capacity
+from .wave_plan import WaveTable, driven_steps_ok
 
 log = logging.getLogger(__name__)
 
 #: a recording lagging the prediction by more than this share of the table is refused
 MAX_LAG_SHARE = 0.25
-#: planned tables keep this share of the slew limit in reserve (the players' own checks
-#: round to the device's resolution)
-SLEW_RESERVE = 0.02
-#: a target axis moving less than this [nm] peak to peak is not learned (it holds)
-MIN_SPAN_NM = 1.0
 
 
 def axis_metric(errors: dict[str, float]) -> float:
@@ -179,9 +175,10 @@ def judged_errors(target_nm: np.ndarray, measured_nm: dict[str, np.ndarray]) -> 
 
 
 class LearnRun:
-    """Learning on one open amplifier (module docstring): iterations, learners and stop
-    rules; the plays go through a :class:`TablePlayer`, the history terms through
-    :class:`HistoryTerms`. ``config``: the run's configuration (``amplifier.output =
+    """Learning on one open amplifier (module docstring): iterations and stop rules; its
+    start (configuration checked, models, first table, learners) in a :class:`LearnSetup`,
+    each axis's figures and best column in an :class:`AxisBook`, the plays through a
+    :class:`TablePlayer`, the history terms through :class:`HistoryTerms`. ``config``: the run's configuration (``amplifier.output =
     "wave"``, a finite trajectory); ``amplifier``: open, with a data recorder;
     ``on_iteration``: called with each :class:`IterationReport`."""
 
@@ -195,15 +192,14 @@ class LearnRun:
         #: a table played to the end (the learned table is made from it and each axis's best column)
         self.best: WaveTable | None = None
         self.book = AxisBook([])
-        self._models: tuple | None = None
         self.history = HistoryTerms(None, self.options.history_term)
-        self._check_config()
+        self.setup = LearnSetup(self.config, amplifier, self.options.settings, self.options.use_model)
         #: the recorder's points per signal for the learned axes (asked before the first play)
         self._capacity: int | None = None
         self.spec = config.trajectory.model_dump(mode="json")
-        self.axes = [a for a in config.scanner.axes if a in amplifier.axes]
-        self.limits_V = {a: config.limits(a) for a in self.axes}
-        self.max_step_V = (1.0 - SLEW_RESERVE) * config.slew_V_per_s() * config.dt_s
+        self.axes = self.setup.axes
+        self.limits_V = self.setup.limits_V
+        self.max_step_V = self.setup.max_step_V
         self.player = TablePlayer(self.config, amplifier, self.spec, self._played, self.options.record_timeout_s)
 
     @property
@@ -216,72 +212,27 @@ class LearnRun:
         """Per axis the history term's measured offset [nm] (step ``calibrate``)."""
         return self.history.offsets
 
-    def _check_config(self) -> None:
-        cfg = self.config
-        if cfg.trajectory.kind in ("queue", "learned"):
-            raise AfmctlError(f"trajectory.kind = '{cfg.trajectory.kind}': afmctl learn needs a finite trajectory "
-                              "to learn (raster, moves, indentation, text, spiral or file)")
-        if not getattr(self.amp, "has_recorder", False):
-            raise AfmctlError(f"amplifier.driver = '{cfg.amplifier.driver}' has no data recorder this driver "
-                              "reads: record the motion with an external sensor and learn from the files with "
-                              "'afmctl learn step'")
-        if cfg.amplifier.output != "wave":
-            raise AfmctlError(f"amplifier.output = '{cfg.amplifier.output}': afmctl learn plays each table on the "
-                              "amplifier's clock; set output = 'wave' (or AFMCTL_AMPLIFIER__OUTPUT=wave)")
-
     # ------------------------------------------------------------------ the first table
     def recorder_models(self) -> tuple:
-        """The configuration's :func:`~afmctl.control.pipeline.axis_models`, each as the
-        device's recorder sees the scanner (:func:`read_at_sample_start`), loaded once: the
-        first table and the learning filters both use them."""
-        if self._models is None:
-            models, inv_c, scanner_file = axis_models(self.config)
-            self._models = ([(read_at_sample_start(m), src) for m, src in models], inv_c, scanner_file)
-        return self._models
+        """The models as the device's recorder sees the scanner (:class:`LearnSetup`)."""
+        return self.setup.recorder_models()
 
     def first_table(self) -> WaveTable:
-        """The configured compensation's table for the trajectory (what ``output = "wave"``
-        plays without learning)."""
-        cfg = self.config
-        targets = collect(build(cfg.trajectory, cfg.dt_s))
-        if len(targets) == 0:
-            raise AfmctlError("trajectory: it has no samples at the loop period")
-        T_C = cfg.compensation.temperature.T_C
-        return plan_table(cfg, build_pipeline(cfg, self.recorder_models()), targets, T_C, self.limits_V,
-                          self.max_step_V, table_capacity(self.amp, self.axes))
+        """The configured compensation's table for the trajectory (:class:`LearnSetup`)."""
+        return self.setup.first_table()
 
     def learners(self, table: WaveTable) -> dict[str, Learner]:
-        """One learner per axis whose target moves, its limits from the configuration."""
-        models = self.recorder_models()[0] if self.options.use_model else [(None, None)] * 3
-        raster = raster_lines(table.target_nm, "".join(self.axes))
-        out: dict[str, Learner] = {}
-        for axis in self.axes:
-            k = "xyz".index(axis)
-            if np.ptp(table.target_nm[:, k]) < MIN_SPAN_NM:
-                continue
-            lo, hi = self.limits_V[axis]
-            settings = LearnSettings(**{**self.options.settings.__dict__, "u_min_V": lo, "u_max_V": hi,
-                                        "slew_V_per_s": self.max_step_V / self.config.dt_s})
-            out[axis] = Learner(table.target_nm[:, k], self.config.dt_s, models[k][0], settings,
-                                lines=raster[1] if raster is not None else None)
-        if not out:
-            raise AfmctlError("trajectory: no driven axis moves; nothing to learn")
+        """One learner per axis whose target moves (:meth:`LearnSetup.learners`); each
+        axis's book, and the history of the axes whose model has a creep stage."""
+        out = self.setup.learners(table)
         self.book = AxisBook(list(out))
-        with_model = {a: models["xyz".index(a)][0] for a in out if creep_stages(models["xyz".index(a)][0])}
+        models = self.setup.learned_models()
+        with_model = {a: models["xyz".index(a)] for a in out if creep_stages(models["xyz".index(a)])}
         if self.options.history_term and with_model:
             peak = {a: float(np.max(table.u_V[:, "xyz".index(a)])) for a in with_model}
-            self.history.timeline = PlayTimeline(self.config, with_model, self._present_output(list(with_model)),
-                                                 peak)
+            self.history.timeline = PlayTimeline(self.config, with_model,
+                                                 self.setup.present_output(list(with_model)), peak)
         return out
-
-    def _present_output(self, axes: list[str]) -> dict[str, float]:
-        """The output [V] per axis now (read back), where the history begins."""
-        try:
-            volts = self.amp.get_voltages()
-        except Exception as err:  # noqa: BLE001 - a link fault shows on the first play
-            log.warning("learn: reading the output back failed (%s); the history starts at the safe values", err)
-            volts = {}
-        return {a: float(volts.get(a, self.config.safety.safe_value(a))) for a in axes}
 
     # ------------------------------------------------------------------ iterations
     def run(self) -> LearnedTable:
