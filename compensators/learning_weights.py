@@ -258,12 +258,18 @@ def error_figures(y_nm: np.ndarray, target_nm: np.ndarray, lines: list[Line] | N
 HOLD_NM = 1.0
 
 
+def moving_spans_nm(target_nm: np.ndarray, lines: list[Line]) -> np.ndarray:
+    """The spans [nm] of ``target_nm`` over each line on which it moves (by at least
+    :data:`HOLD_NM`)."""
+    spans = np.array([np.ptp(target_nm[ln.start:ln.stop]) for ln in lines])
+    return spans[spans >= HOLD_NM]
+
+
 def line_span_nm(target_nm: np.ndarray, lines: list[Line]) -> float:
     """The length of the raster's lines [nm] along ``target_nm``: the median of its spans
     over the lines on which it moves (for a slow axis judged on the fast axis's lines, its
     step per line); 1 without lines or movement."""
-    spans = np.array([np.ptp(target_nm[ln.start:ln.stop]) for ln in lines])
-    moving = spans[spans >= HOLD_NM]
+    moving = moving_spans_nm(target_nm, lines)
     return float(np.median(moving)) if moving.size else 1.0
 
 

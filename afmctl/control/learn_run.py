@@ -189,17 +189,14 @@ class LearnRun:
         self.options = options or LearnOptions()
         self.on_iteration = on_iteration
         self.reports: list[IterationReport] = []
-        #: a table played to the end (the learned table is made from it and each axis's best column)
-        self.best: WaveTable | None = None
+        #: the first table played to the end: the learned table is it with each axis's best column
+        self.played: WaveTable | None = None
         self.book = AxisBook([])
         self.history = HistoryTerms(None, self.options.history_term)
         self.setup = LearnSetup(self.config, amplifier, self.options.settings, self.options.use_model)
         #: the recorder's points per signal for the learned axes (asked before the first play)
         self._capacity: int | None = None
         self.spec = config.trajectory.model_dump(mode="json")
-        self.axes = self.setup.axes
-        self.limits_V = self.setup.limits_V
-        self.max_step_V = self.setup.max_step_V
         self.player = TablePlayer(self.config, amplifier, self.spec, self._played, self.options.record_timeout_s)
 
     @property
@@ -249,11 +246,11 @@ class LearnRun:
             if k == 0:
                 self.calibrate(table, list(learners))
             table = table_next
-        if self.best is None:
+        if self.played is None:
             raise AfmctlError("learn: no table was played to the end; nothing learned")
         history = [{"iteration": r.iteration, "metric_pct": r.metric_pct, "state": r.state, **r.summary()}
                    for r in self.reports]
-        best = self.book.best_table(self.best)
+        best = self.book.best_table(self.played)
         return make_learned(self.config, best, self.spec, history, self._after(best))
 
     def _after(self, best: WaveTable) -> HistoryAfter | None:
@@ -303,18 +300,19 @@ class LearnRun:
         self.history.calibrate(got)
 
     def _played(self, table: WaveTable, rows: int, times: dict[str, float]) -> None:
-        self.history.played({a: table.u_V[:, "xyz".index(a)] for a in self.axes}, rows, times)
+        self.history.played({a: table.u_V[:, "xyz".index(a)] for a in self.setup.axes}, rows, times)
 
     def _check(self, table: WaveTable) -> None:
         if self._capacity is None:          # asked once, before the first play (a link may be down later)
-            self._capacity = int(self.amp.recorder_capacity(self.axes))
+            self._capacity = int(self.amp.recorder_capacity(self.setup.axes))
         capacity = self._capacity
         if len(table) > capacity:
             raise AfmctlError(f"learn: the table's {len(table)} rows do not fit the {self.config.amplifier.driver} "
                               f"recorder's {capacity} points per signal; nothing was played (shorten the trajectory "
                               "or lower loop.rate_Hz)")
-        start = table.u_V[0, ["xyz".index(a) for a in self.axes]]
-        if not driven_steps_ok(table.u_V, self.axes, self.limits_V, self.max_step_V / (1.0 - SLEW_RESERVE), start):
+        setup = self.setup
+        start = table.u_V[0, ["xyz".index(a) for a in setup.axes]]
+        if not driven_steps_ok(table.u_V, setup.axes, setup.limits_V, setup.max_step_V / (1.0 - SLEW_RESERVE), start):
             raise AfmctlError("learn: the next table breaks the limits or the slew limit; nothing was sent")
 
     def _learn(self, k: int, table: WaveTable, learners: dict[str, Learner], measured: dict[str, np.ndarray]
@@ -326,8 +324,8 @@ class LearnRun:
             self.history.first_play(measured, terms)
         judged = judged_errors(table.target_nm, {a: measured[a] - terms[a] for a in learners})
         self.book.record(k, table, judged)
-        if self.best is None:
-            self.best = table
+        if self.played is None:
+            self.played = table
         errors, rhos, lags = {}, [], []
         learning = self.book.learning()
         for axis, learner in learners.items():

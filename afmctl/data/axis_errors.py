@@ -28,11 +28,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from afmctl.compensators.learning_weights import REPORT_CENTRAL_PCT, Line, find_lines, judged_lines, lines_mask
+from afmctl.compensators.learning_weights import (HOLD_NM, REPORT_CENTRAL_PCT, Line, find_lines, judged_lines,
+                                                  lines_mask, moving_spans_nm)
 
 #: an axis moving less than this [nm] peak to peak (over the record, or over one line for
 #: a step) holds: its error is given in nm only
-MIN_SPAN_NM = 1.0
+MIN_SPAN_NM = HOLD_NM
 #: the lines of a raster cover at least this share of the record …
 RASTER_SHARE = 0.5
 #: … and this share of them is within LENGTH_TOL of their median length
@@ -154,8 +155,7 @@ def reference_nm(target: np.ndarray, axis: str, raster: tuple[str, list[Line]] |
     if raster is None:
         return "range", float(np.ptp(target))
     fast, lines = raster
-    per_line = np.array([np.ptp(target[ln.start:ln.stop]) for ln in lines])
-    moving = per_line[per_line >= MIN_SPAN_NM]
+    moving = moving_spans_nm(target, lines)
     if axis == fast:
         return "line", float(np.median(moving))
     if moving.size:
