@@ -5,8 +5,9 @@ Per example and model, two commands, as a user runs them:
 
 1. ``afmctl learn --config EXAMPLE.toml --iterations N --out X.afmwave`` (with
    ``AFMCTL_SIMULATION__ENABLED=true``, and ``AFMCTL_COMPENSATION__SCANNER_MODEL`` for the
-   chain): its last line names, per axis, the play its best column comes from and that
-   play's max / RMS error [nm] over the judged lines;
+   chain): its last line gives, per axis, the max / RMS error [nm] over the judged lines of
+   the learned table played once more at the end (step ``replay``), then the play each
+   axis's best column comes from;
 2. ``afmctl run`` of a copy of the example whose ``[trajectory]`` is ``kind = "learned"``,
    played as a wave (``AFMCTL_AMPLIFIER__OUTPUT=wave``): its summary's tracking error per
    axis, measured by the device's recorder.
@@ -38,8 +39,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 AFMCTL = [sys.executable, "-m", "afmctl"]
 DEFAULT_MODEL = ROOT / "demo-out" / "models" / "scanner_preisach+creep+dynamics.json"
-#: examples served by ``afmctl sim --tcp`` (their protocol)
-TCP = {"e727_tcp": "gcs", "nv200_tcp": "nv200"}
+#: examples served by ``afmctl sim --tcp``: the simulator's options (an NV200 actuator with a
+#: position sensor: without one its recorder has no motion to record)
+TCP = {"e727_tcp": ["--protocol", "gcs"], "nv200_tcp": ["--protocol", "nv200", "--sensor", "capacitive"]}
 #: an axis's figures in a progress, final or summary line: axis, max [nm], RMS [nm]
 AXIS = re.compile(r"\b([xyz]) max ([\d.e+-]+) nm(?: \([^)]*\))? / RMS ([\d.e+-]+) nm")
 #: the learn's last line names each axis's best play
@@ -123,7 +125,7 @@ def _serve(example: str, env: dict[str, str], work: Path) -> subprocess.Popen | 
     port = free_port()
     env["AFMCTL_SIMULATION__ENABLED"] = "false"
     env["AFMCTL_AMPLIFIER__PORT"] = f"socket://127.0.0.1:{port}"
-    sim = subprocess.Popen(AFMCTL + ["sim", "--protocol", TCP[example], "--tcp", f"127.0.0.1:{port}"],
+    sim = subprocess.Popen(AFMCTL + ["sim", *TCP[example], "--tcp", f"127.0.0.1:{port}"],
                            cwd=work, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     _wait_port(port)
     return sim

@@ -66,6 +66,9 @@ DEFAULT_STEP = {"model": 1.0, "model-free": 0.7}
 #: a rise of the judged error counts (towards the divergence guard) when it exceeds this
 #: share of the noise's σ [% of the line]: the noise left in the figure scatters it
 NOISE_TOLERANCE = 0.5
+#: how a stop's reason names the table this learner keeps (its own best by its weighted
+#: figure); a caller that keeps another table cuts the reason here
+KEEPING = "; keeping the best table"
 
 
 @dataclass(frozen=True)
@@ -462,11 +465,11 @@ class Learner:
         tol = NOISE_TOLERANCE * 100.0 * (st.noise_nm or 0.0) / self.line_nm
         st.rises = st.rises + 1 if metric > prev * (1 + 1e-6) + tol else 0
         if st.rises >= self.settings.max_rises:
-            return (f"the weighted error rose {st.rises} times in a row (to {metric:.3g} %): diverging; "
-                    f"keeping the best table (iteration {st.best_iteration}, {st.best_metric_pct:.3g} %)")
+            return (f"the weighted error rose {st.rises} times in a row (to {metric:.3g} %): diverging"
+                    f"{KEEPING} (iteration {st.best_iteration}, {st.best_metric_pct:.3g} %)")
         if st.misses >= self.settings.max_misses:
             return (f"no better table in {st.misses} iterations (steps down to 1/{2 ** st.halvings}): the floor is "
-                    f"reached; keeping the best table (iteration {st.best_iteration}, {st.best_metric_pct:.3g} %)")
+                    f"reached{KEEPING} (iteration {st.best_iteration}, {st.best_metric_pct:.3g} %)")
         return ""
 
     def _base(self, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -180,6 +180,25 @@ class Scanner:
             #: simulated time (a wave point the amplifier handed over too late: not simulated)
             self.late_changes = 0
 
+    def rest(self) -> None:
+        """The piezo as a fresh scanner has it, while time goes on: every axis back at its
+        lowest voltage in negative saturation with its creep and vibration settled, and the
+        thermal drift back to zero at the present ambient temperature. The clock, the
+        noise's generator and the sensor go on (an amplifier's clock keeps running; the
+        next readings are new noise). What ``afmctl learn`` on an in-process simulator does
+        before each play, so that every play starts as ``afmctl run`` does on a fresh one."""
+        with self._lock:
+            for ax in self.axes.values():
+                ax.reset()
+            self._held_V = np.array([self.axes[a].u_min_V for a in AXES])
+            self._drift.reset(self._T_C)
+            self._drift.prepare(self.config.dt_s)
+            self._pos = self._compose(np.array([[self.axes[a].y_nm for a in AXES]]), np.zeros((1, 3)))[0]
+
+    def rest_voltage_V(self) -> np.ndarray:
+        """Where :meth:`rest` leaves the command voltage [x, y, z] V: each axis's lowest."""
+        return np.array([self.axes[a].u_min_V for a in AXES], dtype=float)
+
     def _compose(self, disp: np.ndarray, drift: np.ndarray) -> np.ndarray:
         """Coupling then drift, row by row in a fixed order of operations (not ``disp @ C.T``,
         whose BLAS rounding depends on the number of rows), so that a run in blocks of any

@@ -107,6 +107,30 @@ def test_the_history_offset_is_what_moved_beyond_the_models_term():
     assert history_offset_nm(moved - term, 0.0) == pytest.approx(5.7, abs=0.05)   # no creep stage: all of it
 
 
+def test_only_an_axis_with_a_creep_stage_is_calibrated_and_offset():
+    """The first table's second play measures the offset of the axes whose model has a creep
+    stage; an axis without one (model-free) is learned from its recordings as they are — no
+    offset from the first play — so its table is right for the play right after learning."""
+    from afmctl.control.learn_history import HistoryTerms
+    config = Config.model_validate({"amplifier": {"driver": "gcs", "output": "wave", "settle_s": 0.2, "slew_V_per_s": 1e5,
+                                                  "port": "/dev/null"},
+                                    "loop": {"rate_Hz": 1000.0},
+                                    "safety": {"ramp_V_per_s": 5000.0, "slew_V_per_s": 1e5}})
+    y0 = {"x": np.zeros(500), "y": np.zeros(500)}
+    again = {"x": np.full(500, 3.0), "y": np.full(500, 4.0)}
+    free = HistoryTerms(None)
+    free.first_play(y0, {"x": np.zeros(500), "y": np.zeros(500)})
+    assert not free.wants_calibration
+    assert np.all(free.term("y", 5, (500,)) == 0.0)
+    timeline = PlayTimeline(config, {"x": creep_model(gain=1.0)}, {"x": 0.0}, {"x": 70.0})
+    mixed = HistoryTerms(timeline)
+    mixed.first_play(y0, {"x": np.zeros(500), "y": np.zeros(500)})
+    assert mixed.wants_calibration
+    mixed.calibrate(again)
+    assert set(mixed.offsets) == {"x"} and mixed.offsets["x"] == pytest.approx(3.0)
+    assert np.all(mixed.term("y", 5, (500,)) == 0.0)
+
+
 def test_a_short_settle_hold_is_said_and_a_long_one_not():
     from afmctl.config import LEARN_SETTLE_S
     from afmctl.control.learn_run import settle_advice

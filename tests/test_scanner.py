@@ -185,6 +185,23 @@ def test_reset_restores_the_state_bit_exactly():
     np.testing.assert_array_equal(s.read_sensor_nm(), reading)
 
 
+def test_rest_gives_a_fresh_scanners_motion_while_time_goes_on():
+    """rest() after a raster: the same voltages then move the tip exactly as on a new
+    scanner (hysteresis, creep, vibration and drift as at start); the clock does not go back."""
+    u = raster_volts(1200)
+    fresh = Scanner().run(u, 1e-4)
+    s = Scanner()
+    played = s.run(u, 1e-4)
+    again = s.run(u, 1e-4)
+    assert np.max(np.abs(again - fresh)) > 1.0          # without rest the history shows
+    t = s.time_s
+    s.rest()
+    assert s.time_s == t
+    np.testing.assert_array_equal(s.held_voltage_V(), s.rest_voltage_V())
+    np.testing.assert_allclose(s.run(u, 1e-4), fresh, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(played, fresh)
+
+
 def test_reference_path_equals_numba_path():
     """The whole scanner with the plain-Python kernels (fast=False) equals the numba one."""
     u = raster_volts(400)

@@ -90,3 +90,23 @@ def test_sim_refuses_a_non_loopback_endpoint_in_one_line():
                         "--duration", "1"], capture_output=True, text=True, timeout=120)
     assert p.returncode == 2, p.stderr
     assert p.stderr.count("\n") == 1 and "--tcp" in p.stderr and "loopback" in p.stderr
+
+
+def test_the_simulated_nv200s_sensor_is_chosen_and_only_for_the_nv200(tmp_path):
+    """``afmctl sim --sensor``: an NV200 actuator with a position sensor, which the driver
+    reads (its recorder then records the motion: afmctl calibrate and learn); another
+    protocol refuses the option in one line."""
+    from afmctl.simulation.service import SimService, SimSettings
+    from afmctl.zenoh_api.settings import free_loopback_endpoint
+    port = free_loopback_endpoint().split("/")[-1]
+    settings = SimSettings.model_validate({"amplifier": {"protocol": "nv200", "tcp": port, "sensor": "capacitive"}})
+    with SimService(settings) as service:
+        amp = open_amplifier("nv200", service.port, timeout_s=2.0)
+        try:
+            assert amp.recorder_capacity(["x"]) > 0
+            assert "capacitive" in str(amp.info()).lower()
+        finally:
+            amp.close()
+    p = subprocess.run([sys.executable, "-m", "afmctl", "sim", "--protocol", "gcs", "--sensor", "capacitive",
+                        "--duration", "1"], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and p.stderr.count("\n") == 1 and "amplifier.sensor" in p.stderr, p.stderr

@@ -24,19 +24,24 @@ that axis's line, or of its step for a raster's slow axis, over the central 80 %
 raster line but the first, as afmctl run reports it; the step size). Each axis learns on
 its own until its error is at --noise-floor-pct, stops improving, or a guard stops it
 (error rising twice; a model whose phase is over 90 deg off); it then plays its best
-column, and learning ends when every axis has, or N tables have played. The scanner creeps: each play carries the creep of the plays before it, and
-afmctl run later plays the learned table once, from rest. With a model whose chain has a
-creep stage, each recording is first freed of what that creep history adds (the "history
-term", in nm on the progress line), so the learned table is right for that play from rest;
-after the first iteration the first table plays once more, and what the scanner moved
-between its two plays beyond the model's term is measured and added to the term (without
-a model it is the whole term). The creep of each approach ramp still runs during the
+column, and learning ends when every axis has, or N tables have played. The scanner creeps: each play carries the creep of the plays before it. An
+in-process simulator ([simulation] enabled) is brought to rest before every play, as
+afmctl run starts on a fresh one. On a device, with a model whose chain has a creep stage,
+each recording is first freed of what that creep history adds (the "history term", in nm
+on the progress line), so the learned table is right for a play from rest, and afmctl run
+takes out what the learning's plays still add when it plays; after the first iteration the
+first table plays once more, and what the scanner moved between its two plays beyond the
+model's term is measured and added to the term. An axis without a creep stage learns from
+its recordings as they are: its table is right for a play soon after the learning's, on
+that device (after a long rest it lands off by the creep the plays left). The creep of each approach ramp still runs during the
 table while the output holds the first row: with amplifier.settle_s unset every play
 holds 2 s first (a shorter hold makes plays repeat less well; afmctl learn says so), and
 the learned table records its hold, which afmctl run then keeps.
 Every table is checked (limits, slew, device capacity) before it is sent;
 Ctrl-C stops (the best table so far is written), a second Ctrl-C is an emergency stop.
-The table made of each axis's best measured column is written to --out; play it with
+The table made of each axis's best measured column is written to --out and played once
+more as afmctl run plays it: the last line gives that play's figures (a run's), then each
+axis's best play while learning (the smallest of several noisy figures). Play it with
 
   [trajectory]
   kind = "learned"
@@ -113,6 +118,18 @@ def part_line(report: Any) -> str | None:
             + "; % of each axis's line (the fast axis) or step (a slow axis's move per line)")
 
 
+def final_line(out: str, run: Any) -> str:
+    """The last line: where the table went, the figures of its last play (step ``replay``:
+    what ``afmctl run`` reproduces) and each axis's best play while learning."""
+    best = f"each axis's best play while learning: {run.book.best_text()}"
+    if run.replayed is not None:
+        what = f"played once more as afmctl run plays it: {run.replayed.text(', ')}; {best}"
+    else:
+        what = best
+    return (f"afmctl: learned table {out}, {what}; play it with [trajectory] kind = \"learned\" (afmctl run reports "
+            "the figures of the play once more)")
+
+
 def plot_convergence(reports: list[Any], path: str) -> None:
     """Error per iteration (log scale), whole table and central part of each line."""
     from ..figures import pyplot, save_figure
@@ -140,7 +157,7 @@ def run_device(args: argparse.Namespace) -> int:
     from ..config import load_config
     from ..control.learn_run import LearnOptions, LearnRun, settle_advice
     from ..control.learned_table import save_learned
-    from ..simulation.link import configured_amplifier
+    from ..simulation.link import configured_amplifier, resting, simulated_amplifier
     from .run import _install_signals
     _check_args(args)
     config = as_wave(load_config(args.config))
@@ -148,10 +165,18 @@ def run_device(args: argparse.Namespace) -> int:
     if advice:
         print(f"afmctl: learn: {advice}", file=sys.stderr)
     settings = LearnSettings(rho_max=args.rho, central_pct=args.device_central_pct)
-    options = LearnOptions(iterations=args.iterations, noise_floor_pct=args.noise_floor_pct, settings=settings,
-                           use_model=not args.model_free, history_term=not args.no_history_term)
     with contextlib.ExitStack() as stack:
-        amp = configured_amplifier(stack, config)
+        rest = None
+        if config.simulation.enabled:      # afmctl run starts on a fresh simulator: so does every play
+            amp, scanner = stack.enter_context(simulated_amplifier(config))
+            rest = resting(config, scanner)
+        else:
+            amp = configured_amplifier(stack, config)
+        options = LearnOptions(iterations=args.iterations, noise_floor_pct=args.noise_floor_pct, settings=settings,
+                               use_model=not args.model_free, history_term=not args.no_history_term, rest=rest)
+        if rest is not None:
+            print("afmctl: learn: the in-process simulated scanner is brought to rest before every play, as afmctl "
+                  "run starts on a fresh one: no play carries the creep of the ones before", file=sys.stderr)
         publish = _publisher(stack, config)
         seen = {"part": False}
 
@@ -171,8 +196,7 @@ def run_device(args: argparse.Namespace) -> int:
     save_learned(args.learned_out, learned)
     if args.learned_plot:
         plot_convergence(run.reports, args.learned_plot)
-    print(f"afmctl: learned table {args.learned_out}, each axis's best play: {run.book.best_text()}; play it "
-          "with [trajectory] kind = \"learned\" (afmctl run reports the same figures)", file=sys.stderr)
+    print(final_line(args.learned_out, run), file=sys.stderr)
     return 1 if run.reports[-1].state == "fault" else 0
 
 

@@ -58,6 +58,7 @@ drop-oldest queue, so a slow subscriber never stalls the simulated plant.
   protocol = "mdt693b"      # mdt693b | mdt694b | gcs | nv200
   baud = 115200             # bits/s of the simulated link (8N1)
   link = "/tmp/afm-amp"     # also make this stable symlink to the pty
+  sensor = "capacitive"     # nv200 only: the actuator's position sensor (default none)
   [sim]
   tick_s = 0.01             # how often the plant is advanced to the wall clock [s]
   publish_rate_Hz = 100.0   # most sim/tip messages per second (0.1 .. 10000 Hz)
@@ -79,6 +80,9 @@ def register(subparsers) -> None:
                    help="amplifier protocol (overrides the config; default mdt693b)")
     p.add_argument("--baud", type=int, default=None, help="simulated baud rate (default 115200)")
     p.add_argument("--link", default=None, help="also create this symlink to the pty")
+    p.add_argument("--sensor", choices=["none", "strain gauge", "capacitive", "LVDT"], default=None,
+                   help="nv200 only: the actuator's position sensor (default none: its recorder records voltages "
+                        "only; with one, afmctl calibrate and learn can record the motion)")
     p.add_argument("--tcp", default=None, metavar="HOST:PORT",
                    help="serve on this loopback TCP endpoint instead of a pty, as controllers with an Ethernet "
                         "port are reached (gcs: E-727 port 50000; nv200: NV200/D NET); the driver's port is "
@@ -159,6 +163,8 @@ def run(args) -> int:
         settings.amplifier.baud = args.baud
     if args.link:
         settings.amplifier.link = args.link
+    if args.sensor:
+        settings.amplifier.sensor = args.sensor
     if args.tcp:
         from ..sim_backend.amplifiers.tcp_server import parse_endpoint
         try:

@@ -157,12 +157,12 @@ def with_learning_hold(config: Any) -> Any:
 
 
 class HistoryTerms:
-    """What each play's history adds to its recording, per learned axis (the ``learn`` and
-    ``calibrate`` steps of :mod:`afmctl.control.learn_run`): the model's history term from
-    :class:`PlayTimeline` (None: no axis with a creep stage), plus its *offset* measured by
-    playing the first table twice (:meth:`calibrate`; without a model's creep stage the
-    offset is the whole term). ``enabled`` False: no terms (learning from the recordings
-    as they are)."""
+    """What each play's history adds to its recording, per learned axis with a model's creep
+    stage (the ``learn`` and ``calibrate`` steps of :mod:`afmctl.control.learn_run`): the
+    model's history term from :class:`PlayTimeline` (None: no axis with a creep stage), plus
+    its *offset* measured by playing the first table twice (:meth:`calibrate`). Other axes,
+    and every axis when ``enabled`` is False: no terms (learning from the recordings as
+    they are)."""
 
     def __init__(self, timeline: PlayTimeline | None, enabled: bool = True) -> None:
         self.timeline = timeline
@@ -191,9 +191,14 @@ class HistoryTerms:
         return np.broadcast_to(self._terms.get(axis, 0.0), shape) + offset
 
     def first_play(self, measured: dict[str, np.ndarray], terms: dict[str, np.ndarray]) -> None:
-        """Keep the first play's recordings and terms (for :meth:`calibrate`)."""
-        if self.enabled:
-            self._first_play = {a: (measured[a].copy(), terms[a]) for a in terms}
+        """Keep the first play's recordings and terms of the axes with a model's creep stage
+        (for :meth:`calibrate`). An axis without one is learned from its recordings as they
+        are: nothing then says how its history decays after learning, so its table is made
+        for the play that follows the learning's plays on the same device, as ``afmctl run``
+        plays it there (a term measured once, against the first play, would stay in the table
+        and show as an offset of that size in every run)."""
+        if self.enabled and self.timeline is not None:
+            self._first_play = {a: (measured[a].copy(), terms[a]) for a in terms if a in self.timeline.now}
 
     @property
     def wants_calibration(self) -> bool:

@@ -38,6 +38,7 @@ class Step(enum.Enum):
     READ = "read"
     LEARN = "learn"
     CALIBRATE = "calibrate"
+    REPLAY = "replay"
 
 
 class RecordingRefused(AfmctlError):

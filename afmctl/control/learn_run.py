@@ -22,19 +22,27 @@ One iteration (:meth:`LearnRun.iterate`), in named steps:
    :data:`MAX_LAG_SHARE` of the table;
 4. ``learn`` — per learned axis the :class:`afmctl.compensators.learning.Learner` (the
    configured model as the learning filter, or the model-free law) gives the next column.
-   With a model, the recording is first freed of its *history term*: what the model says
-   the axis's voltages before this play (the earlier plays, ramps and uploads) add to it,
-   relative to a play from rest as ``afmctl run`` plays the learned table
+   An in-process simulator is brought to rest before every play (``LearnOptions.rest``),
+   as ``afmctl run`` starts on a fresh one: no play carries a history. On a device, an
+   axis whose model has a creep stage has its recording first freed of its *history
+   term*: what the model says the axis's voltages before this play (the earlier plays,
+   ramps and uploads) add to it, relative to a play from rest
    (:mod:`afmctl.compensators.learning_history`; the creep of the earlier plays). The
-   table is so learned for the play ``afmctl run`` makes, not for the n-th play in a row.
+   table is so learned for a play from rest, and ``afmctl run`` takes out what the plays
+   still add when it plays (:mod:`afmctl.control.learned_after`).
    The first play is not like the later ones (the scanner's state before learning began
-   is unknown to the model: on a fresh simulated scanner its first ascent): after the
+   is unknown to the model): after the
    first iteration the first table is played once more (``calibrate``), and what the
    scanner moved between the two plays of one table — only the history differs — less
    what the model's history term says is the term's *offset* per axis, added from the
    second play on (:func:`history_offset_nm`). On the default simulated scanner with the
-   demo's model it is 6 nm on the CAN amplifier (which left the learned table 0.4 % of a
-   1 µm line off when ``afmctl run`` played it from rest) and under 1 nm on the E-727.
+   demo's model it is 6 nm on the CAN amplifier and under 1 nm on the E-727. An axis
+   without a creep stage learns from its recordings as they are: its table is right for
+   the play that follows the learning's, as ``afmctl run`` right after meets it.
+
+When learning ends (not on a stop), the learned table is played once more as ``afmctl
+run`` plays it (:meth:`LearnRun.replay`, step ``replay``): each axis's best play is the
+smallest of several noisy figures, and this play's figures are the ones a run meets.
 
 Each axis is learned and judged on its own (:mod:`afmctl.control.learn_axes`): an axis
 finishes — it plays its best column from then on — when its error over the judged part is
@@ -64,7 +72,7 @@ from typing import Any
 
 import numpy as np
 
-from afmctl.compensators.learning import Learner, LearnSettings
+from afmctl.compensators.learning import KEEPING, Learner, LearnSettings
 from afmctl.compensators.learning_history import creep_stages
 
 from ..data.axis_errors import ErrorReport, axis_errors
@@ -75,7 +83,7 @@ from .learn_history import (HistoryTerms, PlayTimeline, history_offset_nm, settl
 from .learn_play import (OUTPUT_TOL_V, RecordingRefused, Step, TablePlayer, arm_recorder,  # noqa: F401
                          play_recorded, read_aligned, read_at_sample_start)
 from .learn_setup import MIN_SPAN_NM, SLEW_RESERVE, LearnSetup  # noqa: F401 (re-exported)
-from .learned_after import AFTER_S, HistoryAfter, history_after
+from .learned_after import AFTER_S, HistoryAfter, corrected_for_history, history_after
 from .learned_table import LearnedTable, make_learned
 from .wave_plan import WaveTable, driven_steps_ok
 
@@ -102,8 +110,13 @@ class LearnOptions:
     ``use_model``: learn through the configured model (False: model-free);
     ``record_timeout_s``: longest wait for a recording after the play [s];
     ``link_retries``: plays of the same table after a link fault (reconnected first);
+    ``replay``: play the learned table once more at the end, as ``afmctl run`` plays it,
+    and report that play's figures (:attr:`LearnRun.replayed`);
     ``history_term``: with a model, learn from the recording minus the history term
-    (module docstring, step ``learn``)."""
+    (module docstring, step ``learn``); ``rest``: called before every play to bring an
+    in-process simulated scanner to rest (:meth:`afmctl.sim_backend.scanner.Scanner.rest`),
+    so that every play starts as ``afmctl run`` starts on a fresh simulator — then no play
+    carries a history and no term is taken out (None: a device, which keeps its state)."""
 
     iterations: int = 10
     noise_floor_pct: float = 0.0
@@ -112,6 +125,8 @@ class LearnOptions:
     record_timeout_s: float = 30.0
     link_retries: int = 2
     history_term: bool = True
+    rest: Callable[[], None] | None = None
+    replay: bool = True
 
 
 @dataclass
@@ -192,10 +207,13 @@ class LearnRun:
         #: the first table played to the end: the learned table is it with each axis's best column
         self.played: WaveTable | None = None
         self.book = AxisBook([])
-        self.history = HistoryTerms(None, self.options.history_term)
+        self.history = HistoryTerms(None, self.options.history_term and self.options.rest is None)
         self.setup = LearnSetup(self.config, amplifier, self.options.settings, self.options.use_model)
         #: the recorder's points per signal for the learned axes (asked before the first play)
         self._capacity: int | None = None
+        #: the learned table played once more at the end (step ``replay``): its figures, as
+        #: ``afmctl run`` measures them (None: not played, stopped or incomplete)
+        self.replayed: ErrorReport | None = None
         self.spec = config.trajectory.model_dump(mode="json")
         self.player = TablePlayer(self.config, amplifier, self.spec, self._played, self.options.record_timeout_s)
 
@@ -225,7 +243,7 @@ class LearnRun:
         self.book = AxisBook(list(out))
         models = self.setup.learned_models()
         with_model = {a: models["xyz".index(a)] for a in out if creep_stages(models["xyz".index(a)])}
-        if self.options.history_term and with_model:
+        if self.history.enabled and with_model:
             peak = {a: float(np.max(table.u_V[:, "xyz".index(a)])) for a in with_model}
             self.history.timeline = PlayTimeline(self.config, with_model,
                                                  self.setup.present_output(list(with_model)), peak)
@@ -251,7 +269,35 @@ class LearnRun:
         history = [{"iteration": r.iteration, "metric_pct": r.metric_pct, "state": r.state, **r.summary()}
                    for r in self.reports]
         best = self.book.best_table(self.played)
+        self.replayed = self.replay(best)
         return make_learned(self.config, best, self.spec, history, self._after(best))
+
+    def replay(self, best: WaveTable) -> ErrorReport | None:
+        """Step ``replay``: the learned table played once more as ``afmctl run`` plays it
+        — on an in-process simulator from rest, on a device with what the learning's plays
+        still add taken out (:func:`corrected_for_history`) — and judged as ``afmctl run``
+        judges it, with nothing taken out of the recording. The best plays' figures are the
+        smallest of several noisy ones; this one is what a run meets. None when learning
+        was stopped or ended on a fault, or the play did not complete."""
+        ended = self.reports[-1].state if self.reports else "fault"
+        if not self.options.replay or self.player.stopping or ended in ("fault", "stopped"):
+            return None
+        table = corrected_for_history(best, self._after(best), self.config)
+        try:
+            self._check(table)
+        except AfmctlError as err:
+            log.warning("learn: the learned table is not played once more: %s", err)
+            return None
+        self.player.step = Step.REPLAY
+        if self.options.rest is not None:
+            self.options.rest()
+        got = self.player.play_and_read(table, list(self.book.axes))
+        if not isinstance(got, dict):
+            log.warning("learn: the learned table's last play did not complete (%s)", got[1])
+            if got[0] == "fault" and not self.player.stopping:
+                self.player.reconnect()
+            return None
+        return judged_errors(best.target_nm, got)
 
     def _after(self, best: WaveTable) -> HistoryAfter | None:
         """What the plays leave after them for a play of ``best``
@@ -271,6 +317,8 @@ class LearnRun:
         self._check(table)
         ended = ("fault", "no play")
         for attempt in range(self.options.link_retries + 1):
+            if self.options.rest is not None:
+                self.options.rest()
             got = self.player.play_and_read(table, list(learners))
             if isinstance(got, dict):
                 self.player.step = Step.LEARN
@@ -284,9 +332,8 @@ class LearnRun:
 
     def calibrate(self, table: WaveTable, axes: list[str]) -> None:
         """Step ``calibrate`` (module docstring): play the first table once more and
-        measure each axis's history term's offset (without a model's creep stage, the
-        whole term: what the history moved). A play that does not complete (a fault, a
-        stop) leaves the terms as the model gives them."""
+        measure the history term's offset of each axis with a model's creep stage. A play
+        that does not complete (a fault, a stop) leaves the terms as the model gives them."""
         if not self.history.wants_calibration:
             return
         self.player.step = Step.CALIBRATE
@@ -340,7 +387,8 @@ class LearnRun:
                 rhos.append(res.rho_median)
                 nxt.u_V[:, c] = res.u_next_V
                 if res.stopped:
-                    self.book.finish(axis, res.reason, diverged=learner.diverging)
+                    # the book keeps its own best column (max nm judged), not the learner's
+                    self.book.finish(axis, res.reason.split(KEEPING)[0], diverged=learner.diverging)
         metric = judged.worst_pct()
         if metric != metric:      # no learned axis has a length to refer to: the law's own figure
             metric = max(axis_metric(e) for e in errors.values())

@@ -8,6 +8,7 @@ through :func:`afmctl.control.hardware.open_driver` — the same code path as wi
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import time
 from collections.abc import Iterator
@@ -18,6 +19,8 @@ import numpy as np
 
 from ..errors import AfmctlError
 from afmctl.drivers.base import AmplifierInterface
+
+log = logging.getLogger(__name__)
 
 #: reply (and write) timeout [s] of the driver to a simulated amplifier in this process, of
 #: every driver: the simulated device reads and answers from a thread of this process, which a
@@ -135,6 +138,21 @@ def simulated_amplifier(config) -> Iterator[tuple[Any, ScannerTap]]:
         amp = open_driver(config, port)
         stack.callback(amp.close)
         yield amp, scanner
+
+
+def resting(config, scanner: Any) -> Any:
+    """``scanner.rest`` (:meth:`afmctl.sim_backend.scanner.Scanner.rest`) when a run of
+    ``config`` ends where a fresh simulated scanner rests — ``safety.on_finish = "safe"``
+    with each axis's safe value at its lowest voltage — so that resting it between plays
+    makes no jump; else None (the plays then go on from where the last one left off, with
+    a log line saying so)."""
+    low = scanner.rest_voltage_V()
+    safe = np.array([config.safety.safe_value(a) for a in "xyz"])
+    if config.safety.on_finish == "safe" and np.allclose(safe, low, atol=1e-6):
+        return scanner.rest
+    log.info("simulated scanner: the output does not end at its rest voltages %s V (safety.on_finish %r, safe %s V); "
+             "each play starts where the last one left off", low.tolist(), config.safety.on_finish, safe.tolist())
+    return None
 
 
 def configured_amplifier(stack: contextlib.ExitStack, config) -> Any:

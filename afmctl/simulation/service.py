@@ -41,6 +41,9 @@ class AmplifierSection(BaseModel):
     link: str | None = None
     #: serve on this loopback TCP endpoint HOST:PORT instead of a pty (an Ethernet port: gcs, nv200)
     tcp: str | None = None
+    #: the NV200's actuator's position sensor ("none": an actuator without one, whose recorder
+    #: records voltages only; another: the recorder records the simulated scanner's position)
+    sensor: Literal["none", "strain gauge", "capacitive", "LVDT"] | None = None
 
     @field_validator("tcp")
     @classmethod
@@ -126,7 +129,10 @@ class SimService:
                 self.recorder = sink = CsvRecorder(str(record), inner=self.scanner)
             except OSError as err:
                 raise AfmctlError(f"--record {record}: cannot write ({err.strerror})") from None
-        self.device = make_device(amp.protocol, sink, now=self.clock)
+        options = {} if amp.sensor is None else {"sensor": amp.sensor}
+        if options and amp.protocol != "nv200":
+            raise AfmctlError(f"amplifier.sensor: only the simulated nv200 has one to choose (protocol {amp.protocol})")
+        self.device = make_device(amp.protocol, sink, now=self.clock, **options)
         if amp.tcp is not None:
             from afmctl.sim_backend.amplifiers.tcp_server import TcpServer, parse_endpoint
             host, port = parse_endpoint(amp.tcp)
