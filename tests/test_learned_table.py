@@ -3,6 +3,7 @@ as they are (``[trajectory] kind = "learned"``), and refused with one line when 
 trajectory, the amplifier's limits or a model file no longer match what they were learned for."""
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -210,3 +211,36 @@ def test_what_the_learnings_plays_leave_is_kept_and_taken_out_for_the_time_passe
     # an in-process simulator starts at rest with every command: nothing to take out
     cfg.simulation.enabled = True
     assert corrected_for_history(table, after, cfg, now_unix_s=1005.0) is table
+
+
+def test_a_table_learned_as_recorded_says_so_when_played_late(tmp_path):
+    """Axes learned on a device without a creep stage were learned for the play right after
+    the learning's: the file keeps which and when, and a run later than the fresh window
+    says in one line that the creep has moved on (nothing to take out); soon after, or on an
+    in-process simulator, it says nothing. A malformed entry is one line naming the file."""
+    import time
+
+    from afmctl.control.learned_after import AS_RECORDED_FRESH_S, AsRecorded
+    cfg = cfg_for(tmp_path, "unused")
+    _, table = learned_file(tmp_path, cfg)
+    now = time.time()
+    late = AsRecorded(("x",), now - 3 * AS_RECORDED_FRESH_S)
+    path = save_learned(tmp_path / "r.afmwave", make_learned(cfg, table, SPEC.model_dump(mode="json"), [], None, late))
+    back = load_learned(path)
+    assert back.as_recorded == late
+    cfg.simulation.enabled = False
+    played = LearnedSource(back, path).table_for(cfg)
+    np.testing.assert_array_equal(played.u_V, table.u_V)
+    assert played.report[-1].startswith("x: learned without a creep stage 30 s ago")
+    assert AsRecorded(("x",), now).note(now + 1.0) is None             # right after: nothing to say
+    cfg.simulation.enabled = True
+    assert LearnedSource(back, path).table_for(cfg).report == table.report
+    with np.load(path) as z:
+        arrays = dict(z)
+    meta = json.loads(str(arrays["meta_json"]))
+    meta["as_recorded"] = {"axes": ["q"], "ended_unix_s": 1.0}
+    arrays["meta_json"] = np.array(json.dumps(meta))
+    np.savez(path.open("wb"), **arrays)
+    with pytest.raises(AfmctlError) as err:
+        load_learned(path)
+    assert str(path) in str(err.value) and "as_recorded" in str(err.value) and "\n" not in str(err.value)

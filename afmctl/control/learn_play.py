@@ -14,6 +14,7 @@ from __future__ import annotations
 import enum
 import logging
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -124,6 +125,8 @@ class TablePlayer:
         self.step = Step.CHECK
         self._ctl: Controller | None = None
         self._stop = threading.Event()
+        #: when the last play (its finish ramp) ended, wall clock [s since the epoch]; None before
+        self.ended_unix_s: float | None = None
 
     @property
     def stopping(self) -> bool:
@@ -167,6 +170,7 @@ class TablePlayer:
                 ctl.stop()
             while not ctl.wait(0.05):
                 pass
+            self.ended_unix_s = time.time()
             stats = ctl.stats()
         finally:
             ctl.close()

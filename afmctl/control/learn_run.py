@@ -83,7 +83,7 @@ from .learn_history import (HistoryTerms, PlayTimeline, history_offset_nm, settl
 from .learn_play import (OUTPUT_TOL_V, RecordingRefused, Step, TablePlayer, arm_recorder,  # noqa: F401
                          play_recorded, read_aligned, read_at_sample_start)
 from .learn_setup import MIN_SPAN_NM, SLEW_RESERVE, LearnSetup  # noqa: F401 (re-exported)
-from .learned_after import AFTER_S, HistoryAfter, corrected_for_history, history_after
+from .learned_after import AFTER_S, AsRecorded, HistoryAfter, corrected_for_history, history_after
 from .learned_table import LearnedTable, make_learned
 from .wave_plan import WaveTable, driven_steps_ok
 
@@ -270,7 +270,17 @@ class LearnRun:
                    for r in self.reports]
         best = self.book.best_table(self.played)
         self.replayed = self.replay(best)
-        return make_learned(self.config, best, self.spec, history, self._after(best))
+        return make_learned(self.config, best, self.spec, history, self._after(best), self._as_recorded())
+
+    def _as_recorded(self) -> AsRecorded | None:
+        """The axes learned on a device from their recordings as they are (no model's creep
+        stage), with when the last play ended (:class:`AsRecorded`); None on an in-process
+        simulator (every play from rest) or when every axis has a creep stage."""
+        if self.options.rest is not None or self.player.ended_unix_s is None:
+            return None
+        timeline = self.history.timeline
+        axes = tuple(a for a in self.book.axes if timeline is None or a not in timeline.now)
+        return AsRecorded(axes, self.player.ended_unix_s) if axes else None
 
     def replay(self, best: WaveTable) -> ErrorReport | None:
         """Step ``replay``: the learned table played once more as ``afmctl run`` plays it

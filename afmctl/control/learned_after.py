@@ -13,7 +13,9 @@ the one for the time that has passed (:func:`corrected_for_history`), through th
 static part: ``u' = u + S⁻¹(S(u) − Δy) − S⁻¹(S(u))``, as the learning law changes a table.
 It assumes that nothing else has played on the device since the learning ended (the
 report line says so); an in-process simulator starts at rest with every command, so there
-nothing is taken out. Units: V, nm, s.
+nothing is taken out. An axis without a creep stage was learned for the play right after
+the learning's (:class:`AsRecorded`): nothing is known to take out, and ``afmctl run``
+says so when it plays the table later than :data:`AS_RECORDED_FRESH_S`. Units: V, nm, s.
 """
 from __future__ import annotations
 
@@ -31,6 +33,32 @@ from .wave_plan import WaveTable
 AFTER_S = (0.0, 2.0, 5.0, 10.0, 20.0, 40.0, 80.0, 160.0, 320.0, 640.0)
 #: a history term whose largest value is below this [nm] is left alone
 NEGLIGIBLE_NM = 0.05
+#: a table whose axes were learned from their recordings as they are (no creep stage) is
+#: right for a play this soon [s] after the learning's last play; later ``afmctl run`` says
+#: how far the creep has moved on (measured on the simulated E-727, e727_tcp model-free, x:
+#: 2.2 nm played about 4 s after; runs one after the other: 7.1 nm after 10 s of rest,
+#: 10.2 nm after 30 s; docs/LEARNING.md)
+AS_RECORDED_FRESH_S = 10.0
+
+
+@dataclass(frozen=True)
+class AsRecorded:
+    """Axes learned on a device from their recordings as they are (no model's creep stage:
+    :class:`afmctl.control.learn_history.HistoryTerms`), and when the learning's last play
+    ended (``ended_unix_s``, wall clock [s since the epoch])."""
+
+    axes: tuple[str, ...]
+    ended_unix_s: float
+
+    def note(self, now_unix_s: float | None = None) -> str | None:
+        """One line for the run when more than :data:`AS_RECORDED_FRESH_S` has passed, else None."""
+        elapsed = (time.time() if now_unix_s is None else now_unix_s) - self.ended_unix_s
+        if not self.axes or elapsed <= AS_RECORDED_FRESH_S:
+            return None
+        return (f"{', '.join(self.axes)}: learned without a creep stage {elapsed:.0f} s ago, for a play right after "
+                f"the learning's: the creep of its plays has moved on since, and the error grows with the wait "
+                f"(e727_tcp on the simulated E-727: 2 nm right after, 7 nm after 10 s of rest, 10 nm after 30 s); play it right "
+                f"after afmctl learn, or learn with a model that has a creep stage (afmctl calibrate)")
 
 
 @dataclass(frozen=True)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,8 +31,10 @@ import numpy as np
 
 from ..config import DEFAULT_SETTLE_S
 from ..errors import AfmctlError
-from .learned_after import HistoryAfter, corrected_for_history
+from .learned_after import AsRecorded, HistoryAfter, corrected_for_history
 from .wave_plan import WaveTable
+
+log = logging.getLogger(__name__)
 
 #: file format version written into ``meta_json``
 FORMAT = 1
@@ -97,16 +100,19 @@ class LearnedTable:
     history: list[dict[str, Any]] = field(default_factory=list)
     #: the history term the learning's plays leave after them (a model with a creep stage)
     after: HistoryAfter | None = None
+    #: the axes learned on a device from their recordings as they are (no creep stage)
+    as_recorded: AsRecorded | None = None
 
     def trajectory_spec(self) -> dict[str, Any]:
         return dict(self.learned_for["trajectory"])
 
 
 def make_learned(config: Any, table: WaveTable, trajectory: dict[str, Any],
-                 history: list[dict[str, Any]] | None = None, after: HistoryAfter | None = None) -> LearnedTable:
+                 history: list[dict[str, Any]] | None = None, after: HistoryAfter | None = None,
+                 as_recorded: AsRecorded | None = None) -> LearnedTable:
     """``table`` as learned for ``config`` and the ``trajectory`` spec (a dict) it plays."""
     return LearnedTable(table, fingerprint(config, trajectory), target_hash(table.target_nm), list(history or []),
-                        after)
+                        after, as_recorded)
 
 
 def save_learned(path: str | Path, learned: LearnedTable) -> Path:
@@ -119,6 +125,9 @@ def save_learned(path: str | Path, learned: LearnedTable) -> Path:
     if learned.after is not None:
         meta["history_after_s"] = list(learned.after.delays_s)
         meta["ended_unix_s"] = learned.after.ended_unix_s
+    if learned.as_recorded is not None:
+        meta["as_recorded"] = {"axes": list(learned.as_recorded.axes),
+                               "ended_unix_s": learned.as_recorded.ended_unix_s}
     tmp = path.with_name(path.name + ".part")
     try:
         # Any: numpy's stubs would match **arrays against savez's allow_pickle: bool
@@ -159,7 +168,23 @@ def load_learned(path: str | Path) -> LearnedTable:
     table = WaveTable(arrays["target_nm"], arrays["corrected_nm"], arrays["drift_nm"], arrays["u_V"],
                       arrays["T_C"], pad, list(meta.get("report", [])))
     return LearnedTable(table, dict(meta["learned_for"]), str(meta["target_sha256"]), list(meta.get("history", [])),
-                        _after(path, after_nm, meta, n))
+                        _after(path, after_nm, meta, n), _as_recorded(path, meta))
+
+
+def _as_recorded(path: Path, meta: dict[str, Any]) -> AsRecorded | None:
+    """The file's :class:`AsRecorded` (None when it has none); one line naming the file when
+    it is malformed."""
+    entry = meta.get("as_recorded")
+    if entry is None:
+        return None
+    try:
+        axes = tuple(str(a) for a in entry["axes"])
+        ended = float(entry["ended_unix_s"])
+    except (KeyError, TypeError, ValueError):
+        raise AfmctlError(f"{path}: as_recorded must hold axes and ended_unix_s") from None
+    if not set(axes) <= set("xyz") or not np.isfinite(ended):
+        raise AfmctlError(f"{path}: as_recorded: axes must be of x, y, z and ended_unix_s finite")
+    return AsRecorded(axes, ended)
 
 
 def _after(path: Path, term_nm: np.ndarray | None, meta: dict[str, Any], n: int) -> HistoryAfter | None:
@@ -263,4 +288,10 @@ class LearnedSource:
         except AfmctlError as err:
             raise AfmctlError(f"{self.path}: its trajectory cannot be regenerated: {err}") from None
         check_matches(self.path, learned, now, padded(regenerated, learned.table.pad))
-        return corrected_for_history(learned.table, learned.after, config)
+        table = corrected_for_history(learned.table, learned.after, config)
+        note = learned.as_recorded.note() if learned.as_recorded is not None and not config.simulation.enabled else None
+        if note is None:
+            return table
+        log.warning("%s: %s", self.path, note)
+        return WaveTable(table.target_nm, table.corrected_nm, table.drift_nm, table.u_V, table.T_C, table.pad,
+                         [*table.report, note])
