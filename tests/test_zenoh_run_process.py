@@ -169,7 +169,9 @@ def test_run_process_serves_trajectory_and_temperature_over_zenoh(tmp_path):
         client.put("trajectory", SegmentMsg(seq=0, dt_s=1e-3, positions_nm=pos.tolist()))
 
         # drift estimates at the constant starting temperature first, then the rise
-        assert wait_for(lambda: len(client.drift) >= 5, 30.0), "no drift estimates while the segment runs"
+        assert wait_for(lambda: len(client.drift) >= 5, 30.0), (
+            f"no drift estimates while the segment runs; last status {client.status[-1:]}; the service said: "
+            + "".join(p.read_text(errors="replace")[-3000:] for p in sorted(tmp_path.glob("stderr*.txt"))))
         for T in T_RISE_C:
             client.put("temperature", TemperatureMsg(seq=client.seq["temperature"], t_s=0.1 * client.seq[
                 "temperature"], T_C=T))
