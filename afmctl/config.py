@@ -167,6 +167,11 @@ class LoopSection(_Strict):
                             "Linux only")
     gc_freeze: bool = Field(True, description="collect garbage and freeze the survivors at start (shorter "
                                               "garbage-collector pauses during the run)")
+    phase: float | None = Field(
+        None, ge=0.0, lt=1.0, description="where in each period the loop's deadlines fall on the machine's "
+                                          "monotonic clock, as a share of the period, 0..1 (several loops on "
+                                          "one CPU given 0, 1/3 and 2/3 do not spin at once); None: where "
+                                          "the run happens to start")
     resync_periods: int = Field(20, ge=2, le=100000,
                                 description="when this many periods late, restart the schedule instead of catching up")
 

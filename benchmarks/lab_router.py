@@ -68,11 +68,12 @@ class DispatchClock:
         pass
 
 
-def worker(name: str, endpoint: str, seconds: float, runs: Path, rate_Hz: float, output: str, rt: int) -> int:
+def worker(name: str, endpoint: str, seconds: float, runs: Path, rate_Hz: float, output: str, rt: int,
+           phase: float | None = None) -> int:
     """One scanner (the module docstring); prints one JSON line with its figures.
     ``output``: ``stream`` or ``wave`` (the simulated CAN FD amplifier), or ``setpoints``
     (host-timed, one setpoint per tick into a recording amplifier: the loop's own cost);
-    ``rt``: ``loop.realtime_priority`` (0: none)."""
+    ``rt``: ``loop.realtime_priority`` (0: none); ``phase``: ``loop.phase`` (None: unset)."""
     from afmctl.control.controller import Controller
     from afmctl.drivers.can_amp import CANAmplifier
     from afmctl.sim_backend.amplifiers.base import RecordingSink
@@ -80,7 +81,9 @@ def worker(name: str, endpoint: str, seconds: float, runs: Path, rate_Hz: float,
     from afmctl.testing import make_config
     from afmctl.zenoh_api.settings import ZenohSettings
     channel = f"lab-{name}-{uuid.uuid4().hex[:6]}"
-    cfg = make_config(runs, "", loop={"rate_Hz": rate_Hz, **({"realtime_priority": rt} if rt else {})},
+    loop: dict = {"rate_Hz": rate_Hz, **({"realtime_priority": rt} if rt else {}),
+                  **({"phase": phase} if phase is not None else {})}
+    cfg = make_config(runs, "", loop=loop,
                       amplifier={"driver": "can", "port": f"virtual:{channel}", "output": output,
                                  "slew_V_per_s": 1e5, "low_water_s": 0.1, "high_water_s": 0.2, "options": {"fd": True}},
                       safety={"slew_V_per_s": 1e5, "ramp_V_per_s": 2000},
@@ -179,8 +182,10 @@ def phase(mode: str, endpoint: str, args: argparse.Namespace, counter: Counter, 
     procs = [subprocess.Popen([sys.executable, __file__, "--worker", name, "--endpoint",
                                endpoint if mode == "router" else "off", "--seconds", str(seconds),
                                "--rate", str(args.rate), "--output", args.output, "--rt", str(args.rt),
-                               "--runs", str(tmp / f"{mode}-{name}")], stdout=subprocess.PIPE, text=True)
-             for name in SCANNERS]
+                               "--runs", str(tmp / f"{mode}-{name}"),
+                               *(["--phase", f"{k / len(SCANNERS):.6f}"] if args.stagger else [])],
+                              stdout=subprocess.PIPE, text=True)
+             for k, name in enumerate(SCANNERS)]
     results = {}
     for p in procs:
         out, _ = p.communicate(timeout=seconds * 10 + 180)
@@ -259,7 +264,7 @@ def report(rows: list[dict], args: argparse.Namespace) -> str:
 
 `.venv/bin/python {cmd}` — {len(SCANNERS)} scanners, each its own process (Controller at
 {args.rate:g} Hz, a 50 lines/s raster {what}, `output = "{args.output}"`, run
-log on, `loop.realtime_priority` {args.rt or "off"}), {args.seconds:g} s per phase, phases *off* (no zenoh) and *router* (the bridge in its child
+log on, `loop.realtime_priority` {args.rt or "off"}, `loop.phase` {"0, 1/3, 2/3 (staggered)" if args.stagger else "unset"}), {args.seconds:g} s per phase, phases *off* (no zenoh) and *router* (the bridge in its child
 process as a client of `afmctl router`, a subscriber in another process through the router)
 interleaved {args.reps}×; 2 CPUs shared with other work, load average {load:.1f} at the end,
 {time.strftime('%Y-%m-%d')}. Lateness is {late}; latency runs from the dispatcher handing a batch out to the subscriber's callback for
@@ -290,13 +295,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--output", choices=["stream", "wave", "setpoints"], default="stream",
                     help="amplifier.output (default stream: the simulated CAN FD amplifier's FIFO; setpoints: "
                          "host-timed into a recording amplifier)")
+    ap.add_argument("--stagger", action="store_true",
+                    help="give the scanners loop.phase 0, 1/3, 2/3: their loops, pinned to one CPU, never spin "
+                         "at once (default: each where it starts, so that which loops collide varies by rep)")
+    ap.add_argument("--phase", type=float, help=argparse.SUPPRESS)
     ap.add_argument("--no-write", action="store_true", help="do not update docs/BENCHMARKS.md")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     ap.add_argument("--endpoint", help=argparse.SUPPRESS)
     ap.add_argument("--runs", type=Path, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
-        return worker(args.worker, args.endpoint, args.seconds, args.runs, args.rate, args.output, args.rt)
+        return worker(args.worker, args.endpoint, args.seconds, args.runs, args.rate, args.output, args.rt,
+                      args.phase)
     rows = []
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)

@@ -399,3 +399,17 @@ def test_last_setpoint_is_reached_after_a_stall_near_the_end(tmp_path):
     goal = 3000 / cfg.scanner.axis_spec("x").nm_per_V
     assert x.max() == pytest.approx(goal, abs=1e-9)
     assert ctl.stats()["lateness_max_s"] > 0.03          # the stall happened
+
+
+def test_loop_phase_puts_every_deadline_at_its_share_of_the_period(tmp_path):
+    """loop.phase 0.5 at 2 kHz: the run's first deadline (clock_bases) falls half a period
+    after a whole number of periods on perf_counter."""
+    cfg = make_config(tmp_path, loop={"rate_Hz": 2000.0, "phase": 0.5},
+                      safety={"slew_V_per_s": 5000.0, "ramp_V_per_s": 500, "watchdog_s": 0.03})
+    traj = np.column_stack([np.linspace(800, 1000, 100), np.full(100, 400.0), np.full(100, 40.0)])
+    ctl = Controller(cfg, RecordingAmplifier())
+    ctl.start(traj)
+    assert ctl.wait(10)
+    ctl.close()
+    k = (ctl.clock_bases[0][1] - 0.5 * cfg.dt_s) / cfg.dt_s
+    assert ctl.state is State.STOPPED and abs(k - round(k)) < 1e-6, k

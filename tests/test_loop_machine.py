@@ -59,3 +59,17 @@ def test_error_line_folds_whitespace_and_names_an_empty_error():
     assert error_line(TimeoutError()) == "TimeoutError"
 
 
+
+
+def test_aligned_deadlines_fall_at_the_phase_of_a_period():
+    """loop.phase: a tick's deadline at or before now, at that share of a period on the
+    monotonic clock (every process the same), the next within one period; unset: now."""
+    from afmctl.control.machine import aligned_s
+    period = 1e-3
+    for now in (10.0004, 10.0011, 5.12345, 7.0):
+        for phase in (0.0, 1 / 3, 0.5, 0.99):
+            t = aligned_s(now, period, phase)
+            assert now - period < t <= now
+            k = (t - phase * period) / period
+            assert abs(k - round(k)) < 1e-6, (now, phase, t)
+    assert aligned_s(10.0004, period, None) == 10.0004

@@ -59,6 +59,16 @@ NAN3 = (math.nan, math.nan, math.nan)
 CLOCK_BASES_MAX = 100_000
 
 
+def aligned_s(now_s: float, period_s: float, phase: float | None) -> float:
+    """A tick's deadline [s, perf_counter: the machine's monotonic clock, shared by its
+    processes] at or before ``now_s`` that falls ``phase`` of a period after a whole number
+    of periods (``loop.phase``), so that the next falls within one period after ``now_s``;
+    ``now_s`` itself when ``phase`` is None."""
+    if phase is None:
+        return now_s
+    return now_s - ((now_s - phase * period_s) % period_s)
+
+
 class Mode(enum.Enum):
     """What the loop thread does on a tick when the link is up (see the module docstring)."""
     RUN = "run"            # play trajectory samples
@@ -133,8 +143,9 @@ class LoopMachine:
             return
         ctl = self.ctl
         FAULT = State.FAULT
-        self.next_t_s = self.now_s = time.perf_counter()
-        ctl.clock_bases = [(ctl._tick, self.now_s)]     # this tick's deadline on perf_counter
+        self.now_s = time.perf_counter()
+        self.next_t_s = aligned_s(self.now_s, self.period_s, ctl.config.loop.phase)
+        ctl.clock_bases = [(ctl._tick, self.next_t_s)]     # this tick's deadline on perf_counter
         self.watchdog.feed(self.now_s)
         while True:
             self._wait_for_deadline()
@@ -189,7 +200,7 @@ class LoopMachine:
                 ctl._missed_log.append((ctl._tick, late))
         if late > self.resync_s:
             ctl._overruns += 1
-            next_t = now
+            next_t = aligned_s(now, period, ctl.config.loop.phase)
             if len(ctl.clock_bases) < CLOCK_BASES_MAX:
                 ctl.clock_bases.append((ctl._tick + 1, now))   # the tick about to run
         self.now_s = now
@@ -292,7 +303,7 @@ class LoopMachine:
             self.need_ramp = True
         self.ctl._set_state(State.RUNNING, "resume", "reconnected; ramping from the read-back voltage")
         self.watchdog.feed()
-        self.next_t_s = time.perf_counter()
+        self.next_t_s = aligned_s(time.perf_counter(), self.period_s, self.ctl.config.loop.phase)
         if len(self.ctl.clock_bases) < CLOCK_BASES_MAX:
             self.ctl.clock_bases.append((self.ctl._tick + 1, self.next_t_s + self.period_s))
 
