@@ -165,15 +165,11 @@ class Scanner:
         """Back to the initial state: t = 0, every axis at its lowest voltage in negative
         saturation, ambient temperature ``config.ambient_T_C``, drift zero, noise re-seeded."""
         with self._lock:
-            for ax in self.axes.values():
-                ax.reset()
             self._clock = (0.0, float(self.config.dt_s), 0)
-            self._held_V = np.array([self.axes[a].u_min_V for a in AXES])
             self._T_C = float(self.config.ambient_T_C)
             self._drift = _Drift(self.config.drift, self._T_C)
-            self._drift.prepare(self.config.dt_s)
+            self.rest()
             self.rng = np.random.default_rng(self.config.seed)
-            self._pos = self._compose(np.array([[self.axes[a].y_nm for a in AXES]]), np.zeros((1, 3)))[0]
             self.sensor = PositionSensor([self.config.axis(a).sensor for a in AXES], self.config.seed)
             self._captures: list[SensorCapture] = []
             #: output changes handed to :meth:`play` for a time more than a sample before the
@@ -190,7 +186,7 @@ class Scanner:
         with self._lock:
             for ax in self.axes.values():
                 ax.reset()
-            self._held_V = np.array([self.axes[a].u_min_V for a in AXES])
+            self._held_V = self.rest_voltage_V()
             self._drift.reset(self._T_C)
             self._drift.prepare(self.config.dt_s)
             self._pos = self._compose(np.array([[self.axes[a].y_nm for a in AXES]]), np.zeros((1, 3)))[0]

@@ -115,13 +115,16 @@ class TablePlayer:
     """Plays tables on the open ``amp`` with ``config`` (``output = "wave"``) and reads back
     the measured motion (module docstring). ``spec``: the trajectory's specification (the
     learned-table fingerprint); ``on_played(table, rows, wave_times)``: called after each
-    play (the learn run's voltage history); ``timeout_s``: longest wait for a recording."""
+    play (the learn run's voltage history); ``timeout_s``: longest wait for a recording;
+    ``rest``: called before each play (an in-process simulator brought to rest:
+    :class:`afmctl.control.learn_run.LearnOptions`)."""
 
     def __init__(self, config: Any, amp: Any, spec: dict, on_played: Callable[[WaveTable, int, dict], None],
-                 timeout_s: float = 30.0) -> None:
+                 timeout_s: float = 30.0, rest: Callable[[], None] | None = None) -> None:
         self.config, self.amp, self.spec = config, amp, spec
         self.on_played = on_played
         self.timeout_s = timeout_s
+        self.rest = rest
         self.step = Step.CHECK
         self._ctl: Controller | None = None
         self._stop = threading.Event()
@@ -137,6 +140,8 @@ class TablePlayer:
         did not complete."""
         from afmctl.drivers.errors import AmplifierConnectionError, AmplifierTimeout
         self.step = Step.PLAY
+        if self.rest is not None:
+            self.rest()
         armed: list[Any] = []
         ended = self._play(table, lambda: armed.append(arm_recorder(self.amp, self.config, len(table), axes)))
         if ended is not None:

@@ -215,7 +215,8 @@ class LearnRun:
         #: ``afmctl run`` measures them (None: not played, stopped or incomplete)
         self.replayed: ErrorReport | None = None
         self.spec = config.trajectory.model_dump(mode="json")
-        self.player = TablePlayer(self.config, amplifier, self.spec, self._played, self.options.record_timeout_s)
+        self.player = TablePlayer(self.config, amplifier, self.spec, self._played, self.options.record_timeout_s,
+                                  self.options.rest)
 
     @property
     def step(self) -> Step:
@@ -299,8 +300,6 @@ class LearnRun:
             log.warning("learn: the learned table is not played once more: %s", err)
             return None
         self.player.step = Step.REPLAY
-        if self.options.rest is not None:
-            self.options.rest()
         got = self.player.play_and_read(table, list(self.book.axes))
         if not isinstance(got, dict):
             log.warning("learn: the learned table's last play did not complete (%s)", got[1])
@@ -327,8 +326,6 @@ class LearnRun:
         self._check(table)
         ended = ("fault", "no play")
         for attempt in range(self.options.link_retries + 1):
-            if self.options.rest is not None:
-                self.options.rest()
             got = self.player.play_and_read(table, list(learners))
             if isinstance(got, dict):
                 self.player.step = Step.LEARN

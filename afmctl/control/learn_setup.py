@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from afmctl.compensators.learning import Learner, LearnSettings
+from afmctl.compensators.learning_weights import HOLD_NM
 
 from ..data.axis_errors import raster_lines
 from ..errors import AfmctlError
@@ -24,7 +25,7 @@ log = logging.getLogger(__name__)
 #: round to the device's resolution)
 SLEW_RESERVE = 0.02
 #: a target axis moving less than this [nm] peak to peak is not learned (it holds)
-MIN_SPAN_NM = 1.0
+MIN_SPAN_NM = HOLD_NM
 
 
 class LearnSetup:

@@ -19,6 +19,7 @@ says so when it plays the table later than :data:`AS_RECORDED_FRESH_S`. Units: V
 """
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -26,6 +27,8 @@ from typing import Any
 import numpy as np
 
 from .wave_plan import WaveTable
+
+log = logging.getLogger(__name__)
 
 #: delays after the learning's last play [s] at which the history term is kept; after the
 #: last the scanner counts as rested (the history term's own reference rests 600 s:
@@ -97,21 +100,38 @@ def history_after(terms: dict[str, np.ndarray], rows: int, ended_unix_s: float,
 
 
 def corrected_for_history(table: WaveTable, after: HistoryAfter | None, config: Any,
-                          now_unix_s: float | None = None) -> WaveTable:
+                          now_unix_s: float | None = None, as_recorded: AsRecorded | None = None) -> WaveTable:
     """``table`` with the history term of the learning's plays taken out for a play
-    starting now (module docstring), one report line per corrected axis; ``table`` itself
-    when there is nothing to take out (no term kept, an in-process simulator, a term below
-    :data:`NEGLIGIBLE_NM`)."""
-    if after is None or config.simulation.enabled:
+    starting now (module docstring), one report line per corrected axis, and the line (and a
+    warning) of :meth:`AsRecorded.note` for axes learned without a creep stage; ``table``
+    itself when there is nothing to take out or say (no term kept, an in-process simulator,
+    a term below :data:`NEGLIGIBLE_NM`, a table played soon enough)."""
+    if config.simulation.enabled:
         return table
+    now = time.time() if now_unix_s is None else now_unix_s
+    report = list(table.report)
+    u = table.u_V if after is None else _history_taken_out(table.u_V, after, config, now, report)
+    note = as_recorded.note(now) if as_recorded is not None else None
+    if note is not None:
+        log.warning("%s", note)
+        report.append(note)
+    if report == table.report:
+        return table
+    return WaveTable(table.target_nm, table.corrected_nm, table.drift_nm, u, table.T_C, table.pad, report)
+
+
+def _history_taken_out(u_V: np.ndarray, after: HistoryAfter, config: Any, now_unix_s: float,
+                       report: list[str]) -> np.ndarray:
+    """``u_V`` (N, 3) [V] with the term ``after`` keeps for a play starting at ``now_unix_s``
+    taken out through each axis's model's static part; a line per corrected axis appended
+    to ``report``."""
     from afmctl.compensators.learning_laws import static_ops
 
     from .pipeline import axis_models
-    elapsed = max(0.0, (time.time() if now_unix_s is None else now_unix_s) - after.ended_unix_s)
+    elapsed = max(0.0, now_unix_s - after.ended_unix_s)
     term = after.at(elapsed)
     models = axis_models(config)[0]
-    u = table.u_V.copy()
-    report = list(table.report)
+    u = u_V.copy()
     for k, axis in enumerate("xyz"):
         model = models[k][0]
         if model is None or float(np.max(np.abs(term[:, k]))) < NEGLIGIBLE_NM:
@@ -122,6 +142,4 @@ def corrected_for_history(table: WaveTable, after: HistoryAfter | None, config: 
         report.append(f"{axis}: the learning's plays ended {elapsed:.0f} s ago and still creep: their history term "
                       f"{float(np.mean(term[:, k])):+.1f} nm (mean; the model's) is taken out, assuming nothing else "
                       "played since")
-    if report == table.report:
-        return table
-    return WaveTable(table.target_nm, table.corrected_nm, table.drift_nm, u, table.T_C, table.pad, report)
+    return u

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import logging
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,8 +32,6 @@ from ..config import DEFAULT_SETTLE_S
 from ..errors import AfmctlError
 from .learned_after import AsRecorded, HistoryAfter, corrected_for_history
 from .wave_plan import WaveTable
-
-log = logging.getLogger(__name__)
 
 #: file format version written into ``meta_json``
 FORMAT = 1
@@ -288,10 +285,4 @@ class LearnedSource:
         except AfmctlError as err:
             raise AfmctlError(f"{self.path}: its trajectory cannot be regenerated: {err}") from None
         check_matches(self.path, learned, now, padded(regenerated, learned.table.pad))
-        table = corrected_for_history(learned.table, learned.after, config)
-        note = learned.as_recorded.note() if learned.as_recorded is not None and not config.simulation.enabled else None
-        if note is None:
-            return table
-        log.warning("%s: %s", self.path, note)
-        return WaveTable(table.target_nm, table.corrected_nm, table.drift_nm, table.u_V, table.T_C, table.pad,
-                         [*table.report, note])
+        return corrected_for_history(learned.table, learned.after, config, as_recorded=learned.as_recorded)
