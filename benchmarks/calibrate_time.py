@@ -8,6 +8,10 @@ pieces: the tables' play (start to the host seeing the generator stopped), the u
 recorder read-back after the play and while it plays, the start, the settle hold, ...
 
     .venv/bin/python benchmarks/calibrate_time.py [--reps N]
+    .venv/bin/python benchmarks/calibrate_time.py --whole [--kind auto]
+
+``--whole``: the whole ``afmctl calibrate`` process as a user runs it (the identification
+included), timed around the process, and the time line it prints.
 
 Prints the figures (medians over ``--reps``); docs/BENCHMARKS.md quotes them.
 """
@@ -49,9 +53,12 @@ class _DeviceDone(Exception):
 
 
 class DeviceOnly(Calibration):
-    """The device part only: stops where the recordings would be written."""
+    """The device part only: no identification; stops where the validations would be written."""
 
-    def _write_recordings(self, joined):   # noqa: D102
+    def _fit_later(self, axis, rec):        # noqa: D102
+        pass
+
+    def _write_validations(self, joined):   # noqa: D102
         self.joined = joined
         raise _DeviceDone
 
@@ -95,10 +102,28 @@ def one_run(work: Path, totals: dict, counts: dict) -> dict:
             "steps": {k: totals[k] - before.get(k, 0.0) for k in totals}}
 
 
+def whole(reps: int, kind: str) -> int:
+    """The whole command (``calibrate_join.calibrate``), ``reps`` times."""
+    walls = []
+    for _ in range(reps):
+        with tempfile.TemporaryDirectory(prefix="calibrate-whole-") as d:
+            r = cj.calibrate(Path(d), "gcs-tcp", kind, short=False)
+        walls.append(r["wall_s"])
+        line = next(ln for ln in r["stdout"].splitlines() if ln.startswith("time "))
+        print(f"whole afmctl calibrate --kind {kind}: {r['wall_s']:.1f} s around the process; {line.strip()}; "
+              f"load {os.getloadavg()[0]:.1f}", flush=True)
+    print(f"median of {reps}: {statistics.median(walls):.1f} s")
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reps", type=int, default=1)
+    ap.add_argument("--whole", action="store_true", help="time the whole afmctl calibrate process")
+    ap.add_argument("--kind", default="auto", help="with --whole: the model kind (default auto)")
     args = ap.parse_args()
+    if args.whole:
+        return whole(args.reps, args.kind)
     totals: dict = collections.defaultdict(float)
     counts: dict = collections.Counter()
     timed(totals, counts)

@@ -407,7 +407,7 @@ def _normal_terms(u: np.ndarray, rows: np.ndarray, yc: np.ndarray, lo: float, hi
     # dense P costs O(L⁶)); the extra regressors' rows and columns pass unchanged
     c = slice(0, n_corner)
     e = slice(n_corner, n_corner + ne)
-    Gc = _corner_prefix(_corner_prefix(G[c, c], L).T, L)
+    Gc = _corner_prefix_fast(np.ascontiguousarray(_corner_prefix_fast(G[c, c], L).T), L)
     cross = _corner_prefix(G[e, c], L)
     AtA = np.block([[Gc, cross.T], [cross, G[e, e]]])
     return (AtA, np.r_[_corner_prefix(g[None, c], L)[0], g[e]], np.r_[_corner_prefix(s[None, c], L)[0], s[e]])
@@ -423,6 +423,13 @@ def _corner_prefix(M: np.ndarray, L: int) -> np.ndarray:
     return S[:, ci[0] + 1, ci[1]]
 
 
+def _corner_prefix_fast(M: np.ndarray, L: int) -> np.ndarray:
+    """:func:`_corner_prefix` by the compiled loop (:mod:`._corner_kernels`; equal to the
+    last bit). Its rows are read in order: pass a transposed matrix as a C-contiguous copy."""
+    from ._corner_kernels import corner_prefix_nb
+    return corner_prefix_nb(M, L, np.empty((M.shape[0], L * (L + 1) // 2)))
+
+
 def _smoothness(L: int) -> np.ndarray:
     """Differences of the masses of neighbouring off-diagonal cells (all of equal area).
     The diagonal cells (α = β) are left out: they hold the reversible part (the slope just
@@ -430,20 +437,29 @@ def _smoothness(L: int) -> np.ndarray:
     tying them together would smear it into the plane (measured: stronger smoothing then
     only made the fit worse, 3.2 → 8.5 % max on a raster predicted from a user-style
     record; without the diagonal it fills the plane between the record's reversal curves
-    smoothly, 0.16 %)."""
+    smoothly, 0.16 %). Dense; :func:`_smoothness_gram` is ``DᵀD``."""
+    return _smoothness_sparse(L).toarray()
+
+
+def _smoothness_sparse(L: int) -> Any:
+    """:func:`_smoothness` as a sparse matrix (two entries a row)."""
+    from scipy import sparse
     ci = np.tril_indices(L)
     n_cells = ci[0].size
     index = {(int(i), int(j)): n for n, (i, j) in enumerate(zip(*ci)) if i != j}
-    rows = []
-    for (i, j), n in index.items():
-        for nb in ((i + 1, j), (i, j + 1)):
-            m = index.get(nb)
-            if m is not None:
-                r = np.zeros(n_cells)
-                r[n] = 1.0
-                r[m] = -1.0
-                rows.append(r)
-    return np.array(rows) if rows else np.zeros((0, n_cells))
+    pairs = [(n, m) for (i, j), n in index.items() for m in (index.get((i + 1, j)), index.get((i, j + 1)))
+             if m is not None]
+    rows = np.repeat(np.arange(len(pairs)), 2)
+    cols = np.array(pairs, dtype=np.int64).reshape(-1)
+    vals = np.tile([1.0, -1.0], len(pairs))
+    return sparse.csr_matrix((vals, (rows, cols)), shape=(len(pairs), n_cells))
+
+
+def _smoothness_gram(L: int) -> np.ndarray:
+    """``DᵀD`` of :func:`_smoothness` (dense, L(L+1)/2 square): its entries are small
+    integers, exact whichever way the product is formed."""
+    D = _smoothness_sparse(L)
+    return (D.T @ D).toarray()
 
 
 def _unvisited_weight(u: np.ndarray) -> float:
@@ -486,9 +502,9 @@ def _nnls_fit(u: np.ndarray, y: np.ndarray, lo: float, hi: float, L: int, cap: i
     AtA /= np.outer(col, col)
     Atb /= col
     scale = float(np.trace(AtA[:n_cells, :n_cells])) / n_cells if np.trace(AtA) > 0 else 1.0
-    D = _smoothness(L)
-    D = np.hstack([D, np.zeros((D.shape[0], ne))])
-    H = AtA + smoothing * scale * (D.T @ D) + 1e-9 * scale * np.eye(nc)
+    DtD = np.zeros((nc, nc))
+    DtD[:n_cells, :n_cells] = _smoothness_gram(L)
+    H = AtA + smoothing * scale * DtD + 1e-9 * scale * np.eye(nc)
     if prior_weight > 0:
         p = _prior_masses(AtA, Atb, lo, hi, L, ne)
         far = np.clip(unvisited_distance(visited_cells(u[fit_from_index:], lo, hi, L), L) / PRIOR_REACH_CELLS,

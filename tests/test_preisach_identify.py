@@ -242,3 +242,26 @@ def test_normal_equations_from_corner_terms_equal_the_dense_features():
     np.testing.assert_allclose(Asum, F.sum(axis=0), rtol=0, atol=1e-10 * np.max(np.abs(Asum)))
     M = rng.standard_normal((5, (L + 1) ** 2))          # the prefix sums are the product with P
     np.testing.assert_allclose(pid._corner_prefix(M, L), M @ pid._prefix_matrix(L), rtol=0, atol=1e-12)
+
+
+def test_the_compiled_corner_prefix_and_its_reference_equal_numpys_to_the_last_bit():
+    """compensators/_corner_kernels.py (the normal equations' prefix sums, #38): the plain
+    loop, its numba twin and numpy's two cumsums, on contiguous, strided and transposed rows."""
+    from afmctl.compensators import preisach_identify as pid
+    from afmctl.compensators._corner_kernels import corner_prefix_py
+    rng = np.random.default_rng(7)
+    for L in (1, 2, 5, 12):
+        G = rng.standard_normal(((L + 1) ** 2 + 3, (L + 1) ** 2 + 3))
+        for M in (G[:4, :(L + 1) ** 2], G[:(L + 1) ** 2, :(L + 1) ** 2]):   # strided rows (extra columns)
+            want = pid._corner_prefix(M, L)
+            assert np.array_equal(pid._corner_prefix_fast(M, L), want)
+            assert np.array_equal(corner_prefix_py(np.ascontiguousarray(M), L, np.empty_like(want)), want)
+        both = pid._corner_prefix_fast(np.ascontiguousarray(pid._corner_prefix_fast(M, L).T), L)
+        assert np.array_equal(both, pid._corner_prefix(pid._corner_prefix(M, L).T, L))
+
+
+def test_the_smoothness_gram_is_the_dense_product():
+    from afmctl.compensators import preisach_identify as pid
+    for L in (1, 3, 9):
+        D = pid._smoothness(L)
+        assert np.array_equal(pid._smoothness_gram(L), D.T @ D)

@@ -12,8 +12,10 @@ the model with its provenance.
    (:mod:`afmctl.control.calibrate_run`), the pieces joined with the holds between them;
    the other axes hold their safe value;
 2. **identify** — the joined recording is written as CSV (``t,u,y`` and ``v``, the piezo
-   voltage, where the device records it) and identified from that file as ``afmctl
-   identify --model KIND --data`` does (:func:`afmctl.api.identify.identify`);
+   voltage, where the device records it) as soon as it is recorded, and identified from that
+   file as ``afmctl identify --model KIND --data`` does (:func:`afmctl.api.identify.identify`),
+   in a process of its own while the validation and the other axes play
+   (:mod:`.identify_worker`);
 3. **validate** — a second, different play: triangles across the range at the
    configuration's line rate (a raster's fast axis) and nested minor loops (reversals at
    falling amplitudes), recorded the same way; the model runs over the excitation and then
@@ -47,7 +49,7 @@ from ..data.datafiles import write_csv
 from ..simulation.link import configured_amplifier
 from ..data.excitation import ExcitationSpec
 from ..errors import AfmctlError
-from .identify import Identified, identify
+from .identify import Identified
 
 log = logging.getLogger(__name__)
 
@@ -194,6 +196,9 @@ class Calibration:
         self.specs: dict[str, ExcitationSpec] = {}
         #: the device part is over (the output at the safe value): a stop now interrupts the identification
         self.device_done = False
+        self._worker: Any = None
+        #: the axes whose recordings are written and handed to the identification
+        self.fitting: list[str] = []
 
     # ------------------------------------------------------------------ the steps
     def stem(self) -> str:
@@ -230,27 +235,30 @@ class Calibration:
         if self.config.amplifier.output != "wave":
             raise AfmctlError("amplifier.output: afmctl calibrate plays the excitation on the amplifier's clock; "
                               "set output = 'wave' (gcs, nv200 or can)")
-        with contextlib.ExitStack() as stack:
-            amp = configured_amplifier(stack, self.config)
-            plans, signals, spec = self.plans(amp)
-            run = CalibrationRun(self.config, amp, self.on_progress)
-            self.run_ = run
+        with contextlib.ExitStack() as fitting:
+            fitting.callback(self._close_worker)
+            with contextlib.ExitStack() as stack:
+                amp = configured_amplifier(stack, self.config)
+                plans, signals, spec = self.plans(amp)
+                run = CalibrationRun(self.config, amp, self.on_progress)
+                self.run_ = run
+                if self._stop_asked:
+                    run.stop()
+                joined = self._record(run, plans, signals)
+                prov = provenance(run.config, amp, spec, plans, self.kind)
+            recording_s = time.monotonic() - t0
+            self.device_done = True
+            self._write_validations(joined)
+            csvs = {a: self.csv_path(a) for a in joined}
             if self._stop_asked:
-                run.stop()
-            joined = self._record(run, plans, signals)
-            prov = provenance(run.config, amp, spec, plans, self.kind)
-        recording_s = time.monotonic() - t0
-        self.device_done = True
-        csvs = self._write_recordings(joined)
-        if self._stop_asked:
-            self.partial = list(csvs.values())
-            raise CalibrationStopped("afmctl calibrate: stopped after the recording")
-        validation_s = sum(len(j[1].u_V) - sum(g for _, g in j[1].holds) for j in joined.values()) * run.dt_s
-        try:
-            results = {a: self._identify(a, csvs[a], *joined[a], plans[a]) for a in self.axes}
-        except KeyboardInterrupt:       # the device is done: Ctrl-C interrupts the identification
-            self.partial = list(csvs.values())
-            raise CalibrationStopped("afmctl calibrate: stopped during the identification") from None
+                self.partial = list(csvs.values())
+                raise CalibrationStopped("afmctl calibrate: stopped after the recording")
+            validation_s = sum(len(j[1].u_V) - sum(g for _, g in j[1].holds) for j in joined.values()) * run.dt_s
+            try:
+                results = {a: self._identify(a, csvs[a], *joined[a], plans[a]) for a in self.axes}
+            except KeyboardInterrupt:       # the device is done: Ctrl-C interrupts the identification
+                self.partial = list(csvs.values())
+                raise CalibrationStopped("afmctl calibrate: stopped during the identification") from None
         model = self._model(results, prov)
         if self.out is not None:
             from afmctl.compensators.models import save_model
@@ -290,17 +298,36 @@ class Calibration:
                        [a for a, _ in plan.bounds],
                        lambda k: total_s - done[0] - plan.bounds[k][0] * dt)
         done[0] += len(plan.exc.u_V) * dt
+        rec = join(exc, dt)
+        self._fit_later(axis, rec)
         val_u, n_raster = validation_voltages(self.config, self.specs[axis])
         capacity = max(b - a for a, b in plan.bounds)
         bounds = cut_points(ramp_priorities(val_u), capacity)
         # the validation starts where the excitation ended (the bottom of the range): no jump
         val = run.play(f"validate {axis}", axis, signals, [val_u[a:b] for a, b in bounds], [a for a, _ in bounds],
                        lambda k: max(total_s - done[0], 0.0))
+        # the joined excitation is the start of the joined whole; the hold before the
+        # validation's first piece begins the validation
         both = join(exc + val, dt)
-        n_exc = sum(len(p.u_V) for p in exc)
-        split = _row_of_measured(both, n_exc)
-        minor = _row_of_measured(both, n_exc + n_raster) - split
-        return _slice(both, 0, split), _slice(both, split, len(both.t_s)), minor
+        split = len(rec.t_s)
+        minor = _row_of_measured(both, sum(len(p.u_V) for p in exc) + n_raster) - split
+        return rec, _slice(both, split, len(both.t_s)), minor
+
+    def _fit_later(self, axis: str, rec: Joined) -> None:
+        """Write the axis's recording and start its identification in the worker process
+        (:mod:`.identify_worker`): it runs while the validation and the other axes play."""
+        from .identify_worker import IdentifyWorker
+        self.report_dir.mkdir(parents=True, exist_ok=True)
+        write_csv(self.csv_path(axis), rec.columns())
+        if self._worker is None:
+            self._worker = IdentifyWorker()
+        self._worker.submit(axis, self.kind, self.csv_path(axis), self.params)
+        self.fitting.append(axis)
+
+    def _close_worker(self) -> None:
+        if self._worker is not None:
+            self._worker.close()
+            self._worker = None
 
     def _keep_partial(self, run: CalibrationRun) -> None:
         """Write what was recorded so far as CSV (``...-partial.csv``), one file per play."""
@@ -308,25 +335,25 @@ class Calibration:
             if not pieces:
                 continue
             axis = what.split()[-1]
+            if what == f"excite {axis}" and self.csv_path(axis).exists() and axis in self.fitting:
+                self.partial.append(self.csv_path(axis))        # recorded whole, written already
+                continue
             path = self.csv_path(axis, f"{what.split()[0]}-partial")
             self.report_dir.mkdir(parents=True, exist_ok=True)
             write_csv(path, join(pieces, run.dt_s).columns())
             self.partial.append(path)
 
-    def _write_recordings(self, joined: dict[str, tuple[Joined, Joined, int]]) -> dict[str, Path]:
-        """Every axis's recording and validation as CSV; the recordings' paths per axis."""
-        self.report_dir.mkdir(parents=True, exist_ok=True)
-        out = {}
-        for axis, (rec, val, _minor) in joined.items():
-            out[axis] = self.csv_path(axis)
-            write_csv(out[axis], rec.columns())
+    def _write_validations(self, joined: dict[str, tuple[Joined, Joined, int]]) -> None:
+        """Every axis's validation as CSV (its recording was written when it was recorded)."""
+        for axis, (_rec, val, _minor) in joined.items():
             write_csv(self.csv_path(axis, "validation"), val.columns())
-        return out
 
     def _identify(self, axis: str, csv: Path, rec: Joined, val: Joined, minor: int,
                   plan: PiecePlan) -> AxisCalibration:
-        """Identify from the recording ``csv``, validate on the second play."""
-        fitted = identify(self.kind, csv, **self.params)
+        """The identification of the recording ``csv`` (started when it was recorded),
+        validated on the second play."""
+        assert self._worker is not None
+        fitted = self._worker.result(axis)
         return AxisCalibration(axis, fitted, csv, rec, val, validate(fitted.model, rec, val, minor), minor,
                                len(plan.bounds))
 
