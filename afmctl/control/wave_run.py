@@ -17,7 +17,8 @@ named phases:
 4. ``approach`` — host setpoints ramp from the read-back voltage to the table's first row
    at ``safety.ramp_V_per_s`` (the setpoint loop's start ramp), then hold there for
    ``amplifier.settle_s`` (the ramp's ringing and fast creep die out the same way before
-   every play); events ``ramp``, ``settle`` (the first row reached) and ``ramp-done`` (the
+   every play; a stream FIFO is armed and primed during the hold, the device holding the
+   row, so that its clock starts when the hold ends: ``WavePlayer.arm``); events ``ramp``, ``settle`` (the first row reached) and ``ramp-done`` (the
    table starts: the run log's rows after it are the table's);
 5. ``play`` — the table plays on the amplifier's clock at ``loop.rate_Hz``
    (:mod:`afmctl.control.wave_players`: a GCS or NV200 wave generator, or the CAN stream FIFO);
@@ -215,10 +216,28 @@ class WaveMachine(LoopMachine):
         settle_s = src.settle_s(ctl.config) if src is not None else ctl.config.amplifier.hold_s()
         ctl.wave_times["settle"] = t_settle = time.monotonic()
         ctl._event("settle", f"at the wave's first sample; holding it {settle_s:g} s before the table starts")
+        if self.player.arms_at_settle:
+            return self._armed_hold(t_settle, settle_s)
         while time.monotonic() - t_settle < settle_s:     # the settle hold (wall clock)
             if self._towards(goal) is None:
                 return False
         ctl._event("ramp-done")
+        return True
+
+    def _armed_hold(self, t_settle: float, settle_s: float) -> bool:
+        """The settle hold of a player that arms at its start (:meth:`WavePlayer.arm`): the
+        device holds the first row, the host ticks and records it; a request stops the
+        armed device (nothing of the table played) and returns False."""
+        assert self.table is not None
+        self.player.arm(self.table)
+        while time.monotonic() - t_settle < settle_s:
+            self._wait_for_deadline()
+            self.ctl._tick += 1
+            if self.ctl._request is not None:
+                self.player.abort()
+                return False
+            self._record()
+        self.ctl._event("ramp-done")
         return True
 
     def _towards(self, goal: list[float]) -> bool | None:
