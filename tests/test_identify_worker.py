@@ -49,12 +49,14 @@ def test_a_failed_fit_comes_back_as_one_line_and_the_worker_goes_on(tmp_path):
         assert worker.result("good").model.kind == "pi"
 
 
-def test_close_ends_a_fit_still_running_at_once(tmp_path):
+def test_a_stop_ends_the_wait_and_close_ends_a_fit_still_running_at_once(tmp_path):
     csv = _recording(tmp_path / "long.csv", seconds=20.0, rate_Hz=5000.0)
     worker = IdentifyWorker()
     worker.submit("x", "auto", csv, {})
     time.sleep(2.0)                                          # the worker is fitting (auto: seconds)
     t0 = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):                   # a stop from another thread (zenoh)
+        worker.result("x", stop=lambda: time.monotonic() - t0 > 0.3)
     worker.close()
     assert time.monotonic() - t0 < 3.0
     assert not worker._proc.is_alive()

@@ -235,8 +235,8 @@ class Calibration:
         if self.config.amplifier.output != "wave":
             raise AfmctlError("amplifier.output: afmctl calibrate plays the excitation on the amplifier's clock; "
                               "set output = 'wave' (gcs, nv200 or can)")
-        with contextlib.ExitStack() as fitting:
-            fitting.callback(self._close_worker)
+        with contextlib.ExitStack() as worker:
+            worker.callback(self._close_worker)
             with contextlib.ExitStack() as stack:
                 amp = configured_amplifier(stack, self.config)
                 plans, signals, spec = self.plans(amp)
@@ -256,7 +256,7 @@ class Calibration:
             validation_s = sum(len(j[1].u_V) - sum(g for _, g in j[1].holds) for j in joined.values()) * run.dt_s
             try:
                 results = {a: self._identify(a, csvs[a], *joined[a], plans[a]) for a in self.axes}
-            except KeyboardInterrupt:       # the device is done: Ctrl-C interrupts the identification
+            except KeyboardInterrupt:       # the device is done: Ctrl-C or a stop interrupts the identification
                 self.partial = list(csvs.values())
                 raise CalibrationStopped("afmctl calibrate: stopped during the identification") from None
         model = self._model(results, prov)
@@ -353,7 +353,7 @@ class Calibration:
         """The identification of the recording ``csv`` (started when it was recorded),
         validated on the second play."""
         assert self._worker is not None
-        fitted = self._worker.result(axis)
+        fitted = self._worker.result(axis, stop=lambda: self._stop_asked)
         return AxisCalibration(axis, fitted, csv, rec, val, validate(fitted.model, rec, val, minor), minor,
                                len(plan.bounds))
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import signal
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -63,9 +64,12 @@ class IdentifyWorker:
         self._conn.send((key, kind, str(csv), dict(params)))
         self._running += 1
 
-    def result(self, key: str) -> Any:
-        """The :class:`~afmctl.api.identify.Identified` of job ``key``."""
+    def result(self, key: str, stop: Callable[[], bool] | None = None) -> Any:
+        """The :class:`~afmctl.api.identify.Identified` of job ``key``; ``KeyboardInterrupt``
+        once ``stop()`` says so (another thread's stop: zenoh ``stop``)."""
         while key not in self._done:
+            if stop is not None and stop():
+                raise KeyboardInterrupt
             if self._conn.poll(POLL_S):
                 k, ok, value = self._conn.recv()
                 self._done[k] = (ok, value)
