@@ -197,10 +197,11 @@ def test_estop_flushes_the_fifo_and_ramps_within_the_slew_limit(tmp_path, can_ri
 # ---------------------------------------------------------------------- GCS wave generator
 def test_gcs_wave_generator_plays_the_table_on_the_servo_clock(tmp_path):
     """The simulated E-727 plays the uploaded table point k at t0 + k · divider · 50 µs;
-    what it played is what the run log holds."""
+    what it played is what the run log holds; nothing is sent during the settle hold."""
     sink = RecordingSink(max_history=1_000_000)
     with serve_pty("gcs", sink=sink, baud=921600) as srv:
         cfg = cfg_for(tmp_path, "gcs", srv.port)
+        cfg.amplifier.settle_s = 1.0
         amp = open_driver(cfg, srv.port)
         try:
             traj = raster_nm(1200)
@@ -210,8 +211,12 @@ def test_gcs_wave_generator_plays_the_table_on_the_servo_clock(tmp_path):
                 stats = ctl.stats()
         finally:
             amp.close()
+        commands = srv.device.commands
     assert ctl.state is State.STOPPED, stats
     assert stats["wave"]["played"] == len(traj) and "wave generator" in stats["wave"]["player"]
+    # the device holds the first row through the 1 s settle hold alone: 114 commands in all
+    # (729 when the host re-sent it every tick, queued on the link ahead of the start)
+    assert commands < 300, commands
     reader = RunLogReader(tmp_path / "g.afmlog")
     sp, ev = reader.setpoints(), {e["event"]: e["seq"] for e in reader.events()}
     rows = sp[(sp["seq"] >= ev["ramp-done"]) & (sp["seq"] < ev["end"])]

@@ -47,9 +47,6 @@ class WavePlayer:
 
     what = "wave"
     max_step_V = math.inf
-    #: the device holds the table's first row through the settle hold once :meth:`arm` has
-    #: run (the host sends no setpoints then); False: the host holds it with setpoints
-    arms_at_settle = False
 
     def __init__(self, machine: Any) -> None:
         self.m = machine
@@ -85,8 +82,8 @@ class WavePlayer:
         return True
 
     def arm(self, table: WaveTable) -> None:
-        """At the start of the settle hold (:attr:`arms_at_settle`): get the table's start
-        ready on the device so that :meth:`play` starts it at once when the hold ends."""
+        """At the start of the settle hold, the device holding the table's first row: get
+        the table's start ready so that :meth:`play` starts it at once when the hold ends."""
 
     def play(self, table: WaveTable) -> None:
         raise NotImplementedError
@@ -212,9 +209,6 @@ class FifoPlayer(WavePlayer):
         self.poll_s = max(min(self.prod.high - self.prod.low, self.prod.low) / cfg.loop.rate_Hz / 4, 0.0005)
         self.stall = getattr(self.ctl, "stream_stall_hook", None)
 
-    #: the stream is armed and primed while the output holds the first row (module docstring)
-    arms_at_settle = True
-
     def prepare(self, table: WaveTable) -> bool:
         """Nothing goes ahead of the stream (its hook runs once the stream has started)."""
         self._armed: tuple[Any, int] | None = None
@@ -245,13 +239,11 @@ class FifoPlayer(WavePlayer):
                               f"of {capacity} samples at {self.prod.rate_Hz:g} Hz")
 
     def play(self, table: WaveTable) -> None:
-        """Queue the last prefill row (the clock starts: :meth:`arm`, run here when the
-        settle hold did not), then the rows between the water marks, record them as they
-        play, drain."""
+        """Queue the last prefill row (armed by :meth:`arm`: the clock starts), then the
+        rows between the water marks, record them as they play, drain."""
         amp, prod, ctl = self.amp, self.prod, self.ctl
-        if getattr(self, "_armed", None) is None:
-            self.arm(table)
-        rows, queued = self._armed       # type: ignore[misc]
+        assert self._armed is not None, "FifoPlayer.play before arm"
+        rows, queued = self._armed
         self._armed = None
         n = len(rows)
         self._started()

@@ -214,20 +214,21 @@ class WaveMachine(LoopMachine):
                 return False
         src = ctl._learned_source
         settle_s = src.settle_s(ctl.config) if src is not None else ctl.config.amplifier.hold_s()
+        # the hold counts from when the device holds the row: a link slower than the loop
+        # delivers the ramp's last setpoints up to ~0.1 s after the host sent them (E-727
+        # simulator: a 15.5 ms ramp applied over 60–105 ms)
+        ctl.amplifier.flush()
         ctl.wave_times["settle"] = t_settle = time.monotonic()
         ctl._event("settle", f"at the wave's first sample; holding it {settle_s:g} s before the table starts")
-        if self.player.arms_at_settle:
-            return self._armed_hold(t_settle, settle_s)
-        while time.monotonic() - t_settle < settle_s:     # the settle hold (wall clock)
-            if self._towards(goal) is None:
-                return False
-        ctl._event("ramp-done")
-        return True
+        return self._device_hold(t_settle, settle_s)
 
-    def _armed_hold(self, t_settle: float, settle_s: float) -> bool:
-        """The settle hold of a player that arms at its start (:meth:`WavePlayer.arm`): the
-        device holds the first row, the host ticks and records it; a request stops the
-        armed device (nothing of the table played) and returns False."""
+    def _device_hold(self, t_settle: float, settle_s: float) -> bool:
+        """The settle hold: the device holds the table's first row (the host sends nothing,
+        so no setpoint queued on a slow link delays the table's start), the player gets
+        the start ready (:meth:`WavePlayer.arm`), the host ticks and records the row; a
+        request stops an armed device (nothing of the table played) and returns False.
+        The hold before every play is then the same to a few ms: the scanner creeps at
+        ~10 nm/s two seconds after a 5 µm approach (docs/CONTROLLER.md)."""
         assert self.table is not None
         self.player.arm(self.table)
         while time.monotonic() - t_settle < settle_s:
