@@ -336,3 +336,25 @@ def test_fd_stream_plays_every_sample_on_the_amplifier_clock():
     assert ticks_on_the_device_clock([t for t, _ in played], sim.stream.t0_s, rate) <= sim.stream.underruns
     assert_few_underruns(sim.stream.underruns, n)
     np.testing.assert_allclose([v["x"] for _, v in played], xs, atol=1e-9)
+
+
+def test_the_simulated_amplifier_keeps_its_scanner_current_while_the_stream_is_armed():
+    """While the host primes the FIFO (armed: nothing plays, the output holds), time passes
+    for the scanner too, so the clock's first tick does not simulate the whole wait in one
+    call under the stream lock (after a 2 s settle hold that sent no STREAM_STATUS for
+    ~75 ms, and the host refilled the FIFO too late)."""
+    from afmctl.sim_backend.scanner import Scanner, default_scanner_config
+    scanner = Scanner(default_scanner_config())
+    channel = f"armed-{uuid.uuid4().hex[:8]}"
+    with serve_can(channel, scanner):
+        amp = CANAmplifier.open(f"virtual:{channel}")
+        amp.connect()
+        try:
+            amp.start_stream(1000, prefill=100)
+            amp.queue([[1.0, 0.0, 0.0]] * 10)
+            t0 = scanner.time_s
+            time.sleep(0.5)
+            assert scanner.time_s - t0 > 0.3, scanner.time_s - t0
+        finally:
+            amp.flush_stream()
+            amp.close()

@@ -145,6 +145,28 @@ def test_can_fifo_plays_the_table_on_its_clock_through_host_stalls(tmp_path, can
     np.testing.assert_allclose(np.diff(rows["t_s"]), 1.0 / RATE_HZ)          # t_s: the amplifier's clock
 
 
+def test_the_fifo_clock_starts_when_the_settle_hold_ends_not_after_its_prefill_was_sent(tmp_path, can_rig):
+    """The stream is armed and primed while the device holds the table's first row
+    (``WavePlayer.arm``): the table starts ``amplifier.settle_s`` after the approach
+    reached that row, however long its 4,000 prefill rows took to send (0.1–0.4 s, which
+    the scanner used to spend creeping at the first row, a different time every play)."""
+    channel, amp, sim, sink = can_rig
+    cfg = cfg_for(tmp_path, "can", f"virtual:{channel}", rate_Hz=10000.0)
+    cfg.amplifier.low_water_s, cfg.amplifier.high_water_s = 0.2, 0.4          # 4,000 rows of prefill
+    cfg.amplifier.settle_s = 1.5
+    traj = raster_nm(5000)
+    with Controller(cfg, amp) as ctl:
+        ctl.start(traj)
+        assert ctl.wait(60)
+        stats = ctl.stats()
+    assert ctl.state is State.STOPPED and stats["wave"]["played"] == len(traj), stats
+    first = traj[0, 0] / NM_PER_V
+    t_reach = next(t for t, v in sink.history if abs(v["x"] - first) < 0.003)   # the approach reached row 0
+    held = sim.stream.t0_s - t_reach
+    assert 1.5 - 0.05 < held < 1.5 + 0.1, held
+    assert sim.stream.underruns == 0
+
+
 def test_estop_flushes_the_fifo_and_ramps_within_the_slew_limit(tmp_path, can_rig):
     channel, amp, sim, sink = can_rig
     cfg = cfg_for(tmp_path, "can", f"virtual:{channel}")

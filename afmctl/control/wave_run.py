@@ -17,8 +17,8 @@ named phases:
 4. ``approach`` — host setpoints ramp from the read-back voltage to the table's first row
    at ``safety.ramp_V_per_s`` (the setpoint loop's start ramp), then hold there for
    ``amplifier.settle_s`` (the ramp's ringing and fast creep die out the same way before
-   every play; the hold counts from a round trip behind the ramp's last setpoint and the
-   device holds the row alone, the host sending nothing); events ``ramp``, ``settle`` (the first row reached) and ``ramp-done`` (the
+   every play; a stream FIFO is armed and primed during the hold, the device holding the
+   row, so that its clock starts when the hold ends: ``WavePlayer.arm``); events ``ramp``, ``settle`` (the first row reached) and ``ramp-done`` (the
    table starts: the run log's rows after it are the table's);
 5. ``play`` — the table plays on the amplifier's clock at ``loop.rate_Hz``
    (:mod:`afmctl.control.wave_players`: a GCS or NV200 wave generator, or the CAN stream FIFO);
@@ -224,14 +224,18 @@ class WaveMachine(LoopMachine):
 
     def _device_hold(self, t_settle: float, settle_s: float) -> bool:
         """The settle hold: the device holds the table's first row (the host sends nothing,
-        so no setpoint queued on a slow link delays the table's start), the host ticks and
-        records the row; False when a request came first (nothing of the table played).
-        The hold before every play is then the same to a few ms on a wave generator: the
-        scanner creeps at ~10 nm/s two seconds after a 5 µm approach (docs/CONTROLLER.md)."""
+        so no setpoint queued on a slow link delays the table's start), the player gets
+        the start ready (:meth:`WavePlayer.arm`), the host ticks and records the row; a
+        request stops an armed device (nothing of the table played) and returns False.
+        The hold before every play is then the same to a few ms: the scanner creeps at
+        ~10 nm/s two seconds after a 5 µm approach (docs/CONTROLLER.md)."""
+        assert self.table is not None
+        self.player.arm(self.table)
         while time.monotonic() - t_settle < settle_s:
             self._wait_for_deadline()
             self.ctl._tick += 1
             if self.ctl._request is not None:
+                self.player.abort()
                 return False
             self._record()
         self.ctl._event("ramp-done")

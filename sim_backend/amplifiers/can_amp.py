@@ -17,7 +17,8 @@ exactly t0 + k / rate (see :mod:`.can_stream`); the scanner sink receives those 
 times, so the tip's timing does not depend on when the host sent the frames. A sample
 outside the range or while disabled stops the stream (ERROR 1 or 3, FIFO emptied, output
 holds); a full FIFO refuses a sample (ERROR 5). STREAM_STATUS answers every STREAM_CTRL
-and is sent every ``STATUS_PERIOD_S`` of play. On a CAN FD bus the host may send
+and is sent every ``STATUS_PERIOD_S`` of play. While the stream is armed (primed, the
+output held) the scanner's simulation is kept up to the present. On a CAN FD bus the host may send
 STREAM_XYZ_FD frames instead: up to 10 samples each (SEQ, SEQ+1, ...), played as if they
 came one STREAM_XYZ each.
 """
@@ -316,6 +317,16 @@ class SimCANAmplifier:
             for t_k, row in zip(t, rows):
                 self.sink.apply(dict(zip(self.axes, row)), t_k)
 
+    def _keep_sink_current(self, now_s: float) -> None:
+        """While the stream is armed (the host primes the FIFO, the output holds), time
+        passes for the scanner too: advance the sink's simulation to ``now_s``, so that the
+        clock's first tick does not first simulate the whole wait in one call (under the
+        stream lock, which then sent no STREAM_STATUS for ~75 ms after a 2 s settle hold and
+        the host refilled too late)."""
+        advance = getattr(self.sink, "advance", None)
+        if advance is not None:
+            advance(now_s)
+
     # -- data recorder --
     def _sensor_capture(self, t0_s: float, period_s: float, n: int):
         capture = getattr(self.sink, "capture_sensor", None)
@@ -426,6 +437,8 @@ class SimCANAmplifier:
                 if nxt is not None and now - self._last_stream_status_s >= STATUS_PERIOD_S:
                     self._last_stream_status_s = now
                     self.send_stream_status()
+                if self.stream.state is StreamState.ARMED:
+                    self._keep_sink_current(now)
                 # wake for the next tick, but at most every 1 ms (ticks are played late in
                 # batches with their own computed times; the sink never sees the wake-up time)
                 wait = 0.05 if nxt is None else min(max(nxt - now, 0.0), 0.001)
