@@ -335,7 +335,7 @@ class Calibration:
             if not pieces:
                 continue
             axis = what.split()[-1]
-            if what == f"excite {axis}" and self.csv_path(axis).exists() and axis in self.fitting:
+            if what == f"excite {axis}" and axis in self.fitting:
                 self.partial.append(self.csv_path(axis))        # recorded whole, written already
                 continue
             path = self.csv_path(axis, f"{what.split()[0]}-partial")

@@ -202,7 +202,7 @@ class LoopMachine:
             ctl._overruns += 1
             next_t = aligned_s(now, period, ctl.config.loop.phase)
             if len(ctl.clock_bases) < CLOCK_BASES_MAX:
-                ctl.clock_bases.append((ctl._tick + 1, now))   # the tick about to run
+                ctl.clock_bases.append((ctl._tick + 1, next_t))   # the tick about to run: its deadline
         self.now_s = now
         self.next_t_s = next_t
         ctl._deadline_s = next_t

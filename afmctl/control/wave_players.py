@@ -208,10 +208,11 @@ class FifoPlayer(WavePlayer):
         self.max_step_V = self.prod.max_step_V
         self.poll_s = max(min(self.prod.high - self.prod.low, self.prod.low) / cfg.loop.rate_Hz / 4, 0.0005)
         self.stall = getattr(self.ctl, "stream_stall_hook", None)
+        #: the rows and how many are queued once :meth:`arm` has primed the stream
+        self._armed: tuple[Any, int] | None = None
 
     def prepare(self, table: WaveTable) -> bool:
         """Nothing goes ahead of the stream (its hook runs once the stream has started)."""
-        self._armed: tuple[Any, int] | None = None
         return True
 
     def arm(self, table: WaveTable) -> None:

@@ -17,9 +17,11 @@ named phases:
 4. ``approach`` — host setpoints ramp from the read-back voltage to the table's first row
    at ``safety.ramp_V_per_s`` (the setpoint loop's start ramp), then hold there for
    ``amplifier.settle_s`` (the ramp's ringing and fast creep die out the same way before
-   every play; a stream FIFO is armed and primed during the hold, the device holding the
-   row, so that its clock starts when the hold ends: ``WavePlayer.arm``); events ``ramp``, ``settle`` (the first row reached) and ``ramp-done`` (the
-   table starts: the run log's rows after it are the table's);
+   every play). The hold counts from a round trip behind the ramp's last setpoint and the
+   device holds the row alone (the host sends nothing); a stream FIFO is armed and primed
+   during it, so that its clock starts when the hold ends (``WavePlayer.arm``); events
+   ``ramp``, ``settle`` (the first row reached) and ``ramp-done`` (the table starts: the
+   run log's rows after it are the table's);
 5. ``play`` — the table plays on the amplifier's clock at ``loop.rate_Hz``
    (:mod:`afmctl.control.wave_players`: a GCS or NV200 wave generator, or the CAN stream FIFO);
    host stalls shorter than what the device holds never reach the tip;
