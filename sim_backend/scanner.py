@@ -355,19 +355,26 @@ class Scanner:
         with self._lock:
             if t_s is not None:
                 self.advance(t_s)
-            held = self._held_V.copy()
-            for key, value in volts.items():
-                k = str(key).lower()
-                if k not in AXES:
-                    raise ModelError(f"volts: unknown axis {key!r}; allowed x, y, z")
-                try:
-                    v = float(value)
-                except (TypeError, ValueError):
-                    raise ModelError(f"volts.{k}: {value!r} is not a number of volts") from None
-                if not math.isfinite(v):
-                    raise ModelError(f"volts.{k}: {value!r} is not a finite voltage")
-                held[AXES.index(k)] = v
-            self._held_V = held
+            self._held_V = self.voltages_with(volts, self._held_V)
+
+    @staticmethod
+    def voltages_with(volts: Mapping[str, float], held_V: np.ndarray) -> np.ndarray:
+        """The row (x, y, z) [V] held after ``apply(volts)`` from ``held_V`` [V]: the named
+        axes replaced, the others kept; a new array. Raises ModelError naming an unknown
+        axis or a value that is not a finite number of volts."""
+        held = np.array(held_V, dtype=np.float64).reshape(3)
+        for key, value in volts.items():
+            k = str(key).lower()
+            if k not in AXES:
+                raise ModelError(f"volts: unknown axis {key!r}; allowed x, y, z")
+            try:
+                v = float(value)
+            except (TypeError, ValueError):
+                raise ModelError(f"volts.{k}: {value!r} is not a number of volts") from None
+            if not math.isfinite(v):
+                raise ModelError(f"volts.{k}: {value!r} is not a finite voltage")
+            held[AXES.index(k)] = v
+        return held
 
     def play(self, t_s: Sequence[float], rows_V: Sequence[Sequence[float]]) -> None:
         """Sink for amplifiers that play on their own clock: the same as

@@ -2,9 +2,11 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from afmctl.compensators.base import ModelError
 from afmctl.sim_backend.scanner import Scanner
 
 
@@ -59,3 +61,31 @@ def test_a_timed_play_lands_on_the_same_samples_however_long_the_clock_ran():
         s.advance(t0 + period * n)
         traces.append(cap.y_nm[:, 0])
     assert np.array_equal(traces[0], traces[1])
+
+
+def test_the_tap_simulates_timed_changes_in_blocks_exactly_as_one_by_one():
+    """The in-process simulators' sink (ScannerTap) holds timed output changes back and
+    simulates them as one block; whatever reads the scanner sees it as if each change had
+    been applied at once."""
+    from afmctl.simulation.link import ScannerTap
+    rng = np.random.default_rng(7)
+    n = 3 * ScannerTap.BATCH + 5
+    t = 0.002 + np.arange(n) * 1e-4
+    rows = rng.uniform(0.0, 150.0, (n, 3))
+    eager, tap = Scanner(), ScannerTap(Scanner())
+    for k, (t_k, r) in enumerate(zip(t, rows)):
+        volts = {"x": r[0], "y": r[1]} if k % 3 else {"x": r[0], "y": r[1], "z": r[2]}
+        eager.apply(volts, t_k)
+        tap.apply(volts, t_k)
+        if k in (10, 100):           # a read in between simulates what waited first
+            assert np.allclose(tap.position_nm(), eager.position_nm(), rtol=0, atol=1e-6)
+            assert tap.time_s == eager.time_s
+    assert np.array_equal(tap.held_voltage_V(), eager.held_voltage_V())
+    eager.advance(t[-1] + 0.01)
+    tap.advance(t[-1] + 0.01)
+    assert np.allclose(tap.position_nm(), eager.position_nm(), rtol=0, atol=1e-6)
+    t_perf, u = tap.applied()
+    assert len(t_perf) == n and np.all(np.diff(t_perf) >= 0)
+    assert np.array_equal(u[-1], eager.held_voltage_V())
+    with pytest.raises(ModelError, match="volts.x"):
+        tap.apply({"x": float("nan")}, t[-1] + 0.02)
