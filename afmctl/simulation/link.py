@@ -60,14 +60,16 @@ class ScannerTap:
 
     Timed output changes are simulated in blocks (:meth:`Scanner.play
     <afmctl.sim_backend.scanner.Scanner.play>`, the same as one ``apply`` each): up to
-    :data:`BATCH` of them wait, and any other use of the scanner simulates them first, so
-    nothing ever sees the scanner behind what it was given. One ``apply`` costs ~150 µs of
+    :data:`BATCH` of them, over at most :data:`SPAN_S`, wait, and any other use of the
+    scanner simulates them first, so nothing ever sees the scanner behind what it was given. One ``apply`` costs ~150 µs of
     simulation, more than the 100 µs between the setpoints of a 10 kHz loop, which left the
     simulated amplifier's thread seconds behind the host (its STATUS reply to the end of a
     run then came after the driver's timeout); a block costs ~4 µs a setpoint."""
 
     #: most timed output changes held back before they are simulated in one block
     BATCH = 64
+    #: longest span [s] of scanner time held back (a block of it runs with the GIL held)
+    SPAN_S = 0.01
 
     def __init__(self, scanner: Any) -> None:
         self.scanner = scanner
@@ -88,7 +90,7 @@ class ScannerTap:
                 row = self.scanner.voltages_with(volts, base)
                 self._pending_t.append(float(t_s))
                 self._pending_V.append(row)
-                if len(self._pending_t) >= self.BATCH:
+                if len(self._pending_t) >= self.BATCH or t_s - self._pending_t[0] >= self.SPAN_S:
                     self._simulate_pending()
             self._t.append(time.perf_counter())
             self._v.append(row)
