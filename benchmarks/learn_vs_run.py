@@ -171,6 +171,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--iterations", type=int, default=10)
     p.add_argument("--work", help="scratch folder (default: a temporary one, removed)")
     p.add_argument("--fresh-run", action="store_true", help="TCP examples: afmctl run on a fresh simulator")
+    p.add_argument("--models", nargs="+", choices=("chain", "none"), default=["chain", "none"],
+                   help="with the chain model, without a model, or both (default)")
     args = p.parse_args(argv)
     model = Path(args.model).resolve()
     if not model.exists():
@@ -180,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
         work.mkdir(parents=True, exist_ok=True)
         rows = []
         for example in args.examples:
-            for m in (model, None):
+            for m in [model if name == "chain" else None for name in args.models]:
                 rows.append(one(example, m, args, work))
                 print(f"{rows[-1]['tag']}: learn {rows[-1]['learn_s']:.0f} s, {rows[-1]['plays']} plays",
                       file=sys.stderr, flush=True)
