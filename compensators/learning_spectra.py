@@ -102,13 +102,14 @@ class Grid:
 
 def smoothed_ratio(num: np.ndarray, den: np.ndarray, f_Hz: np.ndarray, rel_width: float = REL_WIDTH,
                    min_bins: int = 2, threshold: float = RELIABLE_FRACTION,
-                   noise_power: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   noise_power: np.ndarray | None = None, min_snr: float = MIN_SNR) -> tuple[np.ndarray, np.ndarray]:
     """``(ratio, reliable)``: ``Σ num·den* / Σ |den|²`` over the bins within
     ``max(min_bins, rel_width · k)`` of bin ``k`` (wider at high frequency, like a
     fractional-octave smoother), and whether the window's ``Σ |den|²`` is at least
     ``threshold`` (default :data:`RELIABLE_FRACTION`) of its largest value and, with
     ``noise_power`` (the noise's expected ``|N(f)|²`` in ``num``, per bin), the window's
-    ``Σ |num|²`` at least :data:`MIN_SNR` times the noise's: a measurement, not noise.
+    ``Σ |num|²`` at least ``min_snr`` (default :data:`MIN_SNR`) times the noise's: a
+    measurement, not noise.
     Unreliable bins hold 0."""
     k = np.arange(f_Hz.size)
     half = np.maximum(min_bins, np.floor(rel_width * k)).astype(int)
@@ -121,7 +122,7 @@ def smoothed_ratio(num: np.ndarray, den: np.ndarray, f_Hz: np.ndarray, rel_width
     if noise_power is not None:
         out = np.concatenate([[0.0], np.cumsum(np.abs(num) ** 2)])
         noise = np.concatenate([[0.0], np.cumsum(noise_power)])
-        reliable &= (out[hi] - out[lo]) >= MIN_SNR * (noise[hi] - noise[lo])
+        reliable &= (out[hi] - out[lo]) >= min_snr * (noise[hi] - noise[lo])
     ratio = np.zeros(f_Hz.size, dtype=complex)
     ratio[reliable] = (cross[hi] - cross[lo])[reliable] / p[reliable]
     return ratio, reliable

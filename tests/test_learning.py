@@ -460,3 +460,24 @@ def test_a_slow_axis_given_the_raster_lines_learns_and_is_judged_where_the_raste
     sent = y / 80.0
     res = raster.step(sent, y + 50.0)
     assert np.all(res.u_next_V[second_trace] < sent[second_trace] - 0.3)
+
+
+def test_the_law_probes_past_the_models_band_where_the_model_still_responds(monkeypatch):
+    """Past the model's band (1.5 × its 300 Hz mode) no play measured the response, so
+    without a probe nothing there is ever learned; the law takes a small step up to where
+    the model's dynamics still respond with a quarter of their DC gain (300 Hz·√5 = 671 Hz)
+    and learns what the plays then measure. On the chain itself as the plant (noise-free)
+    the best table's error falls by a quarter or more (measured 0.0087 → 0.0062 %)."""
+    from afmctl.compensators import learning_laws
+    plant = LinearPlant()
+    tgt = raster()
+    s = LearnSettings(u_min_V=0.0, u_max_V=150.0, slew_V_per_s=SLEW)
+    u0 = plant.chain.inverse_within_limits(tgt, DT, 0.0, 150.0, SLEW).u_V
+    best = {}
+    for gain in (math.inf, learning_laws.PROBE_GAIN):
+        monkeypatch.setattr(learning_laws, "PROBE_GAIN", gain)
+        errs, results = learn(plant, Learner(tgt, DT, plant.chain, s), u0, 8)
+        best[gain] = min(errs)
+        top = 450.0 if gain == math.inf else 300.0 * math.sqrt(5.0)
+        assert all(abs(r.q_cutoff_Hz - top) < 15.0 for r in results[:3]), [r.q_cutoff_Hz for r in results]
+    assert best[learning_laws.PROBE_GAIN] < 0.8 * best[math.inf], best
