@@ -168,7 +168,8 @@ def model_based_increment(grid: Grid, chain, dt_s: float, base: tuple[np.ndarray
         ratio[played], reliable = r[played], reliable | played
     trusted = trusted_ratio(ratio, reliable, repeated, played, past, rho_max if full_step is None else full_step)
     top = float(f[np.flatnonzero(trusted & past)[-1]]) if np.any(trusted & past) else 0.0
-    reach = max(band, top, probe_top_Hz(f, d_hat, band) if dyn is not None else 0.0)
+    settled = max(band, top)                         # the model's band, or what the plays measured past it
+    reach = max(settled, probe_top_Hz(f, d_hat, band) if dyn is not None else 0.0)
     cutoff = reach if q_cutoff_Hz is None else q_cutoff_Hz
     if cutoff <= 0:
         cutoff = 0.45 / dt_s
@@ -179,7 +180,7 @@ def model_based_increment(grid: Grid, chain, dt_s: float, base: tuple[np.ndarray
     measured = _fill_between(np.where(reliable, ratio, 1.0 + 0j), reliable, f, band)
     rho = step_size(applied, rho_max)
     rho = np.where(trusted, rho, np.minimum(rho, step_size(measured, rho_max)))
-    beyond = f > max(band, top)
+    beyond = f > settled
     rho = np.where(beyond, np.minimum(rho, PROBE_STEP), rho)
     if noise is not None:           # where the error is the noise's a probe would only add it
         e = grid.diff_spectrum(werr_nm)

@@ -61,10 +61,11 @@ class ScannerTap:
     Timed output changes are simulated in blocks (:meth:`Scanner.play
     <afmctl.sim_backend.scanner.Scanner.play>`, the same as one ``apply`` each): up to
     :data:`BATCH` of them, over at most :data:`SPAN_S`, wait, and any other use of the
-    scanner simulates them first, so nothing ever sees the scanner behind what it was given. One ``apply`` costs ~150 µs of
-    simulation, more than the 100 µs between the setpoints of a 10 kHz loop, which left the
-    simulated amplifier's thread seconds behind the host (its STATUS reply to the end of a
-    run then came after the driver's timeout); a block costs ~4 µs a setpoint."""
+    scanner simulates them first, so nothing ever sees the scanner behind what it was
+    given. One ``apply`` costs ~150 µs of simulation, more than the 100 µs between the
+    setpoints of a 10 kHz loop, which left the simulated amplifier's thread seconds behind
+    the host (its STATUS reply to the end of a run then came after the driver's timeout); a
+    block costs ~4 µs a setpoint."""
 
     #: most timed output changes held back before they are simulated in one block
     BATCH = 64
@@ -104,17 +105,17 @@ class ScannerTap:
     def __getattr__(self, name: str) -> Any:
         if name.startswith("_"):
             raise AttributeError(name)
-        with self._lock:
-            self._simulate_pending()
-            attr = getattr(self.scanner, name)
-        if not callable(attr):
-            return attr
+        if callable(getattr(type(self.scanner), name, None)):     # a method: what waited is simulated when called
+            method = getattr(self.scanner, name)
 
-        def current(*args: Any, **kwargs: Any) -> Any:
-            with self._lock:
-                self._simulate_pending()
-                return attr(*args, **kwargs)
-        return current
+            def current(*args: Any, **kwargs: Any) -> Any:
+                with self._lock:
+                    self._simulate_pending()
+                    return method(*args, **kwargs)
+            return current
+        with self._lock:                                         # a value (a property, the config)
+            self._simulate_pending()
+            return getattr(self.scanner, name)
 
     def applied(self) -> tuple[np.ndarray, np.ndarray]:
         """``(t_perf_s (M,), u_V (M, 3))``: when each output change reached the scanner and
