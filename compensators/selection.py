@@ -59,6 +59,19 @@ def _fit(structure: str, t: np.ndarray, u: np.ndarray, y: np.ndarray, options: d
                                **options)
 
 
+def _fit_kept(fits: dict[tuple[str, int], ChainModel] | None, structure: str, t: np.ndarray, u: np.ndarray,
+              y: np.ndarray, split: int, options: dict[str, Any], k0: int) -> ChainModel:
+    """``structure`` fitted on ``[k0:split]``, from ``fits`` when it holds that fit (else
+    fitted and kept there)."""
+    key = (structure, split)
+    if fits is not None and key in fits:
+        return fits[key]
+    model = _fit(structure, t[:split], u[:split], y[:split], options, k0)
+    if fits is not None:
+        fits[key] = model
+    return model
+
+
 def scored_samples(u_V: np.ndarray, split: int, fit_from_index: int = 0) -> np.ndarray:
     """Held-out samples whose input lies inside the training part's input range (no model
     can be asked to extrapolate past what it was identified on): a boolean mask over
@@ -109,13 +122,17 @@ def _fast_rms(pred: np.ndarray, y: np.ndarray, parts: list[tuple[int, int]], sta
 def score_candidate(structure: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, split: int,
                     options: dict[str, Any] | None = None, fit_from_index: int = 0,
                     dynamics_from_whole: bool = False, end: int | None = None,
-                    parts: list[tuple[int, int]] | None = None) -> dict[str, Any]:
+                    parts: list[tuple[int, int]] | None = None,
+                    fits: dict[tuple[str, int], ChainModel] | None = None) -> dict[str, Any]:
     """Identify ``structure`` on samples ``[fit_from_index:split]`` (the samples before
     ``fit_from_index`` only set the memory), predict all, score ``[split:]``.
     ``dynamics_from_whole``: the structure's ``+dynamics`` stage is fitted on the whole
     record instead (module docstring). ``end``: score ``[split:end]`` only (a fold).
     ``parts``: the record's :func:`~.dynamics_identify.dynamics_parts` (found here when
     not given; :func:`select_model` finds them once for every candidate and fold).
+    ``fits``: the static fits on ``[fit_from_index:split]`` by ``(structure, split)``, kept
+    and reused: a ``+dynamics`` candidate starts from its static base's fit, which is the
+    same computation (#38: 2.6 s of the E-727 calibrate recording's 46 s).
 
     Returns a table row: ``structure``, ``heldout_rms_nm``, ``heldout_max_nm``,
     ``heldout_rms_pct``, ``heldout_max_pct`` (% of the held-out span), ``train_rms_nm``;
@@ -124,10 +141,10 @@ def score_candidate(structure: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.n
     try:
         if dynamics_from_whole and "dynamics" in stages:
             static = "+".join([hyst_kind, *[s for s in stages if s != "dynamics"]])
-            model = _fit(static, t_s[:split], u_V[:split], y_nm[:split], options or {}, fit_from_index)
+            model = _fit_kept(fits, static, t_s, u_V, y_nm, split, options or {}, fit_from_index)
             model = _with_dynamics(model, t_s, u_V, y_nm, fit_from_index, options or {}, split)
         else:
-            model = _fit(structure, t_s[:split], u_V[:split], y_nm[:split], options or {}, fit_from_index)
+            model = _fit_kept(fits, structure, t_s, u_V, y_nm, split, options or {}, fit_from_index)
         dt = float(np.median(np.diff(t_s)))
         pred = model.forward(dt).block(np.ascontiguousarray(u_V))
     except (ModelError, ValueError, np.linalg.LinAlgError) as err:
@@ -273,8 +290,9 @@ def select(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates: Seque
                          "range of the rest; excite the full voltage range early in the record")
     table, candidates = covered_candidates(t[k0:], u[k0:], candidates)
     parts = dynamics_parts(u, t)
+    fits: dict[tuple[str, int], ChainModel] = {}
     for structure in candidates:
-        row = score_candidate(structure, t, u, y, split, options, k0, parts=parts)
+        row = score_candidate(structure, t, u, y, split, options, k0, parts=parts, fits=fits)
         log.info("auto: %s → %s", structure, row)
         table.append(row)
     table.sort(key=lambda row: _key(row, criterion))
@@ -285,7 +303,7 @@ def select(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates: Seque
             and parts:
         for base in dynamics_bases(table, criterion):
             row = score_candidate(base["structure"] + "+dynamics", t, u, y, split, options, k0,
-                                  dynamics_from_whole=True, parts=parts)
+                                  dynamics_from_whole=True, parts=parts, fits=fits)
             log.info("auto: %s → %s", row["structure"], row)
             table.append(row)
         table.sort(key=lambda row: _key(row, criterion))

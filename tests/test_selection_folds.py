@@ -157,3 +157,35 @@ def test_dynamics_are_tried_on_the_leading_static_candidates():
     # the max criterion screens on the held-out max
     table = [_scored("pi", 20.0, peak=100.0), _scored("preisach", 10.0, peak=130.0)]
     assert [r["structure"] for r in dynamics_bases(table, "max")] == ["pi"]
+
+
+def test_a_dynamics_candidate_starts_from_its_static_bases_fit_not_a_second_one(monkeypatch):
+    """#38: ``base+dynamics`` is scored from the static base's fit on the main split, which
+    the base's own row has made already: the selection keeps it rather than fitting the
+    same thing twice (the E-727 calibrate recording: 2.6 s of 46 s)."""
+    from afmctl.compensators import selection
+    from afmctl.compensators.chain import ChainModel
+    from afmctl.compensators.dynamics import LinearDynamicsModel
+    from afmctl.data.excitation import ExcitationSpec, excitation
+
+    spec = ExcitationSpec(u_min_V=0.0, u_max_V=100.0, rate_Hz=5000.0, dwell_s=0.3, gap_s=0.1, periods=2,
+                          f_min_Hz=20.0, sweep_V_per_s=400.0)
+    u = excitation("all", spec)
+    t = np.arange(u.size) / spec.rate_Hz
+    plant = ChainModel(hysteresis=PIModel(thresholds=[0.0, 20.0, 40.0, 60.0], weights=[60.0, 15.0, 10.0, 5.0],
+                                          initial_state=[0.0] * 4),
+                       dynamics=LinearDynamicsModel.from_modes([(400.0, 0.05)]))
+    y = plant.forward(1.0 / spec.rate_Hz).block(u)
+    fitted: list[tuple[str, int]] = []
+    real_fit = selection._fit
+
+    def counting(structure, t_s, u_V, y_nm, *args, **kw):
+        if np.array_equal(y_nm, y[:y_nm.size]):      # the record itself, not the refinement's inverse
+            fitted.append((structure, t_s.size))
+        return real_fit(structure, t_s, u_V, y_nm, *args, **kw)
+
+    monkeypatch.setattr(selection, "_fit", counting)
+    best, table = select_model(t, u, y, candidates=("pi",))
+    assert "pi+dynamics" in [r["structure"] for r in table]
+    split = int(round(u.size * 0.7))
+    assert fitted.count(("pi", split)) == 1, fitted
