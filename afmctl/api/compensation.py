@@ -20,10 +20,16 @@ def compensate(model: HysteresisModel, y_nm: np.ndarray, *, dt_s: float | None =
                t_s: np.ndarray | None = None, limits_V: tuple[float, float] | None = None, clip: bool = False,
                dynamics: HysteresisModel | None = None, slew_V_per_s: float | None = None,
                model_name: str = "model", where: str = "target",
-               progress: Callable[[int], None] | None = None) -> Compensated:
+               progress: Callable[[int], None] | None = None, start: str = "rest") -> Compensated:
     """Voltages u [V] for the target displacement ``y_nm`` [nm], one per sample, through the
-    model's inverse from its stored state. Time-dependent models (epi, creep, chains) and a
+    model's inverse. Time-dependent models (epi, creep, chains) and a
     ``dynamics`` inverse need the sample period: ``dt_s`` or uniform times ``t_s`` [s].
+
+    ``start``: ``"rest"`` (default) — the scanner has rested at the target's first point, so
+    a creep stage starts settled there (:func:`at_rest`); ``"model"`` — every stage from the
+    state stored in the model file (a scanner at rest at the start of the recording it was
+    identified on, usually the bottom of the range, and moved to the first point at once:
+    its creep then still runs toward it, and the voltages lean against that).
 
     ``limits_V``: the allowed range (default: the model's voltage range, else 0..150 V); a
     voltage outside it raises :class:`LimitsExceeded` unless ``clip``. ``dynamics`` (a
@@ -35,6 +41,10 @@ def compensate(model: HysteresisModel, y_nm: np.ndarray, *, dt_s: float | None =
     chunks of a long target are done."""
     _check_kinds(model, dynamics, slew_V_per_s, model_name)
     y = np.ascontiguousarray(y_nm, dtype=np.float64).reshape(-1)
+    if start not in STARTS:
+        raise AfmctlError(f"start: {start!r}; allowed {', '.join(STARTS)}")
+    if start == "rest" and y.size:
+        model = at_rest(model, float(y[0]))
     with_dynamics = dynamics is not None or getattr(model, "dynamics", None) is not None
     dt = _period(model, with_dynamics or slew_V_per_s is not None, dt_s, t_s, where)
     lo, hi, source = model_limits_V(model, limits_V)
@@ -66,6 +76,24 @@ def compensate(model: HysteresisModel, y_nm: np.ndarray, *, dt_s: float | None =
         u, report = _within_slew(u, dt, (lo, hi), slew_V_per_s)
         return Compensated(u, (lo, hi), source, n_bad, report)
     return Compensated(np.clip(u, lo, hi) if n_bad else u, (lo, hi), source, n_bad, report)
+
+
+#: where :func:`compensate` takes the scanner to start from
+STARTS = ("rest", "model")
+
+
+def at_rest(model: HysteresisModel, y0_nm: float) -> HysteresisModel:
+    """``model`` (a copy) with its creep at rest at the output ``y0_nm`` [nm]: the lag states of
+    a linear creep stage (kind ``creep``, alone or in a chain) settled at the input that holds
+    the output there, ``(y0 − offset_nm) / gain_nm_per_V`` (a creep at rest passes its input
+    through; a chain's dynamics stage has unit DC gain). Other stages keep their stored state:
+    a hysteresis memory is the history before the first point, which the first sample then
+    moves to it. A model without such a stage is returned as it is."""
+    creep = model if model.kind == "creep" else getattr(model, "creep", None)
+    if creep is None or creep.kind != "creep":
+        return model
+    rested = creep.model_copy(update={"initial_V": (y0_nm - creep.offset_nm) / creep.gain_nm_per_V})
+    return rested if creep is model else model.model_copy(update={"creep": rested})
 
 
 def _within_slew(u: np.ndarray, dt: float, limits: tuple[float, float], slew: float) -> tuple[np.ndarray, str]:

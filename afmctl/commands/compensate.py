@@ -52,9 +52,13 @@ Output:
 The largest voltage step per sample the voltages make is printed: a step the amplifier and
 the scanner's first mode would turn into ringing shows there.
 
-The model's operator starts from the state stored in the model file (a scanner at rest)
-and runs through the whole file. A preisach model clamps targets it cannot reach to the
-ends of its grid range u_min_V..u_max_V and logs a warning.
+The scanner is taken to have rested at the target's first point (--start rest, the
+default): a creep stage starts settled there, and the hysteresis from the memory stored in
+the model file. --start model takes every stage as stored (the scanner at rest where the
+identification's recording began, usually the bottom of the range, and moved to the first
+point at once, its creep still running). The operators then run through the whole file. A
+preisach model clamps targets it cannot reach to the ends of its grid range
+u_min_V..u_max_V and logs a warning.
 
 Example:
   afmctl compensate --model pi.json --target raster_x.csv --out volts_x.csv --limits 0 150
@@ -72,6 +76,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--clip", action="store_true", help="clip to --limits instead of failing")
     p.add_argument("--dynamics", metavar="DYN.json", help="dynamics model to invert first (offline stable inverse)")
     p.add_argument("--slew-V-per-s", type=float, metavar="S", help="slew limit [V/s] for --dynamics")
+    p.add_argument("--start", choices=("rest", "model"), default="rest",
+                   help="the scanner's state before the first row: rest (default: it has rested at the "
+                        "target's first point, its creep settled) or model (as stored in the model file)")
     p.set_defaults(func=run)
 
 
@@ -97,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
         with _progress(y.size) as progress:
             res = compensate(model, y, t_s=t, limits_V=(lo, hi), clip=args.clip, dynamics=dyn,
                              slew_V_per_s=args.slew_V_per_s, model_name=str(args.model), where=str(args.target),
-                             progress=progress)
+                             progress=progress, start=args.start)
     except LimitsExceeded as err:
         if err.index < 0:
             raise AfmctlError(f"{args.target}: {err.count} samples need voltages outside the limits {lo:g}..{hi:g} V "
