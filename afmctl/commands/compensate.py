@@ -56,9 +56,11 @@ The scanner is taken to have rested at the target's first point (--start rest, t
 default): a creep stage starts settled there, and the hysteresis from the memory stored in
 the model file. --start model takes every stage as stored (the scanner at rest where the
 identification's recording began, usually the bottom of the range, and moved to the first
-point at once, its creep still running). The operators then run through the whole file. A
-preisach model clamps targets it cannot reach to the ends of its grid range
-u_min_V..u_max_V and logs a warning.
+point at once, its creep still running): use it for a table played right after such a move.
+(`afmctl run` plans its wave tables from the stored state: it ramps from the safe value and
+plays after a settle hold of seconds, which leaves most of the creep still running.)
+The operators then run through the whole file. A preisach model clamps targets it cannot
+reach to the ends of its grid range u_min_V..u_max_V and logs a warning.
 
 Example:
   afmctl compensate --model pi.json --target raster_x.csv --out volts_x.csv --limits 0 150
