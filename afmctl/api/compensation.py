@@ -89,8 +89,10 @@ def at_rest(model: HysteresisModel, y0_nm: float) -> HysteresisModel:
     through; a chain's dynamics stage has unit DC gain). Other stages keep their stored state:
     a hysteresis memory is the history before the first point, which the first sample then
     moves to it. A model without such a stage is returned as it is."""
+    from afmctl.compensators.creep import LinearCreepModel
+
     creep = model if model.kind == "creep" else getattr(model, "creep", None)
-    if creep is None or creep.kind != "creep":
+    if not isinstance(creep, LinearCreepModel):
         return model
     rested = creep.model_copy(update={"initial_V": (y0_nm - creep.offset_nm) / creep.gain_nm_per_V})
     return rested if creep is model else model.model_copy(update={"creep": rested})
