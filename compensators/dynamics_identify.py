@@ -222,10 +222,12 @@ def parts_text(t: np.ndarray, parts: list[tuple[int, int]]) -> str:
 
 def small_signal_bounds(u: np.ndarray, t: np.ndarray) -> tuple[int, int] | None:
     """``(start, stop)`` sample indices of the longest run of samples whose input moves, but
-    within 5 % of the input's span over 0.1 s windows (the small-signal part of an
-    ``afmctl excite --kind all`` recording; large sweeps would show the hysteresis, dwells
-    carry no information); None when the record has no such run of ≥ 256 samples, or is
-    all one."""
+    within 5 % of the input's span over 0.1 s windows and within :data:`LARGE_FRACTION` of it
+    over the whole run (the small-signal part of an ``afmctl excite --kind all`` recording;
+    large sweeps would show the hysteresis, dwells carry no information; slow triangles of
+    tens of volts move little in 0.1 s but are large-signal: a lab's nested 0.5 Hz triangles
+    were taken for the small-signal run, and the chirp beside them was dropped); None when
+    the record has no such run of ≥ 256 samples, or is all one."""
     from scipy.ndimage import maximum_filter1d, minimum_filter1d
 
     dt = float(t[1] - t[0])
@@ -235,7 +237,10 @@ def small_signal_bounds(u: np.ndarray, t: np.ndarray) -> tuple[int, int] | None:
     ok = (local > 0) & (local <= 0.05 * span) if span > 0 else np.zeros(u.size, bool)
     if not np.any(ok) or np.all(ok):
         return None
-    a, b = max(true_runs(ok), key=lambda run: run[1] - run[0])
+    runs = [(a, b) for a, b in true_runs(ok) if float(np.ptp(u[a:b])) <= LARGE_FRACTION * span]
+    if not runs:
+        return None
+    a, b = max(runs, key=lambda run: run[1] - run[0])
     return (a, b) if b - a >= 256 else None
 
 
