@@ -337,14 +337,16 @@ def covered_candidates(t: np.ndarray, u: np.ndarray, candidates: Sequence[str]
     cov = Coverage.of(t, u)
     if cov.holds:
         return [], list(candidates)
-    rows = []
+    rows: list[dict[str, Any]] = []
+    keep: list[str] = []
     for c in candidates:
         kind, stages = parse_structure(c)
         if kind == "epi":
             rows.append({"structure": c, "error": NOT_COVERED_EPI})
         elif "creep" in stages and not cov.several_rates:
             rows.append({"structure": c, "error": NOT_COVERED_CREEP})
-    keep = [c for c in candidates if c not in {r["structure"] for r in rows}]
+        else:
+            keep.append(c)
     if not keep:
         return [], list(candidates)
     return rows, keep
