@@ -5,7 +5,9 @@ Measures, for n = 13 and n = 64 play operators:
 * block throughput (samples/s) of the forward operator and of the inverse (which is the
   same compiled PI kernel with the inverse parameters, eqs. 8–11);
 * the per-sample ``step()`` call as a Python caller sees it (µs/call);
-* the extended-PI inverse (compiled creep state machine) on a staircase with dwells.
+* the extended-PI inverse (compiled creep state machine) on a staircase with dwells;
+* the rate-dependent PI (``rate-pi``, n = 13) forward and inverse blocks, as a ratio to PI's
+  in the same run (its inverse solves a piecewise-linear equation per sample).
 
 Targets (one core): inverse block ≥ 40 M samples/s at n = 13, ≥ 12 M samples/s at
 n = 64; step ≤ 3 µs. Medians over repeats. Writes its section of docs/BENCHMARKS.md
@@ -30,6 +32,7 @@ sys.path.insert(0, str(ROOT))
 
 from afmctl.compensators.epi import EPIModel  # noqa: E402
 from afmctl.compensators.pi import PIModel  # noqa: E402
+from afmctl.compensators.rate_pi import RatePIModel  # noqa: E402
 from sections import write_section  # noqa: E402  (benchmarks/sections.py)
 
 NAME = "pi"
@@ -114,6 +117,17 @@ def main(argv: list[str] | None = None) -> int:
     print(f"extended PI inverse (n=13, staircase with dwells): block {_fmt(epi_rate, 1e-6, 1)} M samples/s, "
           f"step {_fmt(epi_step, 1, 2)} µs")
 
+    # rate-dependent PI beside PI (n = 13), 10 kHz samples
+    rp = RatePIModel(**make_model(13).model_dump(exclude={"kind", "direction"}), rate_gain_s_per_V=2e-4,
+                     rate_tau_s=0.01)
+    yr = rp.forward(1e-4).block(x)
+    rate_rows = {"forward": time_block(rp.forward(1e-4), x, args.repeats),
+                 "inverse": time_block(rp.inverse(1e-4), yr, args.repeats)}
+    pi_rows = {"forward": rows[0]["fwd_block"], "inverse": rows[0]["inv_block"]}
+    rate_text = ", ".join(f"{k} block {_fmt(v, 1e-6, 1)} M samples/s ({v[0] / pi_rows[k][0]:.2f}× PI's)"
+                          for k, v in rate_rows.items())
+    print(f"rate-dependent PI (n=13): {rate_text}")
+
     cmd = "`" + " ".join([".venv/bin/python benchmarks/bench_pi.py"] + list(sys.argv[1:] if argv is None else argv)) + "`"
     lines = [
         "## PI operator and inverse (compensators.pi)",
@@ -140,6 +154,8 @@ def main(argv: list[str] | None = None) -> int:
         "preallocated (3, n) array.",
         f"Extended-PI inverse (n = 13, compiled creep state machine, staircase of 400 levels with 0.5 s "
         f"dwells at 1 kHz): block {_fmt(epi_rate, 1e-6, 1)} M samples/s, step {_fmt(epi_step, 1, 2)} µs/call.",
+        f"Rate-dependent PI (`rate-pi`, n = 13, at 10 kHz; the inverse solves the piecewise-linear "
+        f"equation of each sample by bisection over the plays' corners): {rate_text}.",
     ]
     if not args.no_write:
         path = write_section(NAME, "\n".join(lines))

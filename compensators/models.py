@@ -34,6 +34,7 @@ KINDS: dict[str, str] = {
     "creep": "afmctl.compensators.creep:LinearCreepModel",
     "preisach": "afmctl.compensators.preisach:PreisachModel",
     "bouc-wen": "afmctl.compensators.bouc_wen:BoucWenModel",
+    "rate-pi": "afmctl.compensators.rate_pi:RatePIModel",
     "dynamics": "afmctl.compensators.dynamics:LinearDynamicsModel",
     "amplifier": "afmctl.compensators.amplifier:AmplifierModel",
     "chain": "afmctl.compensators.chain:ChainModel",

@@ -38,6 +38,7 @@ V/nm — what ``afmctl model invert`` writes). Either file describes the same sc
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from typing import Any, ClassVar, Literal, overload
 
 import numpy as np
@@ -399,18 +400,21 @@ def play_matrix(u: np.ndarray, r: np.ndarray, x0: np.ndarray, stride: int = 1) -
 @overload
 def fit_pi_weights(u: np.ndarray, y: np.ndarray, r: np.ndarray, x0: np.ndarray, *,
                    min_slope_fraction: float = 1e-3, max_rows: int = 200_000,
-                   extra: None = None, fit_from_index: int = 0) -> tuple[np.ndarray, float]: ...
+                   extra: None = None, fit_from_index: int = 0,
+                   matrix: Callable[..., np.ndarray] | None = None) -> tuple[np.ndarray, float]: ...
 
 
 @overload
 def fit_pi_weights(u: np.ndarray, y: np.ndarray, r: np.ndarray, x0: np.ndarray, *,
                    min_slope_fraction: float = 1e-3, max_rows: int = 200_000,
-                   extra: np.ndarray, fit_from_index: int = 0) -> tuple[np.ndarray, float, float]: ...
+                   extra: np.ndarray, fit_from_index: int = 0,
+                   matrix: Callable[..., np.ndarray] | None = None) -> tuple[np.ndarray, float, float]: ...
 
 
 def fit_pi_weights(u: np.ndarray, y: np.ndarray, r: np.ndarray, x0: np.ndarray, *,
                    min_slope_fraction: float = 1e-3, max_rows: int = 200_000,
-                   extra: np.ndarray | None = None, fit_from_index: int = 0
+                   extra: np.ndarray | None = None, fit_from_index: int = 0,
+                   matrix: Callable[..., np.ndarray] | None = None
                    ) -> tuple[np.ndarray, float] | tuple[np.ndarray, float, float]:
     """Constrained least squares for PI weights and offset (see :meth:`PIModel.identify`).
 
@@ -423,6 +427,8 @@ def fit_pi_weights(u: np.ndarray, y: np.ndarray, r: np.ndarray, x0: np.ndarray, 
     extended PI model's creep signal); then ``(w, offset, coefficient)`` is returned.
     ``fit_from_index``: rows before this sample are simulated (they set the play states)
     but left out of the least-squares problem (a burn-in for data with an unknown start).
+    ``matrix(u, r, x0, stride)``: the plays' outputs (default :func:`play_matrix`; the
+    rate-dependent PI model passes its own).
     """
     from scipy.optimize import lsq_linear
 
@@ -432,7 +438,7 @@ def fit_pi_weights(u: np.ndarray, y: np.ndarray, r: np.ndarray, x0: np.ndarray, 
     max_rows = number_option("max_rows", max_rows, lo=2 * r.size + 2, integer=True)
     stride = max(1, int(np.ceil(u.size / max_rows)))
     fit_from_index = number_option("fit_from_index", fit_from_index, lo=0, hi=u.size - 2 * r.size - 2, integer=True)
-    X = play_matrix(u, r, x0, stride)
+    X = (matrix or play_matrix)(u, r, x0, stride)
     keep = np.arange(0, u.size, stride) >= fit_from_index
     X = X[keep]
     yy = y[::stride][keep]

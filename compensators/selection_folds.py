@@ -33,8 +33,9 @@ SCREEN_FACTOR = 1.2
 EXTRA_FOLDS: tuple[tuple[float, float], ...] = ((0.4, 0.55), (0.55, 0.7))
 
 #: structural richness of each hysteresis kind (PI and Bouc–Wen: a few parameters describing
-#: one loop shape; EPI adds dwell creep; Preisach a density over the whole plane)
-_KIND_RANK = {"pi": 1, "bouc-wen": 1, "epi": 2, "preisach": 3}
+#: one loop shape; EPI adds dwell creep, rate-pi the loop's growth with the rate; Preisach a
+#: density over the whole plane)
+_KIND_RANK = {"pi": 1, "bouc-wen": 1, "epi": 2, "rate-pi": 2, "preisach": 3}
 
 
 def complexity(structure: str) -> int:

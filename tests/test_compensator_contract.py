@@ -25,6 +25,7 @@ from afmctl.compensators.models import model_from_dict
 from afmctl.compensators.pi import PIModel
 from afmctl.compensators.play import PlayOperator
 from afmctl.compensators.preisach import PreisachModel, ReferencePreisach
+from afmctl.compensators.rate_pi import RatePIModel
 
 DT = 1e-3
 PI = PIModel(thresholds=[0.0, 6.0, 15.0, 30.0, 45.0], weights=[60.0, 12.0, -4.0, 9.0, 5.0], offset_nm=-30.0)
@@ -35,6 +36,8 @@ CREEP = LinearCreepModel(gain_nm_per_V=90.0, offset_nm=5.0, initial_V=10.0, time
 PRE = PreisachModel.from_density(lambda a, b: 1.0 + 0.02 * (a - b) + 0.5 * np.exp(-((a - 90) ** 2 + (b - 30) ** 2) / 900),
                                  0.0, 150.0, 16, offset_nm=12.0)
 PRE_SMALL_MEMORY = PreisachModel(**{**PRE.model_dump(), "memory_depth": 3})
+RPI = RatePIModel(thresholds=[0.0, 6.0, 15.0, 30.0, 45.0], weights=[60.0, 12.0, -4.0, 9.0, 5.0], offset_nm=-30.0,
+                  initial_state=[40.0] * 5, rate_gain_s_per_V=2e-4, rate_tau_s=0.004)
 BW = BoucWenModel(d_nm_per_V=100.0, A_nm_per_V=30.0, beta=0.004, gamma=0.0015, n=1.2)
 
 #: name -> (factory, (lo, hi) of sensible inputs)
@@ -52,6 +55,8 @@ OPERATORS = {
     "preisach3.inverse": (lambda: PRE_SMALL_MEMORY.inverse(), (PRE.output_range_nm())),
     "bouc-wen.forward": (lambda: BW.forward(), (0.0, 150.0)),
     "bouc-wen.inverse": (lambda: BW.inverse(), (0.0, 14000.0)),
+    "rate-pi.forward": (lambda: RPI.forward(DT), (0.0, 150.0)),
+    "rate-pi.inverse": (lambda: RPI.inverse(DT), (-30.0, 11000.0)),
 }
 
 # a signal: levels in [0, 1] (scaled to the operator's range), each held for 1–30 samples
@@ -189,6 +194,9 @@ def test_bouc_wen_huge_steps_and_stiff_models_stay_finite():
     ({**PRE.model_dump(), "kind": "bouc-wen"}, "d_nm_per_V|Extra inputs"),
     ({**PI.model_dump(), "kind": "preisach"}, "everett_nm|Extra inputs"),
     ({**BW.model_dump(), "beta": -1.0}, "beta"),
+    ({**RPI.model_dump(), "rate_tau_s": 0.0}, "rate_tau_s"),
+    ({**RPI.model_dump(), "rate_gain_s_per_V": -1e-4}, "rate_gain_s_per_V"),
+    ({**RPI.model_dump(), "weights": [-1.0, 1.0, 1.0, 1.0, 1.0]}, "weights"),
 ])
 def test_model_file_edge_cases_name_the_field(data, field):
     with pytest.raises(ModelError, match=field):
