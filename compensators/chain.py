@@ -446,9 +446,11 @@ def fit_dynamics_stage(hyst: Any, creep: Any, t: np.ndarray, u: np.ndarray, y: n
     the dynamics (#24: an amplifier lag 60 % too fast through preisach+creep, within 3 % from
     the voltage). The source is recorded in ``fit_info["fitted_from"]``."""
     opts = dict(options or {})
+    given = "from" in opts
     source = opts.pop("from", DEFAULT_DYNAMICS_SOURCE)
     if source not in DYNAMICS_SOURCES:
         raise ModelError(f"dynamics_options from: {source!r}; allowed {', '.join(DYNAMICS_SOURCES)}")
+    fitted_from = "voltage"
     if source == "voltage":
         x = u
     else:
@@ -456,11 +458,43 @@ def fit_dynamics_stage(hyst: Any, creep: Any, t: np.ndarray, u: np.ndarray, y: n
         x = hyst.forward(dt).block(u)
         if creep is not None:
             x = creep.forward(dt).block(x)
+        fitted_from = "static stages' output"
+        if not given:
+            x, fitted_from = _coherent_source(t[k0:], u, x, y, k0, opts)
     dyn: Any = model_class("dynamics").identify(t[k0:], np.ascontiguousarray(x[k0:]), y[k0:], **opts)
-    dyn.fit_info = {**(dyn.fit_info or {}), "fitted_from": "voltage" if source == "voltage" else "static stages' output"}
-    if source == "voltage":   # the stage runs on nm: its initial state is the output's
+    dyn.fit_info = {**(dyn.fit_info or {}), "fitted_from": fitted_from}
+    if x is u:   # the stage runs on nm: its initial state is the output's
         dyn.initial_nm = float(y[k0])
     return dyn
+
+
+#: the static stages' output is the default source unless the output follows it coherently
+#: only up to less than this share of the band over which it follows the voltage
+COHERENT_BAND_SHARE = 0.7
+#: the dynamics options that say how the response is measured (the rest say how it is fitted)
+MEASURE_OPTIONS: tuple[str, ...] = ("segment", "nperseg", "f_min_Hz", "f_max_Hz", "min_coherence")
+
+
+def _coherent_source(t: np.ndarray, u: np.ndarray, x: np.ndarray, y: np.ndarray, k0: int,
+                     opts: dict[str, Any]) -> tuple[np.ndarray, str]:
+    """The input the dynamics stage is measured from: the static stages' output ``x`` [nm],
+    unless the record's output ``y`` [nm] follows it coherently over less than
+    :data:`COHERENT_BAND_SHARE` of the band over which it follows the voltage ``u`` [V]
+    (times ``t`` [s] from ``k0`` on). A hysteresis stage that does not resolve a small
+    signal (a chirp behind a 260 Hz amplifier moves the piezo voltage by a fraction of a
+    64-level Preisach cell at 1 kHz) turns it into steps the scanner never made: the static
+    output was coherent to 576 Hz, the voltage to 1587 Hz, and the mode at 1.25 kHz was lost."""
+    from .dynamics_identify import coherent_band_Hz
+
+    measure = {k: v for k, v in opts.items() if k in MEASURE_OPTIONS}
+    band_x = coherent_band_Hz(t, x[k0:], y[k0:], **measure)
+    band_u = coherent_band_Hz(t, u[k0:], y[k0:], **measure)
+    if band_x >= COHERENT_BAND_SHARE * band_u:
+        return x, "static stages' output"
+    log.info("chain: dynamics from the voltage: the output follows the static stages' output coherently up to "
+             "%.4g Hz, the voltage up to %.4g Hz", band_x, band_u)
+    return u, (f"voltage (the output follows the static stages' output coherently up to {band_x:.4g} Hz, "
+               f"the voltage up to {band_u:.4g} Hz)")
 
 
 def record_for_static(t: np.ndarray, u: np.ndarray, y: np.ndarray, k0: int, dt: float, kind: str = ""

@@ -537,24 +537,11 @@ def fit_dynamics(t_s: np.ndarray, u: np.ndarray, y_nm: np.ndarray, **options: An
     fs = 1.0 / dt
     if options.pop("n_operators", None) is not None:
         raise ModelError("--operators: not used by the dynamics model; use --param n_modes=N / n_lags=N")
-    parts = record_parts(u, t, options.pop("segment", "auto"))
     modes_opt = options.pop("n_modes", "auto")
     n_modes = None if modes_opt == "auto" else int(number_option("n_modes", modes_opt, lo=0, hi=6, integer=True))
     n_lags = int(number_option("n_lags", options.pop("n_lags", 1), lo=0, hi=4, integer=True))
-    longest = max(b - a for a, b in parts)
-    nps = min(MAX_NPERSEG, 1 << int(math.floor(math.log2(max(16, longest // 4)))))
-    if not all(stationary(u[a:b], nps) for a, b in parts):
-        nps = min(nps, 1 << int(round(math.log2(SWEEP_SEGMENT_S * fs))))
-    nperseg = int(number_option("nperseg", options.pop("nperseg", nps), lo=16, hi=longest, integer=True))
-    f_max = number_option("f_max_Hz", options.pop("f_max_Hz", 0.4 * fs), lo=0, hi=fs / 2)
-    f_min = number_option("f_min_Hz", options.pop("f_min_Hz", 0.0), lo=0, hi=f_max)
-    min_coh = number_option("min_coherence", options.pop("min_coherence", 0.9), lo=0, hi=1)
-    if options:
-        raise ModelError(f"options: unknown option(s) {', '.join(sorted(options))}; allowed: segment, n_modes, n_lags, "
-                         "nperseg, f_min_Hz, f_max_Hz, min_coherence")
-    used = [(a, b) for a, b in parts if b - a >= nperseg]
-    log.info("dynamics: measuring the frequency response on %s", parts_text(t, used))
-    frf = thinned(measure_frf(u, y, dt, nperseg, f_min, f_max, min_coh, used))
+    used, frf = _measured(t, u, y, dt, options)
+    frf = thinned(frf)
     if n_modes is None:
         n_modes, x, rms = fit_mode_count(frf, n_lags, dt)
     else:
@@ -578,6 +565,41 @@ def fit_dynamics(t_s: np.ndarray, u: np.ndarray, y_nm: np.ndarray, **options: An
              n_modes, n_lags, tau * 1e6, rms, frf.f_Hz.size)
     delay, lead = split_delay(tau, dt)
     return DynamicsFit(poles, np.zeros(0, complex), delay, info, lead)
+
+
+def _measured(t: np.ndarray, u: np.ndarray, y: np.ndarray, dt: float, options: dict[str, Any]
+              ) -> tuple[list[tuple[int, int]], FRF]:
+    """The parts measured and the frequency response ``y/u`` there (:func:`fit_dynamics`'s
+    options ``segment``, ``nperseg``, ``f_min_Hz``, ``f_max_Hz``, ``min_coherence``, popped
+    from ``options``; anything left is an unknown option)."""
+    fs = 1.0 / dt
+    parts = record_parts(u, t, options.pop("segment", "auto"))
+    longest = max(b - a for a, b in parts)
+    nps = min(MAX_NPERSEG, 1 << int(math.floor(math.log2(max(16, longest // 4)))))
+    if not all(stationary(u[a:b], nps) for a, b in parts):
+        nps = min(nps, 1 << int(round(math.log2(SWEEP_SEGMENT_S * fs))))
+    nperseg = int(number_option("nperseg", options.pop("nperseg", nps), lo=16, hi=longest, integer=True))
+    f_max = number_option("f_max_Hz", options.pop("f_max_Hz", 0.4 * fs), lo=0, hi=fs / 2)
+    f_min = number_option("f_min_Hz", options.pop("f_min_Hz", 0.0), lo=0, hi=f_max)
+    min_coh = number_option("min_coherence", options.pop("min_coherence", 0.9), lo=0, hi=1)
+    if options:
+        raise ModelError(f"options: unknown option(s) {', '.join(sorted(options))}; allowed: segment, n_modes, n_lags, "
+                         "nperseg, f_min_Hz, f_max_Hz, min_coherence")
+    used = [(a, b) for a, b in parts if b - a >= nperseg]
+    log.info("dynamics: measuring the frequency response on %s", parts_text(t, used))
+    return used, measure_frf(u, y, dt, nperseg, f_min, f_max, min_coh, used)
+
+
+def coherent_band_Hz(t_s: np.ndarray, u: np.ndarray, y_nm: np.ndarray, **options: Any) -> float:
+    """The highest frequency [Hz] at which :func:`fit_dynamics` with ``options`` would
+    measure ``y/u`` (excited, coherent bins); 0 when it measures none."""
+    t = check_finite("t_s", t_s).ravel()
+    try:
+        _, frf = _measured(t, check_finite("u", u).ravel(), check_finite("y_nm", y_nm).ravel(), uniform_dt(t),
+                           dict(options))
+    except ModelError:
+        return 0.0
+    return float(frf.f_Hz[-1]) if frf.f_Hz.size else 0.0
 
 
 def split_delay(tau_s: float, dt_s: float) -> tuple[float, float]:
