@@ -84,9 +84,10 @@ Model kinds (--model):
             the scanner's resonance, e.g. 50 kHz; the delay is then fitted by the
             dynamics stage, not shifted ahead of the hysteresis fit). With column v
             every candidate gets the amplifier stage fitted to it; without it, the
-            winner is tried once more with its dynamics' lag below the first mode moved
-            before the hysteresis (amplifier+…) and kept if it predicts the held-out
-            part better.
+            winner's dynamics' lag below the first mode becomes an amplifier stage
+            before the hysteresis, the winner and the next +dynamics candidate are
+            scored behind it (amplifier+…), and the best is kept if it predicts the
+            held-out part better.
             --param 'candidates=["pi","preisach+creep"]', holdout_fraction=0.3,
             criterion=rms|max, with_dynamics=false
 Real recordings (--data):
