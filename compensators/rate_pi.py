@@ -205,7 +205,7 @@ def _gains(u: np.ndarray, dt: float, tau_s: float, gain: Any) -> list[float]:
     fast = float(np.max(rate_series(u, dt, tau_s)))
     if not fast > 0:
         return [0.0]
-    return [(g - 1.0) / fast for g in GROWTHS]
+    return sorted({min(1.0, (g - 1.0) / fast) for g in GROWTHS})      # c ≤ 1 s/V, the file's bound
 
 
 def _fit_at(u: np.ndarray, y: np.ndarray, r: np.ndarray, x0: np.ndarray, dt: float, c: float, tau_s: float,

@@ -237,7 +237,7 @@ def with_amplifier_stage(best: ChainModel, table: list[dict[str, Any]], t: np.nd
     hysteresis sees another voltage, and which static stages serve best can change (lumpy-noisy
     from a lab's record without ``v``: preisach+dynamics selected on the commands, 47.6 nm;
     behind the stage preisach+creep+dynamics 28.8 nm against preisach+dynamics' 36.5, and
-    2.91 → 1.71 % max at 50 lines/s). A row is added to ``table`` for each; the winner's comes
+    2.91 → 1.40 % max at 50 lines/s). A row is added to ``table`` for each; the winner's comes
     first."""
     from .chain import amplifier_from_dynamics
 
@@ -348,10 +348,10 @@ def select(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates: Seque
 #: the failed row of a candidate the record cannot identify
 NOT_COVERED_CREEP = ("not tried: the record has no hold after a step and sweeps at one rate only, so a creep stage "
                      "would fit the hysteresis model's misfit, not creep (record holds: afmctl excite --kind creep)")
-#: the failed row of inflexion creep (``epi``) on a record without a hold: it is fitted on the dwells
 #: the failed row of the rate-dependent PI model on a record at one rate: its rate gain is then any value
 NOT_COVERED_RATE = ("not tried: the record sweeps at one rate only, so how the loop changes with the rate is not "
                     "in it (record slow and fast sweeps: afmctl excite --kind all)")
+#: the failed row of inflexion creep (``epi``) on a record without a hold: it is fitted on the dwells
 NOT_COVERED_EPI = ("not tried: the record has no hold after a step, and inflexion creep is fitted on the dwells "
                    "(record holds: afmctl excite --kind creep)")
 

@@ -154,3 +154,10 @@ def test_the_command_line_identifies_shows_and_compensates_with_it(tmp_path, cap
     assert main(["identify", "--model", "rate-pi", "--data", str(tmp_path / "sweeps.csv"), "--out",
                  str(tmp_path / "bad.json"), "--param", "rate_tau_s=0"]) == 2
     assert "rate_tau_s" in capsys.readouterr().err
+
+
+def test_a_record_that_barely_moves_keeps_the_rate_gain_within_the_files_bound():
+    slow = 1.0 + 0.5 * np.abs(2.0 * ((np.arange(int(20 * FS)) * DT * 0.05) % 1.0) - 1.0)     # ≤ 0.05 V/s
+    t = np.arange(slow.size) * DT
+    m = RatePIModel.identify(t, slow, 100.0 * slow + 3.0 * np.sin(slow), n_operators=3)
+    assert 0.0 <= m.rate_gain_s_per_V <= 1.0
