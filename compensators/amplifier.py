@@ -39,7 +39,7 @@ from pydantic import Field, FiniteFloat
 
 from . import _amp_kernels as K
 from .base import ModelError, StreamingOperator, check_finite
-from .input_checks import block_samples, finite_sample
+from .input_checks import block_samples, finite_sample, sample_period
 from .models import HysteresisModel
 
 log = logging.getLogger(__name__)
@@ -47,9 +47,7 @@ log = logging.getLogger(__name__)
 
 def lag_coefficient(bandwidth_Hz: float, dt_s: float) -> float:
     """``a = exp(−2π·f_c·dt)`` of eq. (1) for a bandwidth ``f_c`` [Hz] at ``dt_s`` [s]."""
-    if dt_s is None or not (math.isfinite(dt_s) and dt_s > 0):
-        raise ModelError(f"dt_s: {dt_s!r}; the amplifier stage needs a sample period > 0 s")
-    return math.exp(-2.0 * math.pi * float(bandwidth_Hz) * float(dt_s))
+    return math.exp(-2.0 * math.pi * float(bandwidth_Hz) * sample_period(dt_s, "amplifier stage"))
 
 
 class AmplifierOperator(StreamingOperator):

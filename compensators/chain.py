@@ -460,7 +460,7 @@ def fit_dynamics_stage(hyst: Any, creep: Any, t: np.ndarray, u: np.ndarray, y: n
             x = creep.forward(dt).block(x)
         fitted_from = "static stages' output"
         if not given:
-            x, fitted_from = _coherent_source(t[k0:], u, x, y, k0, opts)
+            x, fitted_from = _coherent_source(t, u, x, y, k0, opts)
     dyn: Any = model_class("dynamics").identify(t[k0:], np.ascontiguousarray(x[k0:]), y[k0:], **opts)
     dyn.fit_info = {**(dyn.fit_info or {}), "fitted_from": fitted_from}
     if x is u:   # the stage runs on nm: its initial state is the output's
@@ -480,15 +480,15 @@ def _coherent_source(t: np.ndarray, u: np.ndarray, x: np.ndarray, y: np.ndarray,
     """The input the dynamics stage is measured from: the static stages' output ``x`` [nm],
     unless the record's output ``y`` [nm] follows it coherently over less than
     :data:`COHERENT_BAND_SHARE` of the band over which it follows the voltage ``u`` [V]
-    (times ``t`` [s] from ``k0`` on). A hysteresis stage that does not resolve a small
+    (times ``t`` [s]; both from sample ``k0`` on). A hysteresis stage that does not resolve a small
     signal (a chirp behind a 260 Hz amplifier moves the piezo voltage by a fraction of a
     64-level Preisach cell at 1 kHz) turns it into steps the scanner never made: the static
     output was coherent to 576 Hz, the voltage to 1587 Hz, and the mode at 1.25 kHz was lost."""
     from .dynamics_identify import coherent_band_Hz
 
     measure = {k: v for k, v in opts.items() if k in MEASURE_OPTIONS}
-    band_x = coherent_band_Hz(t, x[k0:], y[k0:], **measure)
-    band_u = coherent_band_Hz(t, u[k0:], y[k0:], **measure)
+    band_x = coherent_band_Hz(t[k0:], x[k0:], y[k0:], **measure)
+    band_u = coherent_band_Hz(t[k0:], u[k0:], y[k0:], **measure)
     if band_x >= COHERENT_BAND_SHARE * band_u:
         return x, "static stages' output"
     log.info("chain: dynamics from the voltage: the output follows the static stages' output coherently up to "

@@ -28,7 +28,7 @@ from pydantic import Field, FiniteFloat, model_validator
 
 from . import _pi_kernels as K
 from .base import ModelError, StreamingOperator, check_finite
-from .input_checks import block_samples, finite_sample, number_option
+from .input_checks import block_samples, finite_sample, number_option, sample_period
 from .models import HysteresisModel
 
 log = logging.getLogger(__name__)
@@ -49,8 +49,8 @@ def check_creep_parameters(time_constants_s: Any, weights: Any, dt_s: Any = None
         raise ModelError("creep_weights: every weight must be ≥ 0")
     if float(np.sum(c)) >= 1.0:
         raise ModelError(f"creep_weights: sum is {float(np.sum(c)):.6g}; it must be < 1 for an invertible creep operator")
-    if dt_s is not None and (not math.isfinite(float(dt_s)) or float(dt_s) <= 0):
-        raise ModelError(f"dt_s: {dt_s!r}; the sample period must be > 0 s")
+    if dt_s is not None:
+        sample_period(dt_s, "creep operator")
     return tau, c
 
 
@@ -144,12 +144,12 @@ class LinearCreepModel(HysteresisModel):
 
     def forward(self, dt_s: float | None = None) -> LinearCreep:
         """Operator u [V] → y [nm] at sample period ``dt_s`` [s]."""
-        return LinearCreep(self.time_constants_s, self.creep_weights, _need_dt(dt_s), self.initial_V,
+        return LinearCreep(self.time_constants_s, self.creep_weights, sample_period(dt_s, "creep model"), self.initial_V,
                            gain=self.gain_nm_per_V, out_offset=self.offset_nm)
 
     def inverse(self, dt_s: float | None = None) -> LinearCreepInverse:
         """Compensator y [nm] → u [V] at sample period ``dt_s`` [s]."""
-        return LinearCreepInverse(self.time_constants_s, self.creep_weights, _need_dt(dt_s), self.initial_V,
+        return LinearCreepInverse(self.time_constants_s, self.creep_weights, sample_period(dt_s, "creep model"), self.initial_V,
                                   gain=self.gain_nm_per_V, out_offset=self.offset_nm)
 
     def summary(self) -> str:
@@ -218,9 +218,3 @@ class LinearCreepModel(HysteresisModel):
         return cls(gain_nm_per_V=g, offset_nm=off, initial_V=float(u[0]), time_constants_s=tau.tolist(),
                    creep_weights=c.tolist())
 
-
-def _need_dt(dt_s: Any) -> float:
-    """The sample period [s], or :class:`ModelError` when there is none."""
-    if dt_s is None or not math.isfinite(float(dt_s)) or float(dt_s) <= 0:
-        raise ModelError(f"dt_s: {dt_s!r}; the creep model needs a sample period > 0 s")
-    return float(dt_s)

@@ -54,8 +54,7 @@ from pydantic import Field, FiniteFloat
 
 from . import _pi_kernels as K
 from .base import ModelError, StreamingOperator
-from .input_checks import block_samples, finite_sample, number_option
-from .errortext import plain_repr
+from .input_checks import block_samples, finite_sample, number_option, sample_period
 from .pi import (PIFamilyModel, PIOperator, fit_pi_weights,
                              prepare_pi_identification)
 
@@ -357,10 +356,9 @@ class EPIModel(PIFamilyModel):
     creep_lambda_per_s: FiniteFloat = Field(gt=0, description="creep rate λ in C = (1 − e^{−λt})·M [1/s]")
 
     def _episodes(self, dt_s: float | None) -> CreepEpisodes:
-        if dt_s is None or not math.isfinite(float(dt_s)) or float(dt_s) <= 0:
-            raise ModelError(f"dt_s: {plain_repr(dt_s)}; the extended PI model needs a sample period > 0 s")
+        dt = sample_period(dt_s, "extended PI model")
         r, w, x0 = self.forward_parameters()
-        return CreepEpisodes(self.creep_a_nm, self.creep_b, self.creep_lambda_per_s, float(dt_s),
+        return CreepEpisodes(self.creep_a_nm, self.creep_b, self.creep_lambda_per_s, dt,
                              float(np.min(np.cumsum(w))), float(x0[0]))
 
     def forward(self, dt_s: float | None = None, use_numba: bool = True) -> EPIForward:

@@ -12,6 +12,7 @@ from typing import Any, Literal, overload
 import numpy as np
 
 from .base import ModelError, check_finite
+from .errortext import plain_repr
 
 
 def block_samples(name: str, x: Any) -> np.ndarray:
@@ -72,3 +73,15 @@ def number_option(name: str, value: Any, *, lo: float | None = None, hi: float |
             raise bad
         return int(v)
     return v
+
+
+def sample_period(dt_s: Any, model: str) -> float:
+    """The sample period ``dt_s`` [s] a time-dependent ``model`` (its name in the message)
+    runs at; :class:`ModelError` when there is none (None, not a number, not finite, ≤ 0)."""
+    try:
+        dt = float(dt_s)
+    except (TypeError, ValueError):
+        dt = math.nan
+    if not (math.isfinite(dt) and dt > 0):
+        raise ModelError(f"dt_s: {plain_repr(dt_s)}; the {model} needs a sample period > 0 s")
+    return dt

@@ -38,7 +38,7 @@ from pydantic import Field, FiniteFloat, ValidationInfo, field_validator
 
 from . import _rate_pi_kernels as K
 from .base import ModelError, StreamingOperator
-from .input_checks import block_samples, finite_sample, number_option
+from .input_checks import block_samples, finite_sample, number_option, sample_period
 from .models import HysteresisModel
 from .pi import MAX_OPERATORS, _fit_options, check_pi_parameters, fit_pi_weights, prepare_pi_identification
 
@@ -131,11 +131,11 @@ class RatePIModel(HysteresisModel):
 
     def forward(self, dt_s: float | None = None) -> RatePIOperator:
         """Operator u [V] → y [nm] at sample period ``dt_s`` [s]."""
-        return RatePIOperator(self, _need_dt(dt_s))
+        return RatePIOperator(self, sample_period(dt_s, "rate-dependent PI model"))
 
     def inverse(self, dt_s: float | None = None) -> RatePIOperator:
         """Compensator y [nm] → u [V] at sample period ``dt_s`` [s] (exact, per sample)."""
-        return RatePIOperator(self, _need_dt(dt_s), inverse=True)
+        return RatePIOperator(self, sample_period(dt_s, "rate-dependent PI model"), inverse=True)
 
     def summary(self) -> str:
         r, w = np.asarray(self.thresholds), np.asarray(self.weights)
@@ -166,26 +166,21 @@ class RatePIModel(HysteresisModel):
         t = np.asarray(t_s, dtype=np.float64).ravel()
         dt = float(np.median(np.diff(t)))
         taus = RATE_TAUS_S if tau is None else (number_option("rate_tau_s", tau, lo=1e-4, hi=100.0),)
+        tops = {tau_s: float(np.max(rate_series(u, dt, tau_s))) for tau_s in taus}    # ρ_max per τ [V/s]
         best: tuple[float, float, float, np.ndarray, float] | None = None
         for tau_s in taus:
-            for c in _gains(u, dt, tau_s, gain):
+            for c in _gains(tops[tau_s], gain):
                 fit = _fit_at(u, y, r, x0, dt, c, tau_s, fit_opts)
                 if best is None or fit[0] < best[0]:
                     best = (fit[0], c, tau_s, fit[1], fit[2])
         assert best is not None
         if gain is None and best[1] > 0:
-            best = _refine_gain(u, y, r, x0, dt, best, fit_opts)
+            best = _refine_gain(u, y, r, x0, dt, best, tops[best[2]], fit_opts)
         rms, c, tau_s, w, off = best
-        top = float(np.max(rate_series(u, dt, tau_s)))
+        top = tops[tau_s]
         log.info("rate-pi fit: tau %.4g s, c %.4g s/V up to %.4g V/s, rms residual %.4g nm", tau_s, c, top, rms)
         return cls(thresholds=r.tolist(), weights=w.tolist(), initial_state=x0.tolist(), offset_nm=off,
                    rate_gain_s_per_V=c, rate_tau_s=tau_s, rate_max_V_per_s=top if top > 0 else None)
-
-
-def _need_dt(dt_s: float | None) -> float:
-    if dt_s is None:
-        raise ModelError("dt_s: the rate-dependent PI model needs the sample period (a uniformly sampled signal)")
-    return float(dt_s)
 
 
 def rate_series(u: np.ndarray, dt_s: float, tau_s: float) -> np.ndarray:
@@ -197,12 +192,11 @@ def rate_series(u: np.ndarray, dt_s: float, tau_s: float) -> np.ndarray:
     return out
 
 
-def _gains(u: np.ndarray, dt: float, tau_s: float, gain: Any) -> list[float]:
-    """The values of ``c`` [s/V] to try at ``tau_s``: the fixed one, or :data:`GROWTHS` at
-    the record's highest rate (PI alone when the record never moves)."""
+def _gains(fast: float, gain: Any) -> list[float]:
+    """The values of ``c`` [s/V] to try: the fixed one, or :data:`GROWTHS` at the record's
+    highest rate ``fast`` [V/s] (PI alone when the record never moves)."""
     if gain is not None:
         return [number_option("rate_gain_s_per_V", gain, lo=0.0, hi=1.0)]
-    fast = float(np.max(rate_series(u, dt, tau_s)))
     if not fast > 0:
         return [0.0]
     return sorted({min(1.0, (g - 1.0) / fast) for g in GROWTHS})      # c ≤ 1 s/V, the file's bound
@@ -211,15 +205,14 @@ def _gains(u: np.ndarray, dt: float, tau_s: float, gain: Any) -> list[float]:
 def _fit_at(u: np.ndarray, y: np.ndarray, r: np.ndarray, x0: np.ndarray, dt: float, c: float, tau_s: float,
             fit_opts: dict[str, Any]) -> tuple[float, np.ndarray, float]:
     """Weights and offset at ``(c, τ)`` and their RMS residual [nm] over the fitted rows."""
-    kept: dict[str, np.ndarray] = {}
+    kept: dict[str, Any] = {}                  # the play matrix the fit used, and its row stride
 
     def matrix(uu: np.ndarray, rr: np.ndarray, xx: np.ndarray, stride: int) -> np.ndarray:
-        kept["X"] = play_matrix(uu, rr, xx, dt, c, tau_s, stride)
-        kept["stride"] = np.array(stride)
+        kept.update(X=play_matrix(uu, rr, xx, dt, c, tau_s, stride), stride=stride)
         return kept["X"]
 
     w, off = fit_pi_weights(u, y, r, x0, matrix=matrix, **fit_opts)
-    stride = int(kept["stride"])
+    stride = kept["stride"]
     k0 = int(fit_opts.get("fit_from_index", 0) or 0)
     rows = np.arange(0, u.size, stride) >= k0
     resid = kept["X"][rows] @ w + off - y[::stride][rows]
@@ -227,13 +220,13 @@ def _fit_at(u: np.ndarray, y: np.ndarray, r: np.ndarray, x0: np.ndarray, dt: flo
 
 
 def _refine_gain(u: np.ndarray, y: np.ndarray, r: np.ndarray, x0: np.ndarray, dt: float,
-                 best: tuple[float, float, float, np.ndarray, float], fit_opts: dict[str, Any]
+                 best: tuple[float, float, float, np.ndarray, float], fast: float, fit_opts: dict[str, Any]
                  ) -> tuple[float, float, float, np.ndarray, float]:
-    """``best`` = (rms, c, τ, w, offset) refined on ``c`` between half and twice its value."""
+    """``best`` = (rms, c, τ, w, offset) refined on ``c`` between half and twice its value,
+    below a growth of :data:`MAX_GROWTH` at the record's highest rate ``fast`` [V/s]."""
     from scipy.optimize import minimize_scalar
 
     _, c0, tau_s, _, _ = best
-    fast = float(np.max(rate_series(u, dt, tau_s)))
     hi = min(2.0 * c0, (MAX_GROWTH - 1.0) / fast, 1.0)
     res = minimize_scalar(lambda c: _fit_at(u, y, r, x0, dt, float(c), tau_s, fit_opts)[0],
                           bounds=(0.5 * c0, max(hi, 0.5 * c0)), method="bounded",
