@@ -191,7 +191,7 @@ class LoopSection(_Strict):
 class AxisCompensation(_Strict):
     """Feedforward model of one axis: a model JSON file (afmctl identify) or none (linear)."""
 
-    model: Path | None = Field(None, description="model JSON file (kind pi|epi|preisach|bouc-wen|rate-pi|creep|chain, "
+    model: Path | None = Field(None, description="model JSON file (kind pi|epi|preisach|bouc-wen|rate-pi|rate-bouc-wen|creep|chain, "
                                                  "e.g. afmctl identify --model auto); overrides scanner_model "
                                                  "for this axis; none: linear calibration")
 

@@ -5,7 +5,7 @@ warmed up first):
 
 * Preisach forward and exact inverse at 32 and 64 levels (targets at 32 levels:
   ≥ 10 M samples/s forward, ≥ 3 M samples/s inverse);
-* Bouc–Wen forward and inverse;
+* Bouc–Wen forward and inverse, and the rate-dependent Bouc–Wen's;
 * feedforward accuracy on the fine asymmetric relay plant of ``tests/plants.py``
   (Preisach vs. PI identified from the same data), with a plot
   ``docs/img/preisach_feedforward.png`` and the identified Everett surface
@@ -70,6 +70,7 @@ def _us(rates: tuple[float, float]) -> tuple[float, float]:
 def measure_throughput(samples: int, repeats: int) -> list[tuple[str, str, float, str]]:
     from afmctl.compensators.bouc_wen import BoucWenModel
     from afmctl.compensators.preisach import PreisachModel
+    from afmctl.compensators.rate_bouc_wen import RateBoucWenModel
 
     rows = []
     for levels in (32, 64):
@@ -109,6 +110,15 @@ def measure_throughput(samples: int, repeats: int) -> list[tuple[str, str, float
     bi.block(yb[:100])
     rows.append(("Bouc–Wen forward", f"block of {u.size} samples", _m(_median_rate(lambda: (bf.reset(), bf.block(u)), u.size, repeats)), "M samples/s"))
     rows.append(("Bouc–Wen inverse", f"block of {u.size} samples", _m(_median_rate(lambda: (bi.reset(), bi.block(yb)), u.size, repeats)), "M samples/s"))
+    rbw = RateBoucWenModel(**bw.model_dump(exclude={"kind"}), rate_gain_s_per_V=2e-5, rate_max_V_per_s=2e4,
+                           rate_tau_s=0.03)
+    rf, ri = rbw.forward(1e-4), rbw.inverse(1e-4)          # 10 kHz: the 1 Hz triangle at ~300 V/s
+    yr = rf.block(u)
+    ri.block(yr[:100])
+    rows.append(("rate-dependent Bouc–Wen forward", f"block of {u.size} samples at 10 kHz",
+                 _m(_median_rate(lambda: (rf.reset(), rf.block(u)), u.size, repeats)), "M samples/s"))
+    rows.append(("rate-dependent Bouc–Wen inverse", f"block of {u.size} samples at 10 kHz",
+                 _m(_median_rate(lambda: (ri.reset(), ri.block(yr)), u.size, repeats)), "M samples/s"))
     ul, yl = u[:20000].tolist(), yb[:20000].tolist()
     bf.step(ul[0])
     bi.step(yl[0])

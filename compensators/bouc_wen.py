@@ -53,6 +53,8 @@ log = logging.getLogger(__name__)
 _SUB = 0.1
 #: most RK4 sub-steps per sample; longer moves integrate only their last _MAX_SUB sub-steps
 _MAX_SUB = 1000000
+#: the sensitivity kernel's rates for a rate-independent fit: none
+_NO_RATE = np.zeros(0)
 
 
 class BoucWenModel(HysteresisModel):
@@ -373,32 +375,9 @@ def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n: float | None = None, 
     pass per iteration) or "2-point" (finite differences, one simulation per parameter: the
     slower reference the sensitivities are checked against)."""
     from scipy.optimize import least_squares
-    u = check_finite("u_V", u_V).reshape(-1)
-    y = check_finite("y_nm", y_nm).reshape(-1)
-    if u.shape != y.shape:
-        raise ModelError(f"y_nm: length {y.shape[0]} differs from u_V length {u.shape[0]}; they must be equal")
-    if t_s is not None and np.asarray(t_s).reshape(-1).shape != u.shape:
-        raise ModelError("t_s: length differs from u_V; they must be equal")
-    if u.shape[0] < 20:
-        raise ModelError(f"u_V: {u.shape[0]} samples; at least 20 are needed to identify a Bouc–Wen model")
-    if not np.ptp(u) > 0:
-        raise ModelError("u_V: the input never changes; identification needs an input that sweeps the range")
-    if n is not None and (isinstance(n, bool) or not isinstance(n, (int, float)) or not 1.0 <= float(n) <= 10.0):
-        raise ModelError(f"n: must be a number in 1..10, got {plain_repr(n)}")
-    if isinstance(max_rows, bool) or not isinstance(max_rows, (int, np.integer)) or max_rows < 20:
-        raise ModelError(f"max_rows: must be an integer >= 20, got {plain_repr(max_rows)}")
-    if jacobian not in ("sensitivities", "2-point"):
-        raise ModelError(f"jacobian: must be 'sensitivities' or '2-point', got {plain_repr(jacobian)}")
-    u0 = float(u[0]) if u0_V is None else number_option("u0_V", u0_V)
-    u = np.ascontiguousarray(u)
-    k0 = number_option("fit_from_index", fit_from_index, lo=0, hi=u.shape[0] - 20, integer=True)
-    sel = np.unique(np.linspace(k0, u.shape[0] - 1, min(max_rows, u.shape[0] - k0)).round().astype(np.int64))
-    travel = float(np.sum(np.abs(np.diff(np.r_[u0, u]))))
-    slope, icpt = np.polyfit(u, y, 1)
-    d0 = max(abs(float(slope)), 1e-12)
-    yscale = max(float(np.ptp(y)), 1e-12)
-    nfix = None if n is None else float(n)
-    prob = _BWProblem(u, y, sel, u0, travel, yscale, nfix, jacobian == "sensitivities")
+    prob, icpt = _problem(t_s, u_V, y_nm, n, max_rows, u0_V, fit_from_index, jacobian)
+    u, y, nfix, yscale, u0, k0 = prob.u, prob.y, prob.nfix, prob.yscale, prob.u0, prob.k0
+    d0 = max(abs(float(prob.slope)), 1e-12)
     jac: Any = prob.jac if prob.sensitivities else "2-point"
 
     best = None
@@ -407,7 +386,7 @@ def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n: float | None = None, 
               for n_init in n_starts]
     hs_min = math.log(0.005 * yscale)
     for n_init, ratio, hs_frac in starts:
-        if best is not None and math.sqrt(2.0 * best.cost / sel.shape[0]) < 1e-6:
+        if best is not None and math.sqrt(2.0 * best.cost / prob.sel.shape[0]) < 1e-6:
             break  # already fits to 1 ppm of the output range
         hs0 = max(hs_frac * yscale, 0.01 * yscale)
         p0 = [math.log(d0 * (1 + ratio)), math.log(ratio / (1 + ratio)), math.log(hs0), 0.3]
@@ -441,6 +420,38 @@ def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n: float | None = None, 
     return model
 
 
+def _problem(t_s: Any, u_V: Any, y_nm: Any, n: float | None, max_rows: int, u0_V: float | None,
+             fit_from_index: int, jacobian: str) -> tuple["_BWProblem", float]:
+    """The checked record as a :class:`_BWProblem` (rows ``max_rows`` evenly from the burn-in
+    ``fit_from_index`` on), and the intercept of its straight-line fit [nm]."""
+    u = check_finite("u_V", u_V).reshape(-1)
+    y = check_finite("y_nm", y_nm).reshape(-1)
+    if u.shape != y.shape:
+        raise ModelError(f"y_nm: length {y.shape[0]} differs from u_V length {u.shape[0]}; they must be equal")
+    if t_s is not None and np.asarray(t_s).reshape(-1).shape != u.shape:
+        raise ModelError("t_s: length differs from u_V; they must be equal")
+    if u.shape[0] < 20:
+        raise ModelError(f"u_V: {u.shape[0]} samples; at least 20 are needed to identify a Bouc–Wen model")
+    if not np.ptp(u) > 0:
+        raise ModelError("u_V: the input never changes; identification needs an input that sweeps the range")
+    if n is not None and (isinstance(n, bool) or not isinstance(n, (int, float)) or not 1.0 <= float(n) <= 10.0):
+        raise ModelError(f"n: must be a number in 1..10, got {plain_repr(n)}")
+    if isinstance(max_rows, bool) or not isinstance(max_rows, (int, np.integer)) or max_rows < 20:
+        raise ModelError(f"max_rows: must be an integer >= 20, got {plain_repr(max_rows)}")
+    if jacobian not in ("sensitivities", "2-point"):
+        raise ModelError(f"jacobian: must be 'sensitivities' or '2-point', got {plain_repr(jacobian)}")
+    u0 = float(u[0]) if u0_V is None else number_option("u0_V", u0_V)
+    u = np.ascontiguousarray(u)
+    k0 = number_option("fit_from_index", fit_from_index, lo=0, hi=u.shape[0] - 20, integer=True)
+    sel = np.unique(np.linspace(k0, u.shape[0] - 1, min(max_rows, u.shape[0] - k0)).round().astype(np.int64))
+    travel = float(np.sum(np.abs(np.diff(np.r_[u0, u]))))
+    slope, icpt = np.polyfit(u, y, 1)
+    yscale = max(float(np.ptp(y)), 1e-12)
+    prob = _BWProblem(u, y, sel, u0, travel, yscale, None if n is None else float(n), jacobian == "sensitivities")
+    prob.k0, prob.slope = int(k0), float(slope)
+    return prob, float(icpt)
+
+
 class _BWProblem:
     """The least-squares problem of :func:`_identify`: residuals over the rows ``sel`` (the model
     simulated on every sample) and, if ``sensitivities``, their Jacobian from the forward
@@ -453,11 +464,17 @@ class _BWProblem:
 
     def __init__(self, u: np.ndarray, y: np.ndarray, sel: np.ndarray, u0: float, travel: float,
                  yscale: float, nfix: float | None, sensitivities: bool = True) -> None:
-        self.u, self.sel, self.u0, self.travel, self.yscale, self.nfix = u, sel, u0, travel, yscale, nfix
+        self.u, self.y, self.sel, self.u0, self.travel, self.yscale, self.nfix = u, y, sel, u0, travel, yscale, nfix
         self.sensitivities = sensitivities
         self.u_sel, self.y_sel = u[sel], y[sel]
+        self.k0, self.slope = 0, 0.0
+        #: rate-dependent fits (:mod:`.rate_bouc_wen`): every sample's capped input rate [V/s] and
+        #: the highest one; the search vector then holds the growth c·top before the offset
+        self.q, self.top = _NO_RATE, 0.0
+        #: a growth given, not fitted: c [s/V] (the search vector then has no growth)
+        self.fixed_gain: float | None = None
         self._h = np.empty(sel.shape[0])
-        self._s = np.empty((sel.shape[0], 4))
+        self._s = np.empty((sel.shape[0], 5))
         self._x: np.ndarray | None = None
         self._jac: np.ndarray | None = None
 
@@ -472,23 +489,33 @@ class _BWProblem:
         beta = bg / (1.0 + c)
         return d, A, beta, beta * c, nn, p[-1] * self.yscale
 
+    def rate_gain(self, p: np.ndarray) -> float:
+        """c [s/V] of the search vector ``p`` (0 without rates)."""
+        if not self.q.shape[0]:
+            return 0.0
+        return self.fixed_gain if self.fixed_gain is not None else float(p[-2]) / self.top
+
     def resid(self, p: np.ndarray) -> np.ndarray:
         """Model minus data on the rows ``sel`` [output ranges]; also computes the Jacobian
         (if ``sensitivities``)."""
         d, A, beta, gamma, nn, off = self.unpack(p)
         self._x = np.array(p, dtype=float)
-        hm = (A / (beta + gamma)) ** (1.0 / nn)
+        c = self.rate_gain(p)
+        hm = (A * (1.0 + c * self.top) / (beta + gamma)) ** (1.0 / nn)   # the largest amplitude's saturation
         k = nn * (beta + abs(gamma)) * hm ** (nn - 1.0)
         du_sub = _SUB / max(k, 1e-300)
         if not math.isfinite(du_sub) or self.travel / du_sub > 2e7:
             self._jac = np.zeros((self.sel.shape[0], len(p)))
             return np.full(self.sel.shape[0], 10.0)  # far too stiff to be a piezo loop: reject
         if not self.sensitivities:
+            if self.q.shape[0]:
+                raise ModelError("jacobian: a rate-dependent Bouc–Wen fit uses the sensitivities")
             y_full = bw_forward_block(self.u, np.array([0.0, self.u0]),
                                       np.array([d, A, beta, gamma, nn, off, du_sub]))
             return (y_full[self.sel] - self.y_sel) / self.yscale
         h, s = self._h, self._s
-        bw_sens_nb(self.u, 0.0, self.u0, A, beta, gamma, nn, du_sub, _MAX_SUB, self.sel, self.nfix is None, h, s)
+        bw_sens_nb(self.u, self.q, c, 0.0, self.u0, A, beta, gamma, nn, du_sub, _MAX_SUB, self.sel,
+                   self.nfix is None, h, s)
         y_m = d * self.u_sel - h + off  # the forward operator's output, bit for bit
         # chain rule from dh/d(A, β, γ, n) to p (the output y = d·u − h + offset)
         bg_part = beta * s[:, 1] + gamma * s[:, 2]
@@ -496,6 +523,8 @@ class _BWProblem:
         cols = [d * self.u_sel - common, -common, nn * bg_part, beta / (1.0 + p[3]) * (s[:, 1] - s[:, 2])]
         if self.nfix is None:
             cols.append(p[2] * bg_part - s[:, 3])  # p[2] = log h_sat
+        if self.q.shape[0] and self.fixed_gain is None:
+            cols.append(-s[:, 4] / self.top)      # p[-2] = c·top, the growth at the highest rate
         cols.append(np.full(h.shape[0], self.yscale))
         self._jac = np.stack(cols, axis=1) / self.yscale
         return (y_m - self.y_sel) / self.yscale

@@ -6,7 +6,7 @@ One model file (``kind = "chain"``) holds up to four stages, each itself a model
 * ``amplifier`` (optional) — the voltage amplifier before the piezo (kind ``amplifier``,
   :mod:`afmctl.compensators.amplifier`): command ``u`` [V] → piezo voltage ``v`` [V], its
   bandwidth and slew limit;
-* ``hysteresis`` — pi, epi, preisach, bouc-wen or rate-pi: ``v`` [V] → ``h`` [nm] (``u`` itself
+* ``hysteresis`` — pi, epi, preisach, bouc-wen, rate-pi or rate-bouc-wen: ``v`` [V] → ``h`` [nm] (``u`` itself
   without an amplifier stage);
 * ``creep`` (optional) — a linear creep model (kind ``creep``) from ``h`` [nm] to the
   displacement [nm]; its ``gain_nm_per_V`` is here a unit-less gain ≈ 1 (nm per nm);
@@ -54,7 +54,7 @@ from .models import HysteresisModel, model_class, model_from_dict
 log = logging.getLogger(__name__)
 
 #: hysteresis kinds a chain may start with
-HYSTERESIS_KINDS: tuple[str, ...] = ("pi", "epi", "preisach", "bouc-wen", "rate-pi")
+HYSTERESIS_KINDS: tuple[str, ...] = ("pi", "epi", "preisach", "bouc-wen", "rate-pi", "rate-bouc-wen")
 #: optional stages after the hysteresis, in chain order
 STAGES: tuple[str, ...] = ("creep", "dynamics")
 #: the optional stage before the hysteresis
@@ -126,7 +126,7 @@ class ChainModel(HysteresisModel):
     time_dependent: ClassVar[bool] = True
     amplifier: SerializeAsAny[HysteresisModel] | None = Field(
         None, description="amplifier stage: command u [V] → piezo voltage v [V] (bandwidth, slew limit)")
-    hysteresis: SerializeAsAny[HysteresisModel] = Field(description="pi|epi|preisach|bouc-wen|rate-pi model: u [V] → h [nm]")
+    hysteresis: SerializeAsAny[HysteresisModel] = Field(description="pi|epi|preisach|bouc-wen|rate-pi|rate-bouc-wen model: u [V] → h [nm]")
     creep: SerializeAsAny[HysteresisModel] | None = Field(None, description="creep model: h [nm] → y [nm], gain ≈ 1")
     dynamics: SerializeAsAny[HysteresisModel] | None = Field(None, description="linear dynamics model [nm] → [nm]")
     selection: list[dict[str, Any]] | None = Field(

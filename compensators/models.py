@@ -35,6 +35,7 @@ KINDS: dict[str, str] = {
     "preisach": "afmctl.compensators.preisach:PreisachModel",
     "bouc-wen": "afmctl.compensators.bouc_wen:BoucWenModel",
     "rate-pi": "afmctl.compensators.rate_pi:RatePIModel",
+    "rate-bouc-wen": "afmctl.compensators.rate_bouc_wen:RateBoucWenModel",
     "dynamics": "afmctl.compensators.dynamics:LinearDynamicsModel",
     "amplifier": "afmctl.compensators.amplifier:AmplifierModel",
     "chain": "afmctl.compensators.chain:ChainModel",

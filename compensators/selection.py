@@ -53,15 +53,57 @@ log = logging.getLogger(__name__)
 #: scanner from a lab's record, held-out RMS 406 nm against Bouc–Wen's 382 and 87 with its
 #: dynamics; the unseen rate-dependent plant from a user-style record, 242 against PI's 158
 #: nm) it was never the best, and it adds two fits to every record at several rates; name it
-#: in ``candidates`` to try it
+#: in ``candidates`` to try it. ``rate-bouc-wen+creep`` is, on a record that sweeps at several
+#: rates: its growth only scales what a move adds, so a record's holds do not read it as creep
+#: (the two-modes reference scanner from `afmctl excite`: 0.24 / 0.55 / 1.62 % max at 1 / 10 /
+#: 50 lines/s against Bouc–Wen's 0.50 / 1.21 / 1.54, docs/BENCHMARKS.md)
 DEFAULT_CANDIDATES: tuple[str, ...] = ("pi", "pi+creep", "epi", "preisach", "preisach+creep",
-                                       "bouc-wen", "bouc-wen+creep")
+                                       "bouc-wen", "bouc-wen+creep", "rate-bouc-wen+creep")
 
 
 def _fit(structure: str, t: np.ndarray, u: np.ndarray, y: np.ndarray, options: dict[str, Any],
          fit_from_index: int = 0, left_out: np.ndarray | None = None) -> ChainModel:
+    opts = dict(options)
+    growth = opts.pop(GROWTH_FROM_WHOLE, None)
+    if growth is not None and parse_structure(structure)[0] in RATE_KINDS:
+        opts.update(growth)
     return ChainModel.identify(t, u, y, structure=structure, fit_from_index=fit_from_index, left_out=left_out,
-                               **options)
+                               **opts)
+
+
+#: the options key under which :func:`select` hands the rate candidates the growth it fitted on
+#: the whole record (:func:`growth_from_whole`)
+GROWTH_FROM_WHOLE = "growth_from_whole_record"
+
+def growth_from_whole(t: np.ndarray, u: np.ndarray, y: np.ndarray, k0: int, split: int,
+                      candidates: Sequence[str], options: dict[str, Any]) -> dict[str, float] | None:
+    """The rate growth (``rate_tau_s``, ``rate_gain_s_per_V``, ``rate_max_V_per_s``) of a
+    ``rate-bouc-wen+creep`` chain fitted on the whole record after the burn-in ``k0``, for the
+    rate candidates' fits on the training part ``[k0:split]``: when that part has no large
+    fast sweep and the whole record has (:attr:`~.coverage.Coverage.large_fast`: sweeps at
+    several rates, a fast one over a fifth of the range; ``afmctl excite --kind all`` puts its fast triangles
+    last, in the held-out part, as it puts its multisine there for the dynamics stage, which
+    is fitted on the whole record for the same reason). None otherwise (the rate candidates
+    then fit their growth on the training part), or when no rate candidate is tried."""
+    from .coverage import Coverage
+
+    if not any(parse_structure(c)[0] == "rate-bouc-wen" for c in candidates):
+        return None
+    if Coverage.of(t[k0:split], u[k0:split]).large_fast or not Coverage.of(t[k0:], u[k0:]).large_fast:
+        return None
+    from .rate_bouc_wen import RateBoucWenModel
+
+    try:
+        h = _fit("rate-bouc-wen+creep", t, u, y, options, k0).hysteresis
+    except (ModelError, ValueError, np.linalg.LinAlgError) as err:
+        log.info("auto: no rate growth from the whole record: %s", err)
+        return None
+    if not isinstance(h, RateBoucWenModel) or not h.rate_gain_s_per_V > 0 or h.rate_max_V_per_s is None:
+        return None
+    log.info("auto: rate growth from the whole record: tau %.4g s, × %.4g at %.4g V/s", h.rate_tau_s,
+             h.max_growth(), h.rate_max_V_per_s)
+    return {"rate_tau_s": h.rate_tau_s, "rate_gain_s_per_V": h.rate_gain_s_per_V,
+            "rate_max_V_per_s": h.rate_max_V_per_s}
 
 
 def _fit_kept(fits: dict[tuple[str, int], ChainModel] | None, structure: str, t: np.ndarray, u: np.ndarray,
@@ -319,6 +361,10 @@ def select(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates: Seque
                          "range of the rest; excite the full voltage range early in the record")
     table, candidates = covered_candidates(t[k0:], u[k0:], candidates)
     parts = dynamics_parts(u, t)
+    growth = growth_from_whole(t, u, y, k0, split, candidates, options or {})
+    whole = options or {}
+    if growth is not None:
+        options = {**(options or {}), GROWTH_FROM_WHOLE: growth}
     fits: dict[tuple[str, int], ChainModel] = {}
     for structure in candidates:
         row = score_candidate(structure, t, u, y, split, options, k0, parts=parts, fits=fits)
@@ -340,7 +386,7 @@ def select(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates: Seque
         _extra_folds(table, t, u, y, options, k0, parts)
         winner = choose(table)
         table.sort(key=lambda row: (row is not winner, _mean_key(row)))
-    best = _refit_best(table, t, u, y, options or {}, k0)
+    best = _refit_best(table, t, u, y, whole, k0)
     best.selection = table
     return best, table, (t, u, y, split, options, k0, parts)
 
@@ -385,7 +431,7 @@ def _not_covered(structure: str, cov: Any) -> str | None:
     """Why the record whose :class:`~.coverage.Coverage` is ``cov`` cannot identify
     ``structure`` (a failed row's text), or None."""
     kind, stages = parse_structure(structure)
-    if kind == "rate-pi" and not cov.several_rates:
+    if kind in RATE_KINDS and not cov.several_rates:
         return NOT_COVERED_RATE
     if cov.holds:
         return None
@@ -394,6 +440,10 @@ def _not_covered(structure: str, cov: Any) -> str | None:
     if "creep" in stages and not cov.several_rates:
         return NOT_COVERED_CREEP
     return None
+
+
+#: kinds whose loops grow with the input's rate: a record at one rate cannot tell how much
+RATE_KINDS: tuple[str, ...] = ("rate-pi", "rate-bouc-wen")
 
 
 #: at most this many static candidates are tried again ``+dynamics``

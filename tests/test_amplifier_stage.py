@@ -87,7 +87,7 @@ def test_structures_with_the_amplifier_first():
     assert parse_structure("amplifier+preisach+creep+dynamics") == ("preisach", ("amplifier", "creep", "dynamics"))
     assert join_structure("pi", ("dynamics", "amplifier")) == "amplifier+pi+dynamics"
     for bad in ("preisach+amplifier", "amplifier", "amplifier+creep+pi"):
-        with pytest.raises(ModelError, match=r"allowed \[amplifier\+\]<pi\|epi\|preisach\|bouc-wen\|rate-pi>"):
+        with pytest.raises(ModelError, match=r"allowed \[amplifier\+\]<pi\|epi\|preisach\|bouc-wen\|rate-pi\|rate-bouc-wen>"):
             parse_structure(bad)
 
 

@@ -135,8 +135,8 @@ def _sens(kernel, model, u, rows, want_n=True, du_sub=None, **patch):
     p = dict(A=model.A_nm_per_V, beta=model.beta, gamma=model.gamma, n=model.n)
     p.update(patch)
     h, s = np.empty(rows.size), np.empty((rows.size, 4))
-    kernel(u, 0.0, float(u[0]), p["A"], p["beta"], p["gamma"], p["n"], du_sub or model.du_sub_V(), 1000000,
-           rows, want_n, h, s)
+    kernel(u, np.zeros(0), 0.0, 0.0, float(u[0]), p["A"], p["beta"], p["gamma"], p["n"], du_sub or model.du_sub_V(),
+           1000000, rows, want_n, h, s)
     return h, s
 
 

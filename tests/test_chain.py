@@ -157,7 +157,7 @@ def test_identify_chain_bad_input_is_one_line(ident, capsys, tmp_path):
     d = ident[0]
     rc = main(["identify", "--model", "creep+preisach", "--data", str(d / "ident.csv"), "--out", str(tmp_path / "m.json")])
     err = capsys.readouterr().err
-    assert rc == 2 and "allowed [amplifier+]<pi|epi|preisach|bouc-wen|rate-pi>[+creep][+dynamics]" in err and "Traceback" not in err
+    assert rc == 2 and "allowed [amplifier+]<pi|epi|preisach|bouc-wen|rate-pi|rate-bouc-wen>[+creep][+dynamics]" in err and "Traceback" not in err
     rc = main(["identify", "--model", "auto", "--from-images", "x.npz", "--out", str(tmp_path / "m.json")])
     err = capsys.readouterr().err
     assert rc == 2 and "--from-images takes a single kind" in err

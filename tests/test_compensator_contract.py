@@ -25,6 +25,7 @@ from afmctl.compensators.models import model_from_dict
 from afmctl.compensators.pi import PIModel
 from afmctl.compensators.play import PlayOperator
 from afmctl.compensators.preisach import PreisachModel, ReferencePreisach
+from afmctl.compensators.rate_bouc_wen import RateBoucWenModel
 from afmctl.compensators.rate_pi import RatePIModel
 
 DT = 1e-3
@@ -39,6 +40,8 @@ PRE_SMALL_MEMORY = PreisachModel(**{**PRE.model_dump(), "memory_depth": 3})
 RPI = RatePIModel(thresholds=[0.0, 6.0, 15.0, 30.0, 45.0], weights=[60.0, 12.0, -4.0, 9.0, 5.0], offset_nm=-30.0,
                   initial_state=[40.0] * 5, rate_gain_s_per_V=2e-4, rate_tau_s=0.004)
 BW = BoucWenModel(d_nm_per_V=100.0, A_nm_per_V=30.0, beta=0.004, gamma=0.0015, n=1.2)
+RBW = RateBoucWenModel(**BW.model_dump(exclude={"kind"}), rate_gain_s_per_V=2e-5, rate_max_V_per_s=2e4,
+                       rate_tau_s=0.004)
 
 #: name -> (factory, (lo, hi) of sensible inputs)
 OPERATORS = {
@@ -57,6 +60,8 @@ OPERATORS = {
     "bouc-wen.inverse": (lambda: BW.inverse(), (0.0, 14000.0)),
     "rate-pi.forward": (lambda: RPI.forward(DT), (0.0, 150.0)),
     "rate-pi.inverse": (lambda: RPI.inverse(DT), (-30.0, 11000.0)),
+    "rate-bouc-wen.forward": (lambda: RBW.forward(DT), (0.0, 150.0)),
+    "rate-bouc-wen.inverse": (lambda: RBW.inverse(DT), (0.0, 14000.0)),
 }
 
 # a signal: levels in [0, 1] (scaled to the operator's range), each held for 1–30 samples

@@ -114,7 +114,7 @@ def _check_kinds(model: HysteresisModel, dynamics: HysteresisModel | None, slew:
         raise AfmctlError(f"{name}: a scanner model; compensate one axis: model.axis('x')")
     if model.kind == "dynamics":
         raise AfmctlError(f"{name}: field kind: a 'dynamics' model maps nm to nm, not to volts; give it as "
-                          "dynamics= beside a model that maps volts (pi, epi, creep, preisach, bouc-wen, rate-pi, chain)")
+                          "dynamics= beside a model that maps volts (pi, epi, creep, preisach, bouc-wen, rate-pi, rate-bouc-wen, chain)")
     own = getattr(model, "dynamics", None) is not None
     if dynamics is not None and own:
         raise AfmctlError(f"dynamics: {name} already holds a dynamics stage ({getattr(model, 'structure', '')})")

@@ -81,7 +81,7 @@ def identify(kind: str, data: str | Path | None = None, *, t_s: np.ndarray | Non
              n_operators: int | None = None,
              y_unit: str = "nm", burn_in: str = "auto", delay: str = "auto", despike: bool = True,
              **params: Any) -> Identified:
-    """Fit ``kind`` (pi, epi, creep, preisach, bouc-wen, rate-pi, dynamics, amplifier,
+    """Fit ``kind`` (pi, epi, creep, preisach, bouc-wen, rate-pi, rate-bouc-wen, dynamics, amplifier,
     ``[amplifier+]KIND[+creep][+dynamics]`` or ``auto``) to a CSV file ``data`` (columns t,u,y
     and, when the recording has it, v: the piezo voltage [V]) or to arrays ``t_s``, ``u_V``,
     ``y_nm`` (y in ``y_unit``: nm or um) and optionally ``v_V``. A chain or ``auto`` with the

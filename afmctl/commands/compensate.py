@@ -139,7 +139,7 @@ def _check_flags(args: argparse.Namespace, model) -> None:
     from ..errors import AfmctlError
     if model.kind == "dynamics":
         raise AfmctlError(f"{args.model}: field kind: a 'dynamics' model maps nm to nm, not to volts; give it as "
-                          "--dynamics beside a --model that maps volts (pi, epi, creep, preisach, bouc-wen, rate-pi, chain)")
+                          "--dynamics beside a --model that maps volts (pi, epi, creep, preisach, bouc-wen, rate-pi, rate-bouc-wen, chain)")
     if args.dynamics is not None and getattr(model, "dynamics", None) is not None:
         raise AfmctlError(f"--dynamics: {args.model} already holds a dynamics stage ({model.structure}); drop --dynamics")
     slew = args.slew_V_per_s

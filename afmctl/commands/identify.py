@@ -9,7 +9,7 @@ from .identify_io import _fitted, _plot, _refuse_failed, _save, parse_params  # 
 
 log = logging.getLogger(__name__)
 
-HELP = "fit a hysteresis/creep model (pi, epi, creep, preisach, bouc-wen, rate-pi) to measured data"
+HELP = "fit a hysteresis/creep model (pi, epi, creep, preisach, bouc-wen, rate-pi, rate-bouc-wen) to measured data"
 
 DESCRIPTION = """\
 Fit a model of the scanner to measured data and write it as a JSON model file.
@@ -47,6 +47,10 @@ Model kinds (--model):
   bouc-wen  Bouc-Wen differential model, nonlinear least squares
   rate-pi   rate-dependent PI: thresholds grow with the input's smoothed rate (loops
             that widen with the scan rate); needs sweeps at several rates
+  rate-bouc-wen
+            Bouc-Wen whose amplitude A grows with the input's smoothed rate: loops that
+            widen with the scan rate and stay put while the input rests; needs sweeps
+            at several rates
   dynamics  linear dynamics (amplifier bandwidth, structural modes, delay), unit DC gain,
             from the record's fast parts (afmctl's multisine, a chirp within the
             amplifier's slew limit, triangles at 10 Hz and up; the parts used are
@@ -56,7 +60,7 @@ Model kinds (--model):
             a chain (kind chain): the amplifier stage before the piezo (its bandwidth and
             slew limit; from column v, or without it the lag below the first mode that the
             dynamics find: amplifier+KIND[+creep]+dynamics), hysteresis KIND (pi, epi,
-            preisach, bouc-wen, rate-pi) on the piezo voltage, then
+            preisach, bouc-wen, rate-pi, rate-bouc-wen) on the piezo voltage, then
             linear creep, then linear dynamics, identified jointly (Hammerstein):
             hysteresis and creep on every sample (preisach; other kinds on block means
             at <= 2 kHz) less the 50 ms after each jump of the command (preisach: and
@@ -78,7 +82,10 @@ Model kinds (--model):
             after a step (>= 0.1 s) does not try epi, nor +creep unless it sweeps at
             several rates ('not tried' rows: creep would fit the hysteresis misfit);
             rate-pi is tried only when named in candidates, and
-            not on a record at a single rate. Excite the full voltage range in the
+            neither it nor rate-bouc-wen+creep on a record at a single rate; when
+            only the held-out part sweeps fast over the range (excite puts its fast
+            triangles last), the rate candidates take their growth from a fit of
+            the whole record, as the +dynamics stage takes its modes. Excite the full voltage range in the
             first 70 % ('afmctl excite --kind all' does). The best is then tried
             +dynamics when the record has fast parts (record at a rate that resolves
             the scanner's resonance, e.g. 50 kHz; the delay is then fitted by the
@@ -103,10 +110,12 @@ Options:
   --operators N     pi/epi/rate-pi: play operators (default 13, max 1000); creep: lags (default 4);
                     preisach: grid levels (default 32; nnls up to 64, for up to 512;
                       in a preisach+creep chain 64, fitted jointly with the creep lags);
-                    bouc-wen: ignored
+                    bouc-wen, rate-bouc-wen: ignored
   --param KEY=VALUE model-specific options, VALUE parsed as JSON when possible:
                     pi, epi, rate-pi: thresholds=[0,10,...] (V), min_slope_fraction (1e-3), max_rows
                     rate-pi: rate_tau_s, rate_gain_s_per_V (fix them; default searched)
+                    rate-bouc-wen: as bouc-wen, and rate_tau_s; rate_gain_s_per_V with
+                      rate_max_V_per_s (fix the growth; default fitted)
                     epi: min_dwell_samples (10), dwell_tol_V (0)
                     creep: tau_min_s, tau_max_s (time-constant range, s)
                     preisach: u_min_V, u_max_V (grid range, default the data range),
@@ -135,7 +144,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("identify", help=HELP, description=DESCRIPTION,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--model", required=True, metavar="KIND",
-                   help="model kind: pi, epi, creep, preisach, bouc-wen, rate-pi, dynamics, amplifier, a chain "
+                   help="model kind: pi, epi, creep, preisach, bouc-wen, rate-pi, rate-bouc-wen, dynamics, amplifier, a chain "
                    "[amplifier+]KIND[+creep][+dynamics], "
                         "or auto")
     p.add_argument("--data", metavar="DATA.csv", help="CSV with columns t,u,y (s, V, nm)")
