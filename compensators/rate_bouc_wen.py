@@ -163,8 +163,11 @@ class RateBoucWenModel(BoucWenModel):
         τ [s] instead of trying :data:`RATE_TAUS_S`; ``rate_gain_s_per_V`` with
         ``rate_max_V_per_s`` (and ``rate_tau_s``) fix the growth too, so that only the
         Bouc–Wen parameters are fitted (``auto`` takes the growth from the whole record when
-        its training part sweeps at one rate: :mod:`.selection`)."""
+        its training part sweeps at one rate: :mod:`.selection`); ``rate_start``, a dict of
+        Bouc–Wen parameters (``d_nm_per_V``, ``A_nm_per_V``, ``beta``, ``gamma``, ``n``,
+        ``offset_nm``), then starts that fit from them instead of from a Bouc–Wen fit."""
         opts = dict(options)
+        start = opts.pop("rate_start", None)
         tau = opts.pop("rate_tau_s", None)
         gain, cap = opts.pop("rate_gain_s_per_V", None), opts.pop("rate_max_V_per_s", None)
         if opts.get("jacobian", "sensitivities") != "sensitivities":
@@ -175,10 +178,14 @@ class RateBoucWenModel(BoucWenModel):
             raise ModelError("rate_gain_s_per_V, rate_max_V_per_s: give both with rate_tau_s, or neither")
         dt = sample_period(float(np.median(np.diff(np.asarray(t_s, dtype=float).ravel()))),
                            "rate-dependent Bouc–Wen model")
-        base = _identify(BoucWenModel, t_s, u_V, y_nm, **opts)
         taus = RATE_TAUS_S if tau is None else (number_option("rate_tau_s", tau, lo=1e-4, hi=100.0),)
         fixed = None if gain is None else (number_option("rate_gain_s_per_V", gain, lo=0.0, hi=1.0),
                                            number_option("rate_max_V_per_s", cap, lo=1e-9, hi=1e12))
+        if fixed is not None and start is not None:
+            fit = _fit_rate(cls, _start_model(start), t_s, u_V, y_nm, dt, taus[0], opts, fixed)
+            if fit is not None:
+                return fit
+        base = _identify(BoucWenModel, t_s, u_V, y_nm, **opts)
         best = (base.fit_residual_nm or math.inf, cls(**base.model_dump(exclude={"kind"})))
         for tau_s in taus:
             fit = _fit_rate(cls, base, t_s, u_V, y_nm, dt, tau_s, opts, fixed)
@@ -187,6 +194,16 @@ class RateBoucWenModel(BoucWenModel):
         model = best[1]
         log.info("identify rate-bouc-wen: %s", model.summary().replace("\n", "; "))
         return model
+
+
+def _start_model(start: Any) -> BoucWenModel:
+    """The Bouc–Wen model of the parameters ``start`` (option ``rate_start``)."""
+    if not isinstance(start, dict):
+        raise ModelError(f"rate_start: {start!r}; need a dict of Bouc–Wen parameters")
+    try:
+        return BoucWenModel(**start)
+    except ValueError as err:
+        raise ModelError(f"rate_start: not a Bouc–Wen model ({' '.join(str(err).split())})") from None
 
 
 def _fit_rate(cls: type[RateBoucWenModel], base: BoucWenModel, t_s: Any, u_V: Any, y_nm: Any, dt: float,

@@ -65,7 +65,7 @@ def _fit(structure: str, t: np.ndarray, u: np.ndarray, y: np.ndarray, options: d
          fit_from_index: int = 0, left_out: np.ndarray | None = None) -> ChainModel:
     opts = dict(options)
     growth = opts.pop(GROWTH_FROM_WHOLE, None)
-    if growth is not None and parse_structure(structure)[0] in RATE_KINDS:
+    if growth is not None and parse_structure(structure)[0] == "rate-bouc-wen":
         opts.update(growth)
     return ChainModel.identify(t, u, y, structure=structure, fit_from_index=fit_from_index, left_out=left_out,
                                **opts)
@@ -75,9 +75,15 @@ def _fit(structure: str, t: np.ndarray, u: np.ndarray, y: np.ndarray, options: d
 #: the whole record (:func:`growth_from_whole`)
 GROWTH_FROM_WHOLE = "growth_from_whole_record"
 
+def _own_growth(options: dict[str, Any] | None) -> dict[str, Any]:
+    """``options`` for a fit of the whole record: a rate candidate fits its own growth there."""
+    return {k: v for k, v in (options or {}).items() if k != GROWTH_FROM_WHOLE}
+
+
 def growth_from_whole(t: np.ndarray, u: np.ndarray, y: np.ndarray, k0: int, split: int,
                       candidates: Sequence[str], options: dict[str, Any]) -> dict[str, float] | None:
-    """The rate growth (``rate_tau_s``, ``rate_gain_s_per_V``, ``rate_max_V_per_s``) of a
+    """The rate growth (``rate_tau_s``, ``rate_gain_s_per_V``, ``rate_max_V_per_s``; and its
+    Bouc–Wen parameters, ``rate_start``, to start the candidates' fits from) of a
     ``rate-bouc-wen+creep`` chain fitted on the whole record after the burn-in ``k0``, for the
     rate candidates' fits on the training part ``[k0:split]``: when that part has no large
     fast sweep and the whole record has (:attr:`~.coverage.Coverage.large_fast`: sweeps at
@@ -103,7 +109,8 @@ def growth_from_whole(t: np.ndarray, u: np.ndarray, y: np.ndarray, k0: int, spli
     log.info("auto: rate growth from the whole record: tau %.4g s, × %.4g at %.4g V/s", h.rate_tau_s,
              h.max_growth(), h.rate_max_V_per_s)
     return {"rate_tau_s": h.rate_tau_s, "rate_gain_s_per_V": h.rate_gain_s_per_V,
-            "rate_max_V_per_s": h.rate_max_V_per_s}
+            "rate_max_V_per_s": h.rate_max_V_per_s,
+            "rate_start": h.model_dump(include={"d_nm_per_V", "A_nm_per_V", "beta", "gamma", "n", "offset_nm"})}
 
 
 def _fit_kept(fits: dict[tuple[str, int], ChainModel] | None, structure: str, t: np.ndarray, u: np.ndarray,
@@ -303,7 +310,7 @@ def with_amplifier_stage(best: ChainModel, table: list[dict[str, Any]], t: np.nd
     if not row["heldout_rms_nm"] < (1.0 - AMPLIFIER_MIN_GAIN) * ref["heldout_rms_nm"]:
         return best
     try:
-        model = _fit(structure, t, x, y, options or {}, k0)
+        model = _fit(structure, t, x, y, _own_growth(options), k0)
     except (ModelError, ValueError, np.linalg.LinAlgError) as err:
         row["error"] = f"refitted on the whole record: {' '.join(str(err).split())}"
         return best
@@ -362,7 +369,6 @@ def select(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates: Seque
     table, candidates = covered_candidates(t[k0:], u[k0:], candidates)
     parts = dynamics_parts(u, t)
     growth = growth_from_whole(t, u, y, k0, split, candidates, options or {})
-    whole = options or {}
     if growth is not None:
         options = {**(options or {}), GROWTH_FROM_WHOLE: growth}
     fits: dict[tuple[str, int], ChainModel] = {}
@@ -386,7 +392,7 @@ def select(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates: Seque
         _extra_folds(table, t, u, y, options, k0, parts)
         winner = choose(table)
         table.sort(key=lambda row: (row is not winner, _mean_key(row)))
-    best = _refit_best(table, t, u, y, whole, k0)
+    best = _refit_best(table, t, u, y, _own_growth(options), k0)
     best.selection = table
     return best, table, (t, u, y, split, options, k0, parts)
 

@@ -148,7 +148,7 @@ def test_auto_takes_the_growth_from_the_whole_record_and_keeps_it_only_where_loo
     t, u, y = _record_with_fast_sweeps_last(plant)
     split = int(round(0.7 * u.size))
     growth = growth_from_whole(t, u, y, 0, split, ["rate-bouc-wen+creep"], {"n": 1.0})
-    assert growth is not None and set(growth) == {"rate_tau_s", "rate_gain_s_per_V", "rate_max_V_per_s"}
+    assert growth is not None and set(growth) == {"rate_tau_s", "rate_gain_s_per_V", "rate_max_V_per_s", "rate_start"}
     assert growth_from_whole(t, u, y, 0, u.size - 10, ["rate-bouc-wen+creep"], {"n": 1.0}) is None  # sees them
     assert growth_from_whole(t, u, y, 0, split, ["bouc-wen+creep"], {"n": 1.0}) is None            # not asked
     best, table = select_model(t, u, y, ["bouc-wen+creep", "rate-bouc-wen+creep"], options={"n": 1.0},
