@@ -81,7 +81,7 @@ def _own_growth(options: dict[str, Any] | None) -> dict[str, Any]:
 
 
 def growth_from_whole(t: np.ndarray, u: np.ndarray, y: np.ndarray, k0: int, split: int,
-                      candidates: Sequence[str], options: dict[str, Any]) -> dict[str, float] | None:
+                      candidates: Sequence[str], options: dict[str, Any]) -> dict[str, Any] | None:
     """The rate growth (``rate_tau_s``, ``rate_gain_s_per_V``, ``rate_max_V_per_s``; and its
     Bouc–Wen parameters, ``rate_start``, to start the candidates' fits from) of a
     ``rate-bouc-wen+creep`` chain fitted on the whole record after the burn-in ``k0``, for the
