@@ -53,10 +53,10 @@ log = logging.getLogger(__name__)
 #: scanner from a lab's record, held-out RMS 406 nm against Bouc–Wen's 382 and 87 with its
 #: dynamics; the unseen rate-dependent plant from a user-style record, 242 against PI's 158
 #: nm) it was never the best, and it adds two fits to every record at several rates; name it
-#: in ``candidates`` to try it. ``rate-bouc-wen+creep`` is, on a record that sweeps at several
-#: rates: its growth only scales what a move adds, so a record's holds do not read it as creep
-#: (the two-modes reference scanner from `afmctl excite`: 0.24 / 0.55 / 1.62 % max at 1 / 10 /
-#: 50 lines/s against Bouc–Wen's 0.50 / 1.21 / 1.54, docs/BENCHMARKS.md)
+#: in ``candidates`` to try it. ``rate-bouc-wen+creep`` is among them (tried on a record that
+#: sweeps at several rates): its growth only scales what a move adds, so a record's holds do
+#: not read it as creep (the two-modes reference scanner from `afmctl excite`: 0.24 / 0.55 /
+#: 1.62 % max at 1 / 10 / 50 lines/s against Bouc–Wen's 0.50 / 1.21 / 1.54, docs/BENCHMARKS.md)
 DEFAULT_CANDIDATES: tuple[str, ...] = ("pi", "pi+creep", "epi", "preisach", "preisach+creep",
                                        "bouc-wen", "bouc-wen+creep", "rate-bouc-wen+creep")
 
@@ -74,6 +74,7 @@ def _fit(structure: str, t: np.ndarray, u: np.ndarray, y: np.ndarray, options: d
 #: the options key under which :func:`select` hands the rate candidates the growth it fitted on
 #: the whole record (:func:`growth_from_whole`)
 GROWTH_FROM_WHOLE = "growth_from_whole_record"
+
 
 def _own_growth(options: dict[str, Any] | None) -> dict[str, Any]:
     """``options`` for a fit of the whole record: a rate candidate fits its own growth there."""
