@@ -89,9 +89,16 @@ class BoucWenModel(HysteresisModel):
             raise ValueError(f"d_nm_per_V must be > 0 (got {self.d_nm_per_V})")
         return self
 
+    #: the largest amplitude (:meth:`largest_A_nm_per_V`) in the inverse's uniqueness bound, in words
+    LARGEST_A_TEXT: ClassVar[str] = "A"
+
+    def largest_A_nm_per_V(self) -> float:
+        """The largest amplitude ``A`` the model integrates with [nm/V] (``A`` itself here)."""
+        return self.A_nm_per_V
+
     def h_max_nm(self) -> float:
-        """Saturation of |h|: (A/(β+γ))^(1/n) [nm]."""
-        return (self.A_nm_per_V / (self.beta + self.gamma)) ** (1.0 / self.n)
+        """Saturation of |h| at the largest amplitude: (A/(β+γ))^(1/n) [nm]."""
+        return (self.largest_A_nm_per_V() / (self.beta + self.gamma)) ** (1.0 / self.n)
 
     def du_sub_V(self) -> float:
         """Integration sub-step [V] (see module docstring)."""
@@ -103,16 +110,25 @@ class BoucWenModel(HysteresisModel):
     def params(self) -> np.ndarray:
         return np.array([self.d_nm_per_V, self.A_nm_per_V, self.beta, self.gamma, self.n, self.offset_nm])
 
+    def kernel_params(self) -> np.ndarray:
+        """``p = [d, A, β, γ, n, offset, du_sub]`` of the compiled kernels."""
+        return np.append(self.params(), self.du_sub_V()).astype(np.float64)
+
+    def check_invertible(self) -> None:
+        """:class:`ModelError` unless ``d`` exceeds the largest slope of h, 2·A·β/(β+γ) at the
+        largest amplitude: the inverse is then unique (module docstring)."""
+        lim = 2.0 * self.largest_A_nm_per_V() * self.beta / (self.beta + self.gamma)
+        if self.d_nm_per_V <= lim:
+            raise ModelError(f"d_nm_per_V: {self.d_nm_per_V:g} is too small for an invertible model; "
+                             f"allowed: > 2·{self.LARGEST_A_TEXT}·β/(β+γ) = {lim:g} nm/V")
+
     def forward(self, dt_s: float | None = None) -> "BoucWenOperator":
         """Streaming operator u [V] → y [nm]. ``dt_s`` is ignored (rate-independent)."""
         return BoucWenOperator(self)
 
     def inverse(self, dt_s: float | None = None) -> "BoucWenInverse":
         """Exact inverse y [nm] → u [V] (see module docstring)."""
-        lim = 2.0 * self.A_nm_per_V * self.beta / (self.beta + self.gamma)
-        if self.d_nm_per_V <= lim:
-            raise ModelError(f"d_nm_per_V: {self.d_nm_per_V:g} is too small for an invertible model; "
-                             f"allowed: > 2·A·β/(β+γ) = {lim:g} nm/V")
+        self.check_invertible()
         return BoucWenInverse(self)
 
     @classmethod
@@ -328,8 +344,7 @@ def reference_forward(model: BoucWenModel, u: np.ndarray) -> np.ndarray:
 class _BWBase(StreamingOperator):
     def __init__(self, model: BoucWenModel) -> None:
         self.model = model
-        self.p = np.array([model.d_nm_per_V, model.A_nm_per_V, model.beta, model.gamma, model.n,
-                           model.offset_nm, model.du_sub_V()], dtype=np.float64)
+        self.p = model.kernel_params()
         self.state = np.zeros(2)
         self.reset()
 
@@ -384,22 +399,12 @@ def _identify(cls: type, t_s: Any, u_V: Any, y_nm: Any, n: float | None = None, 
     n_starts = [nfix] if nfix is not None else [1.0, 2.0]
     starts = [(n_init, ratio, hs_frac) for ratio, hs_frac in ((0.2, 0.1), (0.1, 0.03), (0.4, 0.3))
               for n_init in n_starts]
-    hs_min = math.log(0.005 * yscale)
     for n_init, ratio, hs_frac in starts:
         if best is not None and math.sqrt(2.0 * best.cost / prob.sel.shape[0]) < 1e-6:
             break  # already fits to 1 ppm of the output range
         hs0 = max(hs_frac * yscale, 0.01 * yscale)
-        p0 = [math.log(d0 * (1 + ratio)), math.log(ratio / (1 + ratio)), math.log(hs0), 0.3]
-        lb = [-np.inf, math.log(1e-4), hs_min, -0.8]
-        ub = [np.inf, math.log(2.0), math.log(10.0 * yscale), 1.0]
-        if nfix is None:
-            p0.append(n_init)
-            lb.append(1.0)
-            ub.append(4.0)
-        p0.append(float(icpt) / yscale)
-        lb.append(-np.inf)
-        ub.append(np.inf)
-        p0 = np.clip(np.array(p0), np.array(lb) + 1e-9, np.array(ub) - 1e-9)
+        p0, lb, ub = prob.start([math.log(d0 * (1 + ratio)), math.log(ratio / (1 + ratio)), math.log(hs0), 0.3],
+                                n_init, float(icpt))
         try:
             r = least_squares(prob.resid, p0, jac=jac, bounds=(lb, ub), x_scale="jac", max_nfev=300)
         except (ValueError, FloatingPointError, OverflowError):
@@ -488,6 +493,28 @@ class _BWProblem:
         bg = A / hs ** nn
         beta = bg / (1.0 + c)
         return d, A, beta, beta * c, nn, p[-1] * self.yscale
+
+    def start(self, shape: list[float], n: float, offset_nm: float, growth: float | None = None,
+              growth_max: float = math.inf) -> tuple[np.ndarray, list[float], list[float]]:
+        """A start of the search and its bounds: ``shape`` = [log d, log(A/d), log h_sat, γ/β],
+        then ``n`` (when it is fitted), the ``growth`` c·top (when given: a rate-dependent fit,
+        0 … ``growth_max``) and the offset [nm]. The start is clipped into the bounds, which
+        keep the fit admissible and not stiff (:func:`_identify`)."""
+        p0 = list(shape)
+        lb = [-np.inf, math.log(1e-4), math.log(0.005 * self.yscale), -0.8]
+        ub = [np.inf, math.log(2.0), math.log(10.0 * self.yscale), 1.0]
+        if self.nfix is None:
+            p0.append(n)
+            lb.append(1.0)
+            ub.append(4.0)
+        if growth is not None:
+            p0.append(growth)
+            lb.append(0.0)
+            ub.append(growth_max)
+        p0.append(offset_nm / self.yscale)
+        lb.append(-np.inf)
+        ub.append(np.inf)
+        return np.clip(np.array(p0), np.array(lb) + 1e-9, np.array(ub) - 1e-9), lb, ub
 
     def rate_gain(self, p: np.ndarray) -> float:
         """c [s/V] of the search vector ``p`` (0 without rates)."""

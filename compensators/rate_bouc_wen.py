@@ -82,7 +82,7 @@ def rate_series(u: np.ndarray, dt_s: float, tau_s: float, u0_V: float) -> np.nda
 
 @njit(cache=True, nogil=True)
 def rbw_forward_block(u, state, aux, p, c, rmax, a, dt, out):  # pragma: no cover - compiled
-    """``u`` [V] → ``out`` [nm]; ``state = [h, u_prev]``, ``aux = [ρ, s]`` carried in place,
+    """``u`` [V] → ``out`` [nm]; ``state = [h, u_prev]``, ``aux = [ρ, u_prev]`` carried in place,
     ``p = [d, A, β, γ, n, offset, du_sub]``."""
     for k in range(u.shape[0]):
         x = u[k]
@@ -131,9 +131,11 @@ class RateBoucWenModel(BoucWenModel):
         """``1 + c·ρ_max``: the largest factor on ``A``."""
         return 1.0 + self.rate_gain_s_per_V * (self.rate_max_V_per_s or 0.0)
 
-    def h_max_nm(self) -> float:
-        """Saturation of |h| at the largest amplitude [nm]."""
-        return (self.A_nm_per_V * self.max_growth() / (self.beta + self.gamma)) ** (1.0 / self.n)
+    LARGEST_A_TEXT: ClassVar[str] = "A·(1 + c·ρ_max)"
+
+    def largest_A_nm_per_V(self) -> float:
+        """``A·(1 + c·ρ_max)`` [nm/V]: the amplitude at the highest rate."""
+        return self.A_nm_per_V * self.max_growth()
 
     def forward(self, dt_s: float | None = None) -> "RateBoucWenOperator":  # type: ignore[override]
         """Operator u [V] → y [nm] at sample period ``dt_s`` [s]."""
@@ -141,10 +143,7 @@ class RateBoucWenModel(BoucWenModel):
 
     def inverse(self, dt_s: float | None = None) -> "RateBoucWenOperator":  # type: ignore[override]
         """Exact inverse y [nm] → u [V] at sample period ``dt_s`` [s]."""
-        lim = 2.0 * self.A_nm_per_V * self.max_growth() * self.beta / (self.beta + self.gamma)
-        if self.d_nm_per_V <= lim:
-            raise ModelError(f"d_nm_per_V: {self.d_nm_per_V:g} is too small for an invertible model; "
-                             f"allowed: > 2·A·(1 + c·ρ_max)·β/(β+γ) = {lim:g} nm/V")
+        self.check_invertible()
         return RateBoucWenOperator(self, sample_period(dt_s, "rate-dependent Bouc–Wen model"), inverse=True)
 
     def summary(self) -> str:
@@ -223,24 +222,11 @@ def _fit_rate(cls: type[RateBoucWenModel], base: BoucWenModel, t_s: Any, u_V: An
         return None
     prob.q, prob.top = np.ascontiguousarray(np.minimum(rho, top)), top
     prob.fixed_gain = None if fixed is None else fixed[0]
-    d, A, bg = base.d_nm_per_V, base.A_nm_per_V, base.beta + base.gamma
-    p0 = [math.log(d), math.log(A / d), math.log((A / bg) ** (1.0 / base.n)), base.gamma / base.beta]
-    lb = [-np.inf, math.log(1e-4), math.log(0.005 * prob.yscale), -0.8]
-    ub = [np.inf, math.log(2.0), math.log(10.0 * prob.yscale), 1.0]
-    if prob.nfix is None:
-        p0.append(base.n)
-        lb.append(1.0)
-        ub.append(4.0)
-    if fixed is None:
-        p0.append(START_GROWTH)
-        lb.append(0.0)
-        ub.append(MAX_GROWTH)
-    p0.append(base.offset_nm / prob.yscale)
-    lb.append(-np.inf)
-    ub.append(np.inf)
-    p0a = np.clip(np.array(p0), np.array(lb) + 1e-9, np.array(ub) - 1e-9)
+    d, A = base.d_nm_per_V, base.A_nm_per_V
+    shape = [math.log(d), math.log(A / d), math.log(base.h_max_nm()), base.gamma / base.beta]
+    p0, lb, ub = prob.start(shape, base.n, base.offset_nm, None if fixed else START_GROWTH, MAX_GROWTH)
     try:
-        sol = least_squares(prob.resid, p0a, jac=prob.jac, bounds=(lb, ub), x_scale="jac", max_nfev=100)
+        sol = least_squares(prob.resid, p0, jac=prob.jac, bounds=(lb, ub), x_scale="jac", max_nfev=100)
     except (ValueError, FloatingPointError, OverflowError):
         return None
     d, A, beta, gamma, nn, off = prob.unpack(sol.x)
@@ -270,8 +256,7 @@ class RateBoucWenOperator(StreamingOperator):
         self.a = smoothing_factor(self.dt, float(model.rate_tau_s))
         self.c = float(model.rate_gain_s_per_V)
         self.rmax = math.inf if model.rate_max_V_per_s is None else float(model.rate_max_V_per_s)
-        self.p = np.array([model.d_nm_per_V, model.A_nm_per_V, model.beta, model.gamma, model.n,
-                           model.offset_nm, model.du_sub_V()], dtype=np.float64)
+        self.p = model.kernel_params()
         self.state, self.aux = np.zeros(2), np.zeros(2)
         self.ref = None if use_numba else RateReference(self)
         self.reset()

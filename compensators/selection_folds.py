@@ -154,11 +154,12 @@ def _faster_over(row: dict[str, Any], rows: list[dict[str, Any]], margin: float)
     and its mean held-out RMS is within ``margin`` of ``row``'s; else None. Loops that widen
     with the rate show where the input sweeps fast, as the dynamics do (:func:`_dynamics_over`),
     and weigh as little in the whole held-out part's RMS."""
-    prefix = "amplifier+" if row["structure"].startswith("amplifier+") else ""
-    kind, *stages = row["structure"][len(prefix):].split("+")
+    from .chain import join_structure, parse_structure
+
+    kind, stages = parse_structure(row["structure"])
     if kind not in RATE_TWINS or "fast_rms_nm" not in row:
         return None
-    name = prefix + "+".join([RATE_TWINS[kind], *stages])
+    name = join_structure(RATE_TWINS[kind], stages)
     twin = next((r for r in rows if r["structure"] == name), None)
     if twin is None or "fast_rms_nm" not in twin:
         return None
