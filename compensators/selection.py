@@ -39,10 +39,11 @@ from typing import Any
 import numpy as np
 
 from .base import ModelError, check_finite
-from .chain import ChainModel, parse_structure
+from .chain import ChainModel, join_structure, parse_structure
 from .dynamics_identify import dynamics_parts
 from .fit_health import failure_reason, linear_fit_rms
-from .selection_folds import SCREEN_FACTOR, choose, fold_bounds
+from .fit_pool import FitPool
+from .selection_folds import RATE_TWINS, SCREEN_FACTOR, choose, fold_bounds
 from .input_checks import number_option
 
 log = logging.getLogger(__name__)
@@ -241,7 +242,7 @@ def _key(row: dict[str, Any], criterion: str = "rms") -> tuple[float, float]:
 def select_model(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates: Sequence[str] = DEFAULT_CANDIDATES,
                  holdout_fraction: float = 0.3, options: dict[str, Any] | None = None,
                  fit_from_index: int = 0, criterion: str = "rms", with_dynamics: bool = True,
-                 v_V: np.ndarray | None = None) -> tuple[ChainModel, list[dict[str, Any]]]:
+                 v_V: np.ndarray | None = None, jobs: int = 1) -> tuple[ChainModel, list[dict[str, Any]]]:
     """:func:`select` with the amplifier stage before the hysteresis (#36). With the recorded
     piezo voltage ``v_V`` [V] the stage is fitted to it first
     (:func:`~afmctl.compensators.amplifier.fit_amplifier`) and every candidate is scored on the
@@ -252,7 +253,7 @@ def select_model(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates:
     held-out record better."""
     if v_V is None:
         best, table, ctx = select(t_s, u_V, y_nm, candidates, holdout_fraction, options, fit_from_index, criterion,
-                                  with_dynamics)
+                                  with_dynamics, jobs)
         if with_dynamics:
             best = with_amplifier_stage(best, table, *ctx)
         return best, table
@@ -263,7 +264,7 @@ def select_model(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates:
     amp = fit_amplifier(t, u, v_V, fit_from_index=int(fit_from_index))
     x = amp.forward(float(np.median(np.diff(t)))).block(u)
     best, table, _ = select(t, x, y_nm, candidates, holdout_fraction, options, fit_from_index, criterion,
-                            with_dynamics)
+                            with_dynamics, jobs)
     for row in table:
         row["structure"] = "amplifier+" + row["structure"]
     best.amplifier, best.u_range_V = amp, (float(np.min(u)), float(np.max(u)))
@@ -336,9 +337,131 @@ def amplifier_structures(selected: str, table: list[dict[str, Any]]) -> list[str
     return ([selected] + [r["structure"] for r in others])[:DYNAMICS_BASES]
 
 
+def _score_task(shared: dict[str, Any], structure: str, split: int, options: dict[str, Any], k0: int,
+                whole: bool, end: int | None, fits: dict[tuple[str, int], ChainModel]
+                ) -> tuple[dict[str, Any], dict[Any, Any]]:
+    """A :class:`~.fit_pool.FitPool` task: :func:`score_candidate` on the pool's record
+    (``whole``: ``dynamics_from_whole``), from the static ``fits`` given; returns the row and
+    the static fits it made."""
+    own = dict(fits)
+    row = score_candidate(structure, shared["t"], shared["u"], shared["y"], split, options, k0,
+                          dynamics_from_whole=whole, end=end, parts=shared["parts"], fits=own)
+    return row, {k: v for k, v in own.items() if k not in fits}
+
+
+def _score(pool: FitPool, structure: str, split: int, options: dict[str, Any], k0: int, whole: bool = False,
+           end: int | None = None, fits: dict[tuple[str, int], ChainModel] | None = None,
+           submit_only: bool = False) -> Any:
+    """Submit (``submit_only``) or wait for the score of ``structure`` on the split ``split``
+    (a fold ending at ``end``; ``whole``: its dynamics from the whole record), keyed by all
+    three; a ``+dynamics`` structure starts from its static base's fit in ``fits``."""
+    key = ("score", structure, split, end, whole)
+    base = {k: v for k, v in (fits or {}).items() if k[0] + "+dynamics" == structure}
+    args = (structure, split, options, k0, whole, end, base)
+    if submit_only:
+        pool.submit(key, _score_task, *args)
+        return None
+    return pool.result(key, _score_task, *args)
+
+
+def _growth_task(shared: dict[str, Any], k0: int, split: int, candidates: tuple[str, ...],
+                 options: dict[str, Any]) -> dict[str, Any] | None:
+    return growth_from_whole(shared["t"], shared["u"], shared["y"], k0, split, candidates, options)
+
+
+def _score_static(pool: FitPool, table: list[dict[str, Any]], candidates: Sequence[str], split: int,
+                  options: dict[str, Any], k0: int, criterion: str, guess: bool
+                  ) -> tuple[dict[str, Any], dict[tuple[str, int], ChainModel]]:
+    """Score ``candidates`` into ``table`` (sorted best first by ``criterion``): the others
+    first, then the rate candidates in reach (:func:`_out_of_reach`) with the growth from the
+    whole record (:func:`growth_from_whole`); ``guess``: the ``+dynamics`` candidates follow
+    (:func:`_guess_dynamics`). Returns ``options`` with that growth and the static fits on the
+    training part (a ``+dynamics`` candidate starts from its base's)."""
+    rate = [c for c in candidates if parse_structure(c)[0] == "rate-bouc-wen"]
+    for structure in candidates:
+        if structure not in rate:
+            _score(pool, structure, split, options, k0, submit_only=True)
+    rows, fits = {}, {}
+    for structure in candidates:
+        if structure not in rate:
+            rows[structure], new = _score(pool, structure, split, options, k0)
+            fits.update(new)
+    tried = [c for c in rate if _out_of_reach(c, rows) is None]
+    if tried:
+        pool.submit("growth", _growth_task, k0, split, tuple(tried), options)
+        if guess:
+            _guess_dynamics(pool, list(rows.values()), split, options, k0, criterion, fits)
+        growth = pool.result("growth")
+        if growth is not None:
+            options = {**options, GROWTH_FROM_WHOLE: growth}
+    for structure in rate:
+        reason = _out_of_reach(structure, rows)
+        if reason is not None:
+            rows[structure] = {"structure": structure, "error": reason}
+        else:
+            rows[structure], new = _score(pool, structure, split, options, k0)
+            fits.update(new)
+    for structure in candidates:
+        log.info("auto: %s → %s", structure, rows[structure])
+        table.append(rows[structure])
+    table.sort(key=lambda row: _key(row, criterion))
+    return options, fits
+
+
+#: a rate candidate is tried only while its Bouc–Wen twin's held-out RMS is within this factor
+#: of the best other candidate's: its growth scales the loop by at most what the record's
+#: fastest sweep shows (×1.38 on two-modes' record, whose rate twin scored 96.3 nm against
+#: its Bouc–Wen twin's 101.9), so it cannot close a larger gap, and its whole-record growth
+#: fit is the costliest candidate (7 s of the E-727 calibrate recording, where the Bouc–Wen
+#: twin scored 20× the best)
+RATE_REACH = 3.0
+
+
+def _out_of_reach(structure: str, rows: dict[str, dict[str, Any]]) -> str | None:
+    """Why the rate candidate ``structure`` is not tried (:data:`RATE_REACH`), or None."""
+    hyst, stages = parse_structure(structure)
+    twin = rows.get(join_structure({v: k for k, v in RATE_TWINS.items()}.get(hyst, hyst), stages))
+    ok = [r for r in rows.values() if "error" not in r]
+    if twin is None or "error" in twin or not ok:
+        return None
+    best = min(ok, key=lambda r: r["heldout_rms_nm"])
+    if twin["heldout_rms_nm"] <= RATE_REACH * best["heldout_rms_nm"]:
+        return None
+    return (f"not tried: its Bouc–Wen twin {twin['structure']} predicts the held-out part "
+            f"{twin['heldout_rms_nm'] / best['heldout_rms_nm']:.3g}× worse than {best['structure']} "
+            f"(RMS), more than a loop widening with the rate can close")
+
+
+def _guess_dynamics(pool: FitPool, rows: list[dict[str, Any]], split: int, options: dict[str, Any], k0: int,
+                    criterion: str, fits: dict[tuple[str, int], ChainModel]) -> None:
+    """While the rate candidates' growth is fitted: queue the ``+dynamics`` score of the best
+    candidate so far (speculative: with one process nothing runs unless it is asked for)."""
+    ok = sorted((r for r in rows if "error" not in r), key=lambda r: _key(r, criterion))
+    if ok:
+        _score(pool, ok[0]["structure"] + "+dynamics", split, options, k0, True, fits=fits, submit_only=True)
+
+
+def _score_dynamics(pool: FitPool, table: list[dict[str, Any]], split: int, options: dict[str, Any], k0: int,
+                    criterion: str, fits: dict[tuple[str, int], ChainModel]) -> None:
+    """Score the ``+dynamics`` candidates (:func:`dynamics_bases`) into ``table``. With
+    worker processes, what usually follows is fitted meanwhile: the first base's folds and
+    its ``+dynamics`` chain on the whole record (the usual winner's refit)."""
+    bases = [r["structure"] for r in dynamics_bases(table, criterion)]
+    for base in bases:
+        _score(pool, base + "+dynamics", split, options, k0, True, fits=fits, submit_only=True)
+    if bases and criterion == "rms":
+        _refit(pool, bases[0] + "+dynamics", _own_growth(options), k0, submit_only=True)
+        for s, e in _fold_splits(pool.shared["u"], k0):
+            _score(pool, bases[0], s, options, k0, end=e, submit_only=True)
+    for base in bases:
+        row, _ = _score(pool, base + "+dynamics", split, options, k0, True, fits=fits)
+        log.info("auto: %s → %s", row["structure"], row)
+        table.append(row)
+    table.sort(key=lambda row: _key(row, criterion))
+
 def select(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates: Sequence[str] = DEFAULT_CANDIDATES,
            holdout_fraction: float = 0.3, options: dict[str, Any] | None = None,
-           fit_from_index: int = 0, criterion: str = "rms", with_dynamics: bool = True,
+           fit_from_index: int = 0, criterion: str = "rms", with_dynamics: bool = True, jobs: int = 1,
            ) -> tuple[ChainModel, list[dict[str, Any]], tuple[Any, ...]]:
     """Score every candidate (module docstring), refit the best on all the data.
 
@@ -346,7 +469,9 @@ def select(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates: Seque
     burn-in: the samples before it only set the models' memory; of the part after it, the
     first ``1 − holdout_fraction`` is fitted and the rest scored (the models run over the
     whole record). ``criterion``: ``rms`` (default) or ``max`` held-out error.
-    ``with_dynamics``: also try the best candidate ``+dynamics`` (module docstring). Returns the
+    ``with_dynamics``: also try the best candidate ``+dynamics`` (module docstring). ``jobs``:
+    worker processes fitting side by side (:class:`~.fit_pool.FitPool`; the same result as
+    one, sooner). Returns the
     best model (its ``selection`` field holds the table, best first), the table and what
     :func:`with_amplifier_stage` needs besides them: ``(t, u, y, split, options, k0, parts)``."""
     t = check_finite("t_s", t_s).ravel()
@@ -369,31 +494,19 @@ def select(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates: Seque
                          "range of the rest; excite the full voltage range early in the record")
     table, candidates = covered_candidates(t[k0:], u[k0:], candidates)
     parts = dynamics_parts(u, t)
-    growth = growth_from_whole(t, u, y, k0, split, candidates, options or {})
-    if growth is not None:
-        options = {**(options or {}), GROWTH_FROM_WHOLE: growth}
-    fits: dict[tuple[str, int], ChainModel] = {}
-    for structure in candidates:
-        row = score_candidate(structure, t, u, y, split, options, k0, parts=parts, fits=fits)
-        log.info("auto: %s → %s", structure, row)
-        table.append(row)
-    table.sort(key=lambda row: _key(row, criterion))
-    if "error" in table[0]:
-        raise ModelError("data: no candidate could be identified; " + "; ".join(
-            f"{r['structure']}: {r['error']}" for r in table))
-    if with_dynamics and not any("dynamics" in parse_structure(c)[1] for c in candidates) \
-            and parts:
-        for base in dynamics_bases(table, criterion):
-            row = score_candidate(base["structure"] + "+dynamics", t, u, y, split, options, k0,
-                                  dynamics_from_whole=True, parts=parts, fits=fits)
-            log.info("auto: %s → %s", row["structure"], row)
-            table.append(row)
-        table.sort(key=lambda row: _key(row, criterion))
-    if criterion == "rms":
-        _extra_folds(table, t, u, y, options, k0, parts)
-        winner = choose(table)
-        table.sort(key=lambda row: (row is not winner, _mean_key(row)))
-    best = _refit_best(table, t, u, y, _own_growth(options), k0)
+    with FitPool(jobs, {"t": t, "u": u, "y": y, "parts": parts}) as pool:
+        dynamics = with_dynamics and bool(parts) and not any("dynamics" in parse_structure(c)[1] for c in candidates)
+        options, fits = _score_static(pool, table, candidates, split, dict(options or {}), k0, criterion, dynamics)
+        if "error" in table[0]:
+            raise ModelError("data: no candidate could be identified; " + "; ".join(
+                f"{r['structure']}: {r['error']}" for r in table))
+        if dynamics:
+            _score_dynamics(pool, table, split, options, k0, criterion, fits)
+        if criterion == "rms":
+            _extra_folds(table, t, u, y, options, k0, parts, pool)
+            winner = choose(table)
+            table.sort(key=lambda row: (row is not winner, _mean_key(row)))
+        best = _refit_best(table, t, u, y, _own_growth(options), k0, pool)
     best.selection = table
     return best, table, (t, u, y, split, options, k0, parts)
 
@@ -477,25 +590,44 @@ def _mean_key(row: dict[str, Any]) -> tuple[float, float]:
     return (float(row.get("mean_rms_nm", row["heldout_rms_nm"])), row["heldout_max_nm"])
 
 
+def _fold_splits(u: np.ndarray, k0: int) -> list[tuple[int, int]]:
+    """The extra folds (:func:`~.selection_folds.fold_bounds`) whose block lies mostly inside
+    the prefix's input range."""
+    return [(s, e) for s, e in fold_bounds(u, k0) if float(np.mean(scored_samples(u[:e], s, k0))) >= 0.5]
+
+
 def _extra_folds(table: list[dict[str, Any]], t: np.ndarray, u: np.ndarray, y: np.ndarray,
-                 options: dict[str, Any] | None, k0: int, parts: list[tuple[int, int]]) -> None:
+                 options: dict[str, Any] | None, k0: int, parts: list[tuple[int, int]],
+                 pool: FitPool | None = None) -> None:
     """Score the leading candidates (main-split RMS within :data:`SCREEN_FACTOR` of the best)
     on the extra folds (:func:`~.selection_folds.fold_bounds`: fit on the prefix, score the
     block after it); each such row gets ``fold_rms_nm`` (the main split's first), their mean
     ``mean_rms_nm`` and ``folds`` (how many). A fold whose block lies mostly outside the
     prefix's input range is skipped for all; a candidate failing a fold is failed.
-    ``parts``: the record's dynamics parts (:func:`score_candidate`)."""
+    ``parts``: the record's dynamics parts (:func:`score_candidate`); ``pool``: where the
+    folds are fitted (:class:`~.fit_pool.FitPool`; all queued first, then collected in order)."""
     ok = [r for r in table if "error" not in r]
     if not ok:
         return
+    if pool is None:
+        with FitPool(1, {"t": t, "u": u, "y": y, "parts": parts}) as own:
+            return _extra_folds(table, t, u, y, options, k0, parts, own)
     best = min(r["heldout_rms_nm"] for r in ok)
     lead = [r for r in ok if r["heldout_rms_nm"] <= SCREEN_FACTOR * best]
     names = {r["structure"] for r in lead}
     lead += [r for r in ok if r["structure"] not in names
              and r["structure"] + "+dynamics" in names]      # the static base of a leading +dynamics
-    folds = [(s, e) for s, e in fold_bounds(u, k0) if float(np.mean(scored_samples(u[:e], s, k0))) >= 0.5]
+    folds = _fold_splits(u, k0)
     by_name = {r["structure"]: r for r in table}
-    for row in sorted(lead, key=lambda r: "dynamics" in r["structure"]):
+    lead.sort(key=lambda r: "dynamics" in r["structure"])
+    opts = options or {}
+    leading = {r["structure"] for r in lead}
+    for row in lead:      # queued first: with worker processes they are fitted side by side
+        dyn = "dynamics" in parse_structure(row["structure"])[1]
+        if not dyn or row["structure"].replace("+dynamics", "") not in leading:
+            for s, e in folds:
+                _score(pool, row["structure"], s, opts, k0, dyn, end=e, submit_only=True)
+    for row in lead:
         rms = [row["heldout_rms_nm"]]
         hyst, stages = parse_structure(row["structure"])
         base = by_name.get(row["structure"].replace("+dynamics", ""))
@@ -507,8 +639,7 @@ def _extra_folds(table: list[dict[str, Any]], t: np.ndarray, u: np.ndarray, y: n
             row["fold_rms_nm"], row["mean_rms_nm"], row["folds"] = rms, round(float(np.mean(rms)), 4), len(rms)
             continue
         for s, e in folds:
-            fold = score_candidate(row["structure"], t, u, y, s, options, k0,
-                                   dynamics_from_whole="dynamics" in stages, end=e, parts=parts)
+            fold, _ = _score(pool, row["structure"], s, opts, k0, "dynamics" in stages, end=e)
             if "error" in fold:
                 row["error"] = f"fold {t[s]:.4g}–{t[e - 1]:.4g} s: {fold['error']}"
                 break
@@ -520,23 +651,42 @@ def _extra_folds(table: list[dict[str, Any]], t: np.ndarray, u: np.ndarray, y: n
         log.info("auto folds: %s → %s", row["structure"], rms)
 
 
+def _refit_task(shared: dict[str, Any], structure: str, options: dict[str, Any], k0: int
+                ) -> tuple[ChainModel | None, str | None]:
+    """A :class:`~.fit_pool.FitPool` task: ``structure`` fitted on the pool's whole record;
+    the model, or None and why it failed (:mod:`.fit_health`)."""
+    t, u, y = shared["t"], shared["u"], shared["y"]
+    dt = float(np.median(np.diff(t)))
+    try:
+        model = _fit(structure, t, u, y, options, k0)
+        pred = model.forward(dt).block(u)
+    except (ModelError, ValueError, np.linalg.LinAlgError) as err:
+        return None, " ".join(str(err).split())
+    e = (pred - y)[k0:]
+    rms = float(np.sqrt(np.mean(e ** 2))) if np.all(np.isfinite(e)) else math.inf
+    reason = failure_reason(model, rms, linear_fit_rms(u[k0:], y[k0:]))
+    return (model, None) if reason is None else (None, reason)
+
+
+def _refit(pool: FitPool, structure: str, options: dict[str, Any], k0: int, submit_only: bool = False) -> Any:
+    key = ("refit", structure)
+    if submit_only:
+        pool.submit(key, _refit_task, structure, options, k0)
+        return None
+    return pool.result(key, _refit_task, structure, options, k0)
+
+
 def _refit_best(table: list[dict[str, Any]], t: np.ndarray, u: np.ndarray, y: np.ndarray,
-                options: dict[str, Any], k0: int) -> ChainModel:
+                options: dict[str, Any], k0: int, pool: FitPool | None = None) -> ChainModel:
     """Re-identify the selected candidate on the whole record; when that fit fails
     (:mod:`.fit_health`) the row says so and the next candidate is refitted instead."""
-    dt = float(np.median(np.diff(t)))
+    if pool is None:
+        with FitPool(1, {"t": t, "u": u, "y": y}) as own:
+            return _refit_best(table, t, u, y, options, k0, own)
     for row in [r for r in table if "error" not in r]:
-        try:
-            model = _fit(row["structure"], t, u, y, options, k0)
-            pred = model.forward(dt).block(u)
-        except (ModelError, ValueError, np.linalg.LinAlgError) as err:
-            reason: str | None = " ".join(str(err).split())
-        else:
-            e = (pred - y)[k0:]
-            rms = float(np.sqrt(np.mean(e ** 2))) if np.all(np.isfinite(e)) else math.inf
-            reason = failure_reason(model, rms, linear_fit_rms(u[k0:], y[k0:]))
-            if reason is None:
-                return model
+        model, reason = _refit(pool, row["structure"], options, k0)
+        if model is not None:
+            return model
         row["error"] = f"refitted on the whole record: {reason}"
         log.warning("auto: %s failed when refitted on the whole record: %s", row["structure"], reason)
     raise ModelError("data: no candidate could be identified; " + "; ".join(

@@ -242,3 +242,22 @@ def user_style_record(slew_V_per_s: float, fs: float = 50_000.0, u_max: float = 
     parts += [np.linspace(0.0, mid, int(0.5 * fs)), mid + amp * np.sin(2 * np.pi * (np.exp(k * t) - 1.0) / k),
               np.linspace(mid, 0.0, int(0.5 * fs))]
     return np.concatenate(parts)
+
+
+def pi_with_a_mode_record() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``afmctl excite --kind all`` (0–100 V at 5 kHz, short) through a four-play PI loop and
+    one 400 Hz mode: t [s], u [V], y [nm]; a record whose ``auto`` selects a ``+dynamics``
+    chain in a few seconds."""
+    from afmctl.compensators.chain import ChainModel
+    from afmctl.compensators.dynamics import LinearDynamicsModel
+    from afmctl.compensators.pi import PIModel
+    from afmctl.data.excitation import ExcitationSpec, excitation
+
+    spec = ExcitationSpec(u_min_V=0.0, u_max_V=100.0, rate_Hz=5000.0, dwell_s=0.3, gap_s=0.1, periods=2,
+                          f_min_Hz=20.0, sweep_V_per_s=400.0)
+    u = excitation("all", spec)
+    t = np.arange(u.size) / spec.rate_Hz
+    plant = ChainModel(hysteresis=PIModel(thresholds=[0.0, 20.0, 40.0, 60.0], weights=[60.0, 15.0, 10.0, 5.0],
+                                          initial_state=[0.0] * 4),
+                       dynamics=LinearDynamicsModel.from_modes([(400.0, 0.05)]))
+    return t, u, plant.forward(1.0 / spec.rate_Hz).block(u)

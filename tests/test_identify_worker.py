@@ -38,6 +38,25 @@ def test_the_worker_returns_the_model_identify_gives_in_the_callers_process(tmp_
     assert there.rms_nm == here.rms_nm and np.array_equal(there.y_fit_nm, here.y_fit_nm)
 
 
+def test_handed_the_recordings_arrays_the_worker_gives_the_model_of_its_csv(tmp_path):
+    """``afmctl calibrate`` hands the worker the arrays and writes the CSV while it fits: the
+    file holds the same values (full float precision), so the model is the file's; a
+    failure is one line, as from the file."""
+    from afmctl.data.datafiles import read_csv
+    csv = _recording(tmp_path / "rec.csv")
+    cols = read_csv(csv, ("t", "u", "y"))
+    with IdentifyWorker() as worker:
+        worker.submit("x", "auto", csv, {"candidates": ["pi", "preisach"], "jobs": 2},
+                      columns={k: np.asarray(v) for k, v in cols.items()})
+        there = worker.result("x")
+        worker.submit("bad", "pi", csv, {"burn_in": "100"}, columns={k: np.asarray(v) for k, v in cols.items()})
+        with pytest.raises(AfmctlError) as err:
+            worker.result("bad")
+    here = identify("auto", csv, candidates=["pi", "preisach"])
+    assert there.model.model_dump_json() == here.model.model_dump_json()
+    assert "--burn-in: 100 s is outside" in str(err.value) and "\n" not in str(err.value)
+
+
 def test_a_failed_fit_comes_back_as_one_line_and_the_worker_goes_on(tmp_path):
     csv = _recording(tmp_path / "rec.csv")
     with IdentifyWorker() as worker:

@@ -10,7 +10,7 @@ from afmctl.compensators.preisach import PreisachModel
 from afmctl.compensators.preisach_identify import prior_basis
 from afmctl.compensators.selection import dynamics_bases, select_model
 from afmctl.compensators.selection_folds import MARGIN, choose, complexity, cycle_starts, fold_bounds
-from plants import RelayPreisachPlant
+from plants import RelayPreisachPlant, pi_with_a_mode_record
 
 
 def _row(structure: str, folds: list[float]) -> dict:
@@ -174,18 +174,8 @@ def test_a_dynamics_candidate_starts_from_its_static_bases_fit_not_a_second_one(
     the base's own row has made already: the selection keeps it rather than fitting the
     same thing twice (the E-727 calibrate recording: 2.6 s of 46 s)."""
     from afmctl.compensators import selection
-    from afmctl.compensators.chain import ChainModel
-    from afmctl.compensators.dynamics import LinearDynamicsModel
-    from afmctl.data.excitation import ExcitationSpec, excitation
 
-    spec = ExcitationSpec(u_min_V=0.0, u_max_V=100.0, rate_Hz=5000.0, dwell_s=0.3, gap_s=0.1, periods=2,
-                          f_min_Hz=20.0, sweep_V_per_s=400.0)
-    u = excitation("all", spec)
-    t = np.arange(u.size) / spec.rate_Hz
-    plant = ChainModel(hysteresis=PIModel(thresholds=[0.0, 20.0, 40.0, 60.0], weights=[60.0, 15.0, 10.0, 5.0],
-                                          initial_state=[0.0] * 4),
-                       dynamics=LinearDynamicsModel.from_modes([(400.0, 0.05)]))
-    y = plant.forward(1.0 / spec.rate_Hz).block(u)
+    t, u, y = pi_with_a_mode_record()
     fitted: list[tuple[str, int]] = []
     real_fit = selection._fit
 

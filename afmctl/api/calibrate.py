@@ -57,6 +57,9 @@ log = logging.getLogger(__name__)
 VALIDATION_S, MAX_VALIDATION_LINES = 2.0, 100
 #: the nested minor loops' amplitudes, as shares of the range
 MINOR_LOOPS = (1.0, 0.8, 0.6, 0.4, 0.2)
+#: ``auto``'s worker processes (``jobs``), unless the caller's params name them: the same
+#: model, sooner (the E-727's calibrate recording: see docs/BENCHMARKS.md)
+FIT_JOBS = 2
 
 
 @dataclass
@@ -237,6 +240,7 @@ class Calibration:
                               "set output = 'wave' (gcs, nv200 or can)")
         with contextlib.ExitStack() as worker:
             worker.callback(self._close_worker)
+            self._start_worker()               # its imports while the excitation plays
             with contextlib.ExitStack() as stack:
                 amp = configured_amplifier(stack, self.config)
                 plans, signals, spec = self.plans(amp)
@@ -314,15 +318,20 @@ class Calibration:
         return rec, _slice(both, split, len(both.t_s)), minor
 
     def _fit_later(self, axis: str, rec: Joined) -> None:
-        """Write the axis's recording and start its identification in the worker process
-        (:mod:`.identify_worker`): it runs while the validation and the other axes play."""
-        from .identify_worker import IdentifyWorker
+        """Start the axis's identification in the worker process (:mod:`.identify_worker`),
+        handing it the recording's arrays, then write the recording: the fit runs while the
+        file is written and the validation and the other axes play."""
         self.report_dir.mkdir(parents=True, exist_ok=True)
-        write_csv(self.csv_path(axis), rec.columns())
+        self._start_worker()
+        params = {"jobs": FIT_JOBS, **self.params} if self.kind == "auto" else self.params
+        self._worker.submit(axis, self.kind, self.csv_path(axis), params, rec.columns())
+        self.fitting.append(axis)
+        write_csv(self.csv_path(axis), rec.columns())    # the same values, while the fit runs
+
+    def _start_worker(self) -> None:
+        from .identify_worker import IdentifyWorker
         if self._worker is None:
             self._worker = IdentifyWorker()
-        self._worker.submit(axis, self.kind, self.csv_path(axis), self.params)
-        self.fitting.append(axis)
 
     def _close_worker(self) -> None:
         if self._worker is not None:

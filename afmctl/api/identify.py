@@ -65,6 +65,9 @@ class Names:
     chain: str = "kind {kind!r}"
 
 
+#: ``jobs`` of ``auto``: at most this many worker processes
+MAX_JOBS = 16
+
 OPTIONS = Names("--param", "--param ", "--y-unit", "--operators", "--burn-in none", "--model {kind}")
 
 
@@ -80,7 +83,7 @@ def identify(kind: str, data: str | Path | None = None, *, t_s: np.ndarray | Non
              u_V: np.ndarray | None = None, y_nm: np.ndarray | None = None, v_V: np.ndarray | None = None,
              n_operators: int | None = None,
              y_unit: str = "nm", burn_in: str = "auto", delay: str = "auto", despike: bool = True,
-             **params: Any) -> Identified:
+             name: str | None = None, **params: Any) -> Identified:
     """Fit ``kind`` (pi, epi, creep, preisach, bouc-wen, rate-pi, rate-bouc-wen, dynamics, amplifier,
     ``[amplifier+]KIND[+creep][+dynamics]`` or ``auto``) to a CSV file ``data`` (columns t,u,y
     and, when the recording has it, v: the piezo voltage [V]) or to arrays ``t_s``, ``u_V``,
@@ -88,9 +91,11 @@ def identify(kind: str, data: str | Path | None = None, *, t_s: np.ndarray | Non
     piezo voltage identifies an amplifier stage before the hysteresis from it. ``burn_in``: ``auto`` (until the input has passed
     both extremes), ``none`` or seconds; ``delay``: ``auto`` or seconds; ``params``: the
     kind's options (``afmctl identify --help``, ``--param``), for auto also ``candidates``,
-    ``holdout_fraction``, ``criterion``, ``with_dynamics``."""
+    ``holdout_fraction``, ``criterion``, ``with_dynamics`` and ``jobs`` (worker processes
+    fitting the candidates side by side, at most :data:`MAX_JOBS`; the same model as one).
+    ``name``: what messages call the arrays (default ``data``; a CSV is called by its path)."""
     c, where = prepare(kind, data, t_s=t_s, u_V=u_V, y_nm=y_nm, v_V=v_V, n_operators=n_operators, y_unit=y_unit,
-                       burn_in=burn_in, delay=delay, despike=despike)
+                       burn_in=burn_in, delay=delay, despike=despike, name=name)
     return fit(kind, c, where, n_operators, params)
 
 
@@ -103,7 +108,7 @@ def prepare(kind: str, data: str | Path | None = None, *, t_s: np.ndarray | None
             u_V: np.ndarray | None = None, y_nm: np.ndarray | None = None, v_V: np.ndarray | None = None,
             n_operators: int | None = None,
             y_unit: str = "nm", burn_in: str = "auto", delay: str = "auto", despike: bool = True,
-            names: Names = Names()) -> tuple[Conditioned, str]:
+            names: Names = Names(), name: str | None = None) -> tuple[Conditioned, str]:
     """The first step of :func:`identify`: the options checked, the recording read (a CSV
     path, or arrays t [s], u [V], y [``y_unit``]) and conditioned as ``kind`` needs it
     (:func:`afmctl.data.identdata.condition`); returns it and the name errors give it."""
@@ -118,6 +123,7 @@ def prepare(kind: str, data: str | Path | None = None, *, t_s: np.ndarray | None
             delay = "0"
         uniform = getattr(cls, "time_dependent", False)
     t, u, y, v, where = _inputs(data, t_s, u_V, y_nm, v_V)
+    where = name or where
     return condition(t, u, y * Y_UNITS[y_unit], where, burn_in=burn_in, delay=delay, despike=despike,
                      uniform=uniform, dynamics_delay=kind == "auto" or "dynamics" in kind, v_V=v), where
 
@@ -245,9 +251,13 @@ def _chain(kind: str, c: Conditioned, n_operators: int | None, params: dict[str,
             if criterion not in CRITERIA:
                 raise AfmctlError(f"{names.option}criterion: {criterion!r}; allowed {', '.join(CRITERIA)} "
                                   "(held-out error)")
+            jobs = opts.pop("jobs", 1)
+            if isinstance(jobs, bool) or not isinstance(jobs, int) or not 1 <= jobs <= MAX_JOBS:
+                raise AfmctlError(f"{names.option}jobs: {jobs!r}; allowed a whole number 1 … {MAX_JOBS} "
+                                  "(worker processes fitting the candidates side by side)")
             extra = {"candidates": tuple(candidates)} if candidates else {}
             model, table = select_model(t, u, y, holdout_fraction=holdout, options=opts, fit_from_index=k,
-                                        criterion=criterion, with_dynamics=with_dynamics, v_V=v, **extra)
+                                        criterion=criterion, with_dynamics=with_dynamics, v_V=v, jobs=jobs, **extra)
         else:
             parse_structure(kind)
             model = ChainModel.identify(t, u, y, structure=kind, fit_from_index=k, v_V=v, **opts)

@@ -26,9 +26,11 @@ POLL_S = 0.2
 
 
 def serve(conn: Any) -> None:
-    """The worker's loop: ``(key, kind, csv, params)`` in, ``(key, ok, result or error)`` out,
-    until ``None`` or the caller's end of the pipe closes. Ctrl-C is the caller's to handle
-    (it ends this process when it stops)."""
+    """The worker's loop: ``(key, kind, csv, params, columns)`` in, ``(key, ok, result or
+    error)`` out, until ``None`` or the caller's end of the pipe closes. ``columns``: the
+    recording's ``t,u,y[,v]`` arrays, the values the CSV ``csv`` holds (it is written to the
+    full float precision, :func:`~afmctl.data.datafiles.write_csv`); None: read the CSV.
+    Ctrl-C is the caller's to handle (it ends this process when it stops)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     from .identify import identify
     while True:
@@ -38,9 +40,13 @@ def serve(conn: Any) -> None:
             return
         if job is None:
             return
-        key, kind, csv, params = job
+        key, kind, csv, params, columns = job
         try:
-            conn.send((key, True, identify(kind, csv, **params)))
+            if columns is None:
+                conn.send((key, True, identify(kind, csv, **params)))
+            else:
+                conn.send((key, True, identify(kind, t_s=columns["t"], u_V=columns["u"], y_nm=columns["y"],
+                                               v_V=columns.get("v"), name=csv, **params)))
         except Exception as err:            # noqa: BLE001 - every failure goes back as one line
             conn.send((key, False, err if isinstance(err, AfmctlError) else AfmctlError(" ".join(str(err).split()))))
 
@@ -59,9 +65,12 @@ class IdentifyWorker:
         self._done: dict[str, tuple[bool, Any]] = {}
         self._running = 0                   # jobs submitted and not answered
 
-    def submit(self, key: str, kind: str, csv: str | Path, params: dict[str, Any]) -> None:
-        """Fit ``kind`` to the recording ``csv`` with ``params`` (as ``identify``)."""
-        self._conn.send((key, kind, str(csv), dict(params)))
+    def submit(self, key: str, kind: str, csv: str | Path, params: dict[str, Any],
+               columns: dict[str, Any] | None = None) -> None:
+        """Fit ``kind`` to the recording ``csv`` with ``params`` (as ``identify``); with
+        ``columns`` (its ``t,u,y[,v]`` arrays, exactly what the CSV holds) the fit need not
+        wait for the file, and reads none."""
+        self._conn.send((key, kind, str(csv), dict(params), columns))
         self._running += 1
 
     def result(self, key: str, stop: Callable[[], bool] | None = None) -> Any:

@@ -96,7 +96,8 @@ Model kinds (--model):
             scored behind it (amplifier+…), and the best is kept if it predicts the
             held-out part better.
             --param 'candidates=["pi","preisach+creep"]', holdout_fraction=0.3,
-            criterion=rms|max, with_dynamics=false
+            criterion=rms|max, with_dynamics=false, jobs=2 (fit the candidates in two
+            worker processes: the same model, about half the time on two cores)
 Real recordings (--data):
   --burn-in auto    samples until the input has passed both its extremes only set the model's
                     memory (the state the recording started in is unknown); 'none' or SECONDS

@@ -88,8 +88,8 @@ def _plain_table(body: str, n_cols: int) -> np.ndarray | None:
     ends = np.flatnonzero(raw == ord("\n"))
     if ends.size == 0 or ends[-1] != raw.size - 1:
         ends = np.append(ends, raw.size)                    # a last line without its newline
-    commas = np.concatenate([[0], np.cumsum(raw == ord(","))])
-    per_line = np.diff(commas[np.concatenate([[0], ends])])
+    commas = np.flatnonzero(raw == ord(","))              # each line's commas: those before its end
+    per_line = np.diff(np.concatenate([[0], np.searchsorted(commas, ends)]))
     if per_line.size == 0 or np.any(per_line != n_cols - 1):
         return None                                         # ragged rows or blank lines
     with warnings.catch_warnings():
@@ -142,6 +142,10 @@ def _check_time(p: Path, t: np.ndarray, name: str, strictly_increasing: bool) ->
                           f"row {i + 3} ({float(t[i + 1])!r}) follows {float(t[i])!r}")
 
 
+#: rows :func:`write_csv` formats at a time
+WRITE_ROWS = 65536
+
+
 def write_csv(path: str | Path, columns: Mapping[str, np.ndarray]) -> None:
     """Write equal-length arrays as a CSV with a header (full float precision)."""
     names = list(columns)
@@ -152,10 +156,10 @@ def write_csv(path: str | Path, columns: Mapping[str, np.ndarray]) -> None:
     p = Path(path)
     try:
         with p.open("w", newline="", encoding="utf-8") as f:
-            w = csv.writer(f)
-            w.writerow(names)
-            for row in zip(*arrays):
-                w.writerow([repr(float(v)) for v in row])
+            csv.writer(f).writerow(names)
+            for k in range(0, n.pop(), WRITE_ROWS):     # the rows csv.writer would write, a block at a time
+                cells = [map(repr, a[k:k + WRITE_ROWS].tolist()) for a in arrays]
+                f.write("".join(",".join(row) + "\r\n" for row in zip(*cells)))
     except OSError as err:
         raise AfmctlError(f"{p}: cannot write ({err.strerror})") from None
 
