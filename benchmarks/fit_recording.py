@@ -21,3 +21,28 @@ def recording(args: argparse.Namespace, tmp: Path) -> Path:
         import speed_ladder as sl
         args.recording = sl.record("all", 50_000, tmp)
     return args.recording
+
+
+def interleaved(variants: dict, reps: int) -> tuple[dict, dict]:
+    """Each of ``variants`` (name → a function returning a fitted model) timed ``reps``
+    times, the variants interleaved (a noisy machine loads them alike): the times [s] per
+    variant and each variant's last model as JSON."""
+    import time
+    times: dict = {v: [] for v in variants}
+    models: dict = {}
+    for _ in range(reps):
+        for name, fit in variants.items():
+            t0 = time.perf_counter()
+            model = fit()
+            times[name].append(time.perf_counter() - t0)
+            models[name] = model.model_dump_json()
+    return times, models
+
+
+def report(what: str, times: dict, models: dict, reps: int) -> None:
+    """Print the two variants' medians, their ratio (first / second) and whether their
+    models are the same to the last bit."""
+    import statistics
+    (a_name, a), (b_name, b) = ((v, statistics.median(t)) for v, t in times.items())
+    print(f"{what}: {a_name} {a:.1f} s, {b_name} {b:.1f} s (medians of {reps}, interleaved); ratio {a / b:.2f}x")
+    print("the two models are " + ("the same to the last bit" if len(set(models.values())) == 1 else "DIFFERENT"))

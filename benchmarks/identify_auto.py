@@ -11,10 +11,8 @@ and whether the two models are the same to the last bit (they must be).
 """
 from __future__ import annotations
 
-import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -36,27 +34,23 @@ BEFORE = {"_corner_prefix_fast": lambda M, L: pid._corner_prefix(M, L), "_smooth
 VARIANTS = {"numpy (before)": BEFORE, "compiled (now)": NOW}
 
 
+def _with(funcs: dict, recording: Path):
+    """``identify auto`` with the Preisach fit's functions ``funcs`` in place: its model."""
+    for attr, f in funcs.items():
+        setattr(pid, attr, f)
+    return identify("auto", recording).model
+
+
 def main(argv: list[str] | None = None) -> int:
     args = fit_recording.parse_args(__doc__.split("\n\n")[0], argv)
     with tempfile.TemporaryDirectory() as tmp:
         fit_recording.recording(args, Path(tmp))
         identify("auto", args.recording)            # compile/load every kernel outside the timing
-        times: dict[str, list[float]] = {v: [] for v in VARIANTS}
-        models: dict[str, str] = {}
-        for _ in range(args.reps):
-            for name, funcs in VARIANTS.items():
-                for attr, f in funcs.items():
-                    setattr(pid, attr, f)
-                t0 = time.perf_counter()
-                fit = identify("auto", args.recording)
-                times[name].append(time.perf_counter() - t0)
-                models[name] = fit.model.model_dump_json()
+        times, models = fit_recording.interleaved({name: (lambda funcs=funcs: _with(funcs, args.recording))
+                                                   for name, funcs in VARIANTS.items()}, args.reps)
         for attr, f in NOW.items():
             setattr(pid, attr, f)
-    a, b = (statistics.median(times[v]) for v in VARIANTS)
-    print(f"identify --model auto on {args.recording}: before {a:.1f} s, now {b:.1f} s "
-          f"(medians of {args.reps}, interleaved); ratio {a / b:.2f}x")
-    print("the two models are " + ("the same to the last bit" if len(set(models.values())) == 1 else "DIFFERENT"))
+    fit_recording.report(f"identify --model auto on {args.recording}", times, models, args.reps)
     return 0
 
 

@@ -459,6 +459,7 @@ def _score_dynamics(pool: FitPool, table: list[dict[str, Any]], split: int, opti
         table.append(row)
     table.sort(key=lambda row: _key(row, criterion))
 
+
 def select(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates: Sequence[str] = DEFAULT_CANDIDATES,
            holdout_fraction: float = 0.3, options: dict[str, Any] | None = None,
            fit_from_index: int = 0, criterion: str = "rms", with_dynamics: bool = True, jobs: int = 1,

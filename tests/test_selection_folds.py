@@ -206,3 +206,20 @@ def test_behind_an_amplifier_stage_the_winner_and_the_next_dynamics_candidate_ar
              {"structure": "amplifier+pi+dynamics", "heldout_rms_nm": 10.0}]
     assert amplifier_structures("preisach+dynamics", table) == ["preisach+dynamics", "preisach+creep+dynamics"]
     assert amplifier_structures("pi+dynamics", table[:3]) == ["pi+dynamics", "preisach+dynamics"]
+
+
+def test_a_rate_candidate_is_not_tried_when_its_bouc_wen_twin_is_far_from_the_best():
+    """#38: the rate twin scales its Bouc–Wen twin's loop by at most the growth the record
+    shows; when that twin is over RATE_REACH × the best candidate's held-out RMS it cannot
+    win, and its whole-record growth fit (the costliest candidate) is spared; the row says
+    why. A twin that failed, or is missing, leaves it tried."""
+    from afmctl.compensators.selection import RATE_REACH, _out_of_reach
+
+    rows = {"preisach+creep": _scored("preisach+creep", 11.9), "bouc-wen+creep": _scored("bouc-wen+creep", 242.3)}
+    reason = _out_of_reach("rate-bouc-wen+creep", rows)
+    assert reason.startswith("not tried: its Bouc–Wen twin bouc-wen+creep") and "20.4×" in reason
+    rows["bouc-wen+creep"] = _scored("bouc-wen+creep", 0.99 * RATE_REACH * 11.9)
+    assert _out_of_reach("rate-bouc-wen+creep", rows) is None
+    rows["bouc-wen+creep"] = _scored("bouc-wen+creep", 0.0, error="fit failed")
+    assert _out_of_reach("rate-bouc-wen+creep", rows) is None
+    assert _out_of_reach("rate-bouc-wen", rows) is None            # no bouc-wen row
