@@ -325,8 +325,8 @@ class Calibration:
         self._start_worker()
         params = {"jobs": FIT_JOBS, **self.params} if self.kind == "auto" else self.params
         self._worker.submit(axis, self.kind, self.csv_path(axis), params, rec.columns())
-        self.fitting.append(axis)
         write_csv(self.csv_path(axis), rec.columns())    # the same values, while the fit runs
+        self.fitting.append(axis)      # written whole: a stop from here on keeps this file
 
     def _start_worker(self) -> None:
         from .identify_worker import IdentifyWorker
