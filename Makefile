@@ -43,11 +43,13 @@ demo: $(RUNTIME_STAMP)
 # (--dist loadfile: module fixtures built once; the longest files start first, tests/conftest.py).
 # One BLAS thread per worker: two workers with two OpenBLAS threads each oversubscribed the 2 cores
 # (the unseen-plant and image-dynamics fixtures side by side: 71 s with, 47 s without).
+# For the same reason afmctl calibrate fits in one process here (AFMCTL_FIT_JOBS=1; two by
+# default): tests/test_fit_pool.py and tests/test_identify_worker.py ask for two themselves.
 # PYTEST_WORKERS=0: one process.
 PYTEST_WORKERS ?= 2
 test: $(TEST_STAMP)
 	$(BIN)/python tools/typecheck.py
-	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 AFMCTL_FIT_JOBS=1 $(BIN)/python -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile
 
 typecheck: $(TEST_STAMP)
 	$(BIN)/python tools/typecheck.py

@@ -79,3 +79,16 @@ def test_a_stop_ends_the_wait_and_close_ends_a_fit_still_running_at_once(tmp_pat
     worker.close()
     assert time.monotonic() - t0 < 3.0
     assert not worker._proc.is_alive()
+
+
+def test_calibrates_worker_count_comes_from_the_environment_or_is_refused_in_one_line(monkeypatch):
+    from afmctl.api.calibrate import FIT_JOBS, FIT_JOBS_ENV, fit_jobs
+
+    monkeypatch.delenv(FIT_JOBS_ENV, raising=False)
+    assert fit_jobs() == FIT_JOBS == 2
+    monkeypatch.setenv(FIT_JOBS_ENV, "1")
+    assert fit_jobs() == 1
+    for bad in ("0", "two", "99"):
+        monkeypatch.setenv(FIT_JOBS_ENV, bad)
+        with pytest.raises(AfmctlError, match=f"{FIT_JOBS_ENV}: '{bad}'; allowed a whole number 1 … 16"):
+            fit_jobs()

@@ -57,9 +57,26 @@ log = logging.getLogger(__name__)
 VALIDATION_S, MAX_VALIDATION_LINES = 2.0, 100
 #: the nested minor loops' amplitudes, as shares of the range
 MINOR_LOOPS = (1.0, 0.8, 0.6, 0.4, 0.2)
-#: ``auto``'s worker processes (``jobs``), unless the caller's params name them: the same
-#: model, sooner (the E-727's calibrate recording: see docs/BENCHMARKS.md)
+#: ``auto``'s worker processes (``jobs``), unless the caller's params name them or the
+#: environment variable :data:`FIT_JOBS_ENV` does: the same model, sooner (the E-727's
+#: calibrate recording: see docs/BENCHMARKS.md)
 FIT_JOBS = 2
+#: the environment variable that sets :data:`FIT_JOBS` (``make test`` sets 1: its two pytest
+#: workers keep both cores busy already)
+FIT_JOBS_ENV = "AFMCTL_FIT_JOBS"
+
+
+def fit_jobs() -> int:
+    """The ``jobs`` calibrate's ``auto`` runs with (:data:`FIT_JOBS`, :data:`FIT_JOBS_ENV`)."""
+    import os
+    from .identify import MAX_JOBS
+    text = os.environ.get(FIT_JOBS_ENV, "").strip()
+    if not text:
+        return FIT_JOBS
+    if not text.isdigit() or not 1 <= int(text) <= MAX_JOBS:
+        raise AfmctlError(f"{FIT_JOBS_ENV}: {text!r}; allowed a whole number 1 … {MAX_JOBS} "
+                          "(worker processes for the identification)")
+    return int(text)
 
 
 @dataclass
@@ -182,7 +199,8 @@ class Calibration:
         self.config = load_config(config) if isinstance(config, (str, Path)) else config
         self.out = Path(out) if out is not None else None
         self.kind = kind
-        self.params = params
+        # auto's worker processes: an unusable AFMCTL_FIT_JOBS is refused before anything moves
+        self.params = {"jobs": fit_jobs(), **params} if kind == "auto" else params
         self.report_dir = Path(report_dir) if report_dir is not None else (
             self.out.parent if self.out is not None else Path("."))
         self.excitation = dict(excitation or {})
@@ -323,8 +341,7 @@ class Calibration:
         file is written and the validation and the other axes play."""
         self.report_dir.mkdir(parents=True, exist_ok=True)
         self._start_worker()
-        params = {"jobs": FIT_JOBS, **self.params} if self.kind == "auto" else self.params
-        self._worker.submit(axis, self.kind, self.csv_path(axis), params, rec.columns())
+        self._worker.submit(axis, self.kind, self.csv_path(axis), self.params, rec.columns())
         write_csv(self.csv_path(axis), rec.columns())    # the same values, while the fit runs
         self.fitting.append(axis)      # written whole: a stop from here on keeps this file
 

@@ -38,7 +38,8 @@ default the scanner's), afmctl calibrate
      device records it: column v of the recording CSV (t,u,y,v);
   3. identifies a model from that recording as 'afmctl identify --model KIND --data' does
      (--kind, default auto: the held-out selection table is printed), in a process of its
-     own that starts as soon as the excitation is recorded, while the validation plays;
+     own that starts as soon as the excitation is recorded, while the validation plays
+     (auto fits in two worker processes: --param jobs=N or AFMCTL_FIT_JOBS=N to change);
   4. validates it on a second, different play: triangles across the range at the
      configuration's line rate (trajectory.line_rate_Hz) and nested minor loops; prints the
      held-out error in % of the measured span;
