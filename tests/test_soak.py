@@ -62,6 +62,8 @@ def test_a_short_soak_with_one_fault_of_each_kind_holds_every_check(tmp_path):
     assert sorted(k for _, k in plan) == sorted(soak.KINDS)          # one of each kind, in 32 s
     res = subprocess.run([sys.executable, str(BENCH / "soak.py"), *args], capture_output=True, text=True,
                          timeout=220)
+    # a soak that ended before its analysis wrote no soak.json: say why (its output), not only that
+    assert (tmp_path / "soak.json").exists(), (res.returncode, res.stdout[-3000:], res.stderr[-3000:])
     out = json.loads((tmp_path / "soak.json").read_text())
     assert res.returncode == 0, (res.stdout[-3000:], res.stderr[-3000:])
     assert out["violations"] == []
