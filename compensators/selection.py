@@ -386,7 +386,8 @@ def _score_static(pool: FitPool, table: list[dict[str, Any]], candidates: Sequen
         if structure not in rate:
             rows[structure], new = _score(pool, structure, split, options, k0)
             fits.update(new)
-    tried = [c for c in rate if _out_of_reach(c, rows) is None]
+    out_of_reach = {c: _out_of_reach(c, rows) for c in rate}
+    tried = [c for c in rate if out_of_reach[c] is None]
     if tried:
         pool.submit("growth", _growth_task, k0, split, tuple(tried), options)
         if guess:
@@ -395,7 +396,7 @@ def _score_static(pool: FitPool, table: list[dict[str, Any]], candidates: Sequen
         if growth is not None:
             options = {**options, GROWTH_FROM_WHOLE: growth}
     for structure in rate:
-        reason = _out_of_reach(structure, rows)
+        reason = out_of_reach[structure]
         if reason is not None:
             rows[structure] = {"structure": structure, "error": reason}
         else:
@@ -504,10 +505,10 @@ def select(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates: Seque
         if dynamics:
             _score_dynamics(pool, table, split, options, k0, criterion, fits)
         if criterion == "rms":
-            _extra_folds(table, t, u, y, options, k0, parts, pool)
+            _extra_folds(table, t, u, options, k0, pool)
             winner = choose(table)
             table.sort(key=lambda row: (row is not winner, _mean_key(row)))
-        best = _refit_best(table, t, u, y, _own_growth(options), k0, pool)
+        best = _refit_best(table, _own_growth(options), k0, pool)
     best.selection = table
     return best, table, (t, u, y, split, options, k0, parts)
 
@@ -597,22 +598,18 @@ def _fold_splits(u: np.ndarray, k0: int) -> list[tuple[int, int]]:
     return [(s, e) for s, e in fold_bounds(u, k0) if float(np.mean(scored_samples(u[:e], s, k0))) >= 0.5]
 
 
-def _extra_folds(table: list[dict[str, Any]], t: np.ndarray, u: np.ndarray, y: np.ndarray,
-                 options: dict[str, Any] | None, k0: int, parts: list[tuple[int, int]],
-                 pool: FitPool | None = None) -> None:
+def _extra_folds(table: list[dict[str, Any]], t: np.ndarray, u: np.ndarray, options: dict[str, Any] | None,
+                 k0: int, pool: FitPool) -> None:
     """Score the leading candidates (main-split RMS within :data:`SCREEN_FACTOR` of the best)
     on the extra folds (:func:`~.selection_folds.fold_bounds`: fit on the prefix, score the
     block after it); each such row gets ``fold_rms_nm`` (the main split's first), their mean
     ``mean_rms_nm`` and ``folds`` (how many). A fold whose block lies mostly outside the
     prefix's input range is skipped for all; a candidate failing a fold is failed.
-    ``parts``: the record's dynamics parts (:func:`score_candidate`); ``pool``: where the
-    folds are fitted (:class:`~.fit_pool.FitPool`; all queued first, then collected in order)."""
+    ``t`` [s], ``u`` [V]: the record the ``pool`` holds, where the folds are fitted
+    (:class:`~.fit_pool.FitPool`; all queued first, then collected in order)."""
     ok = [r for r in table if "error" not in r]
     if not ok:
         return
-    if pool is None:
-        with FitPool(1, {"t": t, "u": u, "y": y, "parts": parts}) as own:
-            return _extra_folds(table, t, u, y, options, k0, parts, own)
     best = min(r["heldout_rms_nm"] for r in ok)
     lead = [r for r in ok if r["heldout_rms_nm"] <= SCREEN_FACTOR * best]
     names = {r["structure"] for r in lead}
@@ -677,13 +674,9 @@ def _refit(pool: FitPool, structure: str, options: dict[str, Any], k0: int, subm
     return pool.result(key, _refit_task, structure, options, k0)
 
 
-def _refit_best(table: list[dict[str, Any]], t: np.ndarray, u: np.ndarray, y: np.ndarray,
-                options: dict[str, Any], k0: int, pool: FitPool | None = None) -> ChainModel:
-    """Re-identify the selected candidate on the whole record; when that fit fails
+def _refit_best(table: list[dict[str, Any]], options: dict[str, Any], k0: int, pool: FitPool) -> ChainModel:
+    """Re-identify the selected candidate on the whole record the ``pool`` holds; when that fit fails
     (:mod:`.fit_health`) the row says so and the next candidate is refitted instead."""
-    if pool is None:
-        with FitPool(1, {"t": t, "u": u, "y": y}) as own:
-            return _refit_best(table, t, u, y, options, k0, own)
     for row in [r for r in table if "error" not in r]:
         model, reason = _refit(pool, row["structure"], options, k0)
         if model is not None:
