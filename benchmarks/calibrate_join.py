@@ -7,7 +7,7 @@ output), as a user runs it:
 
 1. ``afmctl calibrate --config cal.toml --out cal.json --axes x --kind KIND`` — the
    excitation of ``afmctl excite --kind all`` for the E-727's 0–120 V at ``loop.rate_Hz``
-   (10 kHz), played and recorded in pieces of at most the recorder's 32,768 points, the
+   (10 kHz), played and recorded in pieces of at most the recorder's 87,381 points a signal, the
    pieces joined with the holds between them; its wall time against the excitation's;
 2. the reference: the *same* excitation played in one go through a fresh copy of the
    same simulated scanner (the same device-timed play, the same position sensor sampled at

@@ -329,6 +329,15 @@ class Amplifier(AmplifierInterface):
         chunks raises :class:`RecordingCancelled` between two when ``cancel()`` is true."""
         raise NotImplementedError
 
+    def _record_tables(self) -> int | None:
+        """Record tables sharing the recorder's memory now; None: each signal has its own."""
+        return None
+
+    def _set_record_tables(self, n: int) -> int | None:
+        """Share the recorder's memory among ``n`` tables if the device lets the host;
+        returns the count in force (None: each signal has its own memory)."""
+        return None
+
     def _no_recorder(self) -> RecorderUnavailable:
         return RecorderUnavailable(
             f"{self.name or type(self).__name__} has no data recorder: measure the motion with an external "
@@ -537,6 +546,30 @@ class Amplifier(AmplifierInterface):
         with self._lock:
             self._guard()
             return self._io(self._recorder_capacity, ax, tuple(signals))
+
+    def record_tables(self) -> int | None:
+        """How many record tables share the recorder's memory now, on a device whose memory
+        is shared (the E-727: 262,144 points in equal shares, ``TNR?``); None on one whose
+        signals each have memory of their own (the NV200, the CAN amplifier)."""
+        if not self.has_recorder:
+            raise self._no_recorder()
+        with self._lock:
+            self._guard()
+            return self._io(self._record_tables)
+
+    def set_record_tables(self, n: int) -> int | None:
+        """Share the recorder's memory among ``n`` tables (fewer tables, more points each:
+        :meth:`recorder_capacity` grows) where the device lets the host choose; a device that
+        refuses keeps its tables (logged). Returns the count in force afterwards; None where
+        each signal has memory of its own. Drops any recording armed before."""
+        if not self.has_recorder:
+            raise self._no_recorder()
+        if int(n) < 1:
+            raise LimitError(f"record tables: {n}; allowed: 1 or more")
+        with self._lock:
+            self._guard()
+            self._recorder_setup = None
+            return self._io(self._set_record_tables, int(n))
 
     def configure_recorder(self, axes: Sequence[str] | None = None, *, points: int, divider: int = 1,
                            signals: Sequence[str] = ("y_nm", "u_V")) -> RecorderSetup:

@@ -15,6 +15,7 @@ plays the uploaded tables on the controller's servo clock (axis k on generator a
 """
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Sequence
 from typing import Any, cast
 
@@ -29,6 +30,8 @@ from .recording import Recording, RecorderSetup, time_axis
 from .wave_check import WaveStatus, check_table
 from .serial_amp import SerialAmplifier
 from .transport import SerialTransport
+
+log = logging.getLogger(__name__)
 
 _AXES = ("x", "y", "z")
 
@@ -289,6 +292,20 @@ class GCSAmplifier(SerialAmplifier):
         if not (total >= 1 and chans >= 1):
             raise ProtocolError(f"data recorder size {total:g} points / {chans:g} tables is not usable")
         return int(total // chans)
+
+    def _record_tables(self) -> int | None:
+        return rcodec.parse_int(self._query("TNR?"), "TNR?")
+
+    def _set_record_tables(self, n: int) -> int | None:
+        """``SPA 1 0x16000300 n`` (Data Recorder Chan Number, volatile memory; PI's E-727
+        manual: the points go in equal shares to the tables, whose number may be chosen); a
+        controller that refuses it (an error code) keeps its tables."""
+        try:
+            self._send_checked(codec.encode(f"SPA 1 {rcodec.CHAN_NUMBER_PARAM} {int(n)}"))
+        except ProtocolError as err:
+            log.info("%s: the recorder keeps its tables (SPA 1 %s %d refused: %s)", self.name,
+                     rcodec.CHAN_NUMBER_PARAM, n, err)
+        return self._record_tables()
 
     def _configure_recorder(self, setup: RecorderSetup) -> RecorderSetup:
         tables: list[tuple[int, str, int]] = []

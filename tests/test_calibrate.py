@@ -290,8 +290,10 @@ def test_a_lost_link_exits_1_and_keeps_the_partial_recording(tmp_path):
 
 
 def test_a_recorder_too_small_for_the_shortest_piece_is_refused_before_anything_moves(config_file, tmp_path):
+    # a 0.1 Hz multisine period is 100,000 points at 10 kHz: more than the E-727's 262,144
+    # points hold per signal even in three tables
     res = subprocess.run([sys.executable, "-m", "afmctl", "calibrate", "--config", str(config_file),
-                          "--out", str(tmp_path / "x.json"), "--axes", "x", "--f-min-Hz", "0.2"],
+                          "--out", str(tmp_path / "x.json"), "--axes", "x", "--f-min-Hz", "0.1"],
                          capture_output=True, text=True, timeout=300)
     errors = [ln for ln in res.stderr.splitlines() if ln.startswith("afmctl: error:")]
     assert res.returncode == 2 and len(errors) == 1 and "shortest piece" in errors[0], res.stderr[-2000:]

@@ -314,7 +314,7 @@ def _check_readme_tour(work: Path) -> None:
     prov = model["provenance"]
     assert model["kind"] == "scanner" and model["axes"]["x"]["kind"] == "pi"     # x calibrated (SHORTEN: pi)
     assert prov["device"]["driver"] == "gcs" and "E-727" in prov["device"]["identity"]
-    assert prov["recorder_rate_Hz"] == 10000.0 and prov["axes"]["x"]["pieces"] >= 2   # the recorder's 32,768 points
+    assert prov["recorder_rate_Hz"] == 10000.0 and prov["axes"]["x"]["pieces"] >= 2   # the recorder: 87,381 points a signal
     assert set(prov["validation"]["x"]) == {"raster", "minor loops", "all"}
     assert prov["validation"]["x"]["all"]["max_pct"] < 10.0                     # PI on this scanner: ~2 %
     rec = (tour / "scanner.x-recording.csv").read_text().splitlines()

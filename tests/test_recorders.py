@@ -236,6 +236,40 @@ def test_sim_gcs_recorder_refuses_bad_commands_with_gcs_errors(cmd, code):
     assert dev.feed(b"ERR?\n") == f"{code}\n".encode()
 
 
+def test_sim_gcs_recorder_shares_its_points_among_the_tables_the_host_chooses():
+    """``SPA 1 0x16000300 n`` (Data Recorder Chan Number): the 262,144 points in equal shares
+    to n tables (TNR?, SPA?), 1 to 8; the other parameters stay protected (error 60)."""
+    dev = _gcs([0.0])
+    assert dev.feed(b"SPA 1 0x16000300 3\n") == b"" and dev.feed(b"ERR?\n") == b"0\n"
+    assert dev.feed(b"TNR?\n") == b"3\n" and dev.feed(b"SPA? 1 0x16000300\n") == b"1 0x16000300=3\n"
+    assert dev.recorder.max_points == 262_144 // 3
+    dev.feed(b"DRC 4 1 2\n")                                  # table 4 is gone
+    assert dev.feed(b"ERR?\n") == b"17\n"
+    for cmd, code in [(b"SPA 1 0x16000300 9\n", 17), (b"SPA 1 0x16000300 0\n", 17),
+                      (b"SPA 1 0x0E000200 1e-4\n", 60), (b"SPA 1 0x16000300\n", 1)]:
+        dev.feed(cmd)
+        assert dev.feed(b"ERR?\n") == f"{code}\n".encode(), cmd
+    assert dev.feed(b"TNR?\n") == b"3\n"
+
+
+def test_gcs_driver_regroups_the_recorder_and_keeps_its_tables_where_refused():
+    with serve_pty("gcs") as server:
+        with open_amplifier("gcs", server.port) as amp:
+            signals = ("y_nm", "u_V", "v_V")
+            assert amp.record_tables() == 8 and amp.recorder_capacity(["x"], signals) == 32768
+            assert amp.set_record_tables(3) == 3 and amp.recorder_capacity(["x"], signals) == 262_144 // 3
+            amp.configure_recorder(["x"], points=262_144 // 3, signals=signals)      # fits now
+            server.device.record_tables_settable = False        # firmware that protects it: kept
+            assert amp.set_record_tables(8) == 3
+            server.device.record_tables_settable = True
+            assert amp.set_record_tables(8) == 8 and amp.recorder_capacity(["x"], signals) == 32768
+            with pytest.raises(LimitError, match="1 or more"):
+                amp.set_record_tables(0)
+    with serve_pty("nv200") as server:
+        with open_amplifier("nv200", server.port) as amp:
+            assert amp.record_tables() is None and amp.set_record_tables(2) is None
+
+
 def test_sim_gcs_recorder_options_commanded_actual_and_error_from_the_sensor():
     """Option 1 (commanded position, the linear map of the output), 2 (the scanner's sensor)
     and 3 (their difference) on one recording; µm."""

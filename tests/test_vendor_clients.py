@@ -174,6 +174,21 @@ def test_pipython_datarecorder_records_a_wave_from_the_simulated_scanner_sensor(
     assert max(data[0]) - min(data[0]) > 1.0                       # [µm]: the sensor saw the scanner move
 
 
+def test_pipython_sees_the_recorder_shared_among_the_tables_it_chose():
+    """``SPA 1 0x16000300 n`` as PIPython sends it: TNR? and PIPython's own table size
+    (``getmaxnumvalues``: 0x16000200 over 0x16000300) follow; out of range is error 17."""
+    from pipython import GCSError, datarectools
+    with serve_pty("gcs") as server:
+        with _pipython(server.port) as pi:
+            pi.SPA("1", 0x16000300, 3)
+            assert pi.qTNR() == 3 and datarectools.getmaxnumvalues(pi) == 262144 // 3
+            with pytest.raises(GCSError) as err:
+                pi.SPA("1", 0x16000300, 9)
+            assert err.value.val == 17
+            pi.SPA("1", 0x16000300, 8)
+            assert pi.qTNR() == 8 and datarectools.getmaxnumvalues(pi) == 262144 // 8 and pi.qERR() == 0
+
+
 # ------------------------------------------------------------ mdt69x → SimMDT693B
 def test_mdt69x_client_gets_sets_and_reads_limits_on_all_three_axes():
     import mdt69x

@@ -44,7 +44,7 @@ import numpy as np
 from ..control.calibrate_pieces import (Joined, PiecePlan, cut_points, excitation_all, join, plan_pieces,
                                         ramp_priorities, shortest_piece)
 from ..control.calibrate_run import (CalibrationFault, CalibrationRun, CalibrationStopped, Progress, device_capacity,
-                                     readback_rows, recorder_signals)
+                                     readback_rows, recorder_signals, share_recorder)
 from ..data.datafiles import write_csv
 from ..simulation.link import configured_amplifier
 from ..data.excitation import ExcitationSpec
@@ -228,15 +228,21 @@ class Calibration:
     def csv_path(self, axis: str, what: str = "recording") -> Path:
         return self.report_dir / f"{self.stem()}.{axis}-{what}.csv"
 
-    def plans(self, amp: Any) -> tuple[dict[str, PiecePlan], dict[str, tuple[str, ...]], ExcitationSpec]:
+    def plans(self, amp: Any, stack: contextlib.ExitStack | None = None
+              ) -> tuple[dict[str, PiecePlan], dict[str, tuple[str, ...]], ExcitationSpec]:
         """Per axis its pieces and the signals its recorder takes; refused in one line
-        before anything moves when a piece cannot fit."""
-        plans, signals = {}, {}
+        before anything moves when a piece cannot fit. The recorder's memory is shared
+        among as few tables as a piece records (:func:`share_recorder`), put back as it was
+        when ``stack`` closes."""
+        plans = {}
         spec = excitation_spec(self.config, self.axes[0], amp, **self.excitation)
         self.specs = {}
+        signals = {axis: recorder_signals(amp, axis) for axis in self.axes}
+        restore = share_recorder(amp, max(len(s) for s in signals.values()))
+        if restore is not None and stack is not None:
+            stack.callback(restore)
         for axis in self.axes:
             spec = self.specs[axis] = excitation_spec(self.config, axis, amp, **self.excitation)
-            signals[axis] = recorder_signals(amp, axis)
             exc = excitation_all(spec)
             capacity = device_capacity(amp, axis, signals[axis])
             most = readback_rows(amp, signals[axis])
@@ -261,7 +267,7 @@ class Calibration:
             self._start_worker()               # its imports while the excitation plays
             with contextlib.ExitStack() as stack:
                 amp = configured_amplifier(stack, self.config)
-                plans, signals, spec = self.plans(amp)
+                plans, signals, spec = self.plans(amp, stack)
                 run = CalibrationRun(self.config, amp, self.on_progress)
                 self.run_ = run
                 if self._stop_asked:

@@ -150,6 +150,29 @@ def readback_rows(amp: Any, signals: tuple[str, ...]) -> int | None:
     return max(1, int(UNCANCELLED_READBACK_S * bytes_per_s / (NV200_BYTES_PER_VALUE * len(signals))))
 
 
+def share_recorder(amp: Any, tables: int) -> Callable[[], None] | None:
+    """The recorder's memory shared among ``tables`` tables (one per signal a piece records)
+    where the device shares its memory among its tables and lets the host choose how many
+    (the E-727: 262,144 points; 8 tables hold 32,768 each, 3 hold 87,381). Fewer, longer
+    pieces: less time between them and fewer joins. Returns what puts the device's tables
+    back as they were (a link lost by then is logged), None when nothing changed."""
+    from afmctl.drivers.errors import AmplifierError
+    before = amp.record_tables()
+    if before is None or before <= tables:
+        return None
+    now = amp.set_record_tables(tables)
+    if now == before:
+        return None
+    log.info("%s: the recorder's memory shared among %s tables (was %d) for the calibration", amp.name, now, before)
+
+    def restore() -> None:
+        try:
+            amp.set_record_tables(before)
+        except AmplifierError as err:
+            log.warning("%s: the recorder's %d tables were not restored: %s", amp.name, before, err)
+    return restore
+
+
 def streams(amp: Any) -> bool:
     """Whether ``amp`` plays a table by streaming it into a FIFO (CAN) rather than from a
     wave table on the device (GCS, NV200)."""

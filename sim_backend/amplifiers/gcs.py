@@ -27,8 +27,8 @@ from typing import cast
 import numpy as np
 
 from .base import SimDevice, Sink
-from .gcs_recorder import (DATA_REC_CHAN_NUMBER_PARAM, DATA_REC_MAX_POINTS_PARAM, N_TABLES, TOTAL_POINTS,
-                           DataRecorder, RecorderError)
+from .gcs_recorder import (DATA_REC_CHAN_NUMBER_PARAM, DATA_REC_MAX_POINTS_PARAM, TOTAL_POINTS,
+                           DataRecorder, RecorderError, int_token)
 from .gcs_wave import SERVO_CYCLE_S, SERVO_UPDATE_TIME_PARAM, WaveError, WaveGenerator
 
 _AXIS = {"1": "x", "2": "y", "3": "z"}
@@ -54,6 +54,9 @@ class SimGCS(SimDevice):
     ``inject_error(code)`` latches ``code`` (default 302) on the next command."""
 
     protocol = "gcs"
+    #: the host may choose the data recorder's tables (``SPA 1 0x16000300 n``); False: a
+    #: firmware that protects the parameter (error 60)
+    record_tables_settable = True
 
     def __init__(self, sink: Sink | None = None, *, now: Callable[[], float] | None = None,
                  vmin_V: float = 0.0, vmax_V: float = 120.0, servo_cycle_s: float = SERVO_CYCLE_S) -> None:
@@ -221,7 +224,7 @@ class SimGCS(SimDevice):
                 r.event("wgr", self.now())
                 return b""
             if cmd in ("RTR?", "TNR?"):
-                return f"{r.rate if cmd == 'RTR?' else N_TABLES}\n".encode()
+                return f"{r.rate if cmd == 'RTR?' else len(r.tables)}\n".encode()
             if cmd in ("DRC?", "DRT?", "DRL?"):
                 ids = r.ids(args)
                 if cmd == "DRL?":
@@ -343,13 +346,35 @@ class SimGCS(SimDevice):
         except ValueError:
             return self._latch(1)
         known = {SERVO_UPDATE_TIME_PARAM: f"{self.wave.servo_cycle_s:.9g}",
-                 DATA_REC_MAX_POINTS_PARAM: str(TOTAL_POINTS), DATA_REC_CHAN_NUMBER_PARAM: str(N_TABLES)}
+                 DATA_REC_MAX_POINTS_PARAM: str(TOTAL_POINTS),
+                 DATA_REC_CHAN_NUMBER_PARAM: str(len(self.recorder.tables))}
         if args[0] not in _AXIS or param not in known:
             # PI: unknown parameter (54), answered with an empty line (unconfirmed: what a real
             # E-727 sends then; PIPython's getparam() reads the error and carries on)
             self._latch(54)
             return b"\n"
         return self._items([(f"{args[0]} {args[1]}", known[param])])
+
+    def _spa(self, args: list[str]) -> bytes:
+        """``SPA 1 0x16000300 <n>``: the data recorder's tables (1 to 8,
+        :meth:`DataRecorder.set_tables`); the other parameters simulated here are not the
+        host's to change (error 60, protected: command level too low), nor is this one when
+        :attr:`record_tables_settable` is False (a firmware that protects it)."""
+        if len(args) % 3 or not args:
+            return self._latch(1)
+        try:
+            triples = [(item, int(param, 0), value) for item, param, value in zip(args[::3], args[1::3], args[2::3])]
+        except ValueError:
+            return self._latch(1)
+        if any(item not in _AXIS or param != DATA_REC_CHAN_NUMBER_PARAM for item, param, _ in triples) or \
+                not self.record_tables_settable:
+            return self._latch(60)
+        try:
+            for _item, _param, value in triples:
+                self.recorder.set_tables(int_token(value))
+        except RecorderError as err:
+            return self._latch(err.code)
+        return b""
 
     def command(self, line: bytes) -> bytes:
         self.poll()
@@ -364,10 +389,8 @@ class SimGCS(SimDevice):
         cmd, args = tokens[0].upper(), tokens[1:]
         if cmd == "SPA?":
             return self._spa_query(args)
-        if cmd == "SPA":   # the parameters simulated here are not for the host to change
-            if len(args) % 3 or not args:
-                return self._latch(1)
-            return self._latch(60)      # PI: protected parameter (command level too low)
+        if cmd == "SPA":
+            return self._spa(args)
         if cmd == "HPA?":  # the parameters this simulator knows: id= level max-item type group text
             return (b"0x0E000200=\t0\t1\tFLOAT\tservo\tservo update time [s] \n"
                     b"0x16000200=\t0\t1\tINT\tdata recorder\tdata recorder max points \n"

@@ -15,6 +15,10 @@ from PIPython's ``GCSBaseCommands`` / ``gcs2datarectools`` and PI's GCS manuals)
   (``MOV``, ``SVA``, ``WGO``, ``WGR``), 2 the next command (then back to 0), 4 at once;
   ``DRT?`` answers ``<table>=<trigger> <value>``.
 * ``RTR <n>`` / ``RTR?`` — a record point every n servo cycles; ``TNR?`` the record tables;
+  ``SPA 1 0x16000300 <n>`` (Data Recorder Chan Number, 1 to 8) shares the 262,144 points
+  among n tables (PI's E-727 manual: the points are allocated in equal shares to the tables
+  ``TNR?`` counts, and the number of tables may be chosen; *unconfirmed*: the command level
+  a real E-727 asks for it, and whether it keeps the tables' sources, which are reset here);
   ``DRL?`` the points recorded since the last trigger; ``WGR`` restarts recording at the
   next servo tick (it is *unconfirmed* whether a real E-727 waits for the next wave cycle).
 * ``DRR? [<offset> <n> [<table> ...]]`` — the GCS array: header lines ``# key = value``
@@ -40,7 +44,8 @@ from typing import Any
 
 import numpy as np
 
-#: record tables (``TNR?``), total points over all of them (parameter 0x16000200 on E-7xx)
+#: record tables (``TNR?``) at power-on and at most (parameter 0x16000300), total points over
+#: all of them (parameter 0x16000200 on E-7xx)
 N_TABLES = 8
 TOTAL_POINTS = 262_144
 DATA_REC_MAX_POINTS_PARAM = 0x16000200
@@ -85,12 +90,26 @@ class DataRecorder:
         self.channels = channels
         self.rate = 1
         self.max_points = TOTAL_POINTS // N_TABLES
-        self.tables = {t: Table(channels[(t - 1) % len(channels)], 2 if t <= len(channels) else
-                                7 if t <= 2 * len(channels) else 0) for t in range(1, N_TABLES + 1)}
+        self.tables: dict[int, Table] = {}
+        self.set_tables(N_TABLES)
         #: the output voltage [V] per channel in force now
         self._held = {c: 0.0 for c in channels}
         #: the tables whose recording still takes points
         self._filling: list[Table] = []
+
+    def set_tables(self, n: int) -> None:
+        """Share the points among ``n`` record tables (1 to :data:`N_TABLES`; parameter
+        0x16000300): every table back to its power-on source and option, nothing recording."""
+        if not 1 <= n <= N_TABLES:
+            raise RecorderError(17)
+        for tab in self.tables.values():
+            if tab.capture is not None:
+                tab.capture.cancel()
+        c = self.channels
+        self.max_points = TOTAL_POINTS // n
+        self.tables = {t: Table(c[(t - 1) % len(c)], 2 if t <= len(c) else 7 if t <= 2 * len(c) else 0)
+                       for t in range(1, n + 1)}
+        self._filling = []
 
     # -- what the controller tells it --
     def output_changed(self, t_s: float, volts: dict[str, float]) -> None:
@@ -173,7 +192,7 @@ class DataRecorder:
             raise RecorderError(1)
         new = {}
         for tab, src, opt in zip(args[::3], args[1::3], args[2::3]):
-            t, o = _int(tab), _int(opt)
+            t, o = int_token(tab), int_token(opt)
             if t not in self.tables or o not in OPTIONS or (o and src not in self.channels):
                 raise RecorderError(17)
             new[t] = (src, o)
@@ -184,7 +203,7 @@ class DataRecorder:
         if not args or len(args) % 3:
             raise RecorderError(1)
         for tab, trig, value in zip(args[::3], args[1::3], args[2::3]):
-            t, s = _int(tab), _int(trig)
+            t, s = int_token(tab), int_token(trig)
             if (t != 0 and t not in self.tables) or s not in TRIGGERS:
                 raise RecorderError(17)
             for k in (self.tables if t == 0 else [t]):
@@ -193,7 +212,7 @@ class DataRecorder:
     def rtr(self, args: list[str]) -> None:
         if len(args) != 1:
             raise RecorderError(1)
-        n = _int(args[0])
+        n = int_token(args[0])
         if not 1 <= n <= 2**31 - 1:
             raise RecorderError(17)
         self.rate = n
@@ -203,7 +222,7 @@ class DataRecorder:
         self._start([t for t in self.tables.values() if t.trigger == 4 and t.option], now_s)
 
     def ids(self, args: list[str]) -> list[int]:
-        ids = [_int(a) for a in args] or list(self.tables)
+        ids = [int_token(a) for a in args] or list(self.tables)
         if any(t not in self.tables for t in ids):
             raise RecorderError(17)
         return ids
@@ -242,7 +261,8 @@ class DataRecorder:
         return f"{OPTIONS[tab.option]} {tab.source}"
 
 
-def _int(tok: str) -> int:
+def int_token(tok: str) -> int:
+    """A GCS integer argument (``17``, ``17.0``); error 1 (parameter syntax) otherwise."""
     try:
         v = float(tok)
     except ValueError:
