@@ -360,12 +360,13 @@ DEFAULT_DYNAMICS_SOURCE = "static"
 #: stable inverse), then the dynamics again from the new static stages' output ...
 DYNAMICS_REFINEMENTS = 4
 #: ... while the last improved the whole chain's RMS error over the record by at least this
-#: fraction. A round after a smaller gain gained < 0.1 % or made it worse on every record
-#: measured (#38: the E-727 calibrate recording 4.7 % then 0.0 % and 3.3 % then 0.0 %;
-#: two-modes from excite 7.9 % then 0.0 %; amp-first and lumpy-noisy from lab records 2.5 %,
-#: 4.4 %, 8.5 % and 2.5 % then < 0.1 %), and cost as much as the first (5 s of the E-727's
-#: 15 s refit); after a larger one it can still gain (lumpy-noisy: 61 % then 9.5 %)
-REFINE_MIN_GAIN = 0.10
+#: fraction. After a smaller gain the next round gained < 0.2 % or made it worse on every
+#: record measured (#38: the E-727 calibrate recordings 4.7, 3.3, 11.5 and 10.1 % then 0.0 %;
+#: two-modes from excite 7.9 % then 0.0 %; amp-first from excite and from lab records 22 %
+#: and 24 % then 0.0 %, lumpy-noisy 20 % then worse; 2.5–8.5 % then < 0.1 %), and it cost as
+#: much as the first (2–5 s a fit); after a larger one it can still gain (lumpy-noisy: 61 %
+#: then 9.5 % or 2.7 %, amp-first 50 % then 0.8 %)
+REFINE_MIN_GAIN = 0.25
 
 
 def refine_with_dynamics(model: "ChainModel", static: Any, t: np.ndarray, u: np.ndarray, y: np.ndarray, k0: int,
