@@ -91,7 +91,7 @@ class TableSource(LearnedSource):
 def calibration_config(config: Any) -> Any:
     """``config`` as a calibration plays it: no compensation (the model is what it makes),
     the output held at the end of each piece, no reconnect (a lost link ends it), no run log
-    per piece, the settle hold of
+    per piece, the targets handed over in large blocks, the settle hold of
     ``amplifier.settle_s`` (unset: :data:`~afmctl.config.LEARN_SETTLE_S`)."""
     cfg = config.model_copy(deep=True)
     cfg.compensation = CompensationSection()
@@ -99,6 +99,9 @@ def calibration_config(config: Any) -> Any:
     cfg.safety.max_reconnects = 0       # a lost link ends the calibration (what was recorded is kept)
     cfg.runlog.enabled = False
     cfg.zenoh.enabled = False
+    # a wave run collects a piece's targets whole before it plays: in 256-row blocks, eight
+    # ahead, the hand-over took 0.09 s at the first row of an 87,381-row piece
+    cfg.loop.block_samples, cfg.loop.prefetch_blocks = 65536, 1024
     if cfg.amplifier.settle_s is None:
         cfg.amplifier.settle_s = LEARN_SETTLE_S
     return cfg
