@@ -159,11 +159,16 @@ class LinearDynamicsModel(HysteresisModel):
                 initial_nm: float | None = None) -> PreviewInverse:
         """Causal preview inverse target [nm] → static-stage output [nm]. Its output lags
         the target by ``latency_samples`` (the preview; automatic when ``preview_s`` is
-        None: long enough for all but 1e-10 of the inverse's energy)."""
+        None: long enough for all but 1e-10 of the inverse's energy). At rest at
+        ``initial_nm`` [nm] before its first target, or (None) at its first target, as a run
+        starts: the scanner was brought there and held (the approach and the settle hold),
+        and :attr:`initial_nm` is where the identification record began, not where a run
+        does (a run starting 8.5 µm away rang at its first samples and left the hysteresis
+        memory where the model did not expect it). The offline inverse holds its first
+        target before it too."""
         if dt_s is None:
             raise ModelError("dt_s: None; the dynamics model needs a sample period > 0 s")
-        init = self.initial_nm if initial_nm is None else initial_nm
-        return PreviewInverse(self.taps(float(dt_s), preview_s), init)
+        return PreviewInverse(self.taps(float(dt_s), preview_s), initial_nm)
 
     def inverse_offline(self, y_nm: np.ndarray, dt_s: float) -> np.ndarray:
         """Stable non-causal inverse of a whole trajectory ``y_nm`` sampled at ``dt_s``:

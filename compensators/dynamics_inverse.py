@@ -104,9 +104,10 @@ def _taper(n: int, centre: int) -> np.ndarray:
 class PreviewInverse(FIROperator):
     """Causal preview inverse: reads the target ``latency_samples`` ahead, i.e. its output at
     sample k is the input that the plant needs at sample k − latency_samples. Input and
-    output in the unit of the model (nm), at rest at ``initial``."""
+    output in the unit of the model (nm), at rest at ``initial`` (None: at the first target
+    after each reset)."""
 
-    def __init__(self, taps: InverseTaps, initial: float = 0.0, use_numba: bool = True) -> None:
+    def __init__(self, taps: InverseTaps, initial: float | None = 0.0, use_numba: bool = True) -> None:
         super().__init__(taps.taps, initial, use_numba)
         self.latency_samples = int(taps.preview)
         self.bandwidth_Hz = taps.bandwidth_Hz

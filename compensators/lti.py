@@ -174,29 +174,37 @@ class LTIOperator(StreamingOperator):
 
 class FIROperator(StreamingOperator):
     """Streaming FIR filter ``y_k = Σ_j h_j·u_{k−j}`` whose past inputs start at ``initial``
-    (a signal at rest). ``use_numba=False`` runs the plain-Python reference."""
+    (a signal at rest); ``initial=None``: at rest at the first input after each
+    :meth:`reset`. ``use_numba=False`` runs the plain-Python reference."""
 
-    def __init__(self, taps: np.ndarray, initial: float = 0.0, use_numba: bool = True) -> None:
+    def __init__(self, taps: np.ndarray, initial: float | None = 0.0, use_numba: bool = True) -> None:
         self.h = np.ascontiguousarray(taps, dtype=np.float64)
         if self.h.ndim != 1 or self.h.size == 0:
             raise ModelError("taps: need a non-empty 1-D array")
-        self.initial = finite_sample("initial", initial)
+        self.initial = None if initial is None else finite_sample("initial", initial)
         self.use_numba = use_numba
         self.buf = np.zeros(self.h.size)
         self.pos = np.zeros(1, dtype=np.int64)
         self._one = np.empty(1)
+        self._rest = self.initial
         self.reset()
 
     def reset(self) -> None:
         self.buf[:] = 0.0
         self.pos[0] = 0
+        self._rest = self.initial
 
     def block(self, x: np.ndarray) -> np.ndarray:
-        u = block_samples("input", x) - self.initial
+        u = block_samples("input", x)
+        if self._rest is None:
+            if u.size == 0:
+                return u.copy()
+            self._rest = float(u[0])
+        u = u - self._rest
         out = np.empty_like(u)
         kern = K.fir_block_nb if self.use_numba else K.fir_block_py
         kern(u, out, self.h, self.buf, self.pos)
-        return out + self.initial
+        return out + self._rest
 
     def step(self, x: float) -> float:
         self._one[0] = finite_sample("input", x)

@@ -193,6 +193,26 @@ def test_preview_latency_is_reported_and_respected():
         m.inverse(None)
 
 
+def test_a_run_s_inverse_starts_at_rest_at_its_first_target_not_where_the_record_began():
+    """``initial_nm`` is where the identification record began (9550 nm on the E-727's);
+    a run starting at 1000 nm must get a steady command from its first sample (the
+    approach and the settle hold put the scanner there), and a reset takes the next run's
+    first target; ``initial_nm=`` still pins the rest point, step and block agree."""
+    m = scanner_like().model_copy(update={"initial_nm": 9550.0})
+    inv = m.inverse(DT)
+    out = inv.block(np.full(400, 1000.0))
+    np.testing.assert_allclose(out, 1000.0, atol=1e-6)
+    inv.reset()
+    np.testing.assert_allclose(inv.block(np.full(50, -300.0)), -300.0, atol=1e-6)
+    pinned = m.inverse(DT, initial_nm=9550.0).block(np.full(400, 1000.0))
+    assert np.max(np.abs(pinned - 1000.0)) > 100.0          # the transient the default avoids
+    x = 1000.0 + band_limited(2000, 300.0, seed=3)
+    a, b = m.inverse(DT), m.inverse(DT)
+    np.testing.assert_array_equal(a.block(x), np.array([b.step(v) for v in x]))
+    ref = FIROperator(a.h, None, use_numba=False)
+    np.testing.assert_allclose(ref.block(x), m.inverse(DT).block(x), rtol=0, atol=1e-9)
+
+
 def test_identify_recovers_a_known_model():
     true = scanner_like(13e-6)
     dt = 2e-5
