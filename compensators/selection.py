@@ -378,14 +378,13 @@ def _score_static(pool: FitPool, table: list[dict[str, Any]], candidates: Sequen
     (:func:`_guess_dynamics`). Returns ``options`` with that growth and the static fits on the
     training part (a ``+dynamics`` candidate starts from its base's)."""
     rate = [c for c in candidates if parse_structure(c)[0] == "rate-bouc-wen"]
-    for structure in candidates:
-        if structure not in rate:
-            _score(pool, structure, split, options, k0, submit_only=True)
+    others = [c for c in candidates if c not in rate]
+    for structure in others:
+        _score(pool, structure, split, options, k0, submit_only=True)
     rows, fits = {}, {}
-    for structure in candidates:
-        if structure not in rate:
-            rows[structure], new = _score(pool, structure, split, options, k0)
-            fits.update(new)
+    for structure in others:
+        rows[structure], new = _score(pool, structure, split, options, k0)
+        fits.update(new)
     out_of_reach = {c: _out_of_reach(c, rows) for c in rate}
     tried = [c for c in rate if out_of_reach[c] is None]
     if tried:

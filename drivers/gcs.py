@@ -283,7 +283,7 @@ class GCSAmplifier(SerialAmplifier):
     def _recorder_capacity(self, axes: tuple[str, ...], signals: tuple[str, ...]) -> int:
         """Points per record table: the controller's points over its tables (SPA?
         0x16000200 / 0x16000300, as PIPython reads them); 0 when it has too few tables."""
-        tables = rcodec.parse_int(self._query("TNR?"), "TNR?")
+        tables = self._record_tables()
         if tables < len(axes) * len(signals):
             raise LimitError(f"the controller has {tables} record tables (TNR?); {len(axes) * len(signals)} "
                              "are needed for these axes and signals")
@@ -293,7 +293,7 @@ class GCSAmplifier(SerialAmplifier):
             raise ProtocolError(f"data recorder size {total:g} points / {chans:g} tables is not usable")
         return int(total // chans)
 
-    def _record_tables(self) -> int | None:
+    def _record_tables(self) -> int:
         return rcodec.parse_int(self._query("TNR?"), "TNR?")
 
     def _set_record_tables(self, n: int) -> int | None:

@@ -228,7 +228,7 @@ class Calibration:
     def csv_path(self, axis: str, what: str = "recording") -> Path:
         return self.report_dir / f"{self.stem()}.{axis}-{what}.csv"
 
-    def plans(self, amp: Any, stack: contextlib.ExitStack | None = None
+    def plans(self, amp: Any, stack: contextlib.ExitStack
               ) -> tuple[dict[str, PiecePlan], dict[str, tuple[str, ...]], ExcitationSpec]:
         """Per axis its pieces and the signals its recorder takes; refused in one line
         before anything moves when a piece cannot fit. The recorder's memory is shared
@@ -239,7 +239,7 @@ class Calibration:
         self.specs = {}
         signals = {axis: recorder_signals(amp, axis) for axis in self.axes}
         restore = share_recorder(amp, max(len(s) for s in signals.values()))
-        if restore is not None and stack is not None:
+        if restore is not None:
             stack.callback(restore)
         for axis in self.axes:
             spec = self.specs[axis] = excitation_spec(self.config, axis, amp, **self.excitation)

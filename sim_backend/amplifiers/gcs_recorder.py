@@ -89,13 +89,13 @@ class DataRecorder:
         self.model_um = model_um
         self.channels = channels
         self.rate = 1
-        self.max_points = TOTAL_POINTS // N_TABLES
-        self.tables: dict[int, Table] = {}
-        self.set_tables(N_TABLES)
         #: the output voltage [V] per channel in force now
         self._held = {c: 0.0 for c in channels}
         #: the tables whose recording still takes points
         self._filling: list[Table] = []
+        self.tables: dict[int, Table] = {}
+        self.max_points = 0
+        self.set_tables(N_TABLES)
 
     def set_tables(self, n: int) -> None:
         """Share the points among ``n`` record tables (1 to :data:`N_TABLES`; parameter
