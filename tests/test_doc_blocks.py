@@ -322,7 +322,18 @@ def _check_readme_tour(work: Path) -> None:
     data = np.loadtxt(rec[1:], delimiter=",")
     assert np.ptp(data[:, 2]) > 5000.0                       # the sensor saw the scanner sweep the range
     assert 0 < np.max(np.abs(data[:, 3] - data[:, 1])) < 5.0  # the piezo voltage lags the command a little
-    assert (tour / "line.afmwave").exists()
+    # x learned without a creep stage (SHORTEN: pi): every play, the run's too, started
+    # AS_RECORDED_REST_S after the play before it ended (the learn's plays, then the run)
+    from afmctl.control.learned_after import AS_RECORDED_REST_S
+    from afmctl.control.learned_table import load_learned
+    from afmctl.control.runlog import RunLogReader
+    spacing = load_learned(tour / "line.afmwave").as_recorded
+    assert spacing is not None and spacing.axes == ("x",) and spacing.rest_s == AS_RECORDED_REST_S
+    plays = [{e["event"]: e["wall_time"] for e in RunLogReader(f).events()}
+             for f in sorted((tour / "runs").glob("*.afmlog"))]
+    gaps = [b["ramp"] - a["stopped"] for a, b in zip(plays, plays[1:])]
+    assert len(gaps) >= 3 and min(gaps) >= AS_RECORDED_REST_S - 0.05, gaps
+    assert plays[-1]["ramp"] >= spacing.ended_unix_s + AS_RECORDED_REST_S - 0.05
 
 
 #: checks of what a document's blocks wrote, run after them (the clone's folder)

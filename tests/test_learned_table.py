@@ -244,3 +244,66 @@ def test_a_table_learned_as_recorded_says_so_when_played_late(tmp_path):
     with pytest.raises(AfmctlError) as err:
         load_learned(path)
     assert str(path) in str(err.value) and "as_recorded" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_table_learned_as_recorded_keeps_its_rest_and_reads_it_back(tmp_path):
+    """Every play of a table learned as recorded starts ``rest_s`` after the play before it
+    ended: the wait is what is left of that rest, none once it has passed or for a table
+    from before the rest (0 s). The file keeps it; one out of range is one line naming the
+    file and the range."""
+    from afmctl.control.learned_after import AS_RECORDED_FRESH_S, AsRecorded
+    spaced = AsRecorded(("x", "y"), 1000.0, 4.0)
+    assert spaced.wait_s(1001.5) == pytest.approx(2.5)
+    assert spaced.wait_s(1004.5) == 0.0 and spaced.wait_s(990.0) == 4.0     # a clock stepped back: the rest at most
+    assert AsRecorded(("x",), 1000.0).wait_s(1000.0) == 0.0                  # written before the rest: none
+    assert AsRecorded((), 1000.0, 4.0).wait_s(1000.0) == 0.0
+    assert "holding the present output 2.5 s" in spaced.waiting(2.5)
+    cfg = cfg_for(tmp_path, "unused")
+    _, table = learned_file(tmp_path, cfg)
+    path = save_learned(tmp_path / "s.afmwave", make_learned(cfg, table, SPEC.model_dump(mode="json"), [], None, spaced))
+    assert load_learned(path).as_recorded == spaced
+    with np.load(path) as z:
+        arrays = dict(z)
+    meta = json.loads(str(arrays["meta_json"]))
+    meta["as_recorded"]["rest_s"] = 3 * AS_RECORDED_FRESH_S
+    arrays["meta_json"] = np.array(json.dumps(meta))
+    np.savez(path.open("wb"), **arrays)
+    with pytest.raises(AfmctlError) as err:
+        load_learned(path)
+    assert str(path) in str(err.value) and "rest_s must be 0 to 10 s" in str(err.value), err.value
+
+
+@pytest.mark.parametrize("stop", [False, True])
+def test_a_table_learned_as_recorded_starts_after_its_rest(tmp_path, stop):
+    """The run holds the present output until the rest after the learning's last play has
+    passed, then approaches and plays, as every play of the learning did; a stop during
+    that hold ends the run at once, nothing of the table played."""
+    import time
+
+    from afmctl.control.learned_after import AsRecorded
+    with serve_pty("gcs", baud=921600) as srv:
+        cfg = cfg_for(tmp_path, srv.port)
+        _, table = learned_file(tmp_path, cfg)
+        amp = open_driver(cfg, srv.port)
+        ended = time.time()
+        path = save_learned(tmp_path / "s.afmwave", make_learned(cfg, table, SPEC.model_dump(mode="json"), [], None,
+                                                                 AsRecorded(("x",), ended, 1.5)))
+        try:
+            with Controller(cfg, amp) as ctl:
+                ctl.start(LearnedSpec(file=path), runlog_path=tmp_path / "l.afmlog")
+                if stop:
+                    time.sleep(0.5)
+                    ctl.stop()
+                assert ctl.wait(60)
+                stats = ctl.stats()
+        finally:
+            amp.close()
+    events = RunLogReader(tmp_path / "l.afmlog").events()
+    at = {e["event"]: e["wall_time"] for e in events}
+    assert "rest" in at and "learned without a creep stage" in next(e["detail"] for e in events if e["event"] == "rest")
+    assert ctl.state is State.STOPPED, stats
+    if stop:
+        assert "ramp" not in at and stats["wave"]["played"] == 0, (at, stats)
+    else:
+        assert at["ramp"] >= ended + 1.5 - 0.01 and at["ramp"] < at["rest"] + 1.5 + 1.0, at
+        assert stats["wave"]["played"] == len(table)

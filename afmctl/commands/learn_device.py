@@ -32,8 +32,10 @@ on the progress line), so the learned table is right for a play from rest, and a
 takes out what the learning's plays still add when it plays; after the first iteration the
 first table plays once more, and what the scanner moved between its two plays beyond the
 model's term is measured and added to the term. An axis without a creep stage learns from
-its recordings as they are: its table is right for a play soon after the learning's, on
-that device (after a long rest it lands off by the creep the plays left). The creep of each approach ramp still runs during the
+its recordings as they are, each play starting 4 s after the one before ended; afmctl run
+of the learned table holds the present output until 4 s after the learning's last play,
+so its play meets the creep of the plays before it as they did. Played much later (over
+10 s, said in one line) it lands off by the creep the plays left. The creep of each approach ramp still runs during the
 table while the output holds the first row: with amplifier.settle_s unset every play
 holds 2 s first (a shorter hold makes plays repeat less well; afmctl learn says so), and
 the learned table records its hold, which afmctl run then keeps.
@@ -185,6 +187,9 @@ def run_device(args: argparse.Namespace) -> int:
             if part is not None and not seen["part"]:
                 seen["part"] = True
                 print(part, file=sys.stderr, flush=True)
+                spaced = spacing_line(run.player.spaced_axes)
+                if spaced:
+                    print(spaced, file=sys.stderr, flush=True)
             print(progress_line(report), file=sys.stderr, flush=True)
             if publish is not None:
                 publish(report)
@@ -198,6 +203,17 @@ def run_device(args: argparse.Namespace) -> int:
         plot_convergence(run.reports, args.learned_plot)
     print(final_line(args.learned_out, run), file=sys.stderr)
     return 1 if run.reports[-1].state == "fault" else 0
+
+
+def spacing_line(axes: tuple[str, ...]) -> str | None:
+    """The line saying that the plays of axes learned as recorded are spaced
+    (:data:`afmctl.control.learned_after.AS_RECORDED_REST_S`); None without such axes."""
+    from ..control.learned_after import AS_RECORDED_REST_S
+    if not axes:
+        return None
+    return (f"afmctl: learn: {', '.join(axes)} learn without a creep stage, from the recordings as they are: every "
+            f"play starts {AS_RECORDED_REST_S:g} s after the one before ended, and afmctl run of the learned table "
+            f"waits as long after the last, so that each meets the creep of the plays before it alike")
 
 
 #: drivers whose device plays a table on its own clock and records the motion

@@ -22,6 +22,7 @@ import numpy as np
 
 from ..errors import AfmctlError
 from .controller import Controller, State
+from .learned_after import AS_RECORDED_REST_S, AsRecorded
 from .learned_table import LearnedSource, make_learned
 from .wave_plan import WaveTable
 
@@ -130,6 +131,9 @@ class TablePlayer:
         self._stop = threading.Event()
         #: when the last play (its finish ramp) ended, wall clock [s since the epoch]; None before
         self.ended_unix_s: float | None = None
+        #: the axes learned as recorded on a device (:class:`AsRecorded`): each play then
+        #: starts :data:`AS_RECORDED_REST_S` after the one before ended, as ``afmctl run`` does
+        self.spaced_axes: tuple[str, ...] = ()
 
     @property
     def stopping(self) -> bool:
@@ -162,7 +166,8 @@ class TablePlayer:
         if self._stop.is_set():
             return "stopped", "stopped before the play"
         from afmctl.drivers.errors import AmplifierConnectionError, AmplifierTimeout
-        source = LearnedSource(make_learned(self.config, table, self.spec), "the table being learned")
+        source = LearnedSource(make_learned(self.config, table, self.spec, as_recorded=self._spacing()),
+                               "the table being learned")
         ctl = Controller(self.config, self.amp)
         ctl.before_wave_start = lambda: self._set_step(Step.ARM, arm)
         self._ctl = ctl
@@ -189,6 +194,15 @@ class TablePlayer:
         if wave.get("played") != len(table):
             return "stopped", f"stopped during the play ({wave.get('played', 0)} of {len(table)} samples)"
         return None
+
+    def _spacing(self) -> AsRecorded | None:
+        """The rest the next play keeps after the last (the run's approach holds the present
+        output until then: :meth:`AsRecorded.wait_s`); None without as-recorded axes, before
+        the first play, or once the rest has passed."""
+        if not self.spaced_axes or self.ended_unix_s is None:
+            return None
+        spacing = AsRecorded(self.spaced_axes, self.ended_unix_s, AS_RECORDED_REST_S)
+        return spacing if spacing.wait_s() > 0.0 else None
 
     def _set_step(self, step: Step, then: Callable[[], None]) -> None:
         self.step = step

@@ -83,7 +83,7 @@ from .learn_history import (HistoryTerms, PlayTimeline, history_offset_nm, settl
 from .learn_play import (OUTPUT_TOL_V, RecordingRefused, Step, TablePlayer, arm_recorder,  # noqa: F401
                          play_recorded, read_aligned, read_at_sample_start)
 from .learn_setup import MIN_SPAN_NM, SLEW_RESERVE, LearnSetup  # noqa: F401 (re-exported)
-from .learned_after import AFTER_S, AsRecorded, HistoryAfter, corrected_for_history, history_after
+from .learned_after import AFTER_S, AS_RECORDED_REST_S, AsRecorded, HistoryAfter, corrected_for_history, history_after
 from .learned_table import LearnedTable, make_learned
 from .wave_plan import WaveTable, driven_steps_ok
 
@@ -248,6 +248,7 @@ class LearnRun:
             peak = {a: float(np.max(table.u_V[:, "xyz".index(a)])) for a in with_model}
             self.history.timeline = PlayTimeline(self.config, with_model,
                                                  self.setup.present_output(list(with_model)), peak)
+        self.player.spaced_axes = self._as_recorded_axes()
         return out
 
     # ------------------------------------------------------------------ iterations
@@ -277,11 +278,18 @@ class LearnRun:
         """The axes learned on a device from their recordings as they are (no model's creep
         stage), with when the last play ended (:class:`AsRecorded`); None on an in-process
         simulator (every play from rest) or when every axis has a creep stage."""
-        if self.options.rest is not None or self.player.ended_unix_s is None:
+        axes = self._as_recorded_axes()
+        if not axes or self.player.ended_unix_s is None:
             return None
+        return AsRecorded(axes, self.player.ended_unix_s, AS_RECORDED_REST_S)
+
+    def _as_recorded_axes(self) -> tuple[str, ...]:
+        """The learned axes without a model's creep stage, on a device (none on an
+        in-process simulator, where every play starts from rest)."""
+        if self.options.rest is not None:
+            return ()
         timeline = self.history.timeline
-        axes = tuple(a for a in self.book.axes if timeline is None or a not in timeline.now)
-        return AsRecorded(axes, self.player.ended_unix_s) if axes else None
+        return tuple(a for a in self.book.axes if timeline is None or a not in timeline.now)
 
     def replay(self, best: WaveTable) -> ErrorReport | None:
         """Step ``replay``: the learned table played once more as ``afmctl run`` plays it

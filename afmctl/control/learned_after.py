@@ -42,24 +42,48 @@ NEGLIGIBLE_NM = 0.05
 #: 2.2 nm played about 4 s after; runs one after the other: 7.1 nm after 10 s of rest,
 #: 10.2 nm after 30 s; docs/LEARNING.md)
 AS_RECORDED_FRESH_S = 10.0
+#: on a device, a play of a table learned as recorded starts this long [s] after the play
+#: before it ended — every play of ``afmctl learn`` and the ``afmctl run`` after it — so
+#: that each meets the creep of the plays before it at the same age. Back to back (0.25 s
+#: apart) the plays of e727_tcp model-free piled up creep: y's kept column measured
+#: 1.7 → 3.4 → 3.9 nm in three plays and 4.6 nm in the replay, and ``afmctl run`` 2.4 s
+#: later 3.0 nm (2026-11-29, the simulated E-727). Longer than a run's start (~2.4 s from
+#: the end of ``afmctl learn`` to the run's approach), shorter than :data:`AS_RECORDED_FRESH_S`.
+AS_RECORDED_REST_S = 4.0
 
 
 @dataclass(frozen=True)
 class AsRecorded:
     """Axes learned on a device from their recordings as they are (no model's creep stage:
-    :class:`afmctl.control.learn_history.HistoryTerms`), and when the learning's last play
-    ended (``ended_unix_s``, wall clock [s since the epoch])."""
+    :class:`afmctl.control.learn_history.HistoryTerms`), when the learning's last play
+    ended (``ended_unix_s``, wall clock [s since the epoch]) and the rest [s] every play
+    kept after the one before (``rest_s``, :data:`AS_RECORDED_REST_S`; 0 in a table from
+    before it, which asks for no rest)."""
 
     axes: tuple[str, ...]
     ended_unix_s: float
+    rest_s: float = 0.0
+
+    def wait_s(self, now_unix_s: float | None = None) -> float:
+        """How long [s] a play starting now waits so that it starts ``rest_s`` after the
+        last play ended, as the learning's plays did (0 when that has passed)."""
+        if not self.axes:
+            return 0.0
+        now = time.time() if now_unix_s is None else now_unix_s
+        return max(0.0, min(self.rest_s, self.ended_unix_s + self.rest_s - now))
+
+    def waiting(self, wait_s: float) -> str:
+        """The run's line for a wait of ``wait_s`` [s] (:meth:`wait_s`)."""
+        return (f"{', '.join(self.axes)}: learned without a creep stage, with {self.rest_s:g} s of rest after every "
+                f"play; holding the present output {wait_s:.1f} s so that this play starts as they did")
 
     def note(self, now_unix_s: float | None = None) -> str | None:
         """One line for the run when more than :data:`AS_RECORDED_FRESH_S` has passed, else None."""
         elapsed = (time.time() if now_unix_s is None else now_unix_s) - self.ended_unix_s
         if not self.axes or elapsed <= AS_RECORDED_FRESH_S:
             return None
-        return (f"{', '.join(self.axes)}: learned without a creep stage {elapsed:.0f} s ago, for a play right after "
-                f"the learning's: the creep of its plays has moved on since, and the error grows with the wait "
+        return (f"{', '.join(self.axes)}: learned without a creep stage {elapsed:.0f} s ago, for a play "
+                f"{self.rest_s:g} s after the learning's last: the creep of its plays has moved on since, and the error grows with the wait "
                 f"(e727_tcp on the simulated E-727: 2 nm right after, 7 nm after 10 s of rest, 10 nm after 30 s); play it right "
                 f"after afmctl learn, or learn with a model that has a creep stage (afmctl calibrate)")
 

@@ -30,7 +30,7 @@ import numpy as np
 
 from ..config import DEFAULT_SETTLE_S
 from ..errors import AfmctlError
-from .learned_after import AsRecorded, HistoryAfter, corrected_for_history
+from .learned_after import AS_RECORDED_FRESH_S, AsRecorded, HistoryAfter, corrected_for_history
 from .wave_plan import WaveTable
 
 #: file format version written into ``meta_json``
@@ -124,7 +124,8 @@ def save_learned(path: str | Path, learned: LearnedTable) -> Path:
         meta["ended_unix_s"] = learned.after.ended_unix_s
     if learned.as_recorded is not None:
         meta["as_recorded"] = {"axes": list(learned.as_recorded.axes),
-                               "ended_unix_s": learned.as_recorded.ended_unix_s}
+                               "ended_unix_s": learned.as_recorded.ended_unix_s,
+                               "rest_s": learned.as_recorded.rest_s}
     tmp = path.with_name(path.name + ".part")
     try:
         # Any: numpy's stubs would match **arrays against savez's allow_pickle: bool
@@ -177,11 +178,14 @@ def _as_recorded(path: Path, meta: dict[str, Any]) -> AsRecorded | None:
     try:
         axes = tuple(str(a) for a in entry["axes"])
         ended = float(entry["ended_unix_s"])
-    except (KeyError, TypeError, ValueError):
+        rest = float(entry.get("rest_s", 0.0))
+    except (KeyError, TypeError, ValueError, AttributeError):
         raise AfmctlError(f"{path}: as_recorded must hold axes and ended_unix_s") from None
     if not set(axes) <= set("xyz") or not np.isfinite(ended):
         raise AfmctlError(f"{path}: as_recorded: axes must be of x, y, z and ended_unix_s finite")
-    return AsRecorded(axes, ended)
+    if not 0.0 <= rest <= AS_RECORDED_FRESH_S:
+        raise AfmctlError(f"{path}: as_recorded: rest_s must be 0 to {AS_RECORDED_FRESH_S:g} s, not {rest:g}")
+    return AsRecorded(axes, ended, rest)
 
 
 def _after(path: Path, term_nm: np.ndarray | None, meta: dict[str, Any], n: int) -> HistoryAfter | None:

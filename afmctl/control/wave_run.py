@@ -207,6 +207,8 @@ class WaveMachine(LoopMachine):
         self._set_aim(0)
         goal = s.driven_target(table.u_V[0])
         self.next_t_s = self.now_s = time.perf_counter()
+        if not self._rest_after_last_play():
+            return False
         ctl.wave_times["approach"] = time.monotonic()
         ctl._event("ramp", "ramping from the present output to the wave's first sample")
         reached: bool | None = False
@@ -223,6 +225,26 @@ class WaveMachine(LoopMachine):
         ctl.wave_times["settle"] = t_settle = time.monotonic()
         ctl._event("settle", f"at the wave's first sample; holding it {settle_s:g} s before the table starts")
         return self._device_hold(t_settle, settle_s)
+
+    def _rest_after_last_play(self) -> bool:
+        """A table learned as recorded on a device starts as long after the last play as
+        every play of its learning did (:meth:`afmctl.control.learned_after.AsRecorded.wait_s`):
+        the host holds the present output until then, ticking and recording; False when a
+        request came first."""
+        src = self.ctl._learned_source
+        spacing = src.learned.as_recorded if src is not None else None
+        wait_s = spacing.wait_s() if spacing is not None else 0.0
+        if spacing is None or wait_s <= 0.0:
+            return True
+        self.ctl._event("rest", spacing.waiting(wait_s))
+        until = time.monotonic() + wait_s
+        while time.monotonic() < until:
+            self._wait_for_deadline()
+            self.ctl._tick += 1
+            if self.ctl._request is not None:
+                return False
+            self._record()
+        return True
 
     def _device_hold(self, t_settle: float, settle_s: float) -> bool:
         """The settle hold: the device holds the table's first row (the host sends nothing,
