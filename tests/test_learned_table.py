@@ -307,3 +307,33 @@ def test_a_table_learned_as_recorded_starts_after_its_rest(tmp_path, stop):
     else:
         assert at["ramp"] >= ended + 1.5 - 0.01 and at["ramp"] < at["rest"] + 1.5 + 1.0, at
         assert stats["wave"]["played"] == len(table)
+
+
+@pytest.mark.slow
+def test_on_a_device_the_replay_starts_no_sooner_than_a_run_could(tmp_path):
+    """On a device (the simulated E-727 over a pty, kept between plays) the learned table's
+    replay starts AS_RECORDED_REST_S after the last play, as ``afmctl run`` right after
+    learning would: the model's history term then meets the same age of creep in both. The
+    axis has a creep stage, so the learning's own plays do not rest."""
+    from afmctl.compensators.creep import LinearCreepModel
+    from afmctl.compensators.models import save_model
+    from afmctl.control.learn_run import LearnOptions, LearnRun
+    from afmctl.control.learned_after import AS_RECORDED_REST_S
+    creep = LinearCreepModel(time_constants_s=[0.01, 0.1, 1.0, 10.0, 100.0], creep_weights=[0.008] * 5,
+                             gain_nm_per_V=NM_PER_V, offset_nm=0.0, initial_V=0.0)
+    save_model(creep, tmp_path / "x_creep.json")
+    with serve_pty("gcs", baud=921600) as srv:
+        cfg = cfg_for(tmp_path, srv.port, simulation={"enabled": False}, trajectory=SPEC.model_dump(mode="json"),
+                      compensation={"x": {"model": str(tmp_path / "x_creep.json")}})
+        cfg.amplifier.settle_s = 0.2
+        amp = open_driver(cfg, srv.port)
+        try:
+            run = LearnRun(cfg, amp, LearnOptions(iterations=0))
+            times: list[dict[str, float]] = []
+            played = run.player.on_played
+            run.player.on_played = lambda table, rows, t: (times.append(t), played(table, rows, t))
+            run.run()
+        finally:
+            amp.close()
+    assert run.player.spaced_axes == () and run.replayed is not None
+    assert len(times) == 2 and times[1]["approach"] - times[0]["finished"] >= AS_RECORDED_REST_S - 0.05, times

@@ -195,6 +195,12 @@ class TablePlayer:
             return "stopped", f"stopped during the play ({wave.get('played', 0)} of {len(table)} samples)"
         return None
 
+    def rest_after_last_play(self, rest_s: float) -> None:
+        """Hold (the device keeps its output) until ``rest_s`` [s] after the last play
+        ended; a stop ends the wait at once (the next play then does not start)."""
+        if self.ended_unix_s is not None:
+            self._stop.wait(max(0.0, min(rest_s, self.ended_unix_s + rest_s - time.time())))
+
     def _spacing(self) -> AsRecorded | None:
         """The rest the next play keeps after the last (the run's approach holds the present
         output until then: :meth:`AsRecorded.wait_s`); None without as-recorded axes, before
