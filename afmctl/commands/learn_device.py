@@ -180,16 +180,17 @@ def run_device(args: argparse.Namespace) -> int:
             print("afmctl: learn: the in-process simulated scanner is brought to rest before every play, as afmctl "
                   "run starts on a fresh one: no play carries the creep of the ones before", file=sys.stderr)
         publish = _publisher(stack, config)
-        seen = {"part": False}
+        seen = {"part": False, "spaced": False}
 
         def on_iteration(report: Any) -> None:
             part = part_line(report)
             if part is not None and not seen["part"]:
                 seen["part"] = True
                 print(part, file=sys.stderr, flush=True)
-                spaced = spacing_line(run.player.spaced_axes)
-                if spaced:
-                    print(spaced, file=sys.stderr, flush=True)
+            spaced = spacing_line(run.player.spaced_axes)
+            if spaced and not seen["spaced"]:
+                seen["spaced"] = True
+                print(spaced, file=sys.stderr, flush=True)
             print(progress_line(report), file=sys.stderr, flush=True)
             if publish is not None:
                 publish(report)
