@@ -310,15 +310,18 @@ def test_a_table_learned_as_recorded_starts_after_its_rest(tmp_path, stop):
 
 
 @pytest.mark.slow
-def test_on_a_device_the_replay_starts_no_sooner_than_a_run_could(tmp_path):
+def test_on_a_device_the_replay_starts_no_sooner_than_a_run_could(tmp_path, monkeypatch):
     """On a device (the simulated E-727 over a pty, kept between plays) the learned table's
     replay starts AS_RECORDED_REST_S after the last play, as ``afmctl run`` right after
     learning would: the model's history term then meets the same age of creep in both. The
-    axis has a creep stage, so the learning's own plays do not rest."""
+    axis has a creep stage, so the learning's own plays do not rest. (The rest is 1.5 s
+    here, for the suite's time.)"""
     from afmctl.compensators.creep import LinearCreepModel
     from afmctl.compensators.models import save_model
+    from afmctl.control import learn_run
     from afmctl.control.learn_run import LearnOptions, LearnRun
-    from afmctl.control.learned_after import AS_RECORDED_REST_S
+    monkeypatch.setattr(learn_run, "AS_RECORDED_REST_S", 1.5)
+    AS_RECORDED_REST_S = 1.5
     creep = LinearCreepModel(time_constants_s=[0.01, 0.1, 1.0, 10.0, 100.0], creep_weights=[0.008] * 5,
                              gain_nm_per_V=NM_PER_V, offset_nm=0.0, initial_V=0.0)
     save_model(creep, tmp_path / "x_creep.json")
