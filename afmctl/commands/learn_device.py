@@ -187,8 +187,8 @@ def run_device(args: argparse.Namespace) -> int:
             if part is not None and not seen["part"]:
                 seen["part"] = True
                 print(part, file=sys.stderr, flush=True)
-            spaced = spacing_line(run.player.spaced_axes)
-            if spaced and not seen["spaced"]:
+            spaced = None if seen["spaced"] else spacing_line(run.player.spaced_axes)
+            if spaced:
                 seen["spaced"] = True
                 print(spaced, file=sys.stderr, flush=True)
             print(progress_line(report), file=sys.stderr, flush=True)

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import AfmctlError
 from .controller import Controller, State
-from .learned_after import AS_RECORDED_REST_S, AsRecorded
+from .learned_after import AS_RECORDED_REST_S, AsRecorded, rest_left_s
 from .learned_table import LearnedSource, make_learned
 from .wave_plan import WaveTable
 
@@ -199,7 +199,7 @@ class TablePlayer:
         """Hold (the device keeps its output) until ``rest_s`` [s] after the last play
         ended; a stop ends the wait at once (the next play then does not start)."""
         if self.ended_unix_s is not None:
-            self._stop.wait(max(0.0, min(rest_s, self.ended_unix_s + rest_s - time.time())))
+            self._stop.wait(rest_left_s(self.ended_unix_s, rest_s))
 
     def _spacing(self) -> AsRecorded | None:
         """The rest the next play keeps after the last (the run's approach holds the present

@@ -52,6 +52,14 @@ AS_RECORDED_FRESH_S = 10.0
 AS_RECORDED_REST_S = 4.0
 
 
+def rest_left_s(ended_unix_s: float, rest_s: float, now_unix_s: float | None = None) -> float:
+    """What is left [s] of a rest of ``rest_s`` after a play that ended at ``ended_unix_s``
+    (wall clock, s since the epoch): 0 once it has passed, at most ``rest_s`` (a clock
+    stepped back)."""
+    now = time.time() if now_unix_s is None else now_unix_s
+    return max(0.0, min(rest_s, ended_unix_s + rest_s - now))
+
+
 @dataclass(frozen=True)
 class AsRecorded:
     """Axes learned on a device from their recordings as they are (no model's creep stage:
@@ -67,10 +75,7 @@ class AsRecorded:
     def wait_s(self, now_unix_s: float | None = None) -> float:
         """How long [s] a play starting now waits so that it starts ``rest_s`` after the
         last play ended, as the learning's plays did (0 when that has passed)."""
-        if not self.axes:
-            return 0.0
-        now = time.time() if now_unix_s is None else now_unix_s
-        return max(0.0, min(self.rest_s, self.ended_unix_s + self.rest_s - now))
+        return rest_left_s(self.ended_unix_s, self.rest_s, now_unix_s) if self.axes else 0.0
 
     def waiting(self, wait_s: float) -> str:
         """The run's line for a wait of ``wait_s`` [s] (:meth:`wait_s`)."""

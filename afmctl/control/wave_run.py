@@ -237,14 +237,7 @@ class WaveMachine(LoopMachine):
         if spacing is None or wait_s <= 0.0:
             return True
         self.ctl._event("rest", spacing.waiting(wait_s))
-        until = time.monotonic() + wait_s
-        while time.monotonic() < until:
-            self._wait_for_deadline()
-            self.ctl._tick += 1
-            if self.ctl._request is not None:
-                return False
-            self._record()
-        return True
+        return self._hold_until(time.monotonic() + wait_s)
 
     def _device_hold(self, t_settle: float, settle_s: float) -> bool:
         """The settle hold: the device holds the table's first row (the host sends nothing,
@@ -255,14 +248,21 @@ class WaveMachine(LoopMachine):
         ~10 nm/s two seconds after a 5 µm approach (docs/CONTROLLER.md)."""
         assert self.table is not None
         self.player.arm(self.table)
-        while time.monotonic() - t_settle < settle_s:
+        if not self._hold_until(t_settle + settle_s):
+            self.player.abort()
+            return False
+        self.ctl._event("ramp-done")
+        return True
+
+    def _hold_until(self, until_monotonic_s: float) -> bool:
+        """Tick and record the output as it is until ``until_monotonic_s`` (host clock,
+        :func:`time.monotonic`); False as soon as a request comes."""
+        while time.monotonic() < until_monotonic_s:
             self._wait_for_deadline()
             self.ctl._tick += 1
             if self.ctl._request is not None:
-                self.player.abort()
                 return False
             self._record()
-        self.ctl._event("ramp-done")
         return True
 
     def _towards(self, goal: list[float]) -> bool | None:
