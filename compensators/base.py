@@ -16,6 +16,8 @@ ignore time.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -75,6 +77,32 @@ class Chain(StreamingOperator):
         for op in self.ops:
             y = op.block(y)
         return y
+
+
+def stages_of(op: StreamingOperator) -> Iterator[StreamingOperator]:
+    """``op`` and every operator inside it (the stages of a :class:`Chain`, the operator a
+    delay feeds through its ``op``), depth first."""
+    yield op
+    inner = getattr(op, "ops", None)
+    for sub in (inner if isinstance(inner, list) else [getattr(op, "op", None)]):
+        if isinstance(sub, StreamingOperator):
+            yield from stages_of(sub)
+
+
+@contextmanager
+def quiet_clamps(*ops: StreamingOperator) -> Iterator[None]:
+    """No clamp warning from any stage of ``ops`` while inside (a Preisach stage's
+    ``warn_clamps``): for outputs that are never sent or never scored, such as a preview
+    inverse's priming or a held-out prediction beyond the training range; the clamps are
+    still counted."""
+    quiet = [(s, s.warn_clamps) for op in ops for s in stages_of(op) if hasattr(s, "warn_clamps")]
+    for s, _ in quiet:
+        s.warn_clamps = False
+    try:
+        yield
+    finally:
+        for s, before in quiet:
+            s.warn_clamps = before
 
 
 def check_finite(name: str, x: np.ndarray) -> np.ndarray:

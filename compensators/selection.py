@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from .base import ModelError, check_finite
+from .base import ModelError, check_finite, quiet_clamps
 from .chain import ChainModel, join_structure, parse_structure
 from .dynamics_identify import dynamics_parts
 from .fit_health import failure_reason, linear_fit_rms
@@ -202,7 +202,9 @@ def score_candidate(structure: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.n
         else:
             model = _fit_kept(fits, structure, t_s, u_V, y_nm, split, options or {}, fit_from_index)
         dt = float(np.median(np.diff(t_s)))
-        pred = model.forward(dt).block(np.ascontiguousarray(u_V))
+        forward = model.forward(dt)
+        with quiet_clamps(forward):  # a held-out input beyond the training range is not scored
+            pred = forward.block(np.ascontiguousarray(u_V))
     except (ModelError, ValueError, np.linalg.LinAlgError) as err:
         return {"structure": structure, "error": " ".join(str(err).split())}
     if not np.all(np.isfinite(pred)):

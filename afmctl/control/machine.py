@@ -41,8 +41,8 @@ from . import stats as loop_stats
 from ..errors import error_line
 from .reconnect import FAULT_ERRORS, FaultPolicy
 from .safety import Watchdog
-from .preview import stages_of
 from .transitions import REQUEST_EVENTS, TABLES, Event, Phase, PhaseMachine, State  # noqa: F401 - State re-exported
+from afmctl.compensators.base import quiet_clamps
 from afmctl.drivers.base import ConnectionState
 
 
@@ -452,10 +452,7 @@ class LoopMachine:
         # the inverse starts at rest at 0 nm and sees a step to the first sample: its
         # pre-ringing may ask a Preisach stage for targets out of reach; those outputs are
         # never sent, so they do not warn (a clamp in the run still does, once)
-        quiet = [op for inv in getattr(pipe, "inverses", ()) for op in stages_of(inv) if hasattr(op, "warn_clamps")]
-        for op in quiet:
-            op.warn_clamps = False
-        try:
+        with quiet_clamps(*getattr(pipe, "inverses", ())):
             if getattr(pipe, "drift", None) is None and getattr(pipe, "kalman", None) is None:
                 # block() gives the numbers of L step() calls, bit for bit, in a fraction of the time
                 d, c, _ = pipe.block(np.tile((rx, ry, rz), (L, 1)), T_C, np.tile(u, (L, 1)))
@@ -465,9 +462,6 @@ class LoopMachine:
                 for _ in range(L):
                     cur = pipe.step(rx, ry, rz, T_C, u)
                     aims.append(((rx, ry, rz), (cur[3], cur[4], cur[5]), (cur[0], cur[1], cur[2])))
-        finally:
-            for op in quiet:
-                op.warn_clamps = True
         self.primed = True
 
     def _feed_held(self) -> bool:

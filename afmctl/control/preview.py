@@ -14,7 +14,7 @@ last L outputs), and records each output beside the target it aims at.
 """
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -88,13 +88,3 @@ def equalise_latency(inverses: Sequence[StreamingOperator]) -> tuple[list[Stream
     lat = [latency_of(op) for op in inverses]
     L = max(lat, default=0)
     return [op if n == L else Delayed(op, L - n) for op, n in zip(inverses, lat)], L
-
-
-def stages_of(op: StreamingOperator) -> Iterator[StreamingOperator]:
-    """``op`` and every operator inside it (the stages of a chain's inverse, the operator a
-    :class:`Delayed` feeds), depth first."""
-    yield op
-    inner = getattr(op, "ops", None)
-    for sub in (inner if isinstance(inner, list) else [getattr(op, "op", None)]):
-        if isinstance(sub, StreamingOperator):
-            yield from stages_of(sub)
