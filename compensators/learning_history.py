@@ -116,6 +116,22 @@ class VoltageHistory:
         """A table played, one row per sample period."""
         self._feed(np.asarray(u_V, dtype=np.float64).ravel())
 
+    def creep_state(self) -> list[float]:
+        """The creep stage's lag states (its input's units, nm for a chain's), what the
+        history so far leaves in them; :meth:`resume` takes them back."""
+        return [float(z) for z in self.creep.z]
+
+    def resume(self, state: list[float], at_V: float) -> bool:
+        """Continue from lag states ``state`` (:meth:`creep_state` of an earlier history of
+        the same model, e.g. the plays of ``afmctl calibrate``), the output at ``at_V`` [V].
+        False, nothing changed, when ``state`` does not fit this model's lags."""
+        z = np.asarray(state, dtype=float)
+        if z.shape != self.creep.z.shape or not np.all(np.isfinite(z)):
+            return False
+        self.creep.z[:] = z
+        self.last_V = float(at_V)
+        return True
+
 
 def history_term_nm(history: VoltageHistory, reference: VoltageHistory, u_V: np.ndarray) -> np.ndarray:
     """Δy [nm] per table row (module docstring): what ``history``'s creep states add to a

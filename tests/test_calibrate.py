@@ -298,3 +298,39 @@ def test_a_recorder_too_small_for_the_shortest_piece_is_refused_before_anything_
     errors = [ln for ln in res.stderr.splitlines() if ln.startswith("afmctl: error:")]
     assert res.returncode == 2 and len(errors) == 1 and "shortest piece" in errors[0], res.stderr[-2000:]
     assert not (tmp_path / "x.json").exists()
+
+
+def test_the_model_keeps_what_the_calibrations_plays_left_in_its_creep_stage(config_file):
+    """The lag states of the model's creep stage where the calibration's plays end (the
+    excitation, the validation, the hold while the other axes play, the ramp to the safe
+    value), for `afmctl learn` right after on the same device (tests/test_learning_history.py);
+    a model without a creep stage keeps nothing."""
+    from types import SimpleNamespace
+
+    from afmctl.api.calibrate import Calibration
+    from afmctl.compensators.chain import ChainModel
+    from afmctl.compensators.creep import LinearCreepModel
+    from afmctl.compensators.learning_history import VoltageHistory
+    from afmctl.compensators.pi import PIModel
+    pi = PIModel(thresholds=[0.0, 20.0, 40.0], weights=[40.0, 8.0, 4.0])
+    chain = ChainModel(hysteresis=pi, creep=LinearCreepModel(time_constants_s=[0.1, 1.0, 10.0],
+                                                             creep_weights=[0.01, 0.01, 0.01], gain_nm_per_V=1.0,
+                                                             offset_nm=0.0, initial_V=0.0))
+    rate_Hz = 10000.0
+    exc, val = np.linspace(0.0, 100.0, 20_000), np.linspace(100.0, 0.0, 5_000)
+
+    def result(model):
+        return SimpleNamespace(identified=SimpleNamespace(model=model), recording=SimpleNamespace(u_V=exc),
+                               validation_record=SimpleNamespace(u_V=val))
+
+    cal = Calibration(config_file, axes=["x"], kind="pi+creep")
+    cal.played_unix_s, cal.finished_unix_s = {"x": 1000.0}, 1003.0
+    kept = cal._history("x", result(chain))
+    assert cal._history("x", result(pi)) is None
+    assert kept["ended_unix_s"] == 1003.0 and kept["at_V"] == 0.0
+    h = VoltageHistory(chain, 1.0 / rate_Hz, 0.0, settle_s=1.0)
+    h.play(exc)
+    h.play(val)
+    h.hold(3.0)                              # held at 0 V, the safe value: no ramp
+    np.testing.assert_allclose(kept["creep_state_nm"], h.creep_state(), rtol=1e-12)
+    assert max(kept["creep_state_nm"]) > 1.0

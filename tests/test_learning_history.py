@@ -152,3 +152,73 @@ def test_learning_holds_two_seconds_unless_the_configuration_says_otherwise():
     short = Config.model_validate({"amplifier": {"driver": "gcs", "output": "wave", "settle_s": 0.5,
                                                  "port": "/dev/null"}})
     assert with_learning_hold(short).amplifier.settle_s == 0.5
+
+
+def _timeline_config(**amplifier) -> Config:
+    return Config.model_validate({"amplifier": {"driver": "gcs", "output": "wave", "settle_s": 0.2, "slew_V_per_s": 1e5,
+                                                "port": "socket://127.0.0.1:50000", **amplifier},
+                                  "loop": {"rate_Hz": 1000.0},
+                                  "safety": {"ramp_V_per_s": 5000.0, "slew_V_per_s": 1e5}})
+
+
+def test_a_history_resumed_from_its_lag_states_continues_as_the_history_itself():
+    """What `afmctl calibrate` keeps of its plays (the creep lag states where they ended) is
+    all the history term needs: a history resumed from them gives the same term, to the
+    last digits, as the history that played them."""
+    model = ChainModel(hysteresis=PIModel(thresholds=[0.0, 20.0, 40.0], weights=[40.0, 8.0, 4.0]),
+                       creep=creep_model(gain=1.0))
+    played = VoltageHistory(model, DT_S, 0.0, settle_s=1.0)
+    played.play(60.0 + 50.0 * np.sin(np.linspace(0.0, 40.0 * np.pi, 20_000)))
+    played.ramp(0.0, 5000.0)
+    rest = VoltageHistory(model, DT_S, 0.0, settle_s=600.0, peak_V=110.0)
+    resumed = rest.copy()
+    assert resumed.resume(played.creep_state(), played.last_V)
+    table = np.linspace(30.0, 70.0, 300)
+    for h in (played, resumed):
+        h.hold(3.0)
+    term = history_term_nm(resumed, rest, table)
+    assert np.mean(term) > 1.0                                   # the plays left creep to see
+    np.testing.assert_allclose(term, history_term_nm(played, rest, table), rtol=1e-9, atol=1e-9)
+    assert not rest.copy().resume(played.creep_state()[:2], 0.0)  # another model's lags: not taken
+
+
+def test_learning_starts_from_the_creep_a_recent_calibration_on_this_device_left(tmp_path):
+    """The model's provenance names the device and keeps what its calibration left; a learn
+    run on the same device within SETTLE_S starts its history there, the first play then
+    carries a term, and nothing is taken from another device, an old calibration or an
+    output that moved since."""
+    import json
+    import time
+
+    from afmctl.control.learn_history import calibration_history
+    model = creep_model(gain=1.0)
+    charged = VoltageHistory(model, DT_S, 0.0, settle_s=1.0)
+    charged.ramp_over(100.0, 0.1)
+    charged.hold(20.0)
+    charged.ramp(0.0, 5000.0)
+    entry = {"ended_unix_s": time.time() - 2.0, "at_V": 0.0, "creep_state_nm": charged.creep_state()}
+    scanner = tmp_path / "scanner.json"
+
+    def prior(device: dict, config: Config, **history) -> dict:
+        scanner.write_text(json.dumps({"provenance": {"device": device, "history": {"x": {**entry, **history}}}}))
+        return calibration_history(config, str(scanner))
+
+    here = {"driver": "gcs", "port": "socket://127.0.0.1:50000", "simulated": False}
+    config = _timeline_config()
+    assert prior({**here, "port": "socket://127.0.0.1:50001"}, config) == {}
+    assert prior({**here, "simulated": True}, config) == {}
+    assert calibration_history(config, None) == {} and calibration_history(config, str(tmp_path / "none")) == {}
+    table = {"x": np.linspace(60.0, 70.0, 500)}
+
+    def first_term(found: dict) -> tuple[dict, float]:
+        timeline = PlayTimeline(config, {"x": model}, {"x": 0.0}, {"x": 70.0})
+        taken = timeline.resume(found)
+        t = timeline.t_last_s + 0.1
+        times = {"approach": t, "settle": t + 0.012, "start": t + 0.212}
+        return taken, float(np.mean(timeline.played(table, times, 500)["x"]))
+
+    taken, term = first_term(prior(here, config))
+    assert set(taken) == {"x"} and 1.5 < taken["x"] < 60.0 and term > 0.5
+    assert first_term(prior(here, config, ended_unix_s=time.time() - 700.0)) == ({}, pytest.approx(0.0, abs=1e-9))
+    assert first_term(prior(here, config, at_V=20.0))[0] == {}
+    assert first_term(prior(here, config, creep_state_nm="x"))[0] == {}

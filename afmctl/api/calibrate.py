@@ -34,6 +34,7 @@ import contextlib
 import datetime
 import logging
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -220,6 +221,9 @@ class Calibration:
         self._worker: Any = None
         #: the axes whose recordings are written and handed to the identification
         self.fitting: list[str] = []
+        #: wall clock [s since the epoch] when each axis's validation ended, and the plays' end
+        self.played_unix_s: dict[str, float] = {}
+        self.finished_unix_s = 0.0
 
     # ------------------------------------------------------------------ the steps
     def stem(self) -> str:
@@ -257,7 +261,6 @@ class Calibration:
         :class:`~afmctl.control.calibrate_run.CalibrationStopped` after a stop and
         :class:`~afmctl.control.calibrate_run.CalibrationFault` after a lost link (the
         partial recordings written: :attr:`partial`)."""
-        import time
         t0 = time.monotonic()
         if self.config.amplifier.output != "wave":
             raise AfmctlError("amplifier.output: afmctl calibrate plays the excitation on the amplifier's clock; "
@@ -306,6 +309,7 @@ class Calibration:
         try:
             for axis, plan in plans.items():
                 out[axis] = self._record_axis(run, plan, signals[axis], total, done)
+                self.played_unix_s[axis] = time.time()
         except CalibrationFault:
             self._keep_partial(run)
             raise
@@ -316,6 +320,7 @@ class Calibration:
             raise
         if self.config.safety.on_finish == "safe":
             run.finish()
+        self.finished_unix_s = time.time()
         return out
 
     def _record_axis(self, run: CalibrationRun, plan: PiecePlan, signals: tuple[str, ...], total_s: float,
@@ -391,11 +396,38 @@ class Calibration:
 
     def _model(self, results: dict[str, AxisCalibration], prov: dict[str, Any]) -> Any:
         prov = {**prov, "validation": {a: r.validation for a, r in results.items()}}
+        history = {a: h for a, r in results.items() if (h := self._history(a, r)) is not None}
+        if history:
+            prov["history"] = history
         if len(self.config.scanner.axes) == 1:      # a one-axis scanner: its model
             model = next(iter(results.values())).identified.model
             return model.model_copy(update={"provenance": prov})
         from afmctl.compensators.scanner_model import ScannerModel
         return ScannerModel(axes={a: r.identified.model for a, r in results.items()}, provenance=prov)
+
+    def _history(self, axis: str, result: AxisCalibration) -> dict[str, Any] | None:
+        """What the calibration's plays leave in the axis model's creep stage when they end
+        (None without one): its lag states [nm] at ``ended_unix_s`` (wall clock), the output
+        at ``at_V``. ``afmctl learn`` on this device starts its history from them
+        (:meth:`afmctl.control.learn_history.PlayTimeline.resume`): right after a
+        calibration the scanner still creeps from it (86 nm at 0 V after the E-727's
+        excitation, with lags up to minutes)."""
+        from afmctl.compensators.base import quiet_clamps
+        from afmctl.compensators.learning_history import VoltageHistory, creep_stages
+        model = result.identified.model
+        if creep_stages(model) is None or axis not in self.played_unix_s:
+            return None
+        cfg = self.config
+        rate = min(float(cfg.safety.ramp_V_per_s), float(cfg.slew_V_per_s()))
+        h = VoltageHistory(model, 1.0 / float(cfg.loop.rate_Hz), float(result.recording.u_V[0]), settle_s=1.0)
+        with quiet_clamps(*(op for op in (h.hyst, h.creep) if op is not None)):
+            h.play(result.recording.u_V)
+            h.play(result.validation_record.u_V)
+            safe = cfg.safety.safe_value(axis) if cfg.safety.on_finish == "safe" else h.last_V
+            ramp_s = abs(h.last_V - safe) / rate
+            h.hold(self.finished_unix_s - self.played_unix_s[axis] - ramp_s)
+            h.ramp(safe, rate)
+        return {"ended_unix_s": self.finished_unix_s, "at_V": h.last_V, "creep_state_nm": h.creep_state()}
 
     def stop(self) -> None:
         """End the calibration (any thread): the piece playing stops at once, the output

@@ -180,7 +180,7 @@ def run_device(args: argparse.Namespace) -> int:
             print("afmctl: learn: the in-process simulated scanner is brought to rest before every play, as afmctl "
                   "run starts on a fresh one: no play carries the creep of the ones before", file=sys.stderr)
         publish = _publisher(stack, config)
-        seen = {"part": False, "spaced": False}
+        seen = {"part": False, "spaced": False, "calibration": False}
 
         def on_iteration(report: Any) -> None:
             part = part_line(report)
@@ -191,6 +191,9 @@ def run_device(args: argparse.Namespace) -> int:
             if spaced:
                 seen["spaced"] = True
                 print(spaced, file=sys.stderr, flush=True)
+            if run.after_calibration and not seen["calibration"]:
+                seen["calibration"] = True
+                print(calibration_line(run.after_calibration), file=sys.stderr, flush=True)
             print(progress_line(report), file=sys.stderr, flush=True)
             if publish is not None:
                 publish(report)
@@ -204,6 +207,14 @@ def run_device(args: argparse.Namespace) -> int:
         plot_convergence(run.reports, args.learned_plot)
     print(final_line(args.learned_out, run), file=sys.stderr)
     return 1 if run.reports[-1].state == "fault" else 0
+
+
+def calibration_line(ago_s: dict[str, float]) -> str:
+    """The line saying which axes' history term starts from the calibration before
+    (:meth:`afmctl.control.learn_history.PlayTimeline.resume`)."""
+    when = ", ".join(f"{a} {s:.0f} s" for a, s in ago_s.items())
+    return (f"afmctl: learn: the calibration that wrote the model ended on this device {when} ago and the scanner "
+            f"still creeps from it: the history term starts from what the model says it left")
 
 
 def spacing_line(axes: tuple[str, ...]) -> str | None:

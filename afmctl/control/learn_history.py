@@ -17,17 +17,23 @@ nm.
 """
 from __future__ import annotations
 
+import json
 import logging
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from afmctl.compensators.learning_history import VoltageHistory, history_term_nm
+from afmctl.compensators.learning_history import SETTLE_S, VoltageHistory, history_term_nm
 
 from ..config import LEARN_SETTLE_S
 
 log = logging.getLogger(__name__)
+
+#: a calibration's history is taken up only when the output is still within this of where
+#: the calibration left it [V] (:meth:`PlayTimeline.resume`)
+RESUME_TOL_V = 0.5
 
 
 class PlayTimeline:
@@ -119,11 +125,51 @@ class PlayTimeline:
         else:
             h.ramp(self.safe_V[axis], self.rate_V_per_s)
 
+    def resume(self, prior: dict[str, dict[str, Any]]) -> dict[str, float]:
+        """Start the history of each axis from what a calibration left (``prior``: axis →
+        the ``history`` entry of the model's provenance, :func:`calibration_history`): its
+        model's creep lag states when the calibration ended, then the output held at the
+        present voltage until now. An axis is left at rest when the calibration ended more
+        than :data:`SETTLE_S` ago, in the future, or at another voltage than the present
+        output (something moved it since). Returns axis → seconds since it ended."""
+        taken: dict[str, float] = {}
+        for axis, h in self.now.items():
+            p = prior.get(axis)
+            if not p:
+                continue
+            try:
+                ago = time.time() - float(p["ended_unix_s"])
+                at_V = float(p["at_V"])
+                state = [float(z) for z in p["creep_state_nm"]]
+            except (KeyError, TypeError, ValueError):
+                continue
+            if 0.0 <= ago < SETTLE_S and abs(at_V - h.last_V) <= RESUME_TOL_V and h.resume(state, h.last_V):
+                h.hold(ago)
+                taken[axis] = ago
+        return taken
+
     def rested(self, t_s: float) -> None:
         """Nothing played until ``t_s`` (host clock): the outputs held."""
         for h in self.now.values():
             h.hold(t_s - self.t_last_s)
         self.t_last_s = t_s
+
+
+def calibration_history(config: Any, scanner_file: str | None) -> dict[str, dict[str, Any]]:
+    """Per axis what the calibration that wrote ``scanner_file`` left in the model's creep
+    stage (``provenance.history``, :meth:`afmctl.api.calibrate.Calibration._history`), when
+    it ran on the device this configuration drives (same driver and port; not an in-process
+    simulator, which starts at rest with every command); else empty."""
+    if not scanner_file:
+        return {}
+    try:
+        prov = json.loads(Path(scanner_file).read_text(encoding="utf-8")).get("provenance") or {}
+        device, history = prov.get("device") or {}, prov.get("history") or {}
+    except (OSError, ValueError, AttributeError):
+        return {}
+    same = (device.get("driver") == config.amplifier.driver and device.get("port") == str(config.amplifier.port)
+            and not device.get("simulated") and not config.simulation.enabled)
+    return {a: h for a, h in history.items() if isinstance(h, dict)} if same and isinstance(history, dict) else {}
 
 
 def history_offset_nm(moved_nm: np.ndarray, term_nm: np.ndarray) -> float:

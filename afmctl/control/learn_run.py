@@ -78,8 +78,8 @@ from afmctl.compensators.learning_history import creep_stages
 from ..data.axis_errors import ErrorReport, axis_errors
 from ..errors import AfmctlError
 from .learn_axes import AxisBook
-from .learn_history import (HistoryTerms, PlayTimeline, history_offset_nm, settle_advice,  # noqa: F401 (re-exported)
-                            with_learning_hold)
+from .learn_history import (HistoryTerms, PlayTimeline, calibration_history, history_offset_nm,  # noqa: F401
+                            settle_advice, with_learning_hold)
 from .learn_play import (OUTPUT_TOL_V, RecordingRefused, Step, TablePlayer, arm_recorder,  # noqa: F401
                          play_recorded, read_aligned, read_at_sample_start)
 from .learn_setup import MIN_SPAN_NM, SLEW_RESERVE, LearnSetup  # noqa: F401 (re-exported)
@@ -214,6 +214,9 @@ class LearnRun:
         #: the learned table played once more at the end (step ``replay``): its figures, as
         #: ``afmctl run`` measures them (None: not played, stopped or incomplete)
         self.replayed: ErrorReport | None = None
+        #: axis → seconds since the calibration that wrote the model ended on this device,
+        #: for the axes whose history starts from what it left (:meth:`PlayTimeline.resume`)
+        self.after_calibration: dict[str, float] = {}
         self.spec = config.trajectory.model_dump(mode="json")
         self.player = TablePlayer(self.config, amplifier, self.spec, self._played, self.options.record_timeout_s,
                                   self.options.rest)
@@ -248,6 +251,8 @@ class LearnRun:
             peak = {a: float(np.max(table.u_V[:, "xyz".index(a)])) for a in with_model}
             self.history.timeline = PlayTimeline(self.config, with_model,
                                                  self.setup.present_output(list(with_model)), peak)
+            prior = calibration_history(self.config, self.setup.recorder_models()[2])
+            self.after_calibration = self.history.timeline.resume(prior)
         self.player.spaced_axes = self._as_recorded_axes()
         return out
 
