@@ -134,17 +134,8 @@ class PlayTimeline:
         output (something moved it since). Returns axis → seconds since it ended."""
         taken: dict[str, float] = {}
         for axis, h in self.now.items():
-            p = prior.get(axis)
-            if not p:
-                continue
-            try:
-                ago = time.time() - float(p["ended_unix_s"])
-                at_V = float(p["at_V"])
-                state = [float(z) for z in p["creep_state_nm"]]
-            except (KeyError, TypeError, ValueError):
-                continue
-            if 0.0 <= ago < SETTLE_S and abs(at_V - h.last_V) <= RESUME_TOL_V and h.resume(state, h.last_V):
-                h.hold(ago)
+            ago = resume_calibration(h, prior.get(axis))
+            if ago is not None:
                 taken[axis] = ago
         return taken
 
@@ -153,6 +144,27 @@ class PlayTimeline:
         for h in self.now.values():
             h.hold(t_s - self.t_last_s)
         self.t_last_s = t_s
+
+
+def resume_calibration(h: VoltageHistory, entry: dict[str, Any] | None) -> float | None:
+    """``h`` (an axis at rest at its present output) continued from a calibration's
+    ``history`` entry (:func:`calibration_history`): its model's creep lag states when the
+    calibration ended, then the output held until now. Not taken (None, ``h`` unchanged)
+    when it ended more than :data:`SETTLE_S` ago or in the future, at another voltage than
+    the present output (something moved it since), or for other lags. Returns the seconds
+    since it ended."""
+    if not entry:
+        return None
+    try:
+        ago = time.time() - float(entry["ended_unix_s"])
+        at_V = float(entry["at_V"])
+        state = [float(z) for z in entry["creep_state_nm"]]
+    except (KeyError, TypeError, ValueError):
+        return None
+    if 0.0 <= ago < SETTLE_S and abs(at_V - h.last_V) <= RESUME_TOL_V and h.resume(state, h.last_V):
+        h.hold(ago)
+        return ago
+    return None
 
 
 def calibration_history(config: Any, scanner_file: str | None) -> dict[str, dict[str, Any]]:

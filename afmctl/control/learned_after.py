@@ -149,13 +149,20 @@ def corrected_for_history(table: WaveTable, after: HistoryAfter | None, config: 
     return WaveTable(table.target_nm, table.corrected_nm, table.drift_nm, u, table.T_C, table.pad, report)
 
 
+def take_out(u_V: np.ndarray, term_nm: np.ndarray, model: Any, dt_s: float) -> np.ndarray:
+    """The column ``u_V`` [V] with a history term ``term_nm`` [nm] per row taken out through
+    ``model``'s static part (module docstring): ``u + S⁻¹(S(u) − Δy) − S⁻¹(S(u))``."""
+    from afmctl.compensators.learning_laws import static_ops
+    forward, inverse = static_ops(model, dt_s)
+    x = forward().block(np.ascontiguousarray(u_V, dtype=np.float64))
+    return u_V + inverse().block(np.ascontiguousarray(x - term_nm)) - inverse().block(x)
+
+
 def _history_taken_out(u_V: np.ndarray, after: HistoryAfter, config: Any, now_unix_s: float,
                        report: list[str]) -> np.ndarray:
     """``u_V`` (N, 3) [V] with the term ``after`` keeps for a play starting at ``now_unix_s``
     taken out through each axis's model's static part; a line per corrected axis appended
     to ``report``."""
-    from afmctl.compensators.learning_laws import static_ops
-
     from .pipeline import axis_models
     elapsed = max(0.0, now_unix_s - after.ended_unix_s)
     term = after.at(elapsed)
@@ -165,9 +172,7 @@ def _history_taken_out(u_V: np.ndarray, after: HistoryAfter, config: Any, now_un
         model = models[k][0]
         if model is None or float(np.max(np.abs(term[:, k]))) < NEGLIGIBLE_NM:
             continue
-        forward, inverse = static_ops(model, config.dt_s)
-        x = forward().block(np.ascontiguousarray(u[:, k]))
-        u[:, k] = u[:, k] + inverse().block(np.ascontiguousarray(x - term[:, k])) - inverse().block(x)
+        u[:, k] = take_out(u[:, k], term[:, k], model, config.dt_s)
         report.append(f"{axis}: the learning's plays ended {elapsed:.0f} s ago and still creep: their history term "
                       f"{float(np.mean(term[:, k])):+.1f} nm (mean; the model's) is taken out, assuming nothing else "
                       "played since")
