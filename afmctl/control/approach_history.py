@@ -81,13 +81,15 @@ def approach_corrected(model: Any, dt_s: float, u_V: np.ndarray, start_V: float,
 
 
 def with_approach_taken_out(table: WaveTable, config: Any, start_V: list[float],
-                            limits_V: dict[str, tuple[float, float]], max_step_V: float) -> WaveTable:
+                            limits_V: dict[str, tuple[float, float]], max_step_V: float,
+                            calibration: bool = True) -> WaveTable:
     """``table`` with each creep-stage axis's approach term taken out (module docstring),
     within ``limits_V`` and ``max_step_V`` per row again, one report line per corrected
     axis; ``table`` itself when nothing is taken out. ``start_V``: the present output [V]
-    per axis x, y, z."""
+    per axis x, y, z; ``calibration``: include a recent calibration's creep (``afmctl
+    learn``'s first table does not: its history term takes it out of every recording)."""
     models, _, scanner_file = axis_models(config)
-    prior = calibration_history(config, scanner_file)
+    prior = calibration_history(config, scanner_file) if calibration else {}
     rate = min(float(config.safety.ramp_V_per_s), float(config.slew_V_per_s()))
     settle_s = config.amplifier.hold_s()
     out = replace(table, u_V=table.u_V.copy(), report=list(table.report))
