@@ -21,7 +21,6 @@ before the run (or since the calibration ended). Units: V, nm, s.
 """
 from __future__ import annotations
 
-import logging
 from dataclasses import replace
 from typing import Any
 
@@ -34,8 +33,6 @@ from .learn_history import calibration_history, resume_calibration
 from .learned_after import NEGLIGIBLE_NM, take_out
 from .pipeline import axis_models
 from .wave_plan import WaveTable
-
-log = logging.getLogger(__name__)
 
 
 #: passes of :func:`approach_corrected`: the corrected table's first row is where the
