@@ -118,15 +118,16 @@ class VoltageHistory:
 
     def creep_state(self) -> list[float]:
         """The creep stage's lag states (its input's units, nm for a chain's), what the
-        history so far leaves in them; :meth:`resume` takes them back."""
-        return [float(z) for z in self.creep.z]
+        history so far leaves in them; :meth:`resume` takes them back. Empty for a creep
+        stage that keeps no lag states."""
+        return [float(z) for z in getattr(self.creep, "z", ())]
 
     def resume(self, state: list[float], at_V: float) -> bool:
         """Continue from lag states ``state`` (:meth:`creep_state` of an earlier history of
         the same model, e.g. the plays of ``afmctl calibrate``), the output at ``at_V`` [V].
         False, nothing changed, when ``state`` does not fit this model's lags."""
-        z = np.asarray(state, dtype=float)
-        if z.shape != self.creep.z.shape or not np.all(np.isfinite(z)):
+        z, lags = np.asarray(state, dtype=float), getattr(self.creep, "z", None)
+        if lags is None or z.shape != lags.shape or not np.all(np.isfinite(z)):
             return False
         self.creep.z[:] = z
         self.last_V = float(at_V)

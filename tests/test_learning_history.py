@@ -208,6 +208,10 @@ def test_learning_starts_from_the_creep_a_recent_calibration_on_this_device_left
     assert prior({**here, "port": "socket://127.0.0.1:50001"}, config) == {}
     assert prior({**here, "simulated": True}, config) == {}
     assert calibration_history(config, None) == {} and calibration_history(config, str(tmp_path / "none")) == {}
+    for damaged in ("{not json", "[1, 2]", json.dumps({"provenance": {"device": "E-727", "history": {}}}),
+                    json.dumps({"provenance": {"device": here, "history": ["x"]}})):
+        scanner.write_text(damaged)
+        assert calibration_history(config, str(scanner)) == {}, damaged
     table = {"x": np.linspace(60.0, 70.0, 500)}
 
     def first_term(found: dict) -> tuple[dict, float]:

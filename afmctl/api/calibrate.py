@@ -427,7 +427,8 @@ class Calibration:
             ramp_s = abs(h.last_V - safe) / rate
             h.hold(self.finished_unix_s - self.played_unix_s[axis] - ramp_s)
             h.ramp(safe, rate)
-        return {"ended_unix_s": self.finished_unix_s, "at_V": h.last_V, "creep_state_nm": h.creep_state()}
+        state = h.creep_state()
+        return {"ended_unix_s": self.finished_unix_s, "at_V": h.last_V, "creep_state_nm": state} if state else None
 
     def stop(self) -> None:
         """End the calibration (any thread): the piece playing stops at once, the output

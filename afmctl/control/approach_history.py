@@ -53,6 +53,8 @@ def approach_term_nm(model: Any, dt_s: float, u_V: np.ndarray, start_V: float, r
     u = np.asarray(u_V, dtype=np.float64)
     h = VoltageHistory(model, dt_s, float(start_V), settle_s=dt_s, peak_V=float(np.max(u)))
     lags = len(h.creep_state())
+    if not lags:                                               # a creep stage without lag states
+        return np.zeros(u.size), None
     rest = h.copy()
     rest.resume(creep_stages(model)[1].forward(dt_s).z.tolist(), h.last_V)    # type: ignore[index]
     settled = float(h.creep_input(np.array([h.last_V]))[0]) - float(getattr(h.creep, "in_offset", 0.0))

@@ -179,9 +179,11 @@ def calibration_history(config: Any, scanner_file: str | None) -> dict[str, dict
         device, history = prov.get("device") or {}, prov.get("history") or {}
     except (OSError, ValueError, AttributeError):
         return {}
+    if not isinstance(device, dict) or not isinstance(history, dict):
+        return {}
     same = (device.get("driver") == config.amplifier.driver and device.get("port") == str(config.amplifier.port)
             and not device.get("simulated") and not config.simulation.enabled)
-    return {a: h for a, h in history.items() if isinstance(h, dict)} if same and isinstance(history, dict) else {}
+    return {a: h for a, h in history.items() if isinstance(h, dict)} if same else {}
 
 
 def history_offset_nm(moved_nm: np.ndarray, term_nm: np.ndarray) -> float:
