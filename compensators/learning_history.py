@@ -122,6 +122,14 @@ class VoltageHistory:
         stage that keeps no lag states."""
         return [float(z) for z in getattr(self.creep, "z", ())]
 
+    def settle(self) -> None:
+        """The lags settled at the present voltage, as after an endless hold there (a creep
+        stage without lag states: unchanged)."""
+        lags = getattr(self.creep, "z", None)
+        if lags is not None:
+            x = float(self.creep_input(np.array([self.last_V]))[0])
+            lags[:] = x - float(getattr(self.creep, "in_offset", 0.0))
+
     def resume(self, state: list[float], at_V: float) -> bool:
         """Continue from lag states ``state`` (:meth:`creep_state` of an earlier history of
         the same model, e.g. the plays of ``afmctl calibrate``), the output at ``at_V`` [V].

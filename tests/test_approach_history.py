@@ -11,6 +11,7 @@ from afmctl.compensators.models import save_model
 from afmctl.compensators.pi import PIModel
 from afmctl.config import Config
 from afmctl.control.approach_history import approach_corrected, approach_term_nm, with_approach_taken_out
+from afmctl.control.pipeline import axis_models
 from afmctl.control.wave_plan import WaveTable
 
 DT_S = 1e-3
@@ -67,7 +68,8 @@ def test_a_planned_table_is_corrected_per_creep_axis_within_its_limits(tmp_path)
     u[:, 1] = np.linspace(10.0, 30.0, n)
     table = WaveTable(np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3)), u, np.full(n, 22.0), 0, ["x: inverse"])
     limits = {"x": (0.0, 100.0), "y": (0.0, 100.0)}
-    out = with_approach_taken_out(table, config, [0.0, 0.0, 0.0], limits, 5.0)
+    models = [model for model, _source in axis_models(config)[0]]
+    out = with_approach_taken_out(table, config, models, [0.0, 0.0, 0.0], limits, 5.0)
     assert out is not table and out.report[0] == "x: inverse" and len(out.report) == 2
     assert out.report[1].startswith("x: the approach's creep (a ramp from 0 V, a 0.5 s hold) adds +")
     assert np.all(out.u_V[:, 0] < u[:, 0]) and np.max(u[:, 0] - out.u_V[:, 0]) > 0.01   # creep ahead: less voltage

@@ -199,19 +199,24 @@ def test_learning_starts_from_the_creep_a_recent_calibration_on_this_device_left
     entry = {"ended_unix_s": time.time() - 2.0, "at_V": 0.0, "creep_state_nm": charged.creep_state()}
     scanner = tmp_path / "scanner.json"
 
+    def reading(config: Config, path) -> Config:       # the configuration with scanner_model = path
+        config = config.model_copy(deep=True)
+        config.compensation.scanner_model = path
+        return config
+
     def prior(device: dict, config: Config, **history) -> dict:
         scanner.write_text(json.dumps({"provenance": {"device": device, "history": {"x": {**entry, **history}}}}))
-        return calibration_history(config, str(scanner))
+        return calibration_history(reading(config, scanner))
 
     here = {"driver": "gcs", "port": "socket://127.0.0.1:50000", "simulated": False}
     config = _timeline_config()
     assert prior({**here, "port": "socket://127.0.0.1:50001"}, config) == {}
     assert prior({**here, "simulated": True}, config) == {}
-    assert calibration_history(config, None) == {} and calibration_history(config, str(tmp_path / "none")) == {}
+    assert calibration_history(config) == {} and calibration_history(reading(config, tmp_path / "none")) == {}
     for damaged in ("{not json", "[1, 2]", json.dumps({"provenance": {"device": "E-727", "history": {}}}),
                     json.dumps({"provenance": {"device": here, "history": ["x"]}})):
         scanner.write_text(damaged)
-        assert calibration_history(config, str(scanner)) == {}, damaged
+        assert calibration_history(reading(config, scanner)) == {}, damaged
     table = {"x": np.linspace(60.0, 70.0, 500)}
 
     def first_term(found: dict) -> tuple[dict, float]:

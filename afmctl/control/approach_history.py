@@ -31,7 +31,6 @@ from afmctl.compensators.learning_history import VoltageHistory, creep_stages, h
 
 from .learn_history import calibration_history, resume_calibration
 from .learned_after import NEGLIGIBLE_NM, take_out
-from .pipeline import axis_models
 from .wave_plan import WaveTable
 
 
@@ -51,18 +50,10 @@ def approach_term_nm(model: Any, dt_s: float, u_V: np.ndarray, start_V: float, r
     their initial state); and the seconds since the calibration ended (None: ``prior`` not
     taken)."""
     u = np.asarray(u_V, dtype=np.float64)
-    h = VoltageHistory(model, dt_s, float(start_V), settle_s=dt_s, peak_V=float(np.max(u)))
-    lags = len(h.creep_state())
-    if not lags:                                               # a creep stage without lag states
+    before = _before_approach(model, dt_s, u, start_V, prior)
+    if before is None:
         return np.zeros(u.size), None
-    rest = h.copy()
-    rest.resume(creep_stages(model)[1].forward(dt_s).z.tolist(), h.last_V)    # type: ignore[index]
-    settled = float(h.creep_input(np.array([h.last_V]))[0]) - float(getattr(h.creep, "in_offset", 0.0))
-    h.resume([settled] * lags, h.last_V)                      # the lags settled at start_V
-    ago = resume_calibration(h, prior) if prior else None
-    h.ramp(float(u[0]) if to_V is None else float(to_V), rate_V_per_s)
-    h.hold(settle_s)
-    return history_term_nm(h, rest, u), ago
+    return _approach_term(before, u, float(u[0]) if to_V is None else float(to_V), rate_V_per_s, settle_s), before[2]
 
 
 def approach_corrected(model: Any, dt_s: float, u_V: np.ndarray, start_V: float, rate_V_per_s: float,
@@ -72,29 +63,56 @@ def approach_corrected(model: Any, dt_s: float, u_V: np.ndarray, start_V: float,
     (:func:`approach_term_nm`, :data:`PASSES` passes), the term [nm] and the seconds since
     the calibration ended (None: not taken)."""
     u = np.asarray(u_V, dtype=np.float64)
+    before = _before_approach(model, dt_s, u, start_V, prior)
+    if before is None:
+        return u, np.zeros(u.size), None
     out = u
     for _ in range(PASSES):
-        term, ago = approach_term_nm(model, dt_s, u, start_V, rate_V_per_s, settle_s, prior, to_V=float(out[0]))
+        term = _approach_term(before, u, float(out[0]), rate_V_per_s, settle_s)
         out = take_out(u, term, model, dt_s)
-    return out, term, ago
+    return out, term, before[2]
 
 
-def with_approach_taken_out(table: WaveTable, config: Any, start_V: list[float],
+def _before_approach(model: Any, dt_s: float, u: np.ndarray, start_V: float, prior: dict[str, Any] | None
+                     ) -> tuple[VoltageHistory, VoltageHistory, float | None] | None:
+    """The axis before the approach — settled at ``start_V``, or continued from what a
+    calibration left (``prior``) —, the rest the table's inverse assumed, and the seconds
+    since the calibration ended (None: not taken); None for a creep stage without lag
+    states."""
+    h = VoltageHistory(model, dt_s, float(start_V), settle_s=dt_s, peak_V=float(np.max(u)))
+    if not h.creep_state():
+        return None
+    rest = h.copy()
+    rest.resume(creep_stages(model)[1].forward(dt_s).z.tolist(), h.last_V)    # type: ignore[index]
+    h.settle()
+    return h, rest, resume_calibration(h, prior) if prior else None
+
+
+def _approach_term(before: tuple[VoltageHistory, VoltageHistory, float | None], u: np.ndarray, to_V: float,
+                   rate_V_per_s: float, settle_s: float) -> np.ndarray:
+    """The term [nm] of a play of ``u`` after a ramp from ``before`` to ``to_V`` [V] and a hold."""
+    h = before[0].copy()
+    h.ramp(to_V, rate_V_per_s)
+    h.hold(settle_s)
+    return history_term_nm(h, before[1], u)
+
+
+def with_approach_taken_out(table: WaveTable, config: Any, models: list[Any], start_V: list[float],
                             limits_V: dict[str, tuple[float, float]], max_step_V: float,
                             calibration: bool = True) -> WaveTable:
     """``table`` with each creep-stage axis's approach term taken out (module docstring),
     within ``limits_V`` and ``max_step_V`` per row again, one report line per corrected
-    axis; ``table`` itself when nothing is taken out. ``start_V``: the present output [V]
-    per axis x, y, z; ``calibration``: include a recent calibration's creep (``afmctl
-    learn``'s first table does not: its history term takes it out of every recording)."""
-    models, _, scanner_file = axis_models(config)
-    prior = calibration_history(config, scanner_file) if calibration else {}
+    axis; ``table`` itself when nothing is taken out. ``models``: per axis x, y, z the
+    model the table was planned with (or None); ``start_V``: the present output [V] per
+    axis x, y, z; ``calibration``: include a recent calibration's creep (``afmctl learn``'s
+    first table does not: its history term takes it out of every recording)."""
+    prior = calibration_history(config) if calibration else {}
     rate = min(float(config.safety.ramp_V_per_s), float(config.slew_V_per_s()))
     settle_s = config.amplifier.hold_s()
     out = replace(table, u_V=table.u_V.copy(), report=list(table.report))
     for axis, (lo, hi) in limits_V.items():
         k = "xyz".index(axis)
-        model = models[k][0]
+        model = models[k]
         if model is None or creep_stages(model) is None or np.ptp(out.u_V[:, k]) == 0.0:
             continue
         u, term, ago = approach_corrected(model, config.dt_s, out.u_V[:, k], start_V[k], rate, settle_s,

@@ -167,11 +167,13 @@ def resume_calibration(h: VoltageHistory, entry: dict[str, Any] | None) -> float
     return None
 
 
-def calibration_history(config: Any, scanner_file: str | None) -> dict[str, dict[str, Any]]:
-    """Per axis what the calibration that wrote ``scanner_file`` left in the model's creep
-    stage (``provenance.history``, :meth:`afmctl.api.calibrate.Calibration._history`), when
-    it ran on the device this configuration drives (same driver and port; not an in-process
-    simulator, which starts at rest with every command); else empty."""
+def calibration_history(config: Any) -> dict[str, dict[str, Any]]:
+    """Per axis what the calibration that wrote the configuration's ``scanner_model`` left
+    in the model's creep stage (``provenance.history``,
+    :meth:`afmctl.api.calibrate.Calibration._history`), when it ran on the device this
+    configuration drives (same driver and port; not an in-process simulator, which starts
+    at rest with every command); else empty."""
+    scanner_file = config.compensation.scanner_model
     if not scanner_file:
         return {}
     try:

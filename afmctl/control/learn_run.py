@@ -251,8 +251,7 @@ class LearnRun:
             peak = {a: float(np.max(table.u_V[:, "xyz".index(a)])) for a in with_model}
             self.history.timeline = PlayTimeline(self.config, with_model,
                                                  self.setup.present_output(list(with_model)), peak)
-            prior = calibration_history(self.config, self.setup.recorder_models()[2])
-            self.after_calibration = self.history.timeline.resume(prior)
+            self.after_calibration = self.history.timeline.resume(calibration_history(self.config))
         self.player.spaced_axes = self._as_recorded_axes()
         return out
 

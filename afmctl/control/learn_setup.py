@@ -18,7 +18,7 @@ from ..inputs.trajectories import build, collect
 from .approach_history import with_approach_taken_out
 from .learn_play import read_at_sample_start
 from .pipeline import axis_models, build_pipeline
-from .wave_plan import WaveTable, plan_table, table_capacity
+from .wave_plan import WaveTable, plan_table, planned_models, table_capacity
 
 log = logging.getLogger(__name__)
 
@@ -81,11 +81,12 @@ class LearnSetup:
         if len(targets) == 0:
             raise AfmctlError("trajectory: it has no samples at the loop period")
         T_C = cfg.compensation.temperature.T_C
-        table = plan_table(cfg, build_pipeline(cfg, self.recorder_models()), targets, T_C, self.limits_V,
-                           self.max_step_V, table_capacity(self.amp, self.axes))
+        pipeline = build_pipeline(cfg, self.recorder_models())
+        table = plan_table(cfg, pipeline, targets, T_C, self.limits_V, self.max_step_V,
+                           table_capacity(self.amp, self.axes))
         start = self.present_output(self.axes)
-        return with_approach_taken_out(table, cfg, [start.get(a, 0.0) for a in "xyz"], self.limits_V,
-                                       self.max_step_V, calibration=False)
+        return with_approach_taken_out(table, cfg, planned_models(cfg, pipeline), [start.get(a, 0.0) for a in "xyz"],
+                                       self.limits_V, self.max_step_V, calibration=False)
 
     def learners(self, table: WaveTable) -> dict[str, Learner]:
         """One learner per axis whose target moves, its limits from the configuration; a

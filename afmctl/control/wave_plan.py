@@ -118,6 +118,15 @@ def table_capacity(amplifier: Any, axes: Sequence[str]) -> int | None:
     return min(int(amplifier.wave_capacity(a)) for a in axes)
 
 
+def planned_models(config, pipeline) -> list[Any]:
+    """Per axis x, y, z the model :func:`plan_table` inverts with (or None): the
+    pipeline's, or the configuration's for a pipeline not built from it."""
+    models: Any = getattr(pipeline, "models", None)
+    if not any(m is not None for m in models or ()):   # a pipeline not built from the config
+        models = [model for model, _source in axis_models(config)[0]]
+    return list(models)
+
+
 def plan_table(config, pipeline, targets_nm: np.ndarray, T_C: float | np.ndarray,
                limits_V: dict[str, tuple[float, float]], max_step_V: float,
                max_rows: int | None = None) -> WaveTable:
@@ -150,9 +159,7 @@ def plan_table(config, pipeline, targets_nm: np.ndarray, T_C: float | np.ndarray
          else np.full(len(tgt), float(T)))
     padding = list(report)
     slew = max_step_V / config.dt_s
-    models: Any = getattr(pipeline, "models", None)
-    if not any(m is not None for m in models or ()):   # a pipeline not built from the config
-        models = [model for model, _source in axis_models(config)[0]]
+    models = planned_models(config, pipeline)
     pipe = copy.copy(pipeline)
     pipe.offline = _offline_inverses(config, models, limits_V, slew, report)
     u_sent = np.zeros_like(tgt)

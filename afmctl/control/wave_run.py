@@ -50,7 +50,7 @@ from ..errors import AfmctlError, error_line
 from .machine import (C_COR, C_D, C_S, C_T, C_TGT, C_U, END_OF_TRAJECTORY, FAULT_ERRORS, RING_ROWS,
                            LoopMachine, Mode, State)
 from .approach_history import with_approach_taken_out
-from .wave_plan import KALMAN_REFUSAL, MAX_TABLE_SAMPLES, WaveTable, plan_table
+from .wave_plan import KALMAN_REFUSAL, MAX_TABLE_SAMPLES, WaveTable, plan_table, planned_models
 from .wave_players import FifoPlayer, TablePlayer, WavePlayer, WaveRefused
 from . import transitions
 
@@ -189,8 +189,8 @@ class WaveMachine(LoopMachine):
             else:
                 table = plan_table(ctl.config, self.pipe, targets, T, self.player.limits_V(), self.player.max_step_V,
                                    self.player.max_rows())
-                table = with_approach_taken_out(table, ctl.config, s.xyz(s.last), self.player.limits_V(),
-                                                self.player.max_step_V)
+                table = with_approach_taken_out(table, ctl.config, planned_models(ctl.config, self.pipe), s.xyz(s.last),
+                                                self.player.limits_V(), self.player.max_step_V)
         except AfmctlError as err:
             raise WaveRefused(str(err)) from None
         s.clamped += table.clamped
