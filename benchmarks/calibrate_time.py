@@ -1,14 +1,16 @@
 """Where the device time of ``afmctl calibrate`` goes (issue 38), on the simulated E-727 over
-TCP (``afmctl sim --protocol gcs --tcp``, its own process), the excitation and configuration
-of ``benchmarks/calibrate_join.py`` (axis x, 0–120 V, 10 kHz, the full excitation):
+TCP (``afmctl sim --protocol gcs --tcp``, its own process; ``--device can``: the CAN
+amplifier on python-can's virtual bus, CAN FD, in the calibrating process), the excitation
+and configuration of ``benchmarks/calibrate_join.py`` (axis x, 10 kHz, the full excitation
+or ``--short``'s):
 
 the device part of :class:`afmctl.api.calibrate.Calibration` (open, excite, validate, back
 to the safe value — the identification is not run), each step's wall time summed over the
 pieces: the tables' play (start to the host seeing the generator stopped), the upload, the
 recorder read-back after the play and while it plays, the start, the settle hold, ...
 
-    .venv/bin/python benchmarks/calibrate_time.py [--reps N]
-    .venv/bin/python benchmarks/calibrate_time.py --whole [--kind auto]
+    .venv/bin/python benchmarks/calibrate_time.py [--reps N] [--device gcs-tcp|can] [--short]
+    .venv/bin/python benchmarks/calibrate_time.py --whole [--kind auto] [--device ...] [--short]
 
 ``--whole``: the whole ``afmctl calibrate`` process as a user runs it (the identification
 included), timed around the process, and the time line it prints.
@@ -35,10 +37,16 @@ from afmctl.api.calibrate import Calibration  # noqa: E402
 from afmctl.control import calibrate_run as cr  # noqa: E402
 from afmctl.control import wave_run as wr  # noqa: E402
 from afmctl.control.wave_players import TablePlayer  # noqa: E402
+from afmctl.control.wave_players import FifoPlayer  # noqa: E402
+from afmctl.drivers.can_amp import CANAmplifier  # noqa: E402
 from afmctl.drivers.gcs import GCSAmplifier  # noqa: E402
 
 #: what is timed: (class, method, label)
 STEPS = [(TablePlayer, "play", "play (start → generator seen stopped)"),
+         (FifoPlayer, "arm", "CAN: start the stream, queue the prefill"),
+         (FifoPlayer, "play", "CAN: play (the clock's start → the FIFO drained)"),
+         (CANAmplifier, "configure_recorder", "CAN: arm the recorder"),
+         (CANAmplifier, "read_recorded", "CAN: read-back while it plays (overlapped)"),
          (GCSAmplifier, "upload_wave", "upload (WAV)"),
          (GCSAmplifier, "start_wave", "start (WSL/WGC/WTR/WOS?/WGO)"),
          (GCSAmplifier, "configure_recorder", "arm the recorder"),
@@ -80,13 +88,13 @@ def timed(totals: dict, counts: dict) -> None:
         setattr(cls, name, g)
 
 
-def one_run(work: Path, totals: dict, counts: dict) -> dict:
-    port = cj.free_port()
-    sim = cj.start_sim(work, port)
+def one_run(work: Path, totals: dict, counts: dict, device: str = "gcs-tcp", short: bool = False) -> dict:
+    port = cj.free_port() if device == "gcs-tcp" else None
+    sim = cj.start_sim(work, port) if port is not None else None
     try:
         before = dict(totals)
-        cal = DeviceOnly(str(cj.cal_toml(work, "gcs-tcp", port)), work / "cal.json", axes=["x"], kind="pi",
-                         report_dir=work / "rep")
+        cal = DeviceOnly(str(cj.cal_toml(work, device, port)), work / "cal.json", axes=["x"], kind="pi",
+                         report_dir=work / "rep", excitation=dict(cj.SHORT) if short else None)
         t0 = time.monotonic()
         try:
             cal.run()
@@ -102,12 +110,12 @@ def one_run(work: Path, totals: dict, counts: dict) -> dict:
             "steps": {k: totals[k] - before.get(k, 0.0) for k in totals}}
 
 
-def whole(reps: int, kind: str) -> int:
+def whole(reps: int, kind: str, device: str = "gcs-tcp", short: bool = False) -> int:
     """The whole command (``calibrate_join.calibrate``), ``reps`` times."""
     walls = []
     for _ in range(reps):
         with tempfile.TemporaryDirectory(prefix="calibrate-whole-") as d:
-            r = cj.calibrate(Path(d), "gcs-tcp", kind, short=False)
+            r = cj.calibrate(Path(d), device, kind, short=short)
         walls.append(r["wall_s"])
         line = next(ln for ln in r["stdout"].splitlines() if ln.startswith("time "))
         print(f"whole afmctl calibrate --kind {kind}: {r['wall_s']:.1f} s around the process; {line.strip()}; "
@@ -121,16 +129,18 @@ def main() -> int:
     ap.add_argument("--reps", type=int, default=1)
     ap.add_argument("--whole", action="store_true", help="time the whole afmctl calibrate process")
     ap.add_argument("--kind", default="auto", help="with --whole: the model kind (default auto)")
+    ap.add_argument("--device", choices=("gcs-tcp", "can", "nv200"), default="gcs-tcp")
+    ap.add_argument("--short", action="store_true", help="the short excitation of calibrate_join.py --short")
     args = ap.parse_args()
     if args.whole:
-        return whole(args.reps, args.kind)
+        return whole(args.reps, args.kind, args.device, args.short)
     totals: dict = collections.defaultdict(float)
     counts: dict = collections.Counter()
     timed(totals, counts)
     runs = []
     for _ in range(args.reps):
         with tempfile.TemporaryDirectory(prefix="calibrate-time-") as d:
-            runs.append(one_run(Path(d), totals, counts))
+            runs.append(one_run(Path(d), totals, counts, args.device, args.short))
         r = runs[-1]
         print(f"device {r['device_s']:.1f} s for {r['played_s']:.1f} s of excitation and validation "
               f"({100 * (r['device_s'] / r['played_s'] - 1):+.0f} %), joined recording {r['joined_rows']:,} rows; "

@@ -56,7 +56,11 @@ class CANAmplifier(Amplifier):
 
     name = "can"
     has_recorder = True
-    #: REC_DATA points asked for with one REC_READ (bounds the frames queued at once)
+    #: REC_READ / REC_READ_FD answer with points already recorded while the recorder records
+    reads_while_recording = True
+    #: REC_DATA points asked for with one REC_READ (bounds the frames queued at once); on a
+    #: CAN FD bus :data:`~afmctl.drivers.codec_can.FD_REC_POINTS` times as many with one
+    #: REC_READ_FD, as many frames
     REC_READ_CHUNK = 128
     default_baudrate = None
     sync_on_close = False  # a vanished amplifier would hold close() for timeout_s
@@ -83,9 +87,10 @@ class CANAmplifier(Amplifier):
         self._ids = {name: codec.frame_id(name) for name in
                      (codec.SETPOINT, codec.HEARTBEAT, codec.STATUS, codec.ERROR, codec.LIMITS,
                       codec.STREAM_CTRL, codec.STREAM_SAMPLE, codec.STREAM_STATUS, codec.REC_CTRL, codec.REC_READ,
-                      codec.REC_STATUS, codec.REC_DATA, codec.REC_DATA_V)}
+                      codec.REC_STATUS, codec.REC_DATA, codec.REC_DATA_V, codec.REC_READ_FD, codec.REC_DATA_FD)}
         self._rx_kinds = {self._ids[k]: k for k in (codec.STATUS, codec.ERROR, codec.LIMITS, codec.STREAM_STATUS,
-                                                    codec.REC_STATUS, codec.REC_DATA, codec.REC_DATA_V)}
+                                                    codec.REC_STATUS, codec.REC_DATA, codec.REC_DATA_V,
+                                                    codec.REC_DATA_FD)}
         self._rec_status: dict[str, float] | None = None
         self._rec_status_count = 0
         #: REC_DATA frames received: (index, axis index) -> (y_nm, u_V)
@@ -99,7 +104,9 @@ class CANAmplifier(Amplifier):
              write_timeout_s: float | None = None, fd: bool = False, **options: Any) -> "CANAmplifier":
         """Connect on ``INTERFACE:CHANNEL`` (python-can); ``baudrate`` is the bus bitrate;
         ``fd``: a CAN FD bus — the stream then sends STREAM_XYZ_FD frames of up to
-        :data:`~afmctl.drivers.codec_can.FD_SAMPLES` samples each ([amplifier.options] fd = true)."""
+        :data:`~afmctl.drivers.codec_can.FD_SAMPLES` samples each, and the recorder is read back
+        in REC_DATA_FD frames of up to :data:`~afmctl.drivers.codec_can.FD_REC_POINTS` points
+        ([amplifier.options] fd = true)."""
         bus = {"bitrate": baudrate} if baudrate else {}
         if fd:
             bus["fd"] = True
@@ -118,6 +125,9 @@ class CANAmplifier(Amplifier):
         if kind is None:
             return
         try:
+            if kind == codec.REC_DATA_FD:
+                self._on_rec_block(codec.decode_rec_block(msg.data))
+                return
             sig = codec.decode(kind, msg.data)
         except ProtocolError as err:
             with self._cond:
@@ -141,6 +151,15 @@ class CANAmplifier(Amplifier):
                 self._rec_v[(int(sig["INDEX"]), int(sig["AXIS"]))] = float(sig["V_V"])
             else:
                 self._errors.append(codec.error_from(sig, bytes(msg.data)))
+            self._cond.notify_all()
+
+    def _on_rec_block(self, block: tuple[int, int, list[tuple[float, float, float]]]) -> None:
+        """A REC_DATA_FD frame's points, kept as REC_DATA and REC_DATA_V would keep them."""
+        first, axis, points = block
+        with self._cond:
+            for k, (y, u, v) in enumerate(points):
+                self._rec_data[(first + k, axis)] = (y, u)
+                self._rec_v[(first + k, axis)] = v
             self._cond.notify_all()
 
     def _on_error(self, exc: Exception) -> None:
@@ -376,37 +395,58 @@ class CANAmplifier(Amplifier):
         return int(self._rec_command(codec.REC_CMD_STATUS)["COUNT"])
 
     def _read_recording(self, setup: RecorderSetup, cancel: Callable[[], bool]) -> Recording:
-        """REC_READ in chunks of :attr:`REC_READ_CHUNK` points; each chunk's REC_DATA frames
-        (one per point and axis) are awaited before the next is asked for."""
-        idx = [self.axes.index(a) for a in setup.axes]
-        y = np.empty((setup.points, len(idx)))
-        u = np.empty((setup.points, len(idx)))
-        v = np.empty((setup.points, len(idx)))
-        monitor = "v_V" in setup.signals
-        for first in range(0, setup.points, self.REC_READ_CHUNK):
+        """The whole recording in chunks (:meth:`_read_chunk`); ``cancel()`` asked between two."""
+        chunk = self._read_chunk_points()
+        parts = []
+        for first in range(0, setup.points, chunk):
             if cancel():
                 raise RecordingCancelled(f"{self.name}: the read-back of the recording was cancelled")
-            count = min(self.REC_READ_CHUNK, setup.points - first)
-            keys = [(k, i) for k in range(first, first + count) for i in idx]
-            with self._cond:
-                self._rec_data.clear()
-                self._rec_v.clear()
-            self._send_and_await(
-                lambda: self.transport.send(self._ids[codec.REC_READ], codec.encode_rec_read(first, count),
-                                            self.timeout_s),
-                lambda: 0, lambda _: all(k in self._rec_data and (not monitor or k in self._rec_v) for k in keys)
-                or bool(self._errors), "REC_DATA")
-            self._raise_pending()
-            with self._cond:
-                for k in range(first, first + count):
-                    for j, i in enumerate(idx):
-                        y[k, j], u[k, j] = self._rec_data[(k, i)]
-                        v[k, j] = self._rec_v.get((k, i), np.nan)
-        t = time_axis(setup.points, setup.period_s)
+            parts.append(self._read_chunk(setup, first, min(chunk, setup.points - first)))
+        return self._as_recording(setup, 0, np.concatenate([p[0] for p in parts]),
+                                  np.concatenate([p[1] for p in parts]), np.concatenate([p[2] for p in parts]))
+
+    def _read_points(self, setup: RecorderSetup, first: int, n: int) -> Recording:
+        """Points ``first`` .. ``first + n - 1`` (recorded already, also while the recorder
+        records), in chunks of :meth:`_read_chunk_points`."""
+        chunk = self._read_chunk_points()
+        parts = [self._read_chunk(setup, k, min(chunk, first + n - k)) for k in range(first, first + n, chunk)]
+        return self._as_recording(setup, first, np.concatenate([p[0] for p in parts]),
+                                  np.concatenate([p[1] for p in parts]), np.concatenate([p[2] for p in parts]))
+
+    def _read_chunk_points(self) -> int:
+        return self.REC_READ_CHUNK * (codec.FD_REC_POINTS if self.stream_fd else 1)
+
+    def _read_chunk(self, setup: RecorderSetup, first: int, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One REC_READ (REC_READ_FD on a CAN FD bus) of ``count`` points from ``first``;
+        its frames are awaited before it returns: (y [nm], u [V], v [V]) of shape (count, axes)."""
+        idx = [self.axes.index(a) for a in setup.axes]
+        need_v = "v_V" in setup.signals and not self.stream_fd
+        want = count * len(idx)
+        with self._cond:
+            self._rec_data.clear()
+            self._rec_v.clear()
+        name, data = ((codec.REC_READ_FD, codec.encode_rec_read_fd(first, count)) if self.stream_fd
+                      else (codec.REC_READ, codec.encode_rec_read(first, count)))
+        self._send_and_await(
+            lambda: self.transport.send(self._ids[name], data, self.timeout_s),
+            lambda: 0, lambda _: (len(self._rec_data) >= want and (not need_v or len(self._rec_v) >= want))
+            or bool(self._errors), codec.REC_DATA_FD if self.stream_fd else codec.REC_DATA)
+        self._raise_pending()
+        y, u, v = (np.empty((count, len(idx))) for _ in range(3))
+        with self._cond:
+            for k in range(count):
+                for j, i in enumerate(idx):
+                    y[k, j], u[k, j] = self._rec_data[(first + k, i)]
+                    v[k, j] = self._rec_v.get((first + k, i), np.nan)
+        return y, u, v
+
+    def _as_recording(self, setup: RecorderSetup, first: int, y: np.ndarray, u: np.ndarray,
+                      v: np.ndarray) -> Recording:
+        t = time_axis(first + len(y), setup.period_s)[first:]
         ys = {a: y[:, j].copy() for j, a in enumerate(setup.axes)} if "y_nm" in setup.signals else {}
         us = {a: u[:, j].copy() for j, a in enumerate(setup.axes)} if "u_V" in setup.signals else {}
-        vs = {a: v[:, j].copy() for j, a in enumerate(setup.axes)} if monitor else {}
-        return Recording(t, ys, us, setup.period_s, "can REC_DATA", vs)
+        vs = {a: v[:, j].copy() for j, a in enumerate(setup.axes)} if "v_V" in setup.signals else {}
+        return Recording(t, ys, us, setup.period_s, "can REC_DATA_FD" if self.stream_fd else "can REC_DATA", vs)
 
 
 def _buffer_status(sig: dict[str, float]) -> BufferStatus:

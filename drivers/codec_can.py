@@ -22,6 +22,9 @@ REC_READ        host     FIRST, COUNT — send those recorded points back
 REC_STATUS      amp      REC_STATE, AXES, SIGNALS, COUNT (recorded), CAPACITY, DIVIDER
 REC_DATA        amp      INDEX, AXIS, Y_NM (24 bit signed, 0.01 nm), U_V — one recorded point
 REC_DATA_V      amp      INDEX, AXIS, V_V — that point's piezo voltage (output stage monitor)
+REC_READ_FD     host     FIRST, COUNT — the same points back as REC_DATA_FD (a CAN FD bus)
+REC_DATA_FD     amp      INDEX, AXIS, COUNT, Y0_NM, U0_V, V0_V .. Y7_NM, U7_V, V7_V — CAN FD
+                         (64 bytes): up to 8 consecutive recorded points of one axis
 ==============  =======  ==========================================================
 
 Buffered stream (device-timed output): the host sends STREAM_CTRL start with the rate,
@@ -44,6 +47,9 @@ STREAM_CTRL, STREAM_SAMPLE, STREAM_STATUS = "STREAM_CTRL", "STREAM_XYZ", "STREAM
 STREAM_SAMPLE_FD = "STREAM_XYZ_FD"
 REC_CTRL, REC_READ, REC_STATUS, REC_DATA = "REC_CTRL", "REC_READ", "REC_STATUS", "REC_DATA"
 REC_DATA_V = "REC_DATA_V"
+REC_READ_FD, REC_DATA_FD = "REC_READ_FD", "REC_DATA_FD"
+#: recorded points one REC_DATA_FD frame carries (CAN FD, 64 data bytes)
+FD_REC_POINTS = 8
 REC_CMD_STATUS, REC_CMD_ARM, REC_CMD_STOP = 0, 1, 2
 REC_STATES = {0: "idle", 1: "armed", 2: "recording", 3: "done", 4: "fault"}
 #: SIGNALS bits of REC_CTRL / REC_STATUS
@@ -229,3 +235,46 @@ def encode_rec_ctrl(cmd: int, axes_mask: int = 0, signals: int = 0, points: int 
 
 def encode_rec_read(first: int, count: int) -> bytes:
     return message(REC_READ).encode({"FIRST": int(first), "COUNT": int(count)})
+
+
+def encode_rec_read_fd(first: int, count: int) -> bytes:
+    """4 data bytes of REC_READ_FD: points ``first`` .. ``first + count - 1`` back as
+    REC_DATA_FD frames."""
+    return message(REC_READ_FD).encode({"FIRST": int(first), "COUNT": int(count)})
+
+
+def encode_rec_block(index: int, axis: int, points: Sequence[tuple[float, float, float]]) -> bytes:
+    """64 data bytes of REC_DATA_FD: 1..:data:`FD_REC_POINTS` consecutive recorded points of
+    axis index ``axis`` (0 x, 1 y, 2 z), the first ``index``; each point (position [nm],
+    output voltage [V], piezo voltage [V]) clamped into its signal's DBC range; unused slots 0."""
+    n = len(points)
+    if not 1 <= n <= FD_REC_POINTS:
+        raise ProtocolError(f"REC_DATA_FD: {n} points; one frame carries 1..{FD_REC_POINTS}")
+    y_lo, y_hi, v_hi = _rec_ranges()
+    sig: dict[str, float] = {"INDEX": int(index) & 0xFFFF, "AXIS": int(axis), "COUNT": n}
+    for k in range(FD_REC_POINTS):
+        y, u, v = points[k] if k < n else (0.0, 0.0, 0.0)
+        sig[f"Y{k}_NM"] = min(max(float(y), y_lo), y_hi)
+        sig[f"U{k}_V"] = min(max(float(u), 0.0), v_hi)
+        sig[f"V{k}_V"] = min(max(float(v), 0.0), v_hi)
+    return message(REC_DATA_FD).encode(sig, strict=False)
+
+
+def decode_rec_block(data: bytes) -> tuple[int, int, list[tuple[float, float, float]]]:
+    """REC_DATA_FD data → (INDEX of the first point, AXIS, its COUNT points (position [nm],
+    output voltage [V], piezo voltage [V])); a wrong length or a COUNT outside
+    1..:data:`FD_REC_POINTS` → ProtocolError."""
+    sig = decode(REC_DATA_FD, data)
+    n = int(sig["COUNT"])
+    if not 1 <= n <= FD_REC_POINTS:
+        raise ProtocolError(f"REC_DATA_FD: COUNT {n}, expected 1..{FD_REC_POINTS}", data=bytes(data))
+    return int(sig["INDEX"]), int(sig["AXIS"]), [(float(sig[f"Y{k}_NM"]), float(sig[f"U{k}_V"]),
+                                                  float(sig[f"V{k}_V"])) for k in range(n)]
+
+
+@functools.lru_cache(maxsize=1)
+def _rec_ranges() -> tuple[float, float, float]:
+    """(lowest, highest position [nm], highest voltage [V]) a recorded point's signals carry (DBC)."""
+    msg = message(REC_DATA_FD)
+    y = msg.get_signal_by_name("Y0_NM")
+    return float(y.minimum), float(y.maximum), float(msg.get_signal_by_name("U0_V").maximum)

@@ -77,6 +77,38 @@ def test_a_streamed_piece_keeps_the_holds_of_an_empty_fifo_and_ends_at_the_table
         follow_table(np.array([1.0, 2.0, 2.0, 2.0]), table, 0.01)
 
 
+def test_a_streamed_piece_is_read_back_while_it_plays_and_only_to_its_last_row():
+    """On the CAN amplifier (CAN FD, the recorder read while it records): the points come
+    back in chunks as the stream plays; once the FIFO has drained, the read-back ends at the
+    table's last row (its rows plus the underruns, and a few points), not at the armed
+    points the recorder keeps filling with the held output."""
+    from afmctl.control.calibrate_run import STREAM_TAIL, LiveReadback
+    from afmctl.drivers.registry import open_amplifier
+    from afmctl.sim_backend.testing import serve_can
+    n, armed = 3000, 4000
+    table = 20.0 + 60.0 * np.sin(np.linspace(0.0, np.pi, n))
+    channel = f"live-{uuid.uuid4().hex[:8]}"
+    with serve_can(channel, _scanner()):
+        with open_amplifier("can", f"virtual:{channel}", fd=True) as amp:
+            amp.set_voltages({"x": float(table[0]), "y": 0.0, "z": 0.0})
+            amp.start_stream(10_000, prefill=n)
+            amp.configure_recorder(["x"], points=armed, signals=("y_nm", "u_V", "v_V"))
+            live = LiveReadback(amp, armed, chunk=500)
+            amp.queue([(float(v), 0.0, 0.0) for v in table])
+            t_start = time.monotonic()
+            amp.drain_stream()
+            deadline = t_start + 30.0
+            while amp.buffer_status().state != "idle" and time.monotonic() < deadline:
+                live.step(t_start, 10_000.0)
+                time.sleep(0.005)
+            underruns = amp.latest_buffer_status().underruns
+            live.points = min(live.points, n + underruns + STREAM_TAIL)
+            rec = live.rest(10.0, lambda: False)
+    assert len(rec) == n + underruns + STREAM_TAIL < armed
+    assert follow_table(rec.u_V["x"], table, 0.0013) == n + underruns
+    np.testing.assert_allclose(rec.t_s, np.arange(len(rec)) * 1e-4)
+
+
 def _config(tmp_path, driver: str, port: str | None = None, *, simulated: bool = False, rate_Hz: int = 10000,
             extra: str = "") -> Path:
     """A calibration's run configuration: ``driver`` on ``port`` (or simulated in-process),

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -293,6 +294,29 @@ def test_can_quantize_inside(v, lo, width):
         assert not math.isfinite(v) or width < 0.0025
         return
     assert lo <= q <= hi
+
+
+def test_can_recorder_block_round_trip_in_plain_bytes():
+    """REC_DATA_FD: 8 points of one axis in 64 bytes, the layout of the DBC (INDEX 0|16,
+    AXIS 16|2, COUNT 24|8, then per point Y 24 bit signed 0.01 nm, U and V 16 bit 2.5 mV)."""
+    pts = [(-5000.0 + 1234.56 * k, 10.0 + k, 20.0 + 0.5 * k) for k in range(8)]
+    data = codec_can.encode_rec_block(300, 1, pts)
+    assert len(data) == 64 and data[:4] == bytes([44, 1, 1, 8])          # 300 = 0x012C, axis 1, 8 points
+    assert int.from_bytes(data[4:7], "little", signed=True) == -500000   # -5000 nm in 0.01 nm
+    assert int.from_bytes(data[7:9], "little") == 4000 and int.from_bytes(data[9:11], "little") == 8000
+    first, axis, back = codec_can.decode_rec_block(data)
+    assert (first, axis) == (300, 1)
+    np.testing.assert_allclose(back, pts, atol=0.00125 + 1e-9)
+    first, axis, back = codec_can.decode_rec_block(codec_can.encode_rec_block(7, 2, [(1e9, 200.0, -3.0)] * 3))
+    assert (first, axis, len(back)) == (7, 2, 3)
+    assert back[0] == pytest.approx((83886.07, 163.8375, 0.0))          # clamped into the DBC's ranges
+    assert codec_can.encode_rec_read_fd(8, 1024) == bytes([8, 0, 0, 4])
+    with pytest.raises(ProtocolError, match="1..8"):
+        codec_can.encode_rec_block(0, 0, [])
+    with pytest.raises(ProtocolError, match="COUNT 0"):
+        codec_can.decode_rec_block(bytes(64))
+    with pytest.raises(ProtocolError, match="64"):
+        codec_can.decode_rec_block(data[:8])
 
 
 def test_can_decode_rejects_wrong_length_and_unknown_ids():

@@ -180,6 +180,42 @@ def test_can_driver_records_the_stream_from_its_first_played_sample():
     assert np.ptp(want) > 2000.0 and np.abs(err).max() < 0.002 * np.ptp(want)
 
 
+def test_can_fd_read_back_equals_the_classic_one_and_reads_while_it_records():
+    """On a CAN FD bus the recorder comes back in REC_DATA_FD frames of 8 points: the same
+    points, position, output and piezo voltage, as REC_DATA + REC_DATA_V give; the points
+    recorded so far are read while the stream still plays."""
+    import uuid
+    from afmctl.sim_backend.testing import serve_can
+    n = 3000                                    # 0.3 s at 10 kHz, inside the 4096-sample FIFO
+    table = _sine(n, 20.0, 100.0)
+    channel = f"fd-{uuid.uuid4().hex[:8]}"
+    with serve_can(channel, Scanner(default_scanner_config())):
+        with open_amplifier("can", f"virtual:{channel}", fd=True) as amp:
+            assert amp.reads_while_recording
+            amp.set_voltages({"x": float(table[0]), "y": 30.0, "z": 0.0})
+            amp.start_stream(10_000, prefill=n)           # the clock starts once all are queued
+            setup = amp.configure_recorder(["x", "y"], points=n, signals=("y_nm", "u_V", "v_V"))
+            amp.queue([(float(v), 30.0, 0.0) for v in table])
+            deadline = time.monotonic() + 10.0
+            while amp.recorded_points() < 1000 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            early = amp.read_recorded(0, 1000)                    # the stream still plays
+            assert amp.recorded_points() < n
+            amp.drain_stream()
+            fd = amp.read_recording(timeout_s=10)
+            amp.stream_fd = False                                  # the same points, classic frames
+            classic = amp.read_recording(timeout_s=10)
+    assert setup.points == n and fd.source == "can REC_DATA_FD" and classic.source == "can REC_DATA"
+    for a in ("x", "y"):
+        np.testing.assert_array_equal(fd.y_nm[a], classic.y_nm[a])
+        np.testing.assert_array_equal(fd.u_V[a], classic.u_V[a])
+        np.testing.assert_array_equal(fd.v_V[a], classic.v_V[a])
+        np.testing.assert_array_equal(early.y_nm[a], fd.y_nm[a][:1000])
+    np.testing.assert_allclose(fd.u_V["x"], table, atol=0.0013)
+    assert np.ptp(fd.y_nm["x"]) > 2000.0 and np.ptp(fd.v_V["x"]) > 50.0
+    np.testing.assert_allclose(early.t_s, fd.t_s[:1000])
+
+
 def test_nv200_recording_armed_but_never_started_is_dropped_when_the_output_is_read(caplog):
     import logging
     from afmctl.drivers.errors import AmplifierError

@@ -58,6 +58,10 @@ NV200_UART_BAUD, NV200_BYTES_PER_VALUE = 115200, 8
 #: share of the recorder a streamed piece leaves free: the ticks a FIFO that ran empty held
 #: the output are recorded too (the scanner saw them), after which the table goes on
 STREAM_SLACK = 0.25
+#: points read past a streamed piece's last row (its tick: the rows plus the device's
+#: underruns) — the recorder goes on recording the held output until its armed points are
+#: in, which the read-back does not wait for
+STREAM_TAIL = 16
 
 
 class CalibrationFault(AfmctlError):
@@ -196,7 +200,8 @@ def device_capacity(amp: Any, axis: str, signals: tuple[str, ...]) -> int:
 
 #: points per read of a recording read back while it is taken (:class:`LiveReadback`): a
 #: ``DRR?`` of 8192 points of three tables takes 0.2–0.4 s on loopback TCP, the longest a
-#: stop or the controller's poll of the wave generator waits for it
+#: stop or the controller's poll of the wave generator waits for it; a shorter piece reads
+#: an eighth of its points at a time (so that most of it is read while it plays)
 LIVE_CHUNK = 8192
 #: read a piece's recording while it plays (:class:`LiveReadback`) on a device that
 #: ``reads_while_recording`` (the simulated E-727 plays its tables from the simulator's
@@ -351,10 +356,15 @@ class CalibrationRun:
         settle = float(self.config.amplifier.settle_s) if self._first else 0.0
         armed: list[Any] = []
         ctl = Controller(self._axis_config(axis), self.amp)
-        ctl.before_wave_start = lambda: armed.append(self._arm(axis, signals, n))
+        live = (LiveReadback(self.amp, n, min(LIVE_CHUNK, max(256, n // 8)))
+                if READ_WHILE_PLAYING and getattr(self.amp, "reads_while_recording", False) else None)
+
+        def arm() -> None:
+            armed.append(self._arm(axis, signals, n))
+            if live is not None:            # a stream's recording has room for its holds
+                live.points = int(armed[-1].points)
+        ctl.before_wave_start = arm
         self._ctl = ctl
-        live = (LiveReadback(self.amp, n) if READ_WHILE_PLAYING and getattr(self.amp, "reads_while_recording", False)
-                else None)
         try:
             ctl.start(TableSource(table, settle, f"calibration piece at sample {start}"))
             if self._stop.is_set():
@@ -375,6 +385,9 @@ class CalibrationRun:
                                    f"{stats.get('last_error') or 'see the log'})")
         if played != n or not armed:
             raise CalibrationStopped(f"afmctl calibrate: stopped during a piece ({played} of {n} samples played)")
+        if live is not None and streams(self.amp):     # the table's last row is at tick n - 1 + underruns
+            underruns = int((stats.get("stream") or {}).get("underruns") or 0)
+            live.points = min(live.points, n + underruns + STREAM_TAIL)
         return self._read(axis, table, start, float(ctl.wave_times.get("start", time.monotonic())), live)
 
     def _arm(self, axis: str, signals: tuple[str, ...], points: int) -> Any:

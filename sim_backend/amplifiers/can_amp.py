@@ -44,7 +44,8 @@ log = logging.getLogger(__name__)
 
 #: the DBC's messages this amplifier receives and sends
 _MESSAGES = ("SETPOINT_XYZ", "HEARTBEAT", "STATUS", "ERROR", "LIMITS", "STREAM_CTRL", "STREAM_XYZ",
-             "STREAM_XYZ_FD", "STREAM_STATUS", "REC_CTRL", "REC_READ", "REC_STATUS", "REC_DATA", "REC_DATA_V")
+             "STREAM_XYZ_FD", "STREAM_STATUS", "REC_CTRL", "REC_READ", "REC_STATUS", "REC_DATA", "REC_DATA_V",
+             "REC_READ_FD", "REC_DATA_FD")
 #: how often a playing stream reports its FIFO [s of the amplifier clock]
 STATUS_PERIOD_S = 0.01
 #: stream samples wait for the sink until the oldest is this old [s] (see _run_stream)
@@ -91,10 +92,13 @@ class SimCANAmplifier:
         self._msg = {name: self.db.get_message_by_name(name) for name in _MESSAGES}
         #: frame id -> message name, for the frames this amplifier receives
         self._rx = {self._msg[n].frame_id: n for n in ("SETPOINT_XYZ", "HEARTBEAT", "STREAM_CTRL", "STREAM_XYZ",
-                                                       "STREAM_XYZ_FD", "REC_CTRL", "REC_READ")}
+                                                       "STREAM_XYZ_FD", "REC_CTRL", "REC_READ",
+                                                       "REC_READ_FD")}
         self._bus_options = bus_options
         #: sample slots of one STREAM_XYZ_FD frame (from the DBC: its X<k>_V signals)
         self._fd_samples = sum(1 for sg in self._msg["STREAM_XYZ_FD"].signals if sg.name[0] == "X")
+        #: recorded points one REC_DATA_FD frame carries (from the DBC: its Y<k>_NM signals)
+        self._fd_rec_points = sum(1 for sg in self._msg["REC_DATA_FD"].signals if sg.name[0] == "Y")
         self.outputs = {a: 0.0 for a in self.axes}
         self.enabled = True
         self.last_seq = 255
@@ -194,7 +198,8 @@ class SimCANAmplifier:
             return
         msg = self._msg[name]
         with self._send_lock:
-            bus.send(can.Message(arbitration_id=msg.frame_id, data=msg.encode(signals), is_extended_id=False))
+            data = msg.encode(signals)
+            bus.send(can.Message(arbitration_id=msg.frame_id, data=data, is_extended_id=False, is_fd=len(data) > 8))
 
     def _error(self, code: int, detail: int, seq: int) -> None:
         self.last_error = code
@@ -235,6 +240,8 @@ class SimCANAmplifier:
             self._rec_ctrl(sig)
         elif name == "REC_READ":
             self._rec_read(sig)
+        elif name == "REC_READ_FD":
+            self._rec_read(sig, fd=True)
         else:
             if sig["REQ_STATE"] == 1:
                 self.enabled = True
@@ -360,7 +367,10 @@ class SimCANAmplifier:
                 self.recorder.stop()
             self.send_rec_status()
 
-    def _rec_read(self, sig: dict) -> None:
+    def _rec_read(self, sig: dict, fd: bool = False) -> None:
+        """REC_READ (``fd``: REC_READ_FD): the points asked for, as REC_DATA (+ REC_DATA_V)
+        frames, one per point and axis, or as REC_DATA_FD frames of up to
+        :attr:`_fd_rec_points` points of one axis."""
         first, count = int(sig["FIRST"]), int(sig["COUNT"])
         with self._stream_lock:
             self._rec_sync()
@@ -369,13 +379,34 @@ class SimCANAmplifier:
                 self._error(6, 4, 0)
                 return
             axes = [i for i in range(3) if r.axes_mask >> i & 1]
-            frames = [(k, i, *r.point(k, i)) for k in range(first, first + count) for i in axes]
-        lo, hi = -83886.08, 83886.07                   # the Y_NM signal's range (DBC)
+            points = {i: [self._rec_point(k, i) for k in range(first, first + count)] for i in axes}
+        if fd:
+            self._send_rec_blocks(first, points)
+            return
         monitor = bool(r.signals & 4)
-        for k, i, y, u, v in frames:
-            self._send("REC_DATA", {"INDEX": k, "AXIS": i, "Y_NM": min(max(y, lo), hi), "U_V": u})
-            if monitor:
-                self._send("REC_DATA_V", {"INDEX": k, "AXIS": i, "V_V": min(max(v, 0.0), 163.8375)})
+        for j in range(count):
+            for i in axes:
+                y, u, v = points[i][j]
+                self._send("REC_DATA", {"INDEX": first + j, "AXIS": i, "Y_NM": y, "U_V": u})
+                if monitor:
+                    self._send("REC_DATA_V", {"INDEX": first + j, "AXIS": i, "V_V": v})
+
+    def _rec_point(self, k: int, axis: int) -> tuple[float, float, float]:
+        """Recorded point ``k`` of axis index ``axis`` inside its frame signals' ranges (DBC)."""
+        y, u, v = self.recorder.point(k, axis)
+        return min(max(y, -83886.08), 83886.07), u, min(max(v, 0.0), 163.8375)
+
+    def _send_rec_blocks(self, first: int, points: dict[int, list[tuple[float, float, float]]]) -> None:
+        """REC_DATA_FD frames: blocks of up to :attr:`_fd_rec_points` points, in index then axis order."""
+        per = self._fd_rec_points
+        count = len(next(iter(points.values())))
+        for start in range(0, count, per):
+            for i, pts in points.items():
+                block = pts[start:start + per]
+                sig: dict[str, float] = {"INDEX": (first + start) & 0xFFFF, "AXIS": i, "COUNT": len(block)}
+                for k in range(per):
+                    sig[f"Y{k}_NM"], sig[f"U{k}_V"], sig[f"V{k}_V"] = block[k] if k < len(block) else (0.0, 0.0, 0.0)
+                self._send("REC_DATA_FD", sig)
 
     def send_stream_status(self) -> None:
         st = self.stream.status()
