@@ -299,6 +299,10 @@ class Amplifier(AmplifierInterface):
     has_recorder: bool = False
     #: the device reads back points already recorded while it still records (:meth:`read_recorded`)
     reads_while_recording: bool = False
+    #: a recording longer than the recorder's capacity goes into a ring that keeps the last
+    #: capacity's points: each is read back (:meth:`read_recorded`) before that many more
+    #: are taken (:meth:`recorder_max_points` says how long a recording may be)
+    records_ring: bool = False
     #: the recording armed last (:meth:`configure_recorder`), None before or after it is dropped
     _recorder_setup: RecorderSetup | None = None
 
@@ -309,6 +313,11 @@ class Amplifier(AmplifierInterface):
     def _recorder_capacity(self, axes: tuple[str, ...], signals: tuple[str, ...]) -> int:
         """The most points per signal the recorder holds for these axes and signals."""
         raise NotImplementedError
+
+    def _recorder_max_points(self, axes: tuple[str, ...], signals: tuple[str, ...]) -> int:
+        """The most points per signal one recording may have: what the recorder holds, or on
+        a device that :attr:`records_ring`, the most its arm command takes."""
+        return self._recorder_capacity(axes, signals)
 
     def _configure_recorder(self, setup: RecorderSetup) -> RecorderSetup:
         """Arm the recorder to start with the next wave start; returns the setup with the
@@ -547,6 +556,18 @@ class Amplifier(AmplifierInterface):
             self._guard()
             return self._io(self._recorder_capacity, ax, tuple(signals))
 
+    def recorder_max_points(self, axes: Sequence[str] | None = None,
+                            signals: Sequence[str] = ("y_nm", "u_V")) -> int:
+        """The most points per signal one recording of these axes and signals may have: its
+        :meth:`recorder_capacity`, or more on a device that :attr:`records_ring` (read back
+        while it records)."""
+        if not self.has_recorder:
+            raise self._no_recorder()
+        ax = tuple(axes) if axes is not None else self.axes
+        with self._lock:
+            self._guard()
+            return self._io(self._recorder_max_points, ax, tuple(signals))
+
     def record_tables(self) -> int | None:
         """How many record tables share the recorder's memory now, on a device whose memory
         is shared (the E-727: 262,144 points in equal shares, ``TNR?``); None on one whose
@@ -586,7 +607,7 @@ class Amplifier(AmplifierInterface):
             self._guard()
             try:
                 ax, sig = check_axes_signals(axes if axes is not None else self.axes, signals, self.axes)
-                check_points(points, divider, capacity=self._io(self._recorder_capacity, ax, sig), name=self.name)
+                check_points(points, divider, capacity=self._io(self._recorder_max_points, ax, sig), name=self.name)
             except ValueError as err:
                 raise LimitError(str(err)) from None
             setup = RecorderSetup(ax, sig, points, divider, self._io(self._recorder_clock_s))

@@ -58,6 +58,8 @@ class CANAmplifier(Amplifier):
     has_recorder = True
     #: REC_READ / REC_READ_FD answer with points already recorded while the recorder records
     reads_while_recording = True
+    #: an arm for more points than REC_STATUS CAPACITY records into a ring (afm_amplifier.dbc)
+    records_ring = True
     #: REC_DATA points asked for with one REC_READ (bounds the frames queued at once); on a
     #: CAN FD bus :data:`~afmctl.drivers.codec_can.FD_REC_POINTS` times as many with one
     #: REC_READ_FD, as many frames
@@ -380,6 +382,9 @@ class CANAmplifier(Amplifier):
 
     def _recorder_capacity(self, axes: tuple[str, ...], signals: tuple[str, ...]) -> int:
         return min(int(self._rec_command(codec.REC_CMD_STATUS)["CAPACITY"]), 0xFFFF)
+
+    def _recorder_max_points(self, axes: tuple[str, ...], signals: tuple[str, ...]) -> int:
+        return 0xFFFF                    # REC_CTRL POINTS; past CAPACITY a ring read while it records
 
     def _configure_recorder(self, setup: RecorderSetup) -> RecorderSetup:
         if setup.divider > 0xFFFF:

@@ -39,7 +39,7 @@ import math
 from collections.abc import Mapping, Sequence
 from importlib import resources
 
-from .errors import LimitError, ProtocolError
+from .errors import LimitError, ProtocolError, RecordingOverwritten
 
 DBC_RESOURCE = "afm_amplifier.dbc"
 SETPOINT, HEARTBEAT, STATUS, ERROR, LIMITS = "SETPOINT_XYZ", "HEARTBEAT", "STATUS", "ERROR", "LIMITS"
@@ -59,7 +59,8 @@ STREAM_STATES = {0: "idle", 1: "armed", 2: "playing", 3: "draining", 4: "fault"}
 FLAG_REQ_STATUS = 0x01
 ERRORS = {1: "value outside the amplifier range", 2: "sequence gap (setpoints lost or reordered)",
           3: "outputs disabled", 4: "hardware fault", 5: "stream FIFO overflow",
-          6: "recorder request refused (detail 1 points, 2 divider, 3 axes/signals, 4 read past the recording)"}
+          6: "recorder request refused (detail 1 points, 2 divider, 3 axes/signals, 4 read past the recording, "
+             "5 points overwritten: read back too late)"}
 STATES = {0: "disabled", 1: "enabled", 2: "fault"}
 
 
@@ -218,9 +219,10 @@ def decode(name_or_id: str | int, data: bytes) -> dict[str, float]:
 
 
 def error_from(signals: Mapping[str, float], data: bytes = b"") -> ProtocolError:
-    code = int(signals["CODE"])
-    return ProtocolError(f"CAN amplifier error (setpoint SEQ {int(signals['SEQ'])}, detail {int(signals['DETAIL'])})",
-                         code=code, text=ERRORS.get(code, "unknown error"), data=bytes(data) or None)
+    code, detail = int(signals["CODE"]), int(signals["DETAIL"])
+    kind = RecordingOverwritten if (code, detail) == (6, 5) else ProtocolError
+    return kind(f"CAN amplifier error (setpoint SEQ {int(signals['SEQ'])}, detail {detail})",
+                code=code, text=ERRORS.get(code, "unknown error"), data=bytes(data) or None)
 
 
 def encode_rec_ctrl(cmd: int, axes_mask: int = 0, signals: int = 0, points: int = 0, divider: int = 0) -> bytes:

@@ -50,3 +50,9 @@ class RecorderUnavailable(AmplifierError):
 class RecordingCancelled(AmplifierError):
     """A read-back of the data recorder was given up at the caller's request (between two
     of its chunks: the link is left clean)."""
+
+
+class RecordingOverwritten(ProtocolError):
+    """Points of a recording longer than the recorder (a ring, ``records_ring``) were asked
+    for after the recorder had taken its capacity's worth more: they are gone. Read a ring
+    back while it records, in step with it."""

@@ -109,6 +109,53 @@ def test_a_streamed_piece_is_read_back_while_it_plays_and_only_to_its_last_row()
     np.testing.assert_allclose(rec.t_s, np.arange(len(rec)) * 1e-4)
 
 
+def test_a_piece_longer_than_the_ring_is_read_in_step_and_played_again_when_the_read_back_fell_behind(
+        tmp_path, caplog, monkeypatch):
+    """The CAN amplifier's recorder is a ring of 8192 points read while it records: a piece
+    of 12,000 rows is recorded whole. When its read-back did not keep in step (here: nothing
+    read while it played), the amplifier refuses the overwritten points and the piece is
+    played once more; the record is the table."""
+    import logging
+    from afmctl.config import load_config
+    from afmctl.control import calibrate_run as cr
+    from afmctl.drivers.registry import open_amplifier
+    from afmctl.sim_backend.testing import serve_can
+    n = 12_000
+    u = 20.0 + 40.0 * np.sin(np.linspace(0.0, 2 * np.pi, n)) ** 2
+    channel = f"ring-{uuid.uuid4().hex[:8]}"
+    with serve_can(channel, _scanner()):
+        config = load_config(_config(tmp_path, "can", f"virtual:{channel}",
+                                     extra="[amplifier.options]\nfd = true\ntimeout_s = 2.0\n"))
+        config.amplifier.settle_s = 0.1
+        with open_amplifier("can", f"virtual:{channel}", fd=True) as amp:
+            signals = cr.recorder_signals(amp, "x")
+            assert cr.rings(amp) and cr.device_capacity(amp, "x", signals) >= n
+            run = cr.CalibrationRun(config, amp)
+            step = cr.LiveReadback.step
+            calls = {"first": True}
+
+            def lagging(self, t_start, rate_Hz):           # the first play reads nothing while it plays
+                if not calls["first"]:
+                    step(self, t_start, rate_Hz)
+            monkeypatch.setattr(cr.LiveReadback, "step", lagging)
+            original = run._piece
+
+            def piece(*a, **k):
+                try:
+                    return original(*a, **k)
+                finally:
+                    calls["first"] = False
+            monkeypatch.setattr(run, "_piece", piece)
+            try:
+                with caplog.at_level(logging.WARNING, logger="afmctl.control.calibrate_run"):
+                    [rec] = run.play("excite x", "x", signals, [u], [0], lambda k: 0.0)
+            finally:
+                run.finish()
+    assert "fell behind the recorder" in caplog.text
+    assert follow_table(rec.u_V, u, 0.0013) == len(rec.u_V) >= n
+    assert np.ptp(rec.y_nm) > 2000.0
+
+
 def _config(tmp_path, driver: str, port: str | None = None, *, simulated: bool = False, rate_Hz: int = 10000,
             extra: str = "") -> Path:
     """A calibration's run configuration: ``driver`` on ``port`` (or simulated in-process),

@@ -164,8 +164,9 @@ def test_can_driver_records_the_stream_from_its_first_played_sample():
             with pytest.raises(LimitError, match="start_stream"):
                 amp.configure_recorder(points=n)
             amp.start_stream(10_000, prefill=n)           # the clock starts once all are queued
-            with pytest.raises(LimitError, match="1..8192"):
-                amp.configure_recorder(points=9000)
+            with pytest.raises(LimitError, match="1..65535"):
+                amp.configure_recorder(points=70_000)
+            assert amp.recorder_capacity() == 8192 and amp.recorder_max_points() == 65535   # a ring past 8192
             setup = amp.configure_recorder(["x", "y"], points=n)
             assert setup.period_s == pytest.approx(100e-6)
             amp.queue(rows)
@@ -214,6 +215,43 @@ def test_can_fd_read_back_equals_the_classic_one_and_reads_while_it_records():
     np.testing.assert_allclose(fd.u_V["x"], table, atol=0.0013)
     assert np.ptp(fd.y_nm["x"]) > 2000.0 and np.ptp(fd.v_V["x"]) > 50.0
     np.testing.assert_allclose(early.t_s, fd.t_s[:1000])
+
+
+def test_can_recording_longer_than_the_recorder_is_a_ring_read_while_it_records():
+    """20,000 points armed on the 8192-point recorder: read back while the stream plays,
+    every point comes back (the output is the table); a point read after 8192 more were
+    taken is refused by the amplifier as overwritten."""
+    import uuid
+    from afmctl.sim_backend.testing import serve_can
+    n = 20_000                                              # 2 s at 10 kHz
+    table = _sine(n, 20.0, 100.0)
+    rows = [(float(v), 0.0, 0.0) for v in table]
+    channel = f"ring-{uuid.uuid4().hex[:8]}"
+    with serve_can(channel, Scanner(default_scanner_config())):
+        with open_amplifier("can", f"virtual:{channel}", fd=True) as amp:
+            amp.set_voltages({"x": rows[0][0], "y": 0.0, "z": 0.0})
+            amp.start_stream(10_000, prefill=3000)
+            amp.configure_recorder(["x"], points=n, signals=("y_nm", "u_V"))
+            parts, got, queued = [], 0, 0
+            deadline = time.monotonic() + 60.0
+            while got < n and time.monotonic() < deadline:
+                if queued < n and queued - amp.buffer_status().played_seq < 2000:
+                    amp.queue(rows[queued:queued + 1000])      # the FIFO (4096) topped up as it plays
+                    queued = min(n, queued + 1000)
+                    continue
+                ready = amp.recorded_points() - got
+                if ready >= min(500, n - got):
+                    parts.append(amp.read_recorded(got, min(ready, 1000)))
+                    got += len(parts[-1])
+                else:
+                    time.sleep(0.005)
+            with pytest.raises(ProtocolError, match="overwritten"):
+                amp.read_recorded(0, 10)
+    rec = joined_recording(parts)
+    assert len(rec) == n and rec.source == "can REC_DATA_FD"
+    np.testing.assert_allclose(rec.u_V["x"], table, atol=0.0013)
+    np.testing.assert_allclose(rec.t_s, np.arange(n) * 1e-4)
+    assert np.ptp(rec.y_nm["x"]) > 2000.0
 
 
 def test_nv200_recording_armed_but_never_started_is_dropped_when_the_output_is_read(caplog):

@@ -11,9 +11,12 @@ piece, the table on the device's clock, the device's recorder armed once the tab
 on it (it starts with the table). Between pieces the output *holds* its last voltage
 (the next piece starts there: no approach, no hold of its own), so the scanner's
 hysteresis memory runs on unbroken; :func:`calibrate_pieces.join` puts the holds back.
-On a device that reads its recorder while it records (the E-727) each piece is read back
-while it plays (:class:`LiveReadback`), so a hold lasts the upload, the start and the last
-chunk of the read-back rather than the whole read-back.
+On a device that reads its recorder while it records (the E-727, the CAN amplifier) each
+piece is read back while it plays (:class:`LiveReadback`), so a hold lasts the upload, the
+start and the last chunk of the read-back rather than the whole read-back. A device whose
+recorder records a longer recording into a ring (the CAN amplifier: 8192 points) plays
+pieces of up to :data:`RING_SPAN` rings, read in step; a piece whose read-back fell behind
+(points overwritten) is played once more.
 
 Requests: :meth:`CalibrationRun.stop` (Ctrl-C, zenoh ``stop``) stops the piece playing at
 once (wave generator stopped / FIFO flushed, the output holds), then :func:`return_to_safe`
@@ -58,6 +61,11 @@ NV200_UART_BAUD, NV200_BYTES_PER_VALUE = 115200, 8
 #: share of the recorder a streamed piece leaves free: the ticks a FIFO that ran empty held
 #: the output are recorded too (the scanner saw them), after which the table goes on
 STREAM_SLACK = 0.25
+#: a piece on a ring (:func:`rings`) records at most this many times what the ring holds: a
+#: read-back at half the recording's pace stays within the ring to the piece's end (the
+#: simulated CAN amplifier in the calibrating process shares one core's worth of Python
+#: with the stream, the read-back and the scanner's simulation)
+RING_SPAN = 2
 #: points read past a streamed piece's last row (its tick: the rows plus the device's
 #: underruns) — the recorder goes on recording the held output until its armed points are
 #: in, which the read-back does not wait for
@@ -188,14 +196,40 @@ def streams(amp: Any) -> bool:
 
 def device_capacity(amp: Any, axis: str, signals: tuple[str, ...]) -> int:
     """The most rows one piece may have on ``amp`` for ``axis``: its recorder's points per
-    signal, and its wave table's size (a wave generator); a streamed table
-    (:func:`streams`) leaves :data:`STREAM_SLACK` of the recorder for the holds of a FIFO
-    that runs empty."""
-    rec = int(amp.recorder_capacity([axis], signals))
+    signal (:func:`recording_points`: on a ring, the most one arm takes), and its wave
+    table's size (a wave generator); a streamed table (:func:`streams`) leaves
+    :data:`STREAM_SLACK` of the recording for the holds of a FIFO that runs empty."""
+    rec = int(recording_points(amp, axis, signals))
     table = table_capacity(amp, [axis])
     if table is None:
         return max(1, int(rec * (1.0 - STREAM_SLACK)))
     return min(rec, table)
+
+
+def rings(amp: Any) -> bool:
+    """Whether a piece on ``amp`` may be longer than its recorder holds: a ring read back
+    while it records (the CAN amplifier: :attr:`~afmctl.drivers.base.Amplifier.records_ring`)."""
+    return bool(getattr(amp, "records_ring", False) and getattr(amp, "reads_while_recording", False)
+                and READ_WHILE_PLAYING)
+
+
+def recording_points(amp: Any, axis: str, signals: tuple[str, ...]) -> int:
+    """The most points one piece's recording may have: what the recorder holds, or on a
+    device that :func:`rings`, the most one arm takes."""
+    held = int(amp.recorder_capacity([axis], signals))
+    if rings(amp):
+        return min(int(amp.recorder_max_points([axis], signals)), RING_SPAN * held)
+    return held
+
+
+def live_chunk(amp: Any, axis: str, signals: tuple[str, ...], points: int) -> int:
+    """Points a :class:`LiveReadback` reads at a time: :data:`LIVE_CHUNK`, or an eighth of a
+    shorter piece; on a ring an eighth of what the ring holds (each chunk is read long before
+    it is overwritten)."""
+    chunk = min(LIVE_CHUNK, max(256, points // 8))
+    if rings(amp):
+        chunk = min(chunk, max(1, int(amp.recorder_capacity([axis], signals)) // 8))
+    return chunk
 
 
 #: points per read of a recording read back while it is taken (:class:`LiveReadback`): a
@@ -207,6 +241,8 @@ LIVE_CHUNK = 8192
 #: ``reads_while_recording`` (the simulated E-727 plays its tables from the simulator's
 #: clock thread, so a long ``DRR?`` reply holding its server no longer stalls the table)
 READ_WHILE_PLAYING = True
+#: chunks one :meth:`LiveReadback.step` reads at most (a reader behind the recorder catches up)
+LIVE_CATCH_UP = 8
 
 
 class LiveReadback:
@@ -225,18 +261,23 @@ class LiveReadback:
         self.failed: Exception | None = None
 
     def step(self, t_start: float | None, rate_Hz: float) -> None:
-        """Read one chunk if that many new points are recorded (never waits for them); the
+        """Read the chunks of new points recorded (never waits for them; at most
+        :data:`LIVE_CATCH_UP` of them, so that a reader that fell behind catches up); the
         device is asked (``DRL?``) only once the host clock since the table's start
         ``t_start`` (``time.monotonic()``, None: not started) at ``rate_Hz`` says they are."""
         from afmctl.drivers.errors import AmplifierError
-        if self.failed is not None or self.got >= self.points or t_start is None:
-            return
-        if (time.monotonic() - t_start) * rate_Hz < self.got + min(self.chunk, self.points - self.got):
+        if self.failed is not None or t_start is None:
             return
         try:
-            ready = min(self.amp.recorded_points(), self.points) - self.got
-            if ready >= min(self.chunk, self.points - self.got):
-                self._read(min(ready, self.chunk))
+            for _ in range(LIVE_CATCH_UP):
+                want = min(self.chunk, self.points - self.got)
+                if want <= 0 or (time.monotonic() - t_start) * rate_Hz < self.got + want:
+                    return
+                ready = min(self.amp.recorded_points(), self.points) - self.got
+                if ready < want:
+                    return
+                self._read(want)
+                time.sleep(0.001)       # the link to the player (a FIFO topped up) between two reads
         except AmplifierError as err:
             self.failed = err
 
@@ -319,8 +360,25 @@ class CalibrationRun:
                 raise CalibrationStopped("afmctl calibrate: stopped")
             if self.on_progress is not None:
                 self.on_progress(Progress(what, k, len(tables), left_s(k)))
-            got.append(self._piece(axis, signals, u, start))
+            got.append(self._played_piece(axis, signals, u, start))
         return got
+
+    def _played_piece(self, axis: str, signals: tuple[str, ...], u: np.ndarray, start: int) -> PieceRecord:
+        """:meth:`_piece`, played once more when its read-back fell behind a ring recorder
+        (:func:`rings`: a host too busy to read in step); a second time ends the calibration
+        (:class:`CalibrationFault`, what was recorded before is kept)."""
+        from afmctl.drivers.errors import RecordingOverwritten
+        try:
+            return self._piece(axis, signals, u, start)
+        except RecordingOverwritten as err:
+            log.warning("%s: the read-back fell behind the recorder (%s); playing the piece at sample %d again",
+                        self.amp.name, err, start)
+        try:
+            return self._piece(axis, signals, u, start)
+        except RecordingOverwritten:
+            raise CalibrationFault(f"afmctl calibrate: the read-back fell behind the {self.amp.name}'s recorder twice "
+                                   "(points overwritten before they were read): the host is too busy to read in "
+                                   "step; calibrate again on a quieter machine") from None
 
     def _rows(self, axis: str, u: np.ndarray) -> np.ndarray:
         rows = np.zeros((len(u), 3))
@@ -356,7 +414,7 @@ class CalibrationRun:
         settle = float(self.config.amplifier.settle_s) if self._first else 0.0
         armed: list[Any] = []
         ctl = Controller(self._axis_config(axis), self.amp)
-        live = (LiveReadback(self.amp, n, min(LIVE_CHUNK, max(256, n // 8)))
+        live = (LiveReadback(self.amp, n, live_chunk(self.amp, axis, signals, n))
                 if READ_WHILE_PLAYING and getattr(self.amp, "reads_while_recording", False) else None)
 
         def arm() -> None:
@@ -397,7 +455,7 @@ class CalibrationRun:
             raise AfmctlError(f"loop.rate_Hz: {self.config.loop.rate_Hz:g} Hz is not a whole number of the "
                               f"recorder's {clock:g} s ticks")
         if streams(self.amp):      # room for the holds of a FIFO that runs empty (STREAM_SLACK)
-            points = max(points, min(int(self.amp.recorder_capacity([axis], signals)),
+            points = max(points, min(recording_points(self.amp, axis, signals),
                                      int(points / (1.0 - STREAM_SLACK)) + 1))
         return self.amp.configure_recorder([axis], points=points, divider=divider, signals=signals)
 

@@ -375,8 +375,9 @@ class SimCANAmplifier:
         with self._stream_lock:
             self._rec_sync()
             r = self.recorder
-            if r.state is RecState.IDLE or first + count > r.count():
-                self._error(6, 4, 0)
+            refused = r.held(first, count)
+            if refused:
+                self._error(6, refused, 0)
                 return
             axes = [i for i in range(3) if r.axes_mask >> i & 1]
             points = {i: [self._rec_point(k, i) for k in range(first, first + count)] for i in axes}

@@ -9,7 +9,10 @@ before it; without a sensor in the sink there is no position and it is sent as 0
 SIGNALS bit 2, the piezo voltage then (the monitor of the output stage: the scanner's
 amplifier stage output, after its bandwidth and slew; without a sink the voltage in force).
 It holds
-``CAPACITY`` points per signal; REC_READ asks for a range of them back.
+``CAPACITY`` points per signal; REC_READ asks for a range of them back. An arm for more
+points (up to :data:`MAX_POINTS`, what REC_CTRL's POINTS carries) records into a ring: the
+last ``CAPACITY`` points are kept, and a point must be read back (while the recorder records)
+before ``CAPACITY`` more are taken (:meth:`TickRecorder.held`).
 """
 from __future__ import annotations
 
@@ -21,6 +24,8 @@ from typing import Any
 import numpy as np
 
 CAPACITY = 8192
+#: the most points one arm takes (REC_CTRL POINTS, 16 bits): beyond CAPACITY, a ring
+MAX_POINTS = 0xFFFF
 
 
 class RecState(enum.IntEnum):
@@ -47,7 +52,7 @@ class TickRecorder:
 
     def arm(self, axes_mask: int, signals: int, points: int, divider: int) -> int:
         """Returns 0, or the DETAIL of ERROR 6: 1 points, 2 divider, 3 axes/signals."""
-        if not 1 <= points <= CAPACITY:
+        if not 1 <= points <= MAX_POINTS:
             return 1
         if divider < 1:
             return 2
@@ -97,6 +102,15 @@ class TickRecorder:
         if self.capture is not None:
             n = min(n, self.capture.count)
         return n
+
+    def held(self, first: int, count: int) -> int:
+        """0 when points ``first`` .. ``first + count - 1`` can be sent back, else the DETAIL
+        of ERROR 6: 4 not recorded yet, 5 overwritten (more than CAPACITY points ago)."""
+        if self.state is RecState.IDLE or first + count > self.count():
+            return 4
+        if first < self.count() - CAPACITY:
+            return 5
+        return 0
 
     def point(self, k: int, axis: int) -> tuple[float, float, float]:
         """(position [nm], voltage [V], piezo voltage [V]) of point ``k`` on axis index
