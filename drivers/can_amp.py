@@ -400,23 +400,21 @@ class CANAmplifier(Amplifier):
         return int(self._rec_command(codec.REC_CMD_STATUS)["COUNT"])
 
     def _read_recording(self, setup: RecorderSetup, cancel: Callable[[], bool]) -> Recording:
-        """The whole recording in chunks (:meth:`_read_chunk`); ``cancel()`` asked between two."""
+        """The whole recording (:meth:`_read_points`); ``cancel()`` asked between two chunks."""
+        return self._read_points(setup, 0, setup.points, cancel)
+
+    def _read_points(self, setup: RecorderSetup, first: int, n: int,
+                     cancel: Callable[[], bool] = lambda: False) -> Recording:
+        """Points ``first`` .. ``first + n - 1`` (recorded already, also while the recorder
+        records), in chunks of :meth:`_read_chunk_points`, each awaited before the next is
+        asked for; ``cancel()`` true between two raises :class:`RecordingCancelled`."""
         chunk = self._read_chunk_points()
         parts = []
-        for first in range(0, setup.points, chunk):
+        for k in range(first, first + n, chunk):
             if cancel():
                 raise RecordingCancelled(f"{self.name}: the read-back of the recording was cancelled")
-            parts.append(self._read_chunk(setup, first, min(chunk, setup.points - first)))
-        return self._as_recording(setup, 0, np.concatenate([p[0] for p in parts]),
-                                  np.concatenate([p[1] for p in parts]), np.concatenate([p[2] for p in parts]))
-
-    def _read_points(self, setup: RecorderSetup, first: int, n: int) -> Recording:
-        """Points ``first`` .. ``first + n - 1`` (recorded already, also while the recorder
-        records), in chunks of :meth:`_read_chunk_points`."""
-        chunk = self._read_chunk_points()
-        parts = [self._read_chunk(setup, k, min(chunk, first + n - k)) for k in range(first, first + n, chunk)]
-        return self._as_recording(setup, first, np.concatenate([p[0] for p in parts]),
-                                  np.concatenate([p[1] for p in parts]), np.concatenate([p[2] for p in parts]))
+            parts.append(self._read_chunk(setup, k, min(chunk, first + n - k)))
+        return self._as_recording(setup, first, *(np.concatenate([p[j] for p in parts]) for j in range(3)))
 
     def _read_chunk_points(self) -> int:
         return self.REC_READ_CHUNK * (codec.FD_REC_POINTS if self.stream_fd else 1)
@@ -432,10 +430,16 @@ class CANAmplifier(Amplifier):
             self._rec_v.clear()
         name, data = ((codec.REC_READ_FD, codec.encode_rec_read_fd(first, count)) if self.stream_fd
                       else (codec.REC_READ, codec.encode_rec_read(first, count)))
-        self._send_and_await(
-            lambda: self.transport.send(self._ids[name], data, self.timeout_s),
-            lambda: 0, lambda _: (len(self._rec_data) >= want and (not need_v or len(self._rec_v) >= want))
-            or bool(self._errors), codec.REC_DATA_FD if self.stream_fd else codec.REC_DATA)
+        keys = [(k, i) for k in range(first, first + count) for i in idx]
+
+        def answered(_: int) -> bool:    # counted first: the keys are looked at once enough came
+            if self._errors:
+                return True
+            if len(self._rec_data) < want or (need_v and len(self._rec_v) < want):
+                return False
+            return all(k in self._rec_data and (not need_v or k in self._rec_v) for k in keys)
+        self._send_and_await(lambda: self.transport.send(self._ids[name], data, self.timeout_s), lambda: 0,
+                             answered, codec.REC_DATA_FD if self.stream_fd else codec.REC_DATA)
         self._raise_pending()
         y, u, v = (np.empty((count, len(idx))) for _ in range(3))
         with self._cond:
