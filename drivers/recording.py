@@ -46,7 +46,7 @@ class Recording:
     per axis ``y_nm`` (N,) measured position [nm], ``u_V`` (N,) output voltage [V] and
     ``v_V`` (N,) piezo voltage [V] (each only for the signals recorded), ``period_s`` [s],
     and where it came from
-    (``source``: e.g. ``"gcs DRR?"``, ``"nv200 recoutf"``, ``"can REC_DATA"``,
+    (``source``: e.g. ``"gcs DRR?"``, ``"nv200 recoutf"``, ``"can REC_DATA"``, ``"can REC_DATA_FD"``,
     ``"file motion.csv"``)."""
 
     t_s: np.ndarray
