@@ -182,11 +182,21 @@ def _install_stop(stack: contextlib.ExitStack, cal: Any) -> None:
             stack.callback(signal.signal, sig, old)
 
 
+#: a recording whose share of holds between pieces is above this gets a note
+MOSTLY_HELD = 0.5
+
+
 def _print(result: Any) -> None:
     from afmctl.compensators.chain import format_table
     for axis, r in result.axes.items():
         fit = r.identified
-        print(f"axis {axis}          : {len(r.recording.t_s)} samples from {r.pieces} piece(s), recording {r.csv}")
+        held = r.recording.held_share
+        print(f"axis {axis}          : {len(r.recording.t_s)} samples from {r.pieces} piece(s), {held:.0%} of them "
+              f"holds between the pieces; recording {r.csv}")
+        if held > MOSTLY_HELD:
+            print(f"note             : {held:.0%} of the recording are holds between the pieces, whose positions are "
+                  "interpolated, not measured, and are fitted as if measured: the link or the recorder's size "
+                  "sets them (docs/DRIVERS.md, 'Calibrating on the device')")
         if fit.table is not None:
             print(f"held-out prediction error of the candidates (last {fit.holdout_fraction:.0%} of the recording; "
                   f"% of its span; ranked by {fit.criterion}):")
@@ -214,7 +224,7 @@ def _report(folder: str, result: Any) -> None:
     d.mkdir(parents=True, exist_ok=True)
     summary = {"provenance": result.provenance, "excitation_s": result.excitation_s, "elapsed_s": result.elapsed_s,
                "axes": {a: {"validation": r.validation, "recording": str(r.csv), "pieces": r.pieces,
-                            "fit_rms_nm": r.identified.rms_nm, "fit_max_nm": r.identified.max_nm}
+                            "held_share": round(r.recording.held_share, 4), "fit_rms_nm": r.identified.rms_nm, "fit_max_nm": r.identified.max_nm}
                         for a, r in result.axes.items()}}
     (d / "calibration.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
     for a, r in result.axes.items():

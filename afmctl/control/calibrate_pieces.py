@@ -189,6 +189,12 @@ class Joined:
     measured: np.ndarray
     holds: list[tuple[int, int]] = field(default_factory=list)
 
+    @property
+    def held_share(self) -> float:
+        """The share of the rows that are holds between pieces (their positions
+        interpolated, not measured), 0..1."""
+        return float(1.0 - np.count_nonzero(self.measured) / len(self.measured)) if len(self.measured) else 0.0
+
     def columns(self) -> dict[str, np.ndarray]:
         """The CSV columns ``t,u,y[,v]`` (s, V, nm, V)."""
         cols = {"t": self.t_s, "u": self.u_V, "y": self.y_nm}
