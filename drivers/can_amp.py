@@ -30,7 +30,7 @@ import numpy as np
 
 from . import codec_can as codec
 from .base import Amplifier, ConnectionState, VoltageLimits
-from .errors import AmplifierTimeout, LimitError, ProtocolError, RecordingCancelled
+from .errors import AmplifierTimeout, LimitError, ProtocolError, RecordingCancelled, RecordingOverwritten
 from .recording import Recording, RecorderSetup, time_axis
 from .stream_safety import check_block
 from .transport_can import CanTransport
@@ -172,9 +172,11 @@ class CANAmplifier(Amplifier):
 
     # -- helpers --
     def _raise_pending(self) -> None:
+        """Raise the first ERROR received (a recording overwritten before any other: the
+        caller can play it again), forgetting the others."""
         with self._cond:
             if self._errors:
-                err = self._errors.pop(0)
+                err = next((e for e in self._errors if isinstance(e, RecordingOverwritten)), self._errors[0])
                 self._errors.clear()
                 raise err
 

@@ -78,6 +78,7 @@ def test_a_streamed_piece_keeps_the_holds_of_an_empty_fifo_and_ends_at_the_table
         follow_table(np.array([1.0, 2.0, 2.0, 2.0]), table, 0.01)
 
 
+@pytest.mark.slow
 def test_a_streamed_piece_is_read_back_while_it_plays_and_only_to_its_last_row():
     """On the CAN amplifier (CAN FD, the recorder read while it records): the points come
     back in chunks as the stream plays; once the FIFO has drained, the read-back ends at the
@@ -102,6 +103,7 @@ def test_a_streamed_piece_is_read_back_while_it_plays_and_only_to_its_last_row()
             while amp.buffer_status().state != "idle" and time.monotonic() < deadline:
                 live.step(t_start, 10_000.0)
                 time.sleep(0.005)
+            assert live.got > 0                                   # read while it played
             underruns = amp.latest_buffer_status().underruns
             live.points = min(live.points, n + underruns + STREAM_TAIL)
             rec = live.rest(10.0, lambda: False)
@@ -110,6 +112,24 @@ def test_a_streamed_piece_is_read_back_while_it_plays_and_only_to_its_last_row()
     np.testing.assert_allclose(rec.t_s, np.arange(len(rec)) * 1e-4)
 
 
+@pytest.mark.slow
+def test_a_ring_takes_pieces_longer_than_the_recorder_only_on_a_can_fd_bus():
+    """Classic frames bring a point back at 0.3–0.4× the play: pieces fit the recorder there
+    (75 % of 8192); on CAN FD they span two rings."""
+    from afmctl.control import calibrate_run as cr
+    from afmctl.drivers.registry import open_amplifier
+    from afmctl.sim_backend.testing import serve_can
+    channel = f"rings-{uuid.uuid4().hex[:8]}"
+    with serve_can(channel, _scanner()):
+        rows = {}
+        for fd in (False, True):
+            with open_amplifier("can", f"virtual:{channel}", fd=fd) as amp:
+                signals = cr.recorder_signals(amp, "x")
+                rows[fd] = (cr.rings(amp), cr.device_capacity(amp, "x", signals))
+    assert rows == {False: (False, 6144), True: (True, 12288)}
+
+
+@pytest.mark.slow
 def test_a_piece_longer_than_the_ring_is_read_in_step_and_played_again_when_the_read_back_fell_behind(
         tmp_path, caplog, monkeypatch):
     """The CAN amplifier's recorder is a ring of 8192 points read while it records: a piece

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from afmctl.drivers.codec_gcs_rec import parse_data
-from afmctl.drivers.errors import AmplifierError, LimitError, ProtocolError, RecorderUnavailable
+from afmctl.drivers.errors import (AmplifierError, LimitError, ProtocolError, RecorderUnavailable,
+                                   RecordingOverwritten)
 from afmctl.drivers.recording import align_to_table, joined_recording
 from afmctl.drivers.registry import open_amplifier
 from afmctl.sim_backend.scanner import Scanner, default_scanner_config
@@ -187,7 +188,7 @@ def test_can_fd_read_back_equals_the_classic_one_and_reads_while_it_records():
     recorded so far are read while the stream still plays."""
     import uuid
     from afmctl.sim_backend.testing import serve_can
-    n = 3000                                    # 0.3 s at 10 kHz, inside the 4096-sample FIFO
+    n = 4000                                    # 0.4 s at 10 kHz, inside the 4096-sample FIFO
     table = _sine(n, 20.0, 100.0)
     channel = f"fd-{uuid.uuid4().hex[:8]}"
     with serve_can(channel, Scanner(default_scanner_config())):
@@ -198,9 +199,9 @@ def test_can_fd_read_back_equals_the_classic_one_and_reads_while_it_records():
             setup = amp.configure_recorder(["x", "y"], points=n, signals=("y_nm", "u_V", "v_V"))
             amp.queue([(float(v), 30.0, 0.0) for v in table])
             deadline = time.monotonic() + 10.0
-            while amp.recorded_points() < 1000 and time.monotonic() < deadline:
-                time.sleep(0.01)
-            early = amp.read_recorded(0, 1000)                    # the stream still plays
+            while amp.recorded_points() < 200 and time.monotonic() < deadline:
+                time.sleep(0.002)
+            early = amp.read_recorded(0, 200)                     # 25 frames while 0.38 s still play
             assert amp.recorded_points() < n
             amp.drain_stream()
             fd = amp.read_recording(timeout_s=10)
@@ -211,10 +212,10 @@ def test_can_fd_read_back_equals_the_classic_one_and_reads_while_it_records():
         np.testing.assert_array_equal(fd.y_nm[a], classic.y_nm[a])
         np.testing.assert_array_equal(fd.u_V[a], classic.u_V[a])
         np.testing.assert_array_equal(fd.v_V[a], classic.v_V[a])
-        np.testing.assert_array_equal(early.y_nm[a], fd.y_nm[a][:1000])
+        np.testing.assert_array_equal(early.y_nm[a], fd.y_nm[a][:200])
     np.testing.assert_allclose(fd.u_V["x"], table, atol=0.0013)
     assert np.ptp(fd.y_nm["x"]) > 2000.0 and np.ptp(fd.v_V["x"]) > 50.0
-    np.testing.assert_allclose(early.t_s, fd.t_s[:1000])
+    np.testing.assert_allclose(early.t_s, fd.t_s[:200])
 
 
 def test_can_recording_longer_than_the_recorder_is_a_ring_read_while_it_records():
@@ -245,7 +246,7 @@ def test_can_recording_longer_than_the_recorder_is_a_ring_read_while_it_records(
                     got += len(parts[-1])
                 else:
                     time.sleep(0.005)
-            with pytest.raises(ProtocolError, match="overwritten"):
+            with pytest.raises(RecordingOverwritten):             # ERROR 6 detail 5
                 amp.read_recorded(0, 10)
     rec = joined_recording(parts)
     assert len(rec) == n and rec.source == "can REC_DATA_FD"

@@ -61,10 +61,11 @@ NV200_UART_BAUD, NV200_BYTES_PER_VALUE = 115200, 8
 #: share of the recorder a streamed piece leaves free: the ticks a FIFO that ran empty held
 #: the output are recorded too (the scanner saw them), after which the table goes on
 STREAM_SLACK = 0.25
-#: a piece on a ring (:func:`rings`) records at most this many times what the ring holds: a
-#: read-back at half the recording's pace stays within the ring to the piece's end (the
-#: simulated CAN amplifier in the calibrating process shares one core's worth of Python
-#: with the stream, the read-back and the scanner's simulation)
+#: a piece on a ring (:func:`rings`) records at most this many times what the ring holds
+#: (its table 75 % of that, :data:`STREAM_SLACK`): the read-back keeps within the ring while
+#: it reads well over half as fast as the recorder records (the simulated CAN amplifier in
+#: the calibrating process shares one core's worth of Python with the stream, the read-back
+#: and the scanner's simulation: four rings fell behind there, two never did)
 RING_SPAN = 2
 #: points read past a streamed piece's last row (its tick: the rows plus the device's
 #: underruns) — the recorder goes on recording the held output until its armed points are
@@ -208,9 +209,11 @@ def device_capacity(amp: Any, axis: str, signals: tuple[str, ...]) -> int:
 
 def rings(amp: Any) -> bool:
     """Whether a piece on ``amp`` may be longer than its recorder holds: a ring read back
-    while it records (the CAN amplifier: :attr:`~afmctl.drivers.base.Amplifier.records_ring`)."""
+    while it records, faster than it records (the CAN amplifier on a CAN FD bus,
+    :attr:`~afmctl.drivers.base.Amplifier.records_ring`; on a classic bus each point comes
+    back as two frames, at 0.3–0.4× the play: its pieces fit the recorder)."""
     return bool(getattr(amp, "records_ring", False) and getattr(amp, "reads_while_recording", False)
-                and READ_WHILE_PLAYING)
+                and getattr(amp, "stream_fd", False) and READ_WHILE_PLAYING)
 
 
 def recording_points(amp: Any, axis: str, signals: tuple[str, ...]) -> int:
@@ -291,6 +294,8 @@ class LiveReadback:
         what :meth:`step` read."""
         from afmctl.drivers.errors import AmplifierTimeout, RecordingCancelled
         from afmctl.drivers.recording import joined_recording
+        if cancel():
+            raise RecordingCancelled(f"{self.amp.name}: the read-back of the recording was cancelled")
         if self.failed is not None:
             raise self.failed
         deadline = time.monotonic() + timeout_s
@@ -371,6 +376,8 @@ class CalibrationRun:
         try:
             return self._piece(axis, signals, u, start)
         except RecordingOverwritten as err:
+            if self._stop.is_set():
+                raise CalibrationStopped("afmctl calibrate: stopped") from None
             log.warning("%s: the read-back fell behind the recorder (%s); playing the piece at sample %d again",
                         self.amp.name, err, start)
         try:
@@ -461,7 +468,8 @@ class CalibrationRun:
 
     def _read(self, axis: str, table: WaveTable, start: int, t_start: float,
               live: "LiveReadback | None" = None) -> PieceRecord:
-        from afmctl.drivers.errors import AmplifierConnectionError, AmplifierTimeout, RecordingCancelled
+        from afmctl.drivers.errors import (AmplifierConnectionError, AmplifierTimeout, ProtocolError,
+                                           RecordingCancelled, RecordingOverwritten)
         from afmctl.drivers.recording import RecordingMismatch, align_to_table
         u = table.u_V[:, "xyz".index(axis)]
         try:
@@ -471,7 +479,9 @@ class CalibrationRun:
                 rec = self.amp.read_recording(timeout_s=self.record_timeout_s, cancel=self._stop.is_set)
         except RecordingCancelled:
             raise CalibrationStopped("afmctl calibrate: stopped while the recording was read back") from None
-        except (AmplifierTimeout, AmplifierConnectionError) as err:
+        except RecordingOverwritten:
+            raise                       # _played_piece plays the piece again
+        except (AmplifierTimeout, AmplifierConnectionError, ProtocolError) as err:
             raise CalibrationFault(f"afmctl calibrate: reading the recording failed: {err}") from None
         if streams(self.amp) and axis in rec.u_V:
             return self._streamed(axis, rec, u, start, t_start)
