@@ -549,24 +549,24 @@ class Amplifier(AmplifierInterface):
     def recorder_capacity(self, axes: Sequence[str] | None = None,
                           signals: Sequence[str] = ("y_nm", "u_V")) -> int:
         """The most points per signal one recording of these axes and signals holds."""
-        if not self.has_recorder:
-            raise self._no_recorder()
-        ax = tuple(axes) if axes is not None else self.axes
-        with self._lock:
-            self._guard()
-            return self._io(self._recorder_capacity, ax, tuple(signals))
+        return self._recorder_points(self._recorder_capacity, axes, signals)
 
     def recorder_max_points(self, axes: Sequence[str] | None = None,
                             signals: Sequence[str] = ("y_nm", "u_V")) -> int:
         """The most points per signal one recording of these axes and signals may have: its
         :meth:`recorder_capacity`, or more on a device that :attr:`records_ring` (read back
         while it records)."""
+        return self._recorder_points(self._recorder_max_points, axes, signals)
+
+    def _recorder_points(self, hook: Callable[[tuple[str, ...], tuple[str, ...]], int],
+                         axes: Sequence[str] | None, signals: Sequence[str]) -> int:
+        """``hook(axes, signals)`` asked of the device (default axes: all of them)."""
         if not self.has_recorder:
             raise self._no_recorder()
         ax = tuple(axes) if axes is not None else self.axes
         with self._lock:
             self._guard()
-            return self._io(self._recorder_max_points, ax, tuple(signals))
+            return self._io(hook, ax, tuple(signals))
 
     def record_tables(self) -> int | None:
         """How many record tables share the recorder's memory now, on a device whose memory

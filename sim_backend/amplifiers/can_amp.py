@@ -99,6 +99,11 @@ class SimCANAmplifier:
         self._fd_samples = sum(1 for sg in self._msg["STREAM_XYZ_FD"].signals if sg.name[0] == "X")
         #: recorded points one REC_DATA_FD frame carries (from the DBC: its Y<k>_NM signals)
         self._fd_rec_points = sum(1 for sg in self._msg["REC_DATA_FD"].signals if sg.name[0] == "Y")
+        #: the ranges a recorded point's position [nm] and voltages [V] are sent in (the DBC's)
+        y_sig = self._msg["REC_DATA"].get_signal_by_name("Y_NM")
+        v_sig = self._msg["REC_DATA_V"].get_signal_by_name("V_V")
+        self._rec_y_nm = (float(y_sig.minimum), float(y_sig.maximum))
+        self._rec_v_V = (float(v_sig.minimum), float(v_sig.maximum))
         self.outputs = {a: 0.0 for a in self.axes}
         self.enabled = True
         self.last_seq = 255
@@ -395,7 +400,8 @@ class SimCANAmplifier:
     def _rec_point(self, k: int, axis: int) -> tuple[float, float, float]:
         """Recorded point ``k`` of axis index ``axis`` inside its frame signals' ranges (DBC)."""
         y, u, v = self.recorder.point(k, axis)
-        return min(max(y, -83886.08), 83886.07), u, min(max(v, 0.0), 163.8375)
+        (y_lo, y_hi), (v_lo, v_hi) = self._rec_y_nm, self._rec_v_V
+        return min(max(y, y_lo), y_hi), u, min(max(v, v_lo), v_hi)
 
     def _send_rec_blocks(self, first: int, points: dict[int, list[tuple[float, float, float]]]) -> None:
         """REC_DATA_FD frames: blocks of up to :attr:`_fd_rec_points` points, in index then axis order."""
