@@ -212,3 +212,33 @@ def test_the_scanner_counts_changes_handed_over_in_its_past():
     scanner.advance(0.1)
     scanner.play([0.05, 0.0999999, 0.2], np.full((3, 3), 10.0))
     assert scanner.late_changes == 1
+
+
+def test_a_signal_another_thread_took_still_stops_a_serving_verb():
+    """``afmctl sim`` and ``afmctl router`` wait for Ctrl-C / SIGTERM in their main thread;
+    Python runs the handler only there, and a signal the kernel gives to another thread
+    (zenoh's, the simulator's) does not wake an untimed wait. ``wait_stopped`` looks again
+    every ``POLL_S``: the handler runs within that, not at the end of the duration."""
+    import signal
+    import threading
+    import time
+
+    from afmctl.commands.stopping import POLL_S, wait_stopped
+    stop = threading.Event()
+    old = signal.signal(signal.SIGUSR1, lambda *_: stop.set())
+    try:
+        def poke() -> None:
+            time.sleep(0.1)
+            signal.pthread_kill(threading.get_ident(), signal.SIGUSR1)   # to this thread, not the main one
+        t = threading.Thread(target=poke)
+        t.start()
+        t0 = time.monotonic()
+        wait_stopped(stop, 30.0)
+        took = time.monotonic() - t0
+        t.join(timeout=5)
+    finally:
+        signal.signal(signal.SIGUSR1, old)
+    assert stop.is_set() and took < 10.0 * POLL_S + 5.0 < 30.0
+    t0 = time.monotonic()
+    wait_stopped(threading.Event(), 0.3)                 # the duration still ends it
+    assert 0.25 <= time.monotonic() - t0 < 5.0

@@ -9,6 +9,8 @@ import threading
 from pathlib import Path
 from typing import Any
 
+from .stopping import wait_stopped
+
 HELP = "run a zenoh router for a lab of scanners (TLS, users, access per scanner)"
 
 DESCRIPTION = """\
@@ -102,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
                   + (f", linked to {', '.join(settings.connect)}" if settings.connect else "")
                   + f"; access control {acl}", flush=True)
             print("stop with Ctrl-C or SIGTERM", flush=True)
-            stop.wait()
+            wait_stopped(stop)
     finally:
         for s, h in old.items():
             signal.signal(s, h)

@@ -18,6 +18,7 @@ from typing import Any
 from collections.abc import Callable
 
 from ..simulation.service import SimService, TipPublisher, load_settings, scanner_name
+from .stopping import wait_stopped
 
 log = logging.getLogger(__name__)
 
@@ -222,7 +223,7 @@ def run(args) -> int:
             else:
                 print("zenoh: off (use --zenoh to publish the true tip position)", flush=True)
             print("stop with Ctrl-C or SIGTERM", flush=True)
-            stop.wait(args.duration)
+            wait_stopped(stop, args.duration)
     finally:
         for s, h in old.items():
             signal.signal(s, h)
