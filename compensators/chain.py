@@ -47,7 +47,7 @@ import numpy as np
 from pydantic import Field, SerializeAsAny, field_validator
 
 from .base import Chain, ModelError, StreamingOperator, check_finite
-from .input_checks import number_option
+from .input_checks import number_option, sample_mask
 from .dynamics_limits import LimitedInverse, invert_within_limits, rate_limit
 from .models import HysteresisModel, model_class, model_from_dict
 
@@ -235,7 +235,7 @@ class ChainModel(HysteresisModel):
                  structure: str = "preisach+creep", rounds: int = 2,
                  dynamics_options: dict[str, Any] | None = None, fit_from_index: int = 0,
                  left_out: np.ndarray | None = None, v_V: np.ndarray | None = None,
-                 **options: Any) -> "ChainModel":
+                 measured: np.ndarray | None = None, **options: Any) -> "ChainModel":
         """Fit the chain ``structure`` jointly (module docstring). ``n_operators`` and
         ``options`` go to the hysteresis kind's ``identify``, ``dynamics_options`` to the
         dynamics kind's; data uniformly sampled (t [s], u [V], y [nm]). ``v_V``: the
@@ -249,7 +249,13 @@ class ChainModel(HysteresisModel):
 
         ``left_out``: one boolean per sample, True where the static stages of a kind that fits
         sample rows (:data:`FULL_RATE_KINDS`) leave the record out of their fit, besides the
-        jumps' transients (:func:`_without_transients`); the memory still runs through them."""
+        jumps' transients (:func:`_without_transients`); the memory still runs through them.
+
+        ``measured``: one boolean per sample, False where ``y`` was not measured (the holds
+        ``afmctl calibrate`` puts between recorded pieces, their ``y`` interpolated). Every
+        stage that fits rows leaves those out (:func:`_StageFit`, a block mean with one of
+        them in it too), and so does the judging of the refinements; the record, holds
+        included, still runs through every stage (the creep of a hold is in what follows)."""
         hyst_kind, stages = parse_structure(structure)
         if AMPLIFIER in stages:
             rest = join_structure(hyst_kind, [s for s in stages if s != AMPLIFIER])
@@ -263,14 +269,17 @@ class ChainModel(HysteresisModel):
         if not (t.size == u.size == y.size) or t.size < 8:
             raise ModelError("data: need equal-length columns t, u, y with at least 8 samples")
         k0 = int(number_option("fit_from_index", fit_from_index, lo=0, hi=t.size - 8, integer=True))
+        measured = measured_rows(measured, t.size)
         dt = float(np.median(np.diff(t)))
         td, ud, _, k0d, dtd = record_for_static(t, u, y, k0, dt, hyst_kind)
-        fit = _StageFit(td, ud, k0d)
+        fit = _StageFit(td, ud, k0d, None if measured is None else ~block_all(measured, ud.size))
         caller = dict(options)                 # a mask of the caller's own is kept as it is
         options = {**_without_transients(hyst_kind, options, u, dt), **options}
         rows = hyst_kind in FULL_RATE_KINDS
         if left_out is not None and rows:
             options["exclude"] = _also_left_out(options, left_out)
+        if measured is not None and rows:
+            options["exclude"] = _also_left_out(options, ~measured)
         fast = (_fast_parts_to_leave_out(t, u, k0)
                 if rows and "dynamics" in stages and "exclude" not in caller else None)
         if fast is not None:
@@ -286,7 +295,7 @@ class ChainModel(HysteresisModel):
         if "dynamics" not in stages:
             return cls(hysteresis=hyst, creep=creep)
         model = cls(hysteresis=hyst, creep=creep, dynamics=fit_dynamics_stage(hyst, creep, t, u, y, k0, dynamics_options))
-        return refine_with_dynamics(model, static, t, u, y, k0, dynamics_options)
+        return refine_with_dynamics(model, static, t, u, y, k0, dynamics_options, measured=measured)
 
 
 def _with_amplifier(cls: Any, rest: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray,
@@ -370,7 +379,8 @@ REFINE_MIN_GAIN = 0.25
 
 
 def refine_with_dynamics(model: "ChainModel", static: Any, t: np.ndarray, u: np.ndarray, y: np.ndarray, k0: int,
-                         dynamics_options: dict[str, Any] | None, stop: int | None = None) -> "ChainModel":
+                         dynamics_options: dict[str, Any] | None, stop: int | None = None,
+                         measured: np.ndarray | None = None) -> "ChainModel":
     """The chain ``model`` (with a dynamics stage) refined (:data:`DYNAMICS_REFINEMENTS`): the
     static stages ``static(y_static)`` — a function returning ``(hysteresis, creep)`` fitted to
     an output ``y_static`` [nm] of the whole record — fitted again on the record ``y`` [nm]
@@ -382,7 +392,8 @@ def refine_with_dynamics(model: "ChainModel", static: Any, t: np.ndarray, u: np.
     A stage that fits sample rows (:data:`FULL_RATE_KINDS`) is refitted without the stretches
     the chain before the round does not explain (:func:`~.record_steps.unexplained`; e.g. a
     mode above the recorded band ringing after every corner of fast triangles):
-    ``static(y_static, exclude)`` takes that mask, and the round is judged on the rest."""
+    ``static(y_static, exclude)`` takes that mask, and the round is judged on the rest.
+    ``measured``: False on the samples whose ``y`` was not measured (not judged either)."""
     dt = float(np.median(np.diff(t)))
     rows = getattr(model.hysteresis, "kind", "") in FULL_RATE_KINDS
 
@@ -390,6 +401,8 @@ def refine_with_dynamics(model: "ChainModel", static: Any, t: np.ndarray, u: np.
         return m.forward(dt).block(u) - y
 
     def rms(r: np.ndarray, keep: np.ndarray) -> float:
+        if measured is not None:
+            keep = keep & measured[:keep.size]
         return float(np.sqrt(np.mean(r[k0:stop][keep[k0:stop]] ** 2)))
 
     resid, span = residual(model), float(np.ptp(y[k0:stop]))
@@ -593,16 +606,45 @@ def _also_left_out(options: dict[str, Any], exclude: Any) -> np.ndarray:
 
 class _StageFit:
     """Identify one stage with a burn-in of ``k0`` samples: passed through to kinds with
-    ``fits_with_burn_in``, cut off for the others."""
+    ``fits_with_burn_in``, cut off for the others. ``exclude``: True on the samples not
+    measured, passed to the kinds that leave rows out of their fit (``fits_exclude``)."""
 
-    def __init__(self, t: np.ndarray, u: np.ndarray, k0: int) -> None:
-        self.t, self.u, self.k0 = t, u, k0
+    def __init__(self, t: np.ndarray, u: np.ndarray, k0: int, exclude: np.ndarray | None = None) -> None:
+        self.t, self.u, self.k0, self.exclude = t, u, k0, exclude
 
     def __call__(self, mcls: Any, x: np.ndarray, y: np.ndarray, **options: Any) -> Any:
+        own = self.exclude is not None and getattr(mcls, "fits_exclude", False) and "exclude" not in options
         if self.k0 and getattr(mcls, "fits_with_burn_in", False):
+            if own:
+                options["exclude"] = self.exclude
             return mcls.identify(self.t, x, y, fit_from_index=self.k0, **options)
         k = self.k0
+        if own:
+            options["exclude"] = np.ascontiguousarray(self.exclude[k:])   # type: ignore[index]
         return mcls.identify(self.t[k:], np.ascontiguousarray(x[k:]), np.ascontiguousarray(y[k:]), **options)
+
+
+def measured_rows(measured: Any, n: int) -> np.ndarray | None:
+    """The ``measured`` mask of :meth:`ChainModel.identify` checked (one boolean per sample
+    of ``n``); None when it is absent or all True."""
+    if measured is None:
+        return None
+    m = sample_mask("measured", measured, n)
+    if m.all():
+        return None
+    if np.count_nonzero(m) < 8:
+        raise ModelError(f"measured: {np.count_nonzero(m)} sample(s) measured; at least 8 are needed")
+    return m
+
+
+def block_all(mask: np.ndarray, blocks: int) -> np.ndarray:
+    """``mask`` reduced to ``blocks`` consecutive blocks of equal length (the block means of
+    :func:`record_for_static`; the rest after the last whole block dropped): True where every
+    sample of a block is True. The mask itself when ``blocks`` is its length."""
+    if blocks == mask.size:
+        return mask
+    m = mask.size // blocks
+    return np.asarray(mask[:blocks * m].reshape(blocks, m).all(axis=1))
 
 
 def _fit_static(hcls: Any, fit: _StageFit, y: np.ndarray, dt: float, with_creep: bool,

@@ -28,7 +28,7 @@ from pydantic import Field, FiniteFloat, model_validator
 
 from . import _pi_kernels as K
 from .base import ModelError, StreamingOperator, check_finite
-from .input_checks import block_samples, finite_sample, number_option, sample_period
+from .input_checks import block_samples, exclude_mask, finite_sample, number_option, sample_period
 from .models import HysteresisModel
 
 log = logging.getLogger(__name__)
@@ -126,6 +126,7 @@ class LinearCreepModel(HysteresisModel):
     kind: Literal["creep"] = "creep"
     time_dependent: ClassVar[bool] = True
     fits_with_burn_in: ClassVar[bool] = True
+    fits_exclude: ClassVar[bool] = True
     gain_nm_per_V: FiniteFloat = Field(gt=0, description="static gain [nm/V]")
     offset_nm: FiniteFloat = Field(default=0.0, description="output offset [nm]")
     initial_V: FiniteFloat = Field(default=0.0, description="input at rest before the first sample [V]")
@@ -171,6 +172,8 @@ class LinearCreepModel(HysteresisModel):
         linear in ``(offset, g(1−Σc), g·c_k)``; ``c_k ≥ 0`` is enforced with bounded least
         squares. Data must be uniformly sampled. ``fit_from_index`` (option, default 0):
         samples before it only drive the lags (a burn-in); the rows fitted start there.
+        ``exclude`` (option): one boolean per sample, True for samples that drive the lags
+        but are not fitted (samples whose ``y`` was not measured).
         """
         from scipy.optimize import lsq_linear
 
@@ -192,9 +195,10 @@ class LinearCreepModel(HysteresisModel):
         tau_max = number_option("tau_max_s", options.pop("tau_max_s", max(0.2 * (t[-1] - t[0]), 2 * tau_min)))
         k0 = number_option("fit_from_index", options.pop("fit_from_index", 0), lo=0, hi=u.size - 4 * n - 4,
                            integer=True)
+        skip = exclude_mask(options.pop("exclude", None), u.size)
         if options:
             raise ModelError(f"options: unknown option(s) {', '.join(sorted(options))}; "
-                             "allowed: tau_min_s, tau_max_s, fit_from_index")
+                             "allowed: tau_min_s, tau_max_s, fit_from_index, exclude")
         if not (0 < tau_min < tau_max):
             raise ModelError(f"tau_min_s, tau_max_s: need 0 < tau_min_s < tau_max_s (got {tau_min}, {tau_max})")
         tau = log_spaced_time_constants(tau_min, tau_max, n)
@@ -204,10 +208,16 @@ class LinearCreepModel(HysteresisModel):
         for k in range(n):
             a = math.exp(-dt / float(tau[k]))
             Z[:, k] = lfilter([1.0 - a], [1.0, -a], u, zi=[a * float(u[0])])[0]
-        A = np.column_stack([np.ones_like(u), u, Z])[k0:]
+        rows = np.arange(u.size) >= k0
+        if skip is not None:
+            rows &= ~skip
+        if np.count_nonzero(rows) < 4 * n + 4:
+            raise ModelError(f"exclude: {np.count_nonzero(rows)} samples are left to fit; at least {4 * n + 4} "
+                             "are needed")
+        A = np.column_stack([np.ones_like(u), u, Z])[rows]
         lb = np.full(n + 2, -np.inf)
         lb[2:] = 0.0
-        res = lsq_linear(A, y[k0:], bounds=(lb, np.full(n + 2, np.inf)), method="bvls", tol=1e-12)
+        res = lsq_linear(A, y[rows], bounds=(lb, np.full(n + 2, np.inf)), method="bvls", tol=1e-12)
         off, pu, pk = float(res.x[0]), float(res.x[1]), res.x[2:]
         g = pu + float(np.sum(pk))
         if g <= 0:

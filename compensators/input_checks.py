@@ -1,4 +1,5 @@
-"""Input checks shared by the streaming operators of the PI, Preisach and Bouc–Wen models.
+"""Input checks shared by the streaming operators of the PI, Preisach and Bouc–Wen models,
+and by their fits (:func:`exclude_mask`).
 
 ``block(x)`` of every operator takes a 1-D array of samples; ``step(x)`` one number.
 Anything else — NaN/inf, a 0-d or 2-D array, text — is a :class:`ModelError` naming the
@@ -85,3 +86,26 @@ def sample_period(dt_s: Any, model: str) -> float:
     if not (math.isfinite(dt) and dt > 0):
         raise ModelError(f"dt_s: {plain_repr(dt_s)}; the {model} needs a sample period > 0 s")
     return dt
+
+
+def sample_mask(name: str, value: Any, n: int) -> np.ndarray:
+    """``value`` checked to be one boolean per sample (``n``); a one-line :class:`ModelError`
+    naming ``name`` otherwise."""
+    mask = np.asarray(value)
+    if mask.dtype != bool or mask.shape != (n,):
+        raise ModelError(f"{name}: need one boolean per sample ({n}), got {mask.dtype} of shape {mask.shape}")
+    return mask
+
+
+def exclude_mask(exclude: Any, n: int) -> np.ndarray | None:
+    """The ``exclude`` option of a fit: one boolean per sample (``n``), True for samples left
+    out of the fit (they still set the model's memory and lags: the transients after a jump
+    of the command, :func:`~afmctl.compensators.record_steps.step_transients`, or samples
+    whose ``y`` was not measured). None when nothing is left out; a one-line
+    :class:`ModelError` for another shape or when everything is."""
+    if exclude is None:
+        return None
+    mask = sample_mask("exclude", exclude, n)
+    if mask.all():
+        raise ModelError("exclude: every sample is left out; nothing to fit")
+    return mask if mask.any() else None

@@ -66,6 +66,9 @@ class HysteresisModel(BaseModel):
     has_own_delay: ClassVar[bool] = False
     #: whether ``identify`` takes ``fit_from_index`` (a burn-in: earlier samples only set the memory)
     fits_with_burn_in: ClassVar[bool] = False
+    #: whether ``identify`` takes ``exclude`` (one boolean per sample, True for samples left
+    #: out of the fit while the model still runs through them: samples not measured)
+    fits_exclude: ClassVar[bool] = False
     #: what went wrong in the fit that produced this model (not saved): an optimiser that did
     #: not converge, a parameter on its bound; one short clause each
     #: (:mod:`afmctl.compensators.fit_health`)

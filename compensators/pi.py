@@ -47,7 +47,7 @@ from pydantic import Field, FiniteFloat, ValidationInfo, field_validator
 from . import _pi_kernels as K
 from .base import ModelError, StreamingOperator, check_finite
 from .models import HysteresisModel
-from .input_checks import block_samples, finite_sample, number_option
+from .input_checks import block_samples, exclude_mask, finite_sample, number_option
 
 log = logging.getLogger(__name__)
 
@@ -295,6 +295,7 @@ class PIModel(PIFamilyModel):
 
     kind: Literal["pi"] = "pi"
     fits_with_burn_in: ClassVar[bool] = True
+    fits_exclude: ClassVar[bool] = True
 
     def forward(self, dt_s: float | None = None) -> PIOperator:
         """Operator u [V] → y [nm]."""
@@ -321,7 +322,9 @@ class PIModel(PIFamilyModel):
         invertible; ``ε = min_slope_fraction · (span y / span u)``, default fraction 1e-3.
         Options: ``thresholds``, ``min_slope_fraction``, ``max_rows`` (rows used in the
         least-squares problem, default 200000; longer data are decimated evenly),
-        ``fit_from_index`` (samples before it only drive the play states: a burn-in).
+        ``fit_from_index`` (samples before it only drive the play states: a burn-in),
+        ``exclude`` (one boolean per sample: True rows drive the play states but are not
+        fitted, e.g. samples whose ``y`` was not measured).
         """
         u, y, r, x0 = prepare_pi_identification(t_s, u_V, y_nm, n_operators, options)
         w, off = fit_pi_weights(u, y, r, x0, **_fit_options(options))
@@ -374,7 +377,7 @@ def prepare_pi_identification(t_s: Any, u_V: Any, y_nm: Any, n_operators: int | 
 
 
 def _fit_options(options: dict) -> dict:
-    allowed = {"min_slope_fraction", "max_rows", "fit_from_index"}
+    allowed = {"min_slope_fraction", "max_rows", "fit_from_index", "exclude"}
     unknown = set(options) - allowed
     if unknown:
         raise ModelError(f"options: unknown option(s) {', '.join(sorted(unknown))}; allowed: "
@@ -401,20 +404,22 @@ def play_matrix(u: np.ndarray, r: np.ndarray, x0: np.ndarray, stride: int = 1) -
 def fit_pi_weights(u: np.ndarray, y: np.ndarray, r: np.ndarray, x0: np.ndarray, *,
                    min_slope_fraction: float = 1e-3, max_rows: int = 200_000,
                    extra: None = None, fit_from_index: int = 0,
-                   matrix: Callable[..., np.ndarray] | None = None) -> tuple[np.ndarray, float]: ...
+                   matrix: Callable[..., np.ndarray] | None = None,
+                   exclude: np.ndarray | None = None) -> tuple[np.ndarray, float]: ...
 
 
 @overload
 def fit_pi_weights(u: np.ndarray, y: np.ndarray, r: np.ndarray, x0: np.ndarray, *,
                    min_slope_fraction: float = 1e-3, max_rows: int = 200_000,
                    extra: np.ndarray, fit_from_index: int = 0,
-                   matrix: Callable[..., np.ndarray] | None = None) -> tuple[np.ndarray, float, float]: ...
+                   matrix: Callable[..., np.ndarray] | None = None,
+                   exclude: np.ndarray | None = None) -> tuple[np.ndarray, float, float]: ...
 
 
 def fit_pi_weights(u: np.ndarray, y: np.ndarray, r: np.ndarray, x0: np.ndarray, *,
                    min_slope_fraction: float = 1e-3, max_rows: int = 200_000,
                    extra: np.ndarray | None = None, fit_from_index: int = 0,
-                   matrix: Callable[..., np.ndarray] | None = None
+                   matrix: Callable[..., np.ndarray] | None = None, exclude: np.ndarray | None = None
                    ) -> tuple[np.ndarray, float] | tuple[np.ndarray, float, float]:
     """Constrained least squares for PI weights and offset (see :meth:`PIModel.identify`).
 
@@ -428,7 +433,8 @@ def fit_pi_weights(u: np.ndarray, y: np.ndarray, r: np.ndarray, x0: np.ndarray, 
     ``fit_from_index``: rows before this sample are simulated (they set the play states)
     but left out of the least-squares problem (a burn-in for data with an unknown start).
     ``matrix(u, r, x0, stride)``: the plays' outputs (default :func:`play_matrix`; the
-    rate-dependent PI model passes its own).
+    rate-dependent PI model passes its own). ``exclude``: one boolean per sample, True rows
+    simulated but left out of the problem (samples whose ``y`` was not measured).
     """
     from scipy.optimize import lsq_linear
 
@@ -440,6 +446,12 @@ def fit_pi_weights(u: np.ndarray, y: np.ndarray, r: np.ndarray, x0: np.ndarray, 
     fit_from_index = number_option("fit_from_index", fit_from_index, lo=0, hi=u.size - 2 * r.size - 2, integer=True)
     X = (matrix or play_matrix)(u, r, x0, stride)
     keep = np.arange(0, u.size, stride) >= fit_from_index
+    skip = exclude_mask(exclude, u.size)
+    if skip is not None:
+        keep &= ~skip[::stride]
+        if np.count_nonzero(keep) < 2 * r.size + 2:
+            raise ModelError(f"exclude: {np.count_nonzero(keep)} rows are left to fit; at least {2 * r.size + 2} "
+                             "are needed")
     X = X[keep]
     yy = y[::stride][keep]
     n = r.size

@@ -89,6 +89,7 @@ class PreisachModel(HysteresisModel):
 
     time_dependent: ClassVar[bool] = False
     fits_with_burn_in: ClassVar[bool] = True
+    fits_exclude: ClassVar[bool] = True
 
     @model_validator(mode="after")
     def _check(self) -> "PreisachModel":

@@ -35,7 +35,7 @@ from typing import Any, cast
 import numpy as np
 
 from .base import ModelError, check_finite
-from .input_checks import number_option
+from .input_checks import exclude_mask, number_option
 from .nnls_gram import nnls_gram
 from .preisach_grid import cell_masses_from_nodes
 
@@ -121,7 +121,7 @@ def _identify(cls: Any, t_s: Any, u_V: Any, y_nm: Any, n_operators: int | None =
               regressors: np.ndarray | None = None, prior: str = "pi",
               prior_weight: float = PRIOR_WEIGHT, exclude: np.ndarray | None = None) -> tuple[Any, np.ndarray]:
     u, y = _check_data(t_s, u_V, y_nm)
-    skip = _exclude_mask(exclude, u.size)
+    skip = exclude_mask(exclude, u.size)
     L = n_operators if n_operators is not None else (levels if levels is not None else 32)
     if isinstance(L, bool) or not isinstance(L, (int, np.integer)) or not 1 <= int(L) <= 512:
         raise ModelError(f"n_operators: number of Preisach levels must be an integer in 1..512, got {L!r}")
@@ -183,21 +183,6 @@ def _identify(cls: Any, t_s: Any, u_V: Any, y_nm: Any, n_operators: int | None =
     model.fit_max_residual_nm = float(np.max(np.abs(r)))
     log.info("identify preisach: %s, %d levels, residual %.4g nm RMS", model.fit_method, L, model.fit_residual_nm)
     return model, coef
-
-
-def _exclude_mask(exclude: Any, n: int) -> np.ndarray | None:
-    """The ``exclude`` option: a boolean per sample, True for samples left out of the nnls
-    fit (they still set the memory; e.g. the transients after a jump of the command,
-    :func:`~afmctl.compensators.record_steps.step_transients`). None when nothing is left
-    out."""
-    if exclude is None:
-        return None
-    mask = np.asarray(exclude)
-    if mask.dtype != bool or mask.shape != (n,):
-        raise ModelError(f"exclude: need one boolean per sample ({n}), got {mask.dtype} of shape {mask.shape}")
-    if mask.all():
-        raise ModelError("exclude: every sample is left out; nothing to fit")
-    return mask if mask.any() else None
 
 
 # ------------------------------------------------------------------ first-order reversal curves

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from .base import ModelError, check_finite, quiet_clamps
-from .chain import ChainModel, join_structure, parse_structure
+from .chain import ChainModel, join_structure, measured_rows, parse_structure
 from .dynamics_identify import dynamics_parts
 from .fit_health import failure_reason, linear_fit_rms
 from .fit_pool import FitPool
@@ -68,8 +68,21 @@ def _fit(structure: str, t: np.ndarray, u: np.ndarray, y: np.ndarray, options: d
     growth = opts.pop(GROWTH_FROM_WHOLE, None)
     if growth is not None and parse_structure(structure)[0] == "rate-bouc-wen":
         opts.update(growth)
+    measured = opts.pop(MEASURED, None)
     return ChainModel.identify(t, u, y, structure=structure, fit_from_index=fit_from_index, left_out=left_out,
-                               **opts)
+                               measured=None if measured is None else measured[:t.size], **opts)
+
+
+#: the options key under which :func:`select` hands every fit and score the record's
+#: ``measured`` mask (False on samples whose ``y`` was not measured: left out of every fit
+#: and every held-out score)
+MEASURED = "measured_samples"
+
+
+def _measured(options: dict[str, Any] | None, start: int, stop: int) -> np.ndarray | None:
+    """The ``measured`` mask in ``options`` over ``[start:stop]`` (None: all measured)."""
+    m = (options or {}).get(MEASURED)
+    return None if m is None else m[start:stop]
 
 
 #: the options key under which :func:`select` hands the rate candidates the growth it fitted on
@@ -210,11 +223,16 @@ def score_candidate(structure: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.n
     if not np.all(np.isfinite(pred)):
         return {"structure": structure, "error": "the model's prediction is not finite"}
     stop = u_V.size if end is None else end
-    e_test = (pred[split:stop] - y_nm[split:stop])[scored_samples(u_V[:stop], split, fit_from_index)]
+    scored, trained = scored_samples(u_V[:stop], split, fit_from_index), _measured(options, fit_from_index, split)
+    if (held := _measured(options, split, stop)) is not None:
+        scored = scored & held
+    e_test = (pred[split:stop] - y_nm[split:stop])[scored]
     if e_test.size == 0:
         return {"structure": structure, "error": "no held-out sample lies inside the training input range"}
     e_train = (pred - y_nm)[fit_from_index:split]
-    span = float(np.ptp(y_nm[split:stop])) or 1.0
+    if trained is not None:
+        e_train = e_train[trained]
+    span = float(np.ptp(y_nm[split:stop] if held is None else y_nm[split:stop][held])) or 1.0
     rms = float(np.sqrt(np.mean(e_test ** 2)))
     peak = float(np.max(np.abs(e_test)))
     train_rms = float(np.sqrt(np.mean(e_train ** 2)))
@@ -224,7 +242,10 @@ def score_candidate(structure: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.n
            "train_rms_nm": round(train_rms, 4)}
     if fast_rms is not None:    # the held-out fast parts, each its mean removed
         row["fast_rms_nm"] = round(fast_rms, 4)
-    reason = failure_reason(model, train_rms, linear_fit_rms(u_V[fit_from_index:split], y_nm[fit_from_index:split]))
+    u_fit, y_fit = u_V[fit_from_index:split], y_nm[fit_from_index:split]
+    if trained is not None:
+        u_fit, y_fit = u_fit[trained], y_fit[trained]
+    reason = failure_reason(model, train_rms, linear_fit_rms(u_fit, y_fit))
     if reason:
         row["error"] = reason
     return row
@@ -244,7 +265,8 @@ def _key(row: dict[str, Any], criterion: str = "rms") -> tuple[float, float]:
 def select_model(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates: Sequence[str] = DEFAULT_CANDIDATES,
                  holdout_fraction: float = 0.3, options: dict[str, Any] | None = None,
                  fit_from_index: int = 0, criterion: str = "rms", with_dynamics: bool = True,
-                 v_V: np.ndarray | None = None, jobs: int = 1) -> tuple[ChainModel, list[dict[str, Any]]]:
+                 v_V: np.ndarray | None = None, jobs: int = 1, measured: np.ndarray | None = None
+                 ) -> tuple[ChainModel, list[dict[str, Any]]]:
     """:func:`select` with the amplifier stage before the hysteresis (#36). With the recorded
     piezo voltage ``v_V`` [V] the stage is fitted to it first
     (:func:`~afmctl.compensators.amplifier.fit_amplifier`) and every candidate is scored on the
@@ -252,7 +274,11 @@ def select_model(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, candidates:
     it, the lag below the selected chain's first mode becomes an amplifier stage before the
     hysteresis, the selected structure and the next leading ``+dynamics`` one are scored
     behind it (:func:`with_amplifier_stage`), and the best is kept when it predicts the
-    held-out record better."""
+    held-out record better. ``measured``: one boolean per sample, False where ``y`` was not
+    measured (left out of every fit and score, :data:`MEASURED`)."""
+    measured = measured_rows(measured, np.size(u_V))
+    if measured is not None:
+        options = {**(options or {}), MEASURED: measured}
     if v_V is None:
         best, table, ctx = select(t_s, u_V, y_nm, candidates, holdout_fraction, options, fit_from_index, criterion,
                                   with_dynamics, jobs)
@@ -661,9 +687,11 @@ def _refit_task(shared: dict[str, Any], structure: str, options: dict[str, Any],
         pred = model.forward(dt).block(u)
     except (ModelError, ValueError, np.linalg.LinAlgError) as err:
         return None, " ".join(str(err).split())
-    e = (pred - y)[k0:]
+    keep = _measured(options, k0, u.size)
+    keep = np.ones(u.size - k0, dtype=bool) if keep is None else keep
+    e = (pred - y)[k0:][keep]
     rms = float(np.sqrt(np.mean(e ** 2))) if np.all(np.isfinite(e)) else math.inf
-    reason = failure_reason(model, rms, linear_fit_rms(u[k0:], y[k0:]))
+    reason = failure_reason(model, rms, linear_fit_rms(u[k0:][keep], y[k0:][keep]))
     return (model, None) if reason is None else (None, reason)
 
 

@@ -62,6 +62,7 @@ SLOW_FILES = frozenset({
 # equals step), config, the safety layer, the loop in-process, CLI offline basics, architecture.
 # The figure for the fast set is in docs/ARCHITECTURE.md ("Working on afmctl").
 SLOW_TESTS = frozenset({
+    "test_measured.py::test_auto_scores_and_fits_only_what_was_measured",
     "test_lag.py::test_the_loop_advances_the_setpoints_by_the_paths_ticks",
     "test_wave_run.py::test_can_fifo_plays_the_table_on_its_clock_through_host_stalls",
     "test_wave_run.py::test_estop_flushes_the_fifo_and_ramps_within_the_slew_limit",

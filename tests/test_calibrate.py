@@ -62,7 +62,7 @@ def test_join_puts_the_holds_back_at_the_held_voltage():
     np.testing.assert_array_equal(j.u_V, [0, 1, 2, 2, 2, 2, 2, 2, 1])
     np.testing.assert_array_equal(j.measured, [1, 1, 1, 0, 0, 0, 0, 1, 1])
     np.testing.assert_allclose(j.y_nm[3:7], [21, 22, 23, 24])
-    assert j.holds == [(3, 4)] and list(j.columns()) == ["t", "u", "y", "v"]
+    assert j.holds == [(3, 4)] and list(j.columns()) == ["t", "u", "y", "v", "measured"]
     assert j.held_share == pytest.approx(4 / 9)                   # what the summary reports
     assert len(join([p1, p2], dt, with_holds=False).u_V) == 5
 

@@ -83,7 +83,7 @@ def identify(kind: str, data: str | Path | None = None, *, t_s: np.ndarray | Non
              u_V: np.ndarray | None = None, y_nm: np.ndarray | None = None, v_V: np.ndarray | None = None,
              n_operators: int | None = None,
              y_unit: str = "nm", burn_in: str = "auto", delay: str = "auto", despike: bool = True,
-             name: str | None = None, **params: Any) -> Identified:
+             name: str | None = None, measured: np.ndarray | None = None, **params: Any) -> Identified:
     """Fit ``kind`` (pi, epi, creep, preisach, bouc-wen, rate-pi, rate-bouc-wen, dynamics, amplifier,
     ``[amplifier+]KIND[+creep][+dynamics]`` or ``auto``) to a CSV file ``data`` (columns t,u,y
     and, when the recording has it, v: the piezo voltage [V]) or to arrays ``t_s``, ``u_V``,
@@ -93,9 +93,12 @@ def identify(kind: str, data: str | Path | None = None, *, t_s: np.ndarray | Non
     kind's options (``afmctl identify --help``, ``--param``), for auto also ``candidates``,
     ``holdout_fraction``, ``criterion``, ``with_dynamics`` and ``jobs`` (worker processes
     fitting the candidates side by side, at most :data:`MAX_JOBS`; the same model as one).
-    ``name``: what messages call the arrays (default ``data``; a CSV is called by its path)."""
+    ``name``: what messages call the arrays (default ``data``; a CSV is called by its path).
+    ``measured``: one 0/1 per sample (or the CSV's column ``measured``), 0 where ``y`` was not
+    measured (``afmctl calibrate``'s holds between pieces): those samples are left out of
+    the fit and the residual, the model's memory runs through them."""
     c, where = prepare(kind, data, t_s=t_s, u_V=u_V, y_nm=y_nm, v_V=v_V, n_operators=n_operators, y_unit=y_unit,
-                       burn_in=burn_in, delay=delay, despike=despike, name=name)
+                       burn_in=burn_in, delay=delay, despike=despike, name=name, measured=measured)
     return fit(kind, c, where, n_operators, params)
 
 
@@ -108,7 +111,8 @@ def prepare(kind: str, data: str | Path | None = None, *, t_s: np.ndarray | None
             u_V: np.ndarray | None = None, y_nm: np.ndarray | None = None, v_V: np.ndarray | None = None,
             n_operators: int | None = None,
             y_unit: str = "nm", burn_in: str = "auto", delay: str = "auto", despike: bool = True,
-            names: Names = Names(), name: str | None = None) -> tuple[Conditioned, str]:
+            names: Names = Names(), name: str | None = None,
+            measured: np.ndarray | None = None) -> tuple[Conditioned, str]:
     """The first step of :func:`identify`: the options checked, the recording read (a CSV
     path, or arrays t [s], u [V], y [``y_unit``]) and conditioned as ``kind`` needs it
     (:func:`afmctl.data.identdata.condition`); returns it and the name errors give it."""
@@ -122,10 +126,13 @@ def prepare(kind: str, data: str | Path | None = None, *, t_s: np.ndarray | None
         if cls.has_own_delay and delay == "auto":  # the kind fits its delay itself
             delay = "0"
         uniform = getattr(cls, "time_dependent", False)
-    t, u, y, v, where = _inputs(data, t_s, u_V, y_nm, v_V)
+    t, u, y, v, where, read = _inputs(data, t_s, u_V, y_nm, v_V)
     where = name or where
+    if measured is not None and read is not None:
+        raise AfmctlError("identify: give measured with the arrays, not with a CSV (its column measured)")
     return condition(t, u, y * Y_UNITS[y_unit], where, burn_in=burn_in, delay=delay, despike=despike,
-                     uniform=uniform, dynamics_delay=kind == "auto" or "dynamics" in kind, v_V=v), where
+                     uniform=uniform, dynamics_delay=kind == "auto" or "dynamics" in kind, v_V=v,
+                     measured=read if measured is None else measured), where
 
 
 def fit(kind: str, c: Conditioned, where: str, n_operators: int | None = None, params: dict[str, Any] | None = None,
@@ -138,13 +145,16 @@ def fit(kind: str, c: Conditioned, where: str, n_operators: int | None = None, p
 
 
 def _inputs(data: str | Path | None, t_s: np.ndarray | None, u_V: np.ndarray | None, y_nm: np.ndarray | None,
-            v_V: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, str]:
+            v_V: np.ndarray | None = None
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, str, np.ndarray | None]:
+    """``t, u, y, v, where, measured``: the arrays, or the CSV's columns (``v`` and
+    ``measured`` when it has them)."""
     arrays = (t_s, u_V, y_nm, v_V)
     if data is not None:
         if any(a is not None for a in arrays):
             raise AfmctlError("identify: give either data (a CSV path) or the arrays t_s, u_V, y_nm, not both")
-        d = read_recording(data, optional=("v",))
-        return d["t"], d["u"], d["y"], d.get("v"), str(data)
+        d = read_recording(data, optional=("v", "measured"))
+        return d["t"], d["u"], d["y"], d.get("v"), str(data), d.get("measured")
     if t_s is None or u_V is None or y_nm is None:
         raise AfmctlError("identify: give data (a CSV path with columns t,u,y) or all of t_s, u_V, y_nm")
     t, u, y = (np.ascontiguousarray(a, dtype=np.float64).reshape(-1) for a in (t_s, u_V, y_nm))
@@ -157,7 +167,7 @@ def _inputs(data: str | Path | None, t_s: np.ndarray | None, u_V: np.ndarray | N
     if not np.all(np.isfinite(cols)) or np.any(np.diff(t) <= 0):
         raise AfmctlError("identify: t_s, u_V, y_nm" + ("" if v is None else ", v_V")
                           + " must be finite and t_s strictly increasing")
-    return t, u, y, v, "data"
+    return t, u, y, v, "data", None
 
 
 def _fit_errors(kind: str, where: str, err: Exception, names: Names) -> Exception:
@@ -190,10 +200,18 @@ def _single(cls: type[HysteresisModel], kind: str, c: Conditioned, n_operators: 
                               "column v (V); without it, identify a chain amplifier+KIND[+creep]+dynamics")
         c = replace(c, y_nm=c.v_V, delay_s=0.0)
     t, u, y, k0 = c.t_s, delayed(c.t_s, c.u_V, c.delay_s), c.y_nm, c.fit_from
+    skip = None if kind == "amplifier" else c.left_out
+    if skip is not None and not cls.fits_exclude:
+        c.notes.append(f"measured: {np.count_nonzero(skip)} sample(s) were not measured (column measured 0) and kind "
+                       f"{kind} fits them as if they were; a chain or kind pi, preisach or creep leaves them out")
+        skip = None
     if k0 and getattr(cls, "fits_with_burn_in", False):
         opts.setdefault("fit_from_index", k0)
     elif k0:
         t, u, y, k0 = t[k0:], u[k0:], y[k0:], 0
+        skip = None if skip is None else skip[c.fit_from:]
+    if skip is not None and "exclude" not in opts:
+        opts["exclude"] = np.ascontiguousarray(skip)
     try:
         model = cls.identify(t, u, y, n_operators=n_operators, **opts)
     except (TypeError, ValueError, ModelError, np.linalg.LinAlgError) as err:
@@ -218,6 +236,8 @@ def _result(model: HysteresisModel, c: Conditioned, first: int, y_fit: np.ndarra
     t, u, y = c.t_s[first:], c.u_V[first:], c.y_nm[first:]
     k = c.fit_from - first
     seen = np.isfinite(y_fit[k:])          # dynamics: only its fitted segment is predicted
+    if c.measured is not None:             # samples not measured are not residuals
+        seen &= c.measured[first:][k:]
     res = (y_fit - y)[k:][seen]
     span = float(np.ptp(y[k:][seen])) or 1.0
     return Identified(model, t, u, y, y_fit, float(c.t_s[c.fit_from]) if c.fit_from else None,
@@ -257,10 +277,12 @@ def _chain(kind: str, c: Conditioned, n_operators: int | None, params: dict[str,
                                   "(worker processes fitting the candidates side by side)")
             extra = {"candidates": tuple(candidates)} if candidates else {}
             model, table = select_model(t, u, y, holdout_fraction=holdout, options=opts, fit_from_index=k,
-                                        criterion=criterion, with_dynamics=with_dynamics, v_V=v, jobs=jobs, **extra)
+                                        criterion=criterion, with_dynamics=with_dynamics, v_V=v, jobs=jobs,
+                                        measured=c.measured, **extra)
         else:
             parse_structure(kind)
-            model = ChainModel.identify(t, u, y, structure=kind, fit_from_index=k, v_V=v, **opts)
+            model = ChainModel.identify(t, u, y, structure=kind, fit_from_index=k, v_V=v, measured=c.measured,
+                                        **opts)
     except (TypeError, ModelError, np.linalg.LinAlgError) as err:
         raise _fit_errors(kind, where, err, names) from None
     y_fit = np.asarray(model.forward(float(np.median(np.diff(t)))).block(np.ascontiguousarray(u)))

@@ -28,7 +28,7 @@ POLL_S = 0.2
 def serve(conn: Any) -> None:
     """The worker's loop: ``(key, kind, csv, params, columns)`` in, ``(key, ok, result or
     error)`` out, until ``None`` or the caller's end of the pipe closes. ``columns``: the
-    recording's ``t,u,y[,v]`` arrays, the values the CSV ``csv`` holds (it is written to the
+    recording's ``t,u,y[,v][,measured]`` arrays, the values the CSV ``csv`` holds (it is written to the
     full float precision, :func:`~afmctl.data.datafiles.write_csv`); None: read the CSV.
     Ctrl-C is the caller's to handle (it ends this process when it stops)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -46,7 +46,8 @@ def serve(conn: Any) -> None:
                 conn.send((key, True, identify(kind, csv, **params)))
             else:
                 conn.send((key, True, identify(kind, t_s=columns["t"], u_V=columns["u"], y_nm=columns["y"],
-                                               v_V=columns.get("v"), name=csv, **params)))
+                                               v_V=columns.get("v"), measured=columns.get("measured"), name=csv,
+                                               **params)))
         except Exception as err:            # noqa: BLE001 - every failure goes back as one line
             conn.send((key, False, err if isinstance(err, AfmctlError) else AfmctlError(" ".join(str(err).split()))))
 

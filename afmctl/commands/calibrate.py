@@ -194,9 +194,9 @@ def _print(result: Any) -> None:
         print(f"axis {axis}          : {len(r.recording.t_s)} samples from {r.pieces} piece(s), {held:.0%} of them "
               f"holds between the pieces; recording {r.csv}")
         if held > MOSTLY_HELD:
-            print(f"note             : {held:.0%} of the recording are holds between the pieces, whose positions are "
-                  "interpolated, not measured, and are fitted as if measured: the link or the recorder's size "
-                  "sets them (docs/DRIVERS.md, 'Calibrating on the device')")
+            print(f"note             : {held:.0%} of the recording are holds between the pieces: their positions are "
+                  "not measured (column measured 0) and are left out of the fit, their creep is the model's: the "
+                  "link or the recorder's size sets them (docs/DRIVERS.md, 'Calibrating on the device')")
         if fit.table is not None:
             print(f"held-out prediction error of the candidates (last {fit.holdout_fraction:.0%} of the recording; "
                   f"% of its span; ranked by {fit.criterion}):")

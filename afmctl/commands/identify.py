@@ -19,8 +19,12 @@ Input:
                     voltage sent to the amplifier (V) and the measured displacement (nm);
                     optional column v: the voltage at the piezo (V; an amplifier's monitor
                     output or a controller's recorder channel): a chain or auto then
-                    identifies the amplifier stage before the hysteresis from it.
-                    Other columns are ignored. Excite the scanner over the range you will
+                    identifies the amplifier stage before the hysteresis from it;
+                    optional column measured: 1 where y was measured, 0 where it was not
+                    (afmctl calibrate's holds between recorded pieces, y interpolated):
+                    those rows are left out of the fit and the scores, the model's memory
+                    and creep run through them (kinds pi, preisach, creep and every chain;
+                    the others say so in a note). Other columns are ignored. Excite the scanner over the range you will
                     use: a decaying triangle (nested loops) for hysteresis models, and
                     holds/staircases of a few seconds for the creep-aware kinds (epi,
                     creep; non-uniform samples are resampled for them).

@@ -19,7 +19,8 @@ be cut at all: :func:`plan_pieces` refuses such a device before anything moves.
 each hold's length is measured on the host clock (the start of a piece less the end of the
 one before, rounded to whole samples), its voltage is the held one, its position is not
 recorded (linearly interpolated from the end of one piece to the start of the next; the
-rows are marked in ``measured``). The joined record so carries the history the scanner
+rows are marked in ``measured``, the CSV's column ``measured``, and every fit and score of
+``afmctl identify`` leaves them out). The joined record so carries the history the scanner
 really saw — the creep of every hold is in the voltages that follow — and the hysteresis
 memory is whole (the pieces are contiguous in voltage). What joining costs against one
 continuous recording is measured by ``benchmarks/calibrate_join.py`` (docs/BENCHMARKS.md).
@@ -196,10 +197,13 @@ class Joined:
         return float(1.0 - np.count_nonzero(self.measured) / len(self.measured)) if len(self.measured) else 0.0
 
     def columns(self) -> dict[str, np.ndarray]:
-        """The CSV columns ``t,u,y[,v]`` (s, V, nm, V)."""
+        """The CSV columns ``t,u,y[,v][,measured]`` (s, V, nm, V, 0/1): ``measured`` when
+        holds were inserted, 0 on their rows (``afmctl identify`` leaves them out of the fit)."""
         cols = {"t": self.t_s, "u": self.u_V, "y": self.y_nm}
         if self.v_V is not None:
             cols["v"] = self.v_V
+        if not self.measured.all():
+            cols["measured"] = self.measured.astype(np.float64)
         return cols
 
 

@@ -9,6 +9,9 @@ model kind, checks and conditions them:
   ``k`` robust standard deviations from its running median is replaced by that median).
 * :func:`resample_uniform` — non-uniform time stamps → a uniform grid (median period, linear
   interpolation).
+* :func:`measured_mask` — the optional column ``measured``: 0 on samples whose ``y`` was not
+  measured (the holds between the pieces of ``afmctl calibrate``, interpolated); every fit
+  and every held-out score leaves them out, while the models' memory runs through them.
 * :func:`burn_in_index` — the first sample at which the input has passed both of its extremes;
   for rate-independent hysteresis with the wiping-out property the memory from then on no
   longer depends on the unknown state the recording started in.
@@ -35,6 +38,7 @@ log = logging.getLogger(__name__)
 U_LIMIT_V = 1000.0        #: |u| allowed in data files [V] (no piezo amplifier drives more)
 Y_LIMIT_NM = 1.0e6        #: |y| allowed in data files [nm] (1 mm)
 MIN_GAIN_NM_PER_V = 0.5   #: below this gain a displacement column is taken to be in µm
+MIN_MEASURED = 16         #: measured samples a record needs at the least (column ``measured``)
 Y_UNITS = {"nm": 1.0, "um": 1000.0, "µm": 1000.0}
 
 
@@ -50,6 +54,15 @@ class Conditioned:
     notes: list[str] = field(default_factory=list)
     #: the recorded piezo voltage [V] (the optional column ``v``), on the same samples; None without it
     v_V: np.ndarray | None = None
+    #: True on the samples whose ``y`` was measured, False where it was not (the optional
+    #: column ``measured``: 0 on the holds ``afmctl calibrate`` inserts between recorded pieces,
+    #: their ``y`` interpolated); None when every sample was measured
+    measured: np.ndarray | None = None
+
+    @property
+    def left_out(self) -> np.ndarray | None:
+        """True on the samples not measured (left out of every fit and score), or None."""
+        return None if self.measured is None else ~self.measured
 
 
 def check_units(u_V: np.ndarray, y_nm: np.ndarray, where: str) -> None:
@@ -183,7 +196,8 @@ def excitation_notes(t_s: np.ndarray, u_V: np.ndarray) -> list[str]:
 
 def condition(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, where: str, *,
               burn_in: str = "auto", delay: str = "auto", despike: bool = True,
-              uniform: bool = False, dynamics_delay: bool = False, v_V: np.ndarray | None = None) -> Conditioned:
+              uniform: bool = False, dynamics_delay: bool = False, v_V: np.ndarray | None = None,
+              measured: np.ndarray | None = None) -> Conditioned:
     """Units, spikes, uniform sampling, burn-in and delay of measured ``t,u,y`` (see the module
     docstring). ``burn_in``: ``auto``, ``none`` or seconds; ``delay``: ``auto`` or seconds;
     ``uniform``: resample non-uniform records (for time-dependent model kinds; interpolation
@@ -192,26 +206,54 @@ def condition(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, where: str, *,
     (fractional, jointly with its poles): ``delay="auto"`` then leaves a record with fast
     parts undelayed (a whole-sample shift ahead of it would take an amplifier's lag for a
     delay, #24). ``v_V``: the recorded piezo voltage [V] (column ``v``), resampled with the
-    rest; the sensor's delay is the output's, so it is shifted with the command."""
+    rest; the sensor's delay is the output's, so it is shifted with the command.
+    ``measured``: the column ``measured`` (1 where ``y`` was measured, 0 where it was not;
+    :func:`measured_mask`); a resampled sample counts as measured when both its neighbours
+    were."""
     check_units(u_V, y_nm, where)
-    c = Conditioned(t_s, u_V, y_nm, v_V=v_V)
+    mask = measured_mask(measured, u_V.size, where)
+    c = Conditioned(t_s, u_V, y_nm, v_V=v_V, measured=mask)
     if despike:
         c.y_nm, n = remove_spikes(y_nm)
         if n:
             c.notes.append(f"spikes: {n} sample(s) of y replaced by their running median")
     changed = False
     if uniform:
-        extra = [] if v_V is None else [v_V]
+        extra = ([] if v_V is None else [v_V]) + ([] if mask is None else [mask.astype(np.float64)])
         c.t_s, cols, changed = resample_uniform(t_s, u_V, c.y_nm, *extra)
         c.u_V, c.y_nm = cols[0], cols[1]
         if v_V is not None:
             c.v_V = cols[2]
+        if mask is not None:
+            c.measured = cols[-1] >= 1.0 - 1e-9
     if changed:
         c.notes.append(f"sampling: non-uniform; resampled to {c.t_s.size} samples every "
                        f"{float(c.t_s[1] - c.t_s[0]):.4g} s")
     c.fit_from = _burn_in(c, burn_in, where)
     c.delay_s = _delay(c, delay, where, dynamics_delay)
     return c
+
+
+def measured_mask(measured: np.ndarray | None, n: int, where: str) -> np.ndarray | None:
+    """The column ``measured`` (``n`` values, each 0 or 1) as booleans; None when it is
+    absent or all ones. One-line :class:`AfmctlError` for other values or when fewer than
+    :data:`MIN_MEASURED` samples were measured."""
+    if measured is None:
+        return None
+    m = np.asarray(measured, dtype=np.float64).reshape(-1)
+    if m.size != n:
+        raise AfmctlError(f"{where}: column measured: {m.size} values for {n} samples")
+    if not np.all((m == 0.0) | (m == 1.0)):
+        bad = int(np.flatnonzero((m != 0.0) & (m != 1.0))[0])
+        raise AfmctlError(f"{where}: column measured: row {bad + 1} holds {m[bad]:g}; allowed 0 (not measured, "
+                          "e.g. interpolated) or 1 (measured)")
+    mask = m == 1.0
+    if mask.all():
+        return None
+    if np.count_nonzero(mask) < MIN_MEASURED:
+        raise AfmctlError(f"{where}: column measured: {np.count_nonzero(mask)} sample(s) measured; at least "
+                          f"{MIN_MEASURED} are needed")
+    return mask
 
 
 def _burn_in(c: Conditioned, burn_in: str, where: str) -> int:
