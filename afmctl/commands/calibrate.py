@@ -31,7 +31,8 @@ default the scanner's), afmctl calibrate
      staircase, a small-signal multisine, large fast triangles and steps — about a minute. The device's wave table and
      recorder hold a few thousand points, so it plays in pieces; between pieces the output
      holds its last voltage (the scanner's hysteresis memory runs on) and the holds go back
-     into the joined recording. A device whose recorder cannot hold one multisine period is
+     into the joined recording, their positions not measured (column measured 0: left out
+     of the fit, their creep the model's). A device whose recorder cannot hold one multisine period is
      refused in one line before anything moves. Only the calibrated axis plays; the others
      hold their safe value;
   2. reads the position back through the device's recorder, and the piezo voltage where the
