@@ -300,11 +300,8 @@ class CANAmplifier(Amplifier):
             self._guard()
             if self.stream_rate_Hz is None:
                 raise ProtocolError("queue() before start_stream(): the amplifier is not streaming")
-            lim = self._limits
-            raw = check_block(block_V, self.axes, lim, self._last, None)  # finite, inside the limits
-            quantised = [tuple(codec.quantize_inside(v, lim[a].min_V, lim[a].max_V) for a, v in zip(self.axes, row))
-                         for row in raw]
-            rows = check_block(quantised, self.axes, lim, self._last, self.max_step_V)
+            # finite, inside the limits; then the step between the values as quantised (as sent)
+            rows = check_block(block_V, self.axes, self._limits, self._last, self.max_step_V, codec.quantize_inside)
             self._io(self._send_samples, rows)
             return len(rows)
 

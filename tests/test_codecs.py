@@ -294,6 +294,19 @@ def test_can_quantize_inside(v, lo, width):
         assert not math.isfinite(v) or width < 0.0025
         return
     assert lo <= q <= hi
+    assert q == _quantize_inside_slowly(v, lo, hi)      # the fast path inside the limits is the same value
+
+
+def _quantize_inside_slowly(value_V: float, lo_V: float, hi_V: float) -> float:
+    """The plain statement of :func:`codec_can.quantize_inside` (no fast path): clamp, round
+    to the step, move inside the limits by whole steps."""
+    step_V = codec_can.volts_per_bit()
+    raw = round(min(max(value_V, lo_V), hi_V) / step_V)
+    while raw * step_V > hi_V:
+        raw -= 1
+    while raw * step_V < lo_V:
+        raw += 1
+    return raw * step_V
 
 
 def test_can_recorder_block_round_trip_in_plain_bytes():
