@@ -318,9 +318,12 @@ def _check_readme_tour(work: Path) -> None:
     assert set(prov["validation"]["x"]) == {"raster", "minor loops", "all"}
     assert prov["validation"]["x"]["all"]["max_pct"] < 10.0                     # PI on this scanner: ~2 %
     rec = (tour / "scanner.x-recording.csv").read_text().splitlines()
-    assert rec[0] == "t,u,y,v"
+    assert rec[0] == "t,u,y,v,measured"
     data = np.loadtxt(rec[1:], delimiter=",")
     assert np.ptp(data[:, 2]) > 5000.0                       # the sensor saw the scanner sweep the range
+    held = np.flatnonzero(data[:, 4] == 0.0)                 # the holds between the pieces: not measured
+    assert held.size and set(np.unique(data[:, 4])) == {0.0, 1.0} and held[0] > 0
+    assert np.all(data[held, 1] == data[held - 1, 1])        # ... at the voltage held
     assert 0 < np.max(np.abs(data[:, 3] - data[:, 1])) < 5.0  # the piezo voltage lags the command a little
     # x learned without a creep stage (SHORTEN: pi): every play, the run's too, started
     # AS_RECORDED_REST_S after the play before it ended (the learn's plays, then the run)
