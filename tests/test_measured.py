@@ -143,3 +143,22 @@ def test_a_kind_without_a_row_mask_says_it_fits_them():
     t, u, y, joined, measured = held_record()
     fit = afmctl.identify("bouc-wen", t_s=t, u_V=u, y_nm=joined, measured=measured.astype(float))
     assert any("not measured" in n and "bouc-wen" in n for n in fit.notes), fit.notes
+
+
+def test_model_validate_scores_only_what_was_measured(tmp_path):
+    """``afmctl model validate`` on a recording with the column: its figures are those of
+    the measured rows, not the 2 µm the holds are off."""
+    t, u, y, joined, measured = held_record()
+    fit = afmctl.identify("preisach+creep", t_s=t, u_V=u, y_nm=y, n_operators=16)
+    model = tmp_path / "m.json"
+    afmctl.save_model(fit.model, model)
+    masked = afmctl.validate(fit.model, t, u, joined, measured=measured.astype(float)).stats[0]
+    true = afmctl.validate(fit.model, t, u, y, measured=measured.astype(float)).stats[0]
+    blind = afmctl.validate(fit.model, t, u, joined).stats[0]
+    assert masked.max_nm == true.max_nm < 1000.0 < blind.max_nm
+    csv = tmp_path / "rec.csv"
+    write_csv(csv, {"t": t, "u": u, "y": joined, "measured": measured.astype(float)})
+    res = subprocess.run([sys.executable, "-m", "afmctl", "model", "validate", "--model", str(model), "--data",
+                          str(csv)], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert f"{masked.max_nm:.4g}" in res.stdout, res.stdout

@@ -16,7 +16,7 @@ from afmctl.compensators.models import HysteresisModel
 from afmctl.compensators.models import load_model as _load_model
 from afmctl.compensators.models import save_model as _save_model
 
-from ..data.identdata import U_LIMIT_V, Y_UNITS, burn_in_index, check_units
+from ..data.identdata import U_LIMIT_V, Y_UNITS, burn_in_index, check_units, measured_mask
 from ..data.prediction import HEADER, ErrorStats, predict_nm, score
 from ..errors import AfmctlError
 
@@ -82,10 +82,12 @@ class Validation:
 
 
 def validate(model: HysteresisModel, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, *,
-             warm: Warm | None = None, y_unit: str = "nm", where: str = "data") -> Validation:
+             warm: Warm | None = None, y_unit: str = "nm", where: str = "data",
+             measured: np.ndarray | None = None) -> Validation:
     """Predict a held-out recording (t [s], u [V], y in ``y_unit``) and score the error. Without
     ``warm``, samples until the input has passed both its extremes only set the model's
-    memory and are not scored."""
+    memory and are not scored. ``measured``: 0/1 per sample (the column ``measured``), 0
+    where ``y`` was not measured: not scored either."""
     if y_unit not in Y_UNITS:
         raise AfmctlError(f"y_unit: {y_unit!r} is not known; allowed: nm, um")
     t, u = _floats("t_s", t_s), _floats("u_V", u_V)
@@ -95,7 +97,7 @@ def validate(model: HysteresisModel, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.
     start = 0 if warm is not None else burn_in_index(u)
     if start >= t.size - 1:
         start = 0
-    return Validation(score(t, u, y, y_pred, start), start, y_pred)
+    return Validation(score(t, u, y, y_pred, start, measured_mask(measured, t.size, where)), start, y_pred)
 
 
 @dataclass

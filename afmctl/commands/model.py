@@ -74,7 +74,7 @@ def _register_validate(sub: argparse._SubParsersAction) -> None:
                                     "  afmctl model validate --model pi.json --data heldout.csv --plot val.png",
                         formatter_class=argparse.RawDescriptionHelpFormatter)
     pv.add_argument("--model", required=True, metavar="MODEL.json", help="model JSON file (any kind)")
-    pv.add_argument("--data", required=True, metavar="HELDOUT.csv", help="CSV with columns t,u,y (s, V, nm)")
+    pv.add_argument("--data", required=True, metavar="HELDOUT.csv", help="CSV with columns t,u,y (s, V, nm); an optional column measured (0/1): rows 0 are not scored")
     pv.add_argument("--warm-start", metavar="DATA.csv", help="run the model through this recording's t,u first")
     pv.add_argument("--y-unit", default="nm", metavar="nm|um", help="unit of the data's y column (default nm)")
     pv.add_argument("--plot", metavar="FIG.png", help="draw measured vs predicted and the error")
@@ -147,9 +147,10 @@ def run_validate(args: argparse.Namespace) -> int:
     model = load_model(args.model)
     if args.y_unit not in Y_UNITS:
         raise AfmctlError(f"--y-unit: {args.y_unit!r} is not known; allowed: nm, um")
-    d = read_csv(args.data, ("t", "u", "y"), min_rows=2)
+    d = read_csv(args.data, ("t", "u", "y"), min_rows=2, optional=("measured",))
     t, u = d["t"], d["u"]
-    res = validate(model, t, u, d["y"], warm=_warm(args.warm_start), y_unit=args.y_unit, where=str(args.data))
+    res = validate(model, t, u, d["y"], warm=_warm(args.warm_start), y_unit=args.y_unit, where=str(args.data),
+                   measured=d.get("measured"))
     start, stats = res.start, res.stats
     print(f"model            : {args.model} (kind {model.kind})")
     print(f"data             : {args.data}, {t.size} rows"

@@ -83,17 +83,21 @@ def segment_bounds(u_V: np.ndarray, max_segments: int = 20) -> list[tuple[int, i
 
 
 def score(t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, y_pred_nm: np.ndarray,
-          start: int = 0) -> list[ErrorStats]:
-    """Whole-record stats (samples from ``start``), then one line per input cycle."""
-    span = float(np.ptp(y_nm[start:]))
-    sl = slice(start, None)
-    out = [error_stats("all", t_s[sl], y_nm[sl], y_pred_nm[sl], span)]
-    bounds = segment_bounds(u_V[sl])
+          start: int = 0, measured: np.ndarray | None = None) -> list[ErrorStats]:
+    """Whole-record stats (samples from ``start``), then one line per input cycle; only the
+    samples ``measured`` (a boolean per sample; None: all) count."""
+    keep = np.ones(t_s.size, dtype=bool) if measured is None else measured
+    span = float(np.ptp(y_nm[start:][keep[start:]]))
+
+    def stats(label: str, a: int, b: int) -> ErrorStats | None:
+        k = keep[a:b]
+        return error_stats(label, t_s[a:b][k], y_nm[a:b][k], y_pred_nm[a:b][k], span) if k.any() else None
+
+    out = [stats("all", start, t_s.size)]
+    bounds = segment_bounds(u_V[start:])
     if len(bounds) > 1:
-        for i, (a, b) in enumerate(bounds, start=1):
-            a, b = a + start, b + start
-            out.append(error_stats(f"cycle {i}", t_s[a:b], y_nm[a:b], y_pred_nm[a:b], span))
-    return out
+        out += [stats(f"cycle {i}", a + start, b + start) for i, (a, b) in enumerate(bounds, start=1)]
+    return [s for s in out if s is not None]
 
 
 def plot_validation(path: str, t_s: np.ndarray, u_V: np.ndarray, y_nm: np.ndarray, y_pred_nm: np.ndarray,
