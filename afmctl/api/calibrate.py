@@ -329,7 +329,8 @@ class Calibration:
         axis = plan.axis
         exc = run.play(f"excite {axis}", axis, signals, [plan.table(k) for k in range(len(plan.bounds))],
                        [a for a, _ in plan.bounds],
-                       lambda k: total_s - done[0] - plan.bounds[k][0] * dt)
+                       lambda k: total_s - done[0] - plan.bounds[k][0] * dt,
+                       [plan.exc.priority[a:b] for a, b in plan.bounds])     # a multisine's periods stay whole
         done[0] += len(plan.exc.u_V) * dt
         rec = join(exc, dt)
         self._fit_later(axis, rec)

@@ -16,7 +16,8 @@ piece is read back while it plays (:class:`LiveReadback`), so a hold lasts the u
 start and the last chunk of the read-back rather than the whole read-back. A device whose
 recorder records a longer recording into a ring (the CAN amplifier: 8192 points) plays
 pieces of up to :data:`RING_SPAN` rings, read in step; a piece whose read-back fell behind
-(points overwritten) is played once more.
+(points overwritten) is played again in parts that do not go round the ring
+(:func:`unringed_rows`), read back however late.
 
 Requests: :meth:`CalibrationRun.stop` (Ctrl-C, zenoh ``stop``) stops the piece playing at
 once (wave generator stopped / FIFO flushed, the output holds), then :func:`return_to_safe`
@@ -39,7 +40,7 @@ import numpy as np
 
 from ..config import LEARN_SETTLE_S, CompensationSection
 from ..errors import AfmctlError
-from .calibrate_pieces import PieceRecord, follow_table
+from .calibrate_pieces import PieceRecord, cut_points, follow_table, ramp_priorities
 from .controller import Controller, State
 from .learned_table import LearnedSource, LearnedTable
 from .safety import SafetyLayer
@@ -225,6 +226,14 @@ def recording_points(amp: Any, axis: str, signals: tuple[str, ...]) -> int:
     return held
 
 
+def unringed_rows(amp: Any, axis: str, signals: tuple[str, ...]) -> int:
+    """The most rows a streamed piece may have for its recording (its rows and
+    :data:`STREAM_SLACK`'s room for holds, :meth:`CalibrationRun._arm`) to stay within what
+    ``amp``'s recorder holds: never round a ring, nothing overwritten however late it is read."""
+    held = int(amp.recorder_capacity([axis], signals))
+    return max(1, int((held - 1) * (1.0 - STREAM_SLACK)))
+
+
 def live_chunk(amp: Any, axis: str, signals: tuple[str, ...], points: int) -> int:
     """Points a :class:`LiveReadback` reads at a time: :data:`LIVE_CHUNK`, or an eighth of a
     shorter piece; on a ring an eighth of what the ring holds (each chunk is read long before
@@ -352,11 +361,14 @@ class CalibrationRun:
         return float(self.config.dt_s)
 
     def play(self, what: str, axis: str, signals: tuple[str, ...], tables: list[np.ndarray],
-             starts: list[int], left_s: Callable[[int], float]) -> list[PieceRecord]:
+             starts: list[int], left_s: Callable[[int], float],
+             priorities: list[np.ndarray] | None = None) -> list[PieceRecord]:
         """Play ``tables`` (voltages of ``axis`` [V], one piece each) in turn, recording
         ``signals``; the other axes hold :attr:`hold_V` (ramped there before the first
-        piece; only ``axis``'s table is uploaded). Raises :class:`CalibrationStopped` on a
-        stop, :class:`CalibrationFault` on a lost link."""
+        piece; only ``axis``'s table is uploaded). ``priorities``: each table's cut
+        priorities (:mod:`.calibrate_pieces`; default its ramps' turning points), for a piece
+        that has to be played again in parts. Raises :class:`CalibrationStopped` on a stop,
+        :class:`CalibrationFault` on a lost link."""
         got = self.pieces.setdefault(what, [])
         if self._first and not self._stop.is_set():
             self._to_safe()
@@ -365,23 +377,33 @@ class CalibrationRun:
                 raise CalibrationStopped("afmctl calibrate: stopped")
             if self.on_progress is not None:
                 self.on_progress(Progress(what, k, len(tables), left_s(k)))
-            got.append(self._played_piece(axis, signals, u, start))
+            prio = priorities[k] if priorities is not None else ramp_priorities(u)
+            got.extend(self._played_piece(axis, signals, u, start, prio))
         return got
 
-    def _played_piece(self, axis: str, signals: tuple[str, ...], u: np.ndarray, start: int) -> PieceRecord:
-        """:meth:`_piece`, played once more when its read-back fell behind a ring recorder
-        (:func:`rings`: a host too busy to read in step); a second time ends the calibration
-        (:class:`CalibrationFault`, what was recorded before is kept)."""
+    def _played_piece(self, axis: str, signals: tuple[str, ...], u: np.ndarray, start: int,
+                      priority: np.ndarray) -> list[PieceRecord]:
+        """:meth:`_piece`; when its read-back fell behind a ring recorder (:func:`rings`: a
+        host too busy to read in step), the piece is played again in parts the recorder holds
+        without going round its ring (:func:`unringed_rows`, cut by ``priority``), whose
+        points stay until they are read however late (what was recorded before is kept)."""
         from afmctl.drivers.errors import RecordingOverwritten
         try:
-            return self._piece(axis, signals, u, start)
+            return [self._piece(axis, signals, u, start)]
         except RecordingOverwritten as err:
             if self._stop.is_set():
                 raise CalibrationStopped("afmctl calibrate: stopped") from None
-            log.warning("%s: the read-back fell behind the recorder (%s); playing the piece at sample %d again",
-                        self.amp.name, err, start)
+            most = unringed_rows(self.amp, axis, signals)
+            log.warning("%s: the read-back fell behind the recorder (%s); playing the piece at sample %d again in "
+                        "parts of at most %d rows", self.amp.name, err, start, most)
         try:
-            return self._piece(axis, signals, u, start)
+            parts = cut_points(priority, most)
+        except ValueError as err:
+            raise CalibrationFault(f"afmctl calibrate: the read-back fell behind the {self.amp.name}'s recorder and "
+                                   f"the piece at sample {start} cannot be cut to fit it ({err}): the host is too "
+                                   "busy to read in step; calibrate again on a quieter machine") from None
+        try:
+            return [self._piece(axis, signals, u[a:b], start + a) for a, b in parts]
         except RecordingOverwritten:
             raise CalibrationFault(f"afmctl calibrate: the read-back fell behind the {self.amp.name}'s recorder twice "
                                    "(points overwritten before they were read): the host is too busy to read in "
