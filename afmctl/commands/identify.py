@@ -24,10 +24,11 @@ Input:
                     (afmctl calibrate's holds between recorded pieces, y interpolated):
                     those rows are left out of the fit and the scores, the model's memory
                     and creep run through them (kinds pi, preisach, creep and every chain;
-                    the others say so in a note). Other columns are ignored. Excite the scanner over the range you will
-                    use: a decaying triangle (nested loops) for hysteresis models, and
-                    holds/staircases of a few seconds for the creep-aware kinds (epi,
-                    creep; non-uniform samples are resampled for them).
+                    the others say so in a note). Other columns are ignored.
+                    Excite the scanner over the range you will use: a decaying triangle
+                    (nested loops) for hysteresis models, and holds/staircases of a few
+                    seconds for the creep-aware kinds (epi, creep; non-uniform samples are
+                    resampled for them).
   --from-images F…  instead of --data: a .npz scan file (docs/SIM.md) or grating images,
                     one .gwy/.gsf/.tif/.ibw or Bruker Nanoscope .spm/.000… per scan range, each
                     with trace and retrace, e.g. --from-images r150.gwy r140.gwy …
