@@ -261,7 +261,7 @@ class ChainModel(HysteresisModel):
             rest = join_structure(hyst_kind, [s for s in stages if s != AMPLIFIER])
             return _with_amplifier(cls, rest, t_s, u_V, y_nm, v_V, dict(
                 n_operators=n_operators, rounds=rounds, dynamics_options=dynamics_options,
-                fit_from_index=fit_from_index, left_out=left_out, **options))
+                fit_from_index=fit_from_index, left_out=left_out, measured=measured, **options))
         hcls = model_class(hyst_kind)
         t = check_finite("t_s", t_s).ravel()
         u = np.ascontiguousarray(check_finite("u_V", u_V).ravel())

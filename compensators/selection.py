@@ -168,7 +168,8 @@ def _with_dynamics(model: ChainModel, t: np.ndarray, u: np.ndarray, y: np.ndarra
         return m.hysteresis, m.creep
 
     chain = ChainModel(hysteresis=model.hysteresis, creep=model.creep, dynamics=dyn)
-    return refine_with_dynamics(chain, static, t, u, y, k0, dyn_options, stop=split)
+    return refine_with_dynamics(chain, static, t, u, y, k0, dyn_options, stop=split,
+                                measured=_measured(options, 0, u.size))
 
 
 def _fast_rms(pred: np.ndarray, y: np.ndarray, parts: list[tuple[int, int]], start: int, stop: int

@@ -53,12 +53,16 @@ def measured_error_nm(fit: afmctl.Identified, u: np.ndarray, y: np.ndarray, meas
     return float(np.sqrt(np.mean((pred - y)[k:][measured[k:]] ** 2)))
 
 
-@pytest.mark.parametrize("kind", ["pi", "pi+creep", "preisach+creep"])
+@pytest.mark.parametrize("kind", ["pi", "pi+creep", "preisach+creep", "amplifier+pi+creep"])
 def test_a_fit_leaves_the_samples_not_measured_out(kind):
     """With the mask the fit is the one the true positions give (the holds' rows are not in
-    it); without it the 2 µm the holds are off bend the model (which shows the test can fail)."""
+    it); without it the 2 µm the holds are off bend the model (which shows the test can fail).
+    A chain with an amplifier stage (fitted here to a piezo voltage equal to the command)
+    passes the mask on to the stages behind it."""
     t, u, y, joined, measured = held_record()
-    opts = {"n_operators": 12} if kind.startswith("pi") else {"n_operators": 16}
+    opts: dict = {"n_operators": 12} if "pi" in kind else {"n_operators": 16}
+    if kind.startswith("amplifier"):
+        opts["v_V"] = u
     clean_fit = afmctl.identify(kind, t_s=t, u_V=u, y_nm=y, **opts)
     masked_fit = afmctl.identify(kind, t_s=t, u_V=u, y_nm=joined, measured=measured.astype(float), **opts)
     blind_fit = afmctl.identify(kind, t_s=t, u_V=u, y_nm=joined, **opts)
